@@ -1,0 +1,1 @@
+"""Geometry: rotation conventions, projection, views, ray intersection, CRS handling."""

@@ -1,0 +1,182 @@
+"""Rotation conventions: the one module that converts between them.
+
+Frames
+------
+* World: a projected CRS, metres, X east, Y north, Z up.
+* OpenCV camera (the core's internal frame): x right, y down, z forward (viewing direction).
+  A pose is ``cam_from_world``: ``x_cam = R @ x_world + t`` with ``t = -R @ C`` and C the projection centre.
+* Photogrammetric image frame (PATB, BINGO, Pix4D, BlocksExchange, Blender's camera): x right, y up, z back
+  (pointing from the scene towards the projection centre).
+
+Omega-phi-kappa
+---------------
+``M = Rx(omega) @ Ry(phi) @ Rz(kappa)`` rotates photo-frame vectors into the world frame
+(``world_from_photo``), with the usual right-handed active rotations
+``Rx(a) = [[1, 0, 0], [0, cos a, -sin a], [0, sin a, cos a]]`` etc. This is the convention of PATB, BINGO,
+Pix4D and ContextCapture's BlocksExchange ``<Omega>/<Phi>/<Kappa>``; it equals Blender's ``rotation_mode='ZYX'``
+with ``rotation_euler = (omega, phi, kappa)``. The OpenCV rotation is ``R = diag(1, -1, -1) @ M.T``.
+
+Yaw-pitch-roll (navigation)
+---------------------------
+Body frame x forward, y right, z down. Local level frame north-east-down (NED).
+``R_ned_from_body = Rz(yaw) @ Ry(pitch) @ Rx(roll)``; yaw is the heading clockwise from grid north.
+The world (east-north-up) frame is reached with ``R_enu_from_ned = [[0, 1, 0], [1, 0, 0], [0, 0, -1]]``.
+A camera mounted with ``cam_from_body`` (default: a nadir camera whose image top points forward,
+``x_cam = y_body``, ``y_cam = -x_body``, ``z_cam = z_body``) has ``R = cam_from_body @ R_ned_from_body.T @
+R_enu_from_ned.T``. Grid convergence is ignored: yaw is taken against grid north of the projected CRS.
+
+Angles are radians unless a function takes a ``unit`` (``"deg"``, ``"gon"`` or ``"rad"``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ConfigError
+
+FLIP_YZ = np.diag([1.0, -1.0, -1.0])
+"""Maps the photogrammetric image frame (x right, y up, z back) to OpenCV's (x right, y down, z forward)."""
+
+ENU_FROM_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+CAM_FROM_BODY_NADIR = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+ANGLE_UNITS = {"rad": 1.0, "deg": np.pi / 180.0, "gon": np.pi / 200.0, "grad": np.pi / 200.0}
+
+
+def to_radians(value: float | np.ndarray, unit: str) -> float | np.ndarray:
+    """Convert angles in ``unit`` (``deg``, ``gon``/``grad`` or ``rad``) to radians."""
+    try:
+        return value * ANGLE_UNITS[unit]
+    except KeyError:
+        raise ConfigError(f"unknown angle unit '{unit}' (use one of deg, gon, rad)") from None
+
+
+def from_radians(value: float | np.ndarray, unit: str) -> float | np.ndarray:
+    """Convert radians to ``unit`` (``deg``, ``gon``/``grad`` or ``rad``)."""
+    try:
+        return value / ANGLE_UNITS[unit]
+    except KeyError:
+        raise ConfigError(f"unknown angle unit '{unit}' (use one of deg, gon, rad)") from None
+
+
+def rot_x(a: float) -> np.ndarray:
+    """Active right-handed rotation about x by ``a`` radians, (3, 3)."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    """Active right-handed rotation about y by ``a`` radians, (3, 3)."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(a: float) -> np.ndarray:
+    """Active right-handed rotation about z by ``a`` radians, (3, 3)."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def opk_to_world_from_photo(omega: float, phi: float, kappa: float) -> np.ndarray:
+    """``M = Rx(omega) Ry(phi) Rz(kappa)``: photo frame (x right, y up, z back) to world, (3, 3)."""
+    return rot_x(omega) @ rot_y(phi) @ rot_z(kappa)
+
+
+def world_from_photo_to_opk(m: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`opk_to_world_from_photo`; phi in [-pi/2, pi/2].
+
+    At the singularity ``|phi| = pi/2`` omega is set to 0 and kappa carries the whole rotation about z.
+    """
+    m = np.asarray(m, dtype=np.float64)
+    # M = Rx(w) Ry(p) Rz(k): m[0,2] = sin p, m[1,2] = -sin w cos p, m[2,2] = cos w cos p,
+    # m[0,0] = cos p cos k, m[0,1] = -cos p sin k
+    sp = float(np.clip(m[0, 2], -1.0, 1.0))
+    phi = float(np.arcsin(sp))
+    if abs(sp) < 1.0 - 1e-12:
+        omega = float(np.arctan2(-m[1, 2], m[2, 2]))
+        kappa = float(np.arctan2(-m[0, 1], m[0, 0]))
+    else:
+        omega = 0.0
+        kappa = float(np.arctan2(m[1, 0], m[1, 1]))
+    return omega, phi, kappa
+
+
+def opk_to_cam_from_world(omega: float, phi: float, kappa: float) -> np.ndarray:
+    """OpenCV rotation ``R`` (world to camera, x right, y down, z forward) from omega-phi-kappa radians."""
+    return FLIP_YZ @ opk_to_world_from_photo(omega, phi, kappa).T
+
+
+def cam_from_world_to_opk(r_cam_from_world: np.ndarray) -> tuple[float, float, float]:
+    """Omega-phi-kappa radians from an OpenCV ``cam_from_world`` rotation."""
+    m = (FLIP_YZ @ np.asarray(r_cam_from_world, dtype=np.float64)).T
+    return world_from_photo_to_opk(m)
+
+
+def ypr_to_cam_from_world(
+    yaw: float,
+    pitch: float,
+    roll: float,
+    cam_from_body: np.ndarray = CAM_FROM_BODY_NADIR,
+) -> np.ndarray:
+    """OpenCV ``cam_from_world`` from navigation yaw, pitch, roll (radians) and the camera mount, (3, 3)."""
+    ned_from_body = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+    world_from_body = ENU_FROM_NED @ ned_from_body
+    return np.asarray(cam_from_body) @ world_from_body.T
+
+
+def cam_from_world_to_ypr(
+    r_cam_from_world: np.ndarray,
+    cam_from_body: np.ndarray = CAM_FROM_BODY_NADIR,
+) -> tuple[float, float, float]:
+    """Yaw, pitch, roll radians (pitch in [-pi/2, pi/2]) from an OpenCV rotation and the camera mount."""
+    world_from_body = (np.asarray(cam_from_body).T @ np.asarray(r_cam_from_world)).T
+    n = ENU_FROM_NED.T @ world_from_body  # ned_from_body = Rz(y) Ry(p) Rx(r)
+    sp = float(np.clip(-n[2, 0], -1.0, 1.0))
+    pitch = float(np.arcsin(sp))
+    if abs(sp) < 1.0 - 1e-12:
+        yaw = float(np.arctan2(n[1, 0], n[0, 0]))
+        roll = float(np.arctan2(n[2, 1], n[2, 2]))
+    else:
+        roll = 0.0
+        yaw = float(np.arctan2(-n[0, 1], n[1, 1]))
+    return yaw, pitch, roll
+
+
+def rotation_angle(r_a: np.ndarray, r_b: np.ndarray) -> float:
+    """Angle in radians of the relative rotation ``r_a @ r_b.T``."""
+    c = (np.trace(np.asarray(r_a) @ np.asarray(r_b).T) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """Rodrigues: axis-angle vector (3,) to rotation matrix (3, 3)."""
+    v = np.asarray(rotvec, dtype=np.float64)
+    a = float(np.linalg.norm(v))
+    if a < 1e-15:
+        return np.eye(3)
+    k = v / a
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(a) * kx + (1.0 - np.cos(a)) * (kx @ kx)
+
+
+def matrix_to_rotvec(r: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) to axis-angle vector (3,)."""
+    r = np.asarray(r, dtype=np.float64)
+    a = rotation_angle(r, np.eye(3))
+    if a < 1e-12:
+        return np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
+    if np.pi - a < 1e-6:
+        # axis from the symmetric part: R = 2 k k^T - I at a = pi
+        b = (r + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(b)))
+        k = b[:, i] / np.sqrt(max(b[i, i], 1e-300))
+        return k * a
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    return w * (a / (2.0 * np.sin(a)))
+
+
+def orthonormalize(r: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (SVD), for matrices read from files with limited precision."""
+    u, _, vt = np.linalg.svd(np.asarray(r, dtype=np.float64))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt

@@ -1,0 +1,161 @@
+"""Workspace, runner (skip when unchanged, atomic state, cancellation), executor (inline, processes, Dask)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from oblique_city.core.errors import Cancelled, ConfigError, InputError, WorkspaceError
+from oblique_city.core.io.native import read_block, write_block
+from oblique_city.core.pipeline import Executor, RunContext, Stage, StageResult, Workspace, registry, run_stages, status
+from oblique_city.core.pipeline.atomic import atomic_path, write_text
+
+
+def test_core_does_not_import_bpy() -> None:
+    import subprocess
+
+    code = ("import sys, importlib, pkgutil, oblique_city.core as c\n"
+            "for m in pkgutil.walk_packages(c.__path__, 'oblique_city.core.'):\n"
+            "    importlib.import_module(m.name)\n"
+            "bad = [m for m in ('bpy', 'bmesh', 'mathutils') if m in sys.modules]\n"
+            "assert not bad, bad\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@dataclass(frozen=True)
+class SquareConfig:
+    factor: float = 2.0
+    cancel_at: int = -1
+
+
+def _square_run(ws: Workspace, cfg: SquareConfig, ctx: RunContext) -> StageResult:
+    block = ws.load_block()
+    out = {}
+    for i, img in enumerate(block.images.values()):
+        if i == cfg.cancel_at:
+            ctx.cancel()
+        ctx.progress(i, len(block.images), img.id)
+        out[img.id] = float(img.pose_approx.C[2] * cfg.factor)
+    from oblique_city.core.pipeline.atomic import write_json
+
+    write_json(ws.stage_dir("square") / "values.json", out)
+    return StageResult(outputs=("square/values.json",), metrics={"n": len(out)})
+
+
+def _double(x: int) -> int:
+    return 2 * x
+
+
+@pytest.fixture
+def square_stage():
+    st = Stage("square", _square_run, SquareConfig, requires=("block",), description="test stage")
+    registry.register(st)
+    yield st
+    registry.unregister("square")
+
+
+def test_native_block_round_trip_is_exact(utm_block, tmp_path) -> None:
+    write_block(utm_block, tmp_path / "b.json")
+    b = read_block(tmp_path / "b.json")
+    for k, img in utm_block.images.items():
+        assert np.array_equal(b.images[k].pose_approx.C, img.pose_approx.C)
+        assert np.array_equal(b.images[k].pose_approx.R, img.pose_approx.R)
+    assert b.cameras["cam"] == utm_block.cameras["cam"]
+    assert b.summary() == utm_block.summary()
+
+
+def test_native_block_errors_name_field(utm_block, tmp_path) -> None:
+    write_block(utm_block, tmp_path / "b.json")
+    d = json.loads((tmp_path / "b.json").read_text())
+    d["images"][1]["pose_approx"]["C"][2] = float("nan")
+    (tmp_path / "bad.json").write_text(json.dumps(d))
+    with pytest.raises(InputError, match=r"bad.json.*images\[img1\].pose_approx.C.*NaN"):
+        read_block(tmp_path / "bad.json")
+    (tmp_path / "broken.json").write_text('{"format": \n')
+    with pytest.raises(InputError, match=r"broken.json:2"):
+        read_block(tmp_path / "broken.json")
+
+
+def test_runner_skips_unchanged_and_reruns_on_change(utm_block, tmp_path, square_stage) -> None:
+    ws = Workspace.create(tmp_path / "ws", crs="EPSG:32632")
+    with pytest.raises(WorkspaceError, match="no block"):
+        run_stages(ws, ["square"])
+    ws.save_block(utm_block)
+    seen = []
+    ctx = RunContext(on_progress=lambda s, d, t, m: seen.append((s, d, t)))
+    recs = run_stages(ws, ["square"], ctx)
+    assert [r.status for r in recs] == ["done"] and seen[0] == ("square", 0, 3)
+    values = json.loads((ws.path("square/values.json")).read_text())
+    assert values["img0"] == pytest.approx(1600.0)
+    assert [r.status for r in run_stages(ws, ["square"])] == ["skipped"]
+    ws.project["stages"]["square"] = {"factor": 3.0}
+    ws.save_project()
+    assert [r.status for r in run_stages(Workspace.open(ws.root), ["square"])] == ["done"]
+    assert json.loads(ws.path("square/values.json").read_text())["img0"] == pytest.approx(2400.0)
+    # a changed block makes the stage stale
+    utm_block.images["img0"].pose_approx = utm_block.images["img1"].pose_approx
+    ws.save_block(utm_block)
+    assert {r["stage"]: r["status"] for r in status(ws)}["square"] == "stale"
+
+
+def test_runner_cancellation_is_recorded_and_leaves_old_outputs(utm_block, tmp_path, square_stage) -> None:
+    ws = Workspace.create(tmp_path / "ws", crs="EPSG:32632")
+    ws.save_block(utm_block)
+    ws.project["stages"]["square"] = {"cancel_at": 1}
+    ws.save_project()
+    with pytest.raises(Cancelled):
+        run_stages(ws, ["square"])
+    assert ws.read_state()["square"]["status"] == "cancelled"
+    assert not ws.path("square/values.json").exists()
+
+
+def test_config_errors(tmp_path, square_stage) -> None:
+    with pytest.raises(ConfigError, match="unknown option 'nope'"):
+        square_stage.make_config({"nope": 1})
+    with pytest.raises(ConfigError, match="should be float"):
+        square_stage.make_config({"factor": "big"})
+    assert square_stage.make_config({"factor": 3}).factor == 3.0
+    with pytest.raises(ConfigError, match="unknown stage"):
+        registry.get_stage("no-such-stage")
+
+
+def test_atomic_write_keeps_old_file_on_failure(tmp_path) -> None:
+    p = tmp_path / "a.txt"
+    write_text(p, "old")
+    with pytest.raises(RuntimeError), atomic_path(p) as tmp:
+        with open(tmp, "w") as f:
+            f.write("half")
+        raise RuntimeError("killed")
+    assert p.read_text() == "old"
+    assert [x.name for x in tmp_path.iterdir()] == ["a.txt"]
+
+
+def test_workspace_project_round_trip(tmp_path) -> None:
+    ws = Workspace.create(tmp_path / "w", crs="32632", name="demo")
+    assert ws.crs == "EPSG:32632"
+    ws.project["stages"]["aerotri"] = {"mode": "hierarchical", "cell": 25.0, "views": ["north", "east"]}
+    ws.save_project()
+    again = Workspace.open(tmp_path / "w")
+    assert again.project["stages"]["aerotri"] == {"mode": "hierarchical", "cell": 25.0, "views": ["north", "east"]}
+    with pytest.raises(WorkspaceError, match="already exists"):
+        Workspace.create(tmp_path / "w", crs="EPSG:32632")
+    with pytest.raises(InputError, match="unknown coordinate reference system"):
+        Workspace.create(tmp_path / "x", crs="EPSG:999999")
+
+
+@pytest.mark.parametrize("mode", ["inline", "processes"])
+def test_executor_local(mode: str) -> None:
+    with Executor(mode, workers=2) as ex:
+        done = []
+        assert ex.map(_double, range(7), on_done=lambda d, t: done.append(d)) == [0, 2, 4, 6, 8, 10, 12]
+        assert done[-1] == 7
+
+
+@pytest.mark.xdist_group("dask")
+def test_executor_dask_local_cluster() -> None:
+    with Executor("dask", workers=2) as ex:
+        assert ex.map(_double, range(5)) == [0, 2, 4, 6, 8]

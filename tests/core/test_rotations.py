@@ -1,0 +1,111 @@
+"""Rotation conventions: round trips, agreement with OpenCV, the documented frames and cardinal views."""
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from oblique_city.core.geometry import rotations as rt
+from oblique_city.core.geometry.views import cardinal_view, tilt_and_azimuth
+from oblique_city.core.model import Pose
+
+angle = st.floats(-3.1, 3.1)
+half = st.floats(-1.5, 1.5)
+
+
+@settings(max_examples=200, deadline=None)
+@given(angle, half, angle)
+def test_opk_round_trip(o: float, p: float, k: float) -> None:
+    r = rt.opk_to_cam_from_world(o, p, k)
+    assert np.allclose(r @ r.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(r), 1.0)
+    o2, p2, k2 = rt.cam_from_world_to_opk(r)
+    assert np.allclose(rt.opk_to_cam_from_world(o2, p2, k2), r, atol=1e-12)
+    assert np.allclose([o2, p2, k2], [o, p, k], atol=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(angle, half, angle)
+def test_ypr_round_trip(y: float, p: float, r: float) -> None:
+    m = rt.ypr_to_cam_from_world(y, p, r)
+    y2, p2, r2 = rt.cam_from_world_to_ypr(m)
+    assert np.allclose(rt.ypr_to_cam_from_world(y2, p2, r2), m, atol=1e-12)
+    assert np.allclose([y2, p2, r2], [y, p, r], atol=1e-9)
+
+
+def test_identity_opk_looks_down_with_image_top_north() -> None:
+    # omega = phi = kappa = 0: photo frame = world frame, camera looks down (-Z), image y-up is north.
+    r = rt.opk_to_cam_from_world(0.0, 0.0, 0.0)
+    assert np.allclose(r[2], [0, 0, -1])  # optical axis (OpenCV z) in world = down
+    assert np.allclose(r[1], [0, -1, 0])  # OpenCV y (image down) points south
+    assert np.allclose(r[0], [1, 0, 0])   # image right = east
+
+
+def test_ypr_heading_east_nadir() -> None:
+    # Flying east (yaw 90 deg), a nadir camera's image top points east, image right points south.
+    r = rt.ypr_to_cam_from_world(np.radians(90.0), 0.0, 0.0)
+    assert np.allclose(r[2], [0, 0, -1], atol=1e-12)
+    assert np.allclose(-r[1], [1, 0, 0], atol=1e-12)
+    assert np.allclose(r[0], [0, -1, 0], atol=1e-12)
+
+
+def test_opk_matches_blender_zyx_euler() -> None:
+    # Blender's rotation_mode 'ZYX' with euler (x, y, z) composes as Rx(x) @ Ry(y) @ Rz(z).
+    o, p, k = 0.3, -0.2, 1.1
+    m = rt.rot_x(o) @ rt.rot_y(p) @ rt.rot_z(k)
+    assert np.allclose(rt.opk_to_world_from_photo(o, p, k), m)
+    assert np.allclose(rt.opk_to_cam_from_world(o, p, k), np.diag([1, -1, -1]) @ m.T)
+
+
+def test_units() -> None:
+    assert rt.to_radians(200.0, "gon") == pytest.approx(np.pi)
+    assert rt.to_radians(180.0, "deg") == pytest.approx(np.pi)
+    assert rt.from_radians(np.pi / 2, "gon") == pytest.approx(100.0)
+    with pytest.raises(Exception, match="unknown angle unit"):
+        rt.to_radians(1.0, "mil")
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3))
+def test_rotvec_matches_opencv(v: list) -> None:
+    r = rt.rotvec_to_matrix(np.array(v))
+    assert np.allclose(r, cv2.Rodrigues(np.array(v))[0], atol=1e-12)
+    assert np.allclose(rt.rotvec_to_matrix(rt.matrix_to_rotvec(r)), r, atol=1e-9)
+
+
+def test_orthonormalize_recovers_rotation_from_rounded_matrix() -> None:
+    r = rt.opk_to_cam_from_world(0.1, 0.2, 0.3)
+    noisy = np.round(r, 5)
+    assert rt.rotation_angle(rt.orthonormalize(noisy), r) < 2e-5
+
+
+@pytest.mark.parametrize("azimuth,expected", [(0, "north"), (90, "east"), (180, "south"), (270, "west"),
+                                              (44, "north"), (46, "east"), (359, "north")])
+def test_cardinal_view_from_actual_direction(azimuth: float, expected: str) -> None:
+    # camera tilted 45 deg from nadir, looking towards the given azimuth
+    a = np.radians(azimuth)
+    d = np.array([np.sin(a) * np.sin(np.pi / 4), np.cos(a) * np.sin(np.pi / 4), -np.cos(np.pi / 4)])
+    x = np.cross(d, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(d, x)
+    r = np.stack([x, y, d])
+    assert np.isclose(np.linalg.det(r), 1.0)
+    tilt, az = tilt_and_azimuth(r)
+    assert tilt == pytest.approx(45.0) and az == pytest.approx(azimuth % 360, abs=1e-9)
+    assert cardinal_view(r) == expected
+
+
+def test_nadir_view_and_head_independence() -> None:
+    assert cardinal_view(rt.opk_to_cam_from_world(0.05, -0.03, 2.0)) == "nadir"
+    # a head tilted forward looks north when flying north and south when flying south
+    fwd = rt.rot_x(np.radians(-45.0))  # tilt about the camera x axis in the body frame
+    north = fwd @ rt.ypr_to_cam_from_world(0.0, 0.0, 0.0)
+    south = fwd @ rt.ypr_to_cam_from_world(np.pi, 0.0, 0.0)
+    assert {cardinal_view(north), cardinal_view(south)} == {"north", "south"}
+
+
+def test_pose_opk_and_rt_round_trip() -> None:
+    p = Pose.from_opk(0.1, -0.2, 2.5, [500000.0, 5400000.0, 300.0])
+    q = Pose.from_rt(p.R, p.t)
+    assert np.allclose(q.C, p.C, atol=1e-9) and np.allclose(q.R, p.R)
+    assert np.allclose(p.opk(), (0.1, -0.2, 2.5))

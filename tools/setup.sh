@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Installs everything Oblique City needs on a fresh Debian/Ubuntu machine with Python 3.11:
+# the system library libusb-1.0 (open3d), and the pinned Python packages (editable install of this tree).
+# Idempotent: a stamp keyed on pyproject.toml skips the pip step when nothing changed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+
+if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+  echo "setup: installing libusb-1.0 (needed by open3d)"
+  SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
+  $SUDO apt-get update -qq
+  $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+fi
+
+"$PY" - <<'PYEOF'
+import sys
+if sys.version_info[:2] != (3, 11):
+    sys.exit(f"setup: Python 3.11 is required (bpy 5.0.1 wheels), found {sys.version.split()[0]}")
+PYEOF
+
+stamp=".setup-stamp"
+want=$(sha256sum pyproject.toml | cut -c1-16)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PY" -c "import oblique_city.core, bpy, pycolmap, open3d" 2>/dev/null; then
+  echo "setup: installing Python packages (pinned in pyproject.toml)"
+  "$PY" -m pip install --disable-pip-version-check -q -e ".[blender,dev]"
+  echo "$want" > "$stamp"
+fi
