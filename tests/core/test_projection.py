@@ -79,7 +79,7 @@ def test_forward_intersection_recovers_points(camera: CameraModel, utm_block) ->
     xyz_hat, dist = intersect_tracks(o, d, t, len(xyz))
     multi = np.bincount(t, minlength=len(xyz)) >= 2
     assert multi.sum() >= 10
-    assert np.abs(xyz_hat[multi] - xyz[multi]).max() < 1e-5 and dist.max() < 1e-5
+    assert np.abs(xyz_hat[multi] - xyz[multi]).max() < 1e-5 and dist[multi[t]].max() < 1e-5
     assert np.isnan(xyz_hat[~multi]).all()
     k = int(np.flatnonzero(multi)[0])
     one, dist1 = intersect_rays(o[t == k], d[t == k])
