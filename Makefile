@@ -12,7 +12,7 @@ demo: setup
 
 test: setup
 	$(PYTHON) -m ruff check .
-	$(PYTHON) -m pytest -q -n 2 --dist loadgroup tests
+	$(PYTHON) -m pytest -q -p no:dash -n 2 --dist loadgroup tests
 
 lint: setup
 	$(PYTHON) -m ruff check .
