@@ -1,0 +1,247 @@
+"""Plain OPK lists: one image per row with its projection centre and omega-phi-kappa angles.
+
+Rows hold ``name X Y Z omega phi kappa`` (order set by the ``columns`` option or a header row) and optionally
+``sx sy sz`` (metres), ``somega sphi skappa`` (same unit as the angles), ``camera`` (camera id) and ``file``
+(image path, default: the name plus the ``image_ext`` option). Omega-phi-kappa follow the PATB/BINGO convention
+(``M = Rx(omega) Ry(phi) Rz(kappa)`` maps the image frame x right/y up/z back into the world, see
+``core.geometry.rotations``), in the unit given by the ``angles`` option (``deg``, ``gon`` or ``rad``).
+
+The intrinsics come from a camera file (``cameras`` option, see :mod:`.camerafile`). Lines starting with the
+comment character (``#``) are skipped, except directives the writer puts there and the reader honours when no
+option overrides them: ``# crs: EPSG:25832``, ``# angles: deg``, ``# cameras: block_cameras.toml``.
+
+Reader options (all accept strings, as given on the CLI with ``-o key=value``):
+``cameras`` camera file (default: ``<stem>_cameras.toml`` or ``.json`` beside the list), ``angles`` (default
+``deg``, or the camera file's / header's), ``columns`` (default ``name,x,y,z,omega,phi,kappa`` or the header
+row), ``delimiter`` (``comma``, ``semicolon``, ``tab``, ``whitespace``; default: sniffed), ``header``
+(``auto``/``true``/``false``), ``comment`` (default ``#``), ``crs`` (EPSG:nnnn or WKT; else from the header or the
+camera file), ``image_ext`` (appended to names to form file names when there is no ``file`` column).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry.rotations import cam_from_world_to_opk, from_radians, opk_to_cam_from_world, to_radians
+from ..model import Image, ImageBlock, Pose
+from ..pipeline.atomic import write_text
+from .camerafile import read_camera_file, write_camera_file
+from .common import finish_block
+from .validate import (
+    angle_unit,
+    check_crs,
+    parse_bool,
+    parse_columns,
+    parse_float,
+    read_text_lines,
+    sniff_delimiter,
+    split_row,
+)
+from .validate import delimiter as parse_delimiter
+
+COLUMN_ALIASES = {
+    "name": "name", "image": "name", "image_name": "name", "imagename": "name", "id": "name", "photo": "name",
+    "image_id": "name", "label": "name",
+    "x": "x", "easting": "x", "east": "x", "e": "x",
+    "y": "y", "northing": "y", "north": "y", "n": "y",
+    "z": "z", "h": "z", "height": "z", "elevation": "z", "alt": "z", "altitude": "z",
+    "omega": "omega", "om": "omega", "o": "omega",
+    "phi": "phi", "ph": "phi", "p": "phi",
+    "kappa": "kappa", "ka": "kappa", "k": "kappa",
+    "sx": "sx", "sigma_x": "sx", "sy": "sy", "sigma_y": "sy", "sz": "sz", "sigma_z": "sz",
+    "somega": "somega", "sigma_omega": "somega", "sphi": "sphi", "sigma_phi": "sphi",
+    "skappa": "skappa", "sigma_kappa": "skappa",
+    "camera": "camera", "cam": "camera", "camera_id": "camera", "sensor": "camera",
+    "file": "file", "path": "file", "image_path": "file", "filename": "file",
+}
+REQUIRED = ("name", "x", "y", "z", "omega", "phi", "kappa")
+DEFAULT_COLUMNS = "name,x,y,z,omega,phi,kappa"
+DIRECTIVES = ("crs", "angles", "cameras")
+
+
+def _directives(lines: list[str], comment: str) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for text in lines:
+        s = text.strip()
+        if not s.startswith(comment):
+            continue
+        body = s[len(comment):].strip()
+        key, sep, value = body.partition(":")
+        if sep and key.strip().lower() in DIRECTIVES and key.strip().lower() not in out:
+            out[key.strip().lower()] = value.strip()
+    return out
+
+
+def _default_camera_file(source: Path) -> Path | None:
+    for suffix in ("_cameras.toml", "_cameras.json"):
+        p = source.with_name(source.stem + suffix)
+        if p.is_file():
+            return p
+    return None
+
+
+def _is_header(fields: list[str], columns: list[str] | None) -> bool:
+    """A row is a header when its coordinate fields are not numbers."""
+    idx = [1, 2, 3] if columns is None else [i for i, c in enumerate(columns) if c in ("x", "y", "z")]
+    for i in idx:
+        if i >= len(fields):
+            return True
+        try:
+            float(fields[i])
+        except ValueError:
+            return True
+    return False
+
+
+def _sigmas(rec: dict[str, str], names: tuple[str, str, str], path: Path, line: int,
+            unit: str | None) -> np.ndarray | None:
+    """Three standard deviations from a row (``-`` or empty in all three: unknown), radians for angles."""
+    if names[0] not in rec:
+        return None
+    raw = [rec[c].strip() for c in names]
+    if all(r in ("", "-") for r in raw):
+        return None
+    vals = [parse_float(r, path, line, c) for r, c in zip(raw, names, strict=True)]
+    out = np.array([to_radians(v, unit) for v in vals] if unit else vals)
+    return out
+
+
+def read_opk(source: str, **options: Any) -> ImageBlock:
+    """Read an OPK list and its camera file into an :class:`ImageBlock` (poses as ``pose_approx``)."""
+    path = Path(source)
+    comment = str(options.pop("comment", "#"))
+    lines = read_text_lines(path)
+    directives = _directives(lines, comment)
+
+    cam_opt = options.pop("cameras", None) or directives.get("cameras")
+    if cam_opt:
+        cam_path = Path(str(cam_opt))
+        if not cam_path.is_absolute() and not cam_path.is_file():
+            cam_path = path.parent / cam_path
+    else:
+        cam_path = _default_camera_file(path)
+        if cam_path is None:
+            raise InputError("no camera file: give one with -o cameras=FILE (TOML or JSON)", path=path,
+                             field="cameras")
+    cams = read_camera_file(cam_path)
+
+    unit = angle_unit(options.pop("angles", None) or directives.get("angles") or cams.angles or "deg", path)
+    crs_text = options.pop("crs", None) or directives.get("crs") or cams.crs
+    crs = check_crs(crs_text, path, "crs")
+    sep = parse_delimiter(options.pop("delimiter", None), path)
+    header_opt = str(options.pop("header", "auto")).lower()
+    header = None if header_opt == "auto" else parse_bool(header_opt, path, None, "header")
+    col_opt = options.pop("columns", None)
+    image_ext = str(options.pop("image_ext", "") or "")
+
+    rows = [(i + 1, t) for i, t in enumerate(lines) if t.strip() and not t.strip().startswith(comment)]
+    if not rows:
+        raise InputError("no data rows", path=path)
+    if sep is None:
+        sep = sniff_delimiter([t for _, t in rows[1:] or rows])
+
+    columns = None if col_opt is None else parse_columns(col_opt, COLUMN_ALIASES, REQUIRED, path)
+    first_line, first_text = rows[0]
+    first = split_row(first_text, sep)
+    has_header = _is_header(first, columns) if header is None else header
+    if has_header:
+        rows = rows[1:]
+        if columns is None:
+            try:
+                columns = parse_columns(first, COLUMN_ALIASES, REQUIRED, path, option="header")
+            except InputError as e:
+                raise InputError(e.reason, path=path, line=first_line, field=e.field) from None
+    if columns is None:
+        columns = parse_columns(DEFAULT_COLUMNS, COLUMN_ALIASES, REQUIRED, path)
+    for group in (("sx", "sy", "sz"), ("somega", "sphi", "skappa")):
+        given = [c for c in group if c in columns]
+        if given and len(given) != 3:
+            raise InputError(f"sigma columns must come in threes ({', '.join(group)}), got {', '.join(given)}",
+                             path=path, field="columns")
+
+    block = ImageBlock(crs=crs)
+    for cam in cams.cameras.values():
+        block.add_camera(cam)
+    seen: dict[str, int] = {}
+    for line_no, text in rows:
+        fields = split_row(text, sep)
+        if len(fields) != len(columns):
+            raise InputError(f"expected {len(columns)} fields ({','.join(columns)}), got {len(fields)}",
+                             path=path, line=line_no)
+        rec = dict(zip(columns, fields, strict=True))
+        name = rec["name"]
+        if not name:
+            raise InputError("empty image name", path=path, line=line_no, field="name")
+        if name in seen:
+            raise InputError(f"duplicate image id '{name}' (first on line {seen[name]})", path=path, line=line_no,
+                             field="name")
+        seen[name] = line_no
+        xyz = [parse_float(rec[c], path, line_no, c) for c in ("x", "y", "z")]
+        angles = [to_radians(parse_float(rec[c], path, line_no, c), unit) for c in ("omega", "phi", "kappa")]
+        cam_id = rec.get("camera") or cams.camera_for(name, str(path), line_no)
+        if cam_id not in block.cameras:
+            raise InputError(f"unknown camera '{cam_id}' (camera file {cam_path} defines "
+                             f"{', '.join(block.cameras)})", path=path, line=line_no, field="camera")
+        sig_pos = _sigmas(rec, ("sx", "sy", "sz"), path, line_no, None)
+        sig_att = _sigmas(rec, ("somega", "sphi", "skappa"), path, line_no, unit)
+        for sig, names in ((sig_pos, ("sx", "sy", "sz")), (sig_att, ("somega", "sphi", "skappa"))):
+            if sig is not None and np.any(sig < 0):
+                raise InputError("standard deviations must not be negative", path=path, line=line_no,
+                                 field=names[int(np.argmin(sig))])
+        block.add_image(Image(id=name, camera_id=cam_id, file=rec.get("file") or name + image_ext,
+                              pose_approx=Pose(opk_to_cam_from_world(*angles), xyz),
+                              sigma_position=sig_pos, sigma_attitude=sig_att))
+    if not block.images:
+        raise InputError("no image rows after the header", path=path)
+    return finish_block(block, path, options, "opk", lines=seen)
+
+
+def _fmt(v: float) -> str:
+    return repr(float(v))
+
+
+def write_opk(block: ImageBlock, dest: str, angles: str = "deg", delimiter: str = "whitespace",
+              cameras: str | None = None, sigmas: Any = True) -> None:
+    """Write the block's images (adjusted pose if any, else approximate) as an OPK list plus a camera file.
+
+    The camera file goes to ``cameras`` (default ``<stem>_cameras.toml`` beside ``dest``); the list's header
+    comments name it, the CRS and the angle unit, so :func:`read_opk` needs no options to read it back.
+    Images without any orientation are skipped (OPK lists always carry EO).
+    """
+    sep = parse_delimiter(delimiter)
+    sigmas = parse_bool(sigmas, None, None, "sigmas")
+    unit = angle_unit(angles)
+    dest_path = Path(dest)
+    cam_path = Path(cameras) if cameras else dest_path.with_name(dest_path.stem + "_cameras.toml")
+    write_camera_file(cam_path, list(block.cameras.values()), crs=block.crs, angles=unit)
+    images = [img for img in block.images.values() if img.pose is not None]
+    with_pos = sigmas and any(img.sigma_position is not None for img in images)
+    with_att = sigmas and any(img.sigma_attitude is not None for img in images)
+    cols = ["name", "x", "y", "z", "omega", "phi", "kappa", "camera", "file"]
+    if with_pos:
+        cols += ["sx", "sy", "sz"]
+    if with_att:
+        cols += ["somega", "sphi", "skappa"]
+    join = (lambda f: " ".join(f)) if sep is None else sep.join
+    rel_cam = cam_path.name if cam_path.parent.resolve() == dest_path.parent.resolve() else str(cam_path)
+    out = ["# Oblique City OPK list: omega-phi-kappa as PATB (M = Rx(omega) Ry(phi) Rz(kappa), image x right, "
+           "y up, z back)", f"# crs: {block.crs}", f"# angles: {unit}", f"# cameras: {rel_cam}", join(cols)]
+    for img in images:
+        if sep is None and any(ch.isspace() for ch in img.id + (img.file or "")):
+            raise InputError(f"image '{img.id}' has blanks in its name or file: choose another delimiter",
+                             path=dest, field="delimiter")
+        o, p, k = cam_from_world_to_opk(img.pose.R)
+        row = [img.id, *(_fmt(c) for c in img.pose.C), *(_fmt(from_radians(a, unit)) for a in (o, p, k)),
+               img.camera_id, img.file or img.id]
+        if with_pos:
+            s = img.sigma_position
+            row += ["-"] * 3 if s is None else [_fmt(v) for v in s]
+        if with_att:
+            s = img.sigma_attitude
+            row += ["-"] * 3 if s is None else [_fmt(from_radians(v, unit)) for v in s]
+        out.append(join(row))
+    write_text(dest, "\n".join(out) + "\n")
