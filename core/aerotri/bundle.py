@@ -1,0 +1,477 @@
+"""The bundle adjustment engine: collinearity with our camera model, solved by Ceres through pycolmap + pyceres.
+
+Observations and unknowns
+-------------------------
+* Tie point image measurements (sigma ``sigma_px``): pycolmap's reprojection cost on a ``FULL_OPENCV`` camera
+  (our Brown model with k4..k6 = 0; COLMAP's pixel origin is the top-left *corner*, so +0.5 on the way in).
+* 6-DoF exterior orientation priors (GNSS centre, IMU attitude, with their sigmas):
+  ``AbsolutePosePriorCost`` whose residual is (rotation error, centre error) expressed in the camera frame, so
+  the world-axis sigmas are rotated into it: ``cov = blockdiag(R S_att R^T, R S_pos R^T)``.
+* Ground control points: unknown 3D points with their own image measurements (reprojection cost with the
+  points' pixel sigma) and a weighted ground observation ``Point3DAlignmentCost`` through a similarity whose
+  only free part is a 3D translation: the datum shift between the GNSS frame and the control frame. All outputs
+  are returned in the control frame (adjusted values plus the shift).
+* Connection points (hierarchical AT): tie points with a ground observation and its full 3x3 covariance.
+* Optional self-calibration per camera: focal, principal point, radial (k1 k2 k3), tangential (p1 p2),
+  through a ``SubsetManifold`` on the camera's parameter block.
+
+All costs are scaled to pixel units of ``sigma_px`` (covariances divided by ``sigma_px^2``), so the Ceres cost is
+``sigma_px^2 / 2 * chi^2`` and ``sigma0 = sqrt(chi^2 / redundancy)``.
+
+Blunders: a first solve with a Cauchy loss, then least-squares rounds; after each, every tie track's worst
+observation is rejected when its normalised residual ``w = |v| / (sigma0 sigma_px sqrt(r))`` (r the redundancy
+number, see :mod:`.precision`; ``w^2`` is chi-square with 2 degrees of freedom) exceeds the threshold.
+Coordinates are solved around a local origin (the mean prior centre) so UTM magnitudes cost no digits.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ComputationError
+from ..model import CameraModel
+from . import precision
+
+CALIBRATION_GROUPS = {"focal": (0, 1), "principal_point": (2, 3), "radial": (4, 5, 8), "tangential": (6, 7)}
+"""Self-calibration groups -> indices in COLMAP's FULL_OPENCV parameter vector."""
+
+
+@dataclass(frozen=True)
+class BundleOptions:
+    """Adjustment settings.
+
+    Attributes
+    ----------
+    sigma_px : a priori standard deviation of tie point image measurements, pixels
+    robust_scale : Cauchy loss scale of the first solve, in units of ``sigma_px``
+    blunder_threshold : normalised residual above which an observation is rejected (4.3 ~ alpha 1e-4)
+    max_rejection_rounds : least-squares rounds with rejection after the robust solve
+    self_calibration : groups of :data:`CALIBRATION_GROUPS` to estimate
+    datum_shift : estimate a 3D shift between the GNSS and the control frame
+    max_iterations, threads : Ceres settings
+    linear_solver : ``auto``, ``sparse_schur`` or ``iterative_schur``
+    """
+
+    sigma_px: float = 0.5
+    robust_scale: float = 3.0
+    blunder_threshold: float = 4.3
+    max_rejection_rounds: int = 4
+    self_calibration: tuple[str, ...] = ()
+    datum_shift: bool = True
+    max_iterations: int = 60
+    threads: int = 2
+    linear_solver: str = "auto"
+
+
+@dataclass(eq=False)
+class BundleProblem:
+    """A bundle adjustment over arrays (independent of the block classes, picklable for worker processes).
+
+    Attributes
+    ----------
+    image_ids : (n,) names; cameras : camera models; image_camera : (n,) int index into ``cameras``
+    r_cam_from_world : (n, 3, 3), c_world : (n, 3) initial orientations
+    prior_r : (n, 3, 3), prior_c : (n, 3) EO priors; prior_sigma_att (n, 3) radians about world X Y Z,
+        prior_sigma_pos (n, 3) metres; rows of NaN sigma mean "no prior"
+    xyz : (p, 3) initial tie point coordinates
+    obs_point, obs_image : (m,) int64; obs_uv : (m, 2) pixels (origin at the centre of the top-left pixel)
+    point_prior_xyz : (p, 3) ground observations of tie points (connection points), NaN rows for none
+    point_prior_cov : (p, 3, 3) their covariances
+    gcp_xyz : (g, 3) control point coordinates; gcp_sigma : (g, 3)
+    gcp_obs_point, gcp_obs_image : (k,) int64; gcp_obs_uv : (k, 2); gcp_sigma_px : (g,)
+    """
+
+    image_ids: list[str]
+    cameras: list[CameraModel]
+    image_camera: np.ndarray
+    r_cam_from_world: np.ndarray
+    c_world: np.ndarray
+    prior_r: np.ndarray
+    prior_c: np.ndarray
+    prior_sigma_att: np.ndarray
+    prior_sigma_pos: np.ndarray
+    xyz: np.ndarray
+    obs_point: np.ndarray
+    obs_image: np.ndarray
+    obs_uv: np.ndarray
+    point_prior_xyz: np.ndarray | None = None
+    point_prior_cov: np.ndarray | None = None
+    gcp_names: list[str] = field(default_factory=list)
+    gcp_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    gcp_sigma: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    gcp_obs_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    gcp_obs_image: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    gcp_obs_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    gcp_sigma_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def n_images(self) -> int:
+        return len(self.image_ids)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.xyz)
+
+
+@dataclass(eq=False)
+class BundleResult:
+    """Adjusted values (control frame) with their precision and statistics.
+
+    Attributes
+    ----------
+    r_cam_from_world, c_world : (n, 3, 3), (n, 3); image_adjusted : (n,) bool (images with observations)
+    image_std : (n, 6) std of rotation about world X Y Z (radians) and of the centre (metres)
+    cameras : adjusted camera models
+    xyz : (p, 3) tie points (NaN for points dropped); xyz_cov : (p, 3, 3) covariance with cameras fixed
+    obs_residual : (m, 2) pixels (observed - computed); obs_rejected : (m,) bool; obs_w : (m,) normalised residual
+    gcp_xyz : (g, 3) adjusted control points; gcp_residual : (g, 3) adjusted - given
+    datum_shift : (3,) control frame - GNSS frame
+    sigma0 : a posteriori, unitless (multiply by sigma_px for pixels); redundancy : degrees of freedom
+    iterations, rounds, time_s : solver work
+    """
+
+    r_cam_from_world: np.ndarray
+    c_world: np.ndarray
+    image_adjusted: np.ndarray
+    image_std: np.ndarray
+    cameras: list[CameraModel]
+    xyz: np.ndarray
+    xyz_cov: np.ndarray
+    obs_residual: np.ndarray
+    obs_rejected: np.ndarray
+    obs_w: np.ndarray
+    gcp_xyz: np.ndarray
+    gcp_residual: np.ndarray
+    datum_shift: np.ndarray
+    sigma0: float
+    redundancy: int
+    iterations: int
+    rounds: int
+    time_s: float
+    prior_residual_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    prior_residual_att: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    log: list[str] = field(default_factory=list)
+
+
+def _quat_xyzw(r: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(r).as_quat()
+
+
+def _rigid(r: np.ndarray, c_local: np.ndarray):
+    import pycolmap
+
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(_quat_xyzw(r)), -r @ c_local)
+
+
+def _colmap_params(cam: CameraModel) -> list[float]:
+    return [cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, cam.k1, cam.k2, cam.p1, cam.p2, cam.k3, 0.0, 0.0, 0.0]
+
+
+def _camera_from_params(cam: CameraModel, p: np.ndarray) -> CameraModel:
+    from dataclasses import replace
+
+    return replace(cam, fx=float(p[0]), fy=float(p[1]), cx=float(p[2]) - 0.5, cy=float(p[3]) - 0.5,
+                   k1=float(p[4]), k2=float(p[5]), p1=float(p[6]), p2=float(p[7]), k3=float(p[8]))
+
+
+def project_obs(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
+                xyz: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray) -> np.ndarray:
+    """Projected pixel positions ``(m, 2)`` of observations (NaN behind the camera)."""
+    xc = np.einsum("mij,mj->mi", r[obs_image], xyz[obs_point] - c[obs_image])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = xc[:, :2] / xc[:, 2:3]
+    out = np.full((len(obs_point), 2), np.nan)
+    cam_of_obs = image_camera[obs_image]
+    for ci, cam in enumerate(cameras):
+        sel = cam_of_obs == ci
+        if sel.any():
+            out[sel] = cam.normalized_to_pixel(xy[sel])
+    out[xc[:, 2] <= 0] = np.nan
+    return out
+
+
+class _Round:
+    """One Ceres problem built from the current estimates (rebuilt after each rejection round)."""
+
+    def __init__(self, prob: BundleProblem, opt: BundleOptions, ref: np.ndarray, r: np.ndarray, c: np.ndarray,
+                 xyz: np.ndarray, cam_params: np.ndarray, gcp_xyz: np.ndarray, shift: np.ndarray,
+                 active: np.ndarray, robust: bool) -> None:
+        import pycolmap
+        import pycolmap.cost_functions as cf
+        import pyceres
+
+        self.rec = rec = pycolmap.Reconstruction()
+        sp = opt.sigma_px
+        for ci, cam in enumerate(prob.cameras):
+            pc = pycolmap.Camera.create_from_model_name(ci + 1, "FULL_OPENCV", cam.fx, cam.width, cam.height)
+            pc.params = cam_params[ci]
+            rec.add_camera_with_trivial_rig(pc)
+        op, oi, ouv = prob.obs_point[active], prob.obs_image[active], prob.obs_uv[active]
+        has_prior_pt = np.zeros(prob.n_points, bool)
+        if prob.point_prior_xyz is not None:
+            has_prior_pt = np.isfinite(prob.point_prior_xyz[:, 0])
+        counts = np.bincount(op, minlength=prob.n_points)
+        point_used = (counts >= 2) | (has_prior_pt & (counts >= 1))
+        keep = point_used[op]
+        op, oi, ouv = op[keep], oi[keep], ouv[keep]
+        order = np.argsort(oi, kind="stable")
+        starts = np.searchsorted(oi[order], np.arange(prob.n_images + 1))
+        p2d_idx = np.empty(len(oi), np.int64)
+        image_has_obs = np.diff(starts) > 0
+        self.image_ids = {}
+        for k in range(prob.n_images):
+            sl = order[starts[k]:starts[k + 1]]
+            p2d_idx[sl] = np.arange(len(sl))
+            im = pycolmap.Image(name=prob.image_ids[k], camera_id=int(prob.image_camera[k]) + 1, image_id=k + 1)
+            im.points2D = pycolmap.Point2DList([pycolmap.Point2D(u) for u in ouv[sl] + 0.5])
+            rec.add_image_with_trivial_frame(im, _rigid(r[k], c[k] - ref))
+            self.image_ids[k] = k + 1
+        porder = np.argsort(op, kind="stable")
+        pstarts = np.searchsorted(op[porder], np.arange(prob.n_points + 1))
+        self.point_ids = np.full(prob.n_points, -1, np.int64)
+        for p in np.flatnonzero(point_used):
+            sl = porder[pstarts[p]:pstarts[p + 1]]
+            tr = pycolmap.Track()
+            tr.add_elements([pycolmap.TrackElement(int(oi[s]) + 1, int(p2d_idx[s])) for s in sl])
+            self.point_ids[p] = rec.add_point3D(xyz[p] - ref, tr)
+        self.used_obs = np.flatnonzero(active)[keep]
+
+        options = pycolmap.BundleAdjustmentOptions()
+        options.refine_focal_length = False
+        options.refine_principal_point = False
+        options.refine_extra_params = False
+        options.print_summary = False
+        if robust:
+            options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+            options.ceres.loss_function_scale = opt.robust_scale * sp
+        config = pycolmap.BundleAdjustmentConfig()
+        for k in np.flatnonzero(image_has_obs):
+            config.add_image(k + 1)
+        self.ba = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
+        problem = self.problem = self.ba.problem
+        self.frame_params = {}
+        self.adjusted = np.zeros(prob.n_images, bool)
+        for k in range(prob.n_images):
+            fp = rec.frame(rec.image(k + 1).frame_id).rig_from_world.params
+            if problem.has_parameter_block(fp):
+                self.frame_params[k] = fp
+                self.adjusted[k] = True
+        # self-calibration on the camera blocks
+        self.cam_params = {ci: rec.camera(ci + 1).params for ci in range(len(prob.cameras))}
+        free = sorted({i for g in opt.self_calibration for i in CALIBRATION_GROUPS[g]})
+        if free:
+            const = [i for i in range(12) if i not in free]
+            for p in self.cam_params.values():
+                if problem.has_parameter_block(p):
+                    problem.set_parameter_block_variable(p)
+                    problem.set_manifold(p, pyceres.SubsetManifold(12, const))
+        # 6-DoF EO priors
+        for k, fp in self.frame_params.items():
+            s_att, s_pos = prob.prior_sigma_att[k], prob.prior_sigma_pos[k]
+            if not (np.all(np.isfinite(s_att)) and np.all(np.isfinite(s_pos))):
+                continue
+            rp = prob.prior_r[k]
+            cov = np.zeros((6, 6))
+            cov[:3, :3] = rp @ np.diag(s_att**2) @ rp.T
+            cov[3:, 3:] = rp @ np.diag(s_pos**2) @ rp.T
+            cost = cf.AbsolutePosePriorCost(cov / sp**2, _rigid(rp, prob.prior_c[k] - ref))
+            problem.add_residual_block(cost, None, [fp])
+        # connection points: ground observations with covariance, identity similarity held constant
+        self.sim_const = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+        self.point_xyz = {}
+        for p in np.flatnonzero(has_prior_pt & point_used):
+            xv = rec.point3D(int(self.point_ids[p])).xyz
+            self.point_xyz[p] = xv
+            cost = cf.Point3DAlignmentCost(prob.point_prior_cov[p] / sp**2, prob.point_prior_xyz[p] - ref)
+            problem.add_residual_block(cost, None, [xv, self.sim_const])
+        if self.point_xyz:
+            problem.set_parameter_block_constant(self.sim_const)
+        # control points: reprojection + ground observation through the datum-shift similarity
+        self.sim_datum = np.array([0.0, 0.0, 0.0, 1.0, *shift, 0.0])
+        self.gcp_x = gcp_x = np.array(gcp_xyz - ref, dtype=np.float64)
+        model = pycolmap.CameraModelId.FULL_OPENCV
+        gcp_seen = np.zeros(len(gcp_x), bool)
+        for k_obs in range(len(prob.gcp_obs_point)):
+            g, k = int(prob.gcp_obs_point[k_obs]), int(prob.gcp_obs_image[k_obs])
+            if k not in self.frame_params:
+                continue
+            s = prob.gcp_sigma_px[g] / sp
+            cost = cf.ReprojErrorCost(model, np.eye(2) * s**2, prob.gcp_obs_uv[k_obs] + 0.5)
+            problem.add_residual_block(cost, None, [gcp_x[g], self.frame_params[k],
+                                                    self.cam_params[int(prob.image_camera[k])]])
+            gcp_seen[g] = True
+        for g in np.flatnonzero(gcp_seen):
+            cov = np.diag(prob.gcp_sigma[g] ** 2) / sp**2
+            cost = cf.Point3DAlignmentCost(cov, prob.gcp_xyz[g] - ref)
+            problem.add_residual_block(cost, None, [gcp_x[g], self.sim_datum])
+        if gcp_seen.any():
+            if opt.datum_shift:
+                problem.set_manifold(self.sim_datum, pyceres.SubsetManifold(8, [0, 1, 2, 3, 7]))
+            else:
+                problem.set_parameter_block_constant(self.sim_datum)
+        self.gcp_seen = gcp_seen
+
+    def solve(self, opt: BundleOptions, n_images: int):
+        import pyceres
+
+        so = pyceres.SolverOptions()
+        kind = opt.linear_solver
+        if kind == "auto":
+            kind = "sparse_schur" if n_images <= 1500 else "iterative_schur"
+        if kind == "sparse_schur":
+            so.linear_solver_type = pyceres.LinearSolverType.SPARSE_SCHUR
+        else:
+            so.linear_solver_type = pyceres.LinearSolverType.ITERATIVE_SCHUR
+            so.preconditioner_type = pyceres.PreconditionerType.SCHUR_JACOBI
+        so.num_threads = opt.threads
+        so.max_num_iterations = opt.max_iterations
+        so.function_tolerance = 1e-8
+        so.gradient_tolerance = 1e-12
+        so.parameter_tolerance = 1e-10
+        summary = pyceres.SolverSummary()
+        pyceres.solve(so, self.problem, summary)
+        if not summary.IsSolutionUsable():
+            raise ComputationError(f"bundle adjustment failed: {summary.message}")
+        return summary
+
+
+def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
+           progress: Callable[[int, int, str], None] | None = None) -> BundleResult:
+    """Adjust a bundle problem (see the module docstring). ``progress(done, total, message)`` is called per
+    round and may raise to cancel."""
+    import pyceres
+
+    t0 = time.perf_counter()
+    for g in opt.self_calibration:
+        if g not in CALIBRATION_GROUPS:
+            raise ComputationError(f"unknown self-calibration group '{g}' (use {', '.join(CALIBRATION_GROUPS)})")
+    has_prior = np.all(np.isfinite(prob.prior_c), axis=1)
+    ref = np.round(prob.prior_c[has_prior].mean(0) if has_prior.any() else prob.c_world.mean(0), 0)
+    r = np.array(prob.r_cam_from_world, dtype=np.float64)
+    c = np.array(prob.c_world, dtype=np.float64)
+    xyz = np.array(prob.xyz, dtype=np.float64)
+    cam_params = np.array([_colmap_params(cm) for cm in prob.cameras])
+    gcp_xyz = np.array(prob.gcp_xyz, dtype=np.float64)
+    shift = np.zeros(3)
+    m = len(prob.obs_point)
+    active = np.isfinite(xyz[prob.obs_point, 0]) & np.all(np.isfinite(prob.obs_uv), axis=1)
+    rejected = np.zeros(m, bool)
+    iterations = 0
+    log: list[str] = []
+    total_rounds = opt.max_rejection_rounds + 1
+    rnd = 0
+    while True:
+        if progress is not None:
+            progress(rnd, total_rounds, f"bundle adjustment round {rnd + 1}")
+        rd = _Round(prob, opt, ref, r, c, xyz, cam_params, gcp_xyz, shift, active, robust=(rnd == 0))
+        summary = rd.solve(opt, prob.n_images)
+        iterations += summary.num_successful_steps + summary.num_unsuccessful_steps
+        # read back (local frame, before the datum shift)
+        for k, fp in rd.frame_params.items():
+            q, t = fp[:4], fp[4:]
+            from scipy.spatial.transform import Rotation
+
+            r[k] = Rotation.from_quat(q).as_matrix()
+            c[k] = -r[k].T @ t + ref
+        used_pts = np.flatnonzero(rd.point_ids >= 0)
+        for p in used_pts:
+            xyz[p] = rd.rec.point3D(int(rd.point_ids[p])).xyz + ref
+        for ci, p in rd.cam_params.items():
+            cam_params[ci] = p
+        gcp_xyz = np.where(rd.gcp_seen[:, None], rd.gcp_x + ref, gcp_xyz)
+        shift = rd.sim_datum[4:7].copy()
+        point_used = rd.point_ids >= 0
+        active &= point_used[prob.obs_point]
+        eo = pyceres.EvaluateOptions()
+        eo.apply_loss_function = False
+        chi2 = float(np.sum(np.square(rd.problem.evaluate_residuals(eo)))) / opt.sigma_px**2
+        redundancy = int(summary.num_residuals_reduced - summary.num_effective_parameters_reduced)
+        sigma0 = float(np.sqrt(chi2 / max(redundancy, 1)))
+        # residuals, precision, normalised residuals
+        cams = [_camera_from_params(cm, cam_params[i]) for i, cm in enumerate(prob.cameras)]
+        uv_hat = project_obs(cams, prob.image_camera, r, c, xyz, prob.obs_point, prob.obs_image)
+        v = prob.obs_uv - uv_hat
+        stats = _precision(prob, opt, r, c, xyz, cams, active, rd.adjusted)
+        q_point, q_image, red = stats
+        vv = np.sum(v**2, axis=1)
+        t_unscaled = vv / (opt.sigma_px**2 * red)
+        robust_s0 = float(np.sqrt(np.median(t_unscaled[active]) / (2 * np.log(2)))) if active.any() else 1.0
+        w = np.sqrt(t_unscaled) / max(robust_s0 if rnd == 0 else sigma0, 1e-9)
+        log.append(f"round {rnd}: {'cauchy' if rnd == 0 else 'least squares'}, "
+                   f"{summary.num_successful_steps + summary.num_unsuccessful_steps} iterations, "
+                   f"sigma0 {sigma0:.3f} ({sigma0 * opt.sigma_px:.3f} px), {int(active.sum())} observations")
+        if rnd >= opt.max_rejection_rounds:
+            break
+        bad = _worst_per_track(w, prob.obs_point, active, opt.blunder_threshold)
+        bad |= active & ~np.isfinite(w)
+        if not bad.any() and rnd > 0:
+            break
+        rejected |= bad
+        active &= ~bad
+        log.append(f"round {rnd}: rejected {int(bad.sum())} observations")
+        rnd += 1
+    # final values in the control frame
+    image_std = np.sqrt(np.abs(np.diagonal(q_image, axis1=1, axis2=2))) * sigma0
+    xyz_cov = q_point * sigma0**2
+    pt_ok = point_used & np.isfinite(xyz[:, 0])
+    xyz_out = np.where(pt_ok[:, None], xyz + shift, np.nan)
+    gcp_out = gcp_xyz + shift
+    # prior residuals (adjusted - prior), world frame
+    pos_res = np.where(has_prior[:, None], c - prob.prior_c, np.nan)
+    att_res = np.full((prob.n_images, 3), np.nan)
+    from ..geometry.rotations import matrix_to_rotvec
+
+    for k in np.flatnonzero(has_prior):
+        att_res[k] = matrix_to_rotvec(prob.prior_r[k].T @ r[k])
+    return BundleResult(
+        r_cam_from_world=r, c_world=c + shift, image_adjusted=rd.adjusted, image_std=image_std, cameras=cams,
+        xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
+        obs_w=w, gcp_xyz=gcp_out, gcp_residual=gcp_out - prob.gcp_xyz, datum_shift=shift, sigma0=sigma0,
+        redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
+        prior_residual_pos=pos_res, prior_residual_att=att_res, log=log)
+
+
+def _worst_per_track(w: np.ndarray, obs_point: np.ndarray, active: np.ndarray, threshold: float) -> np.ndarray:
+    """Mask of each track's largest normalised residual among active observations when above ``threshold``."""
+    idx = np.flatnonzero(active & np.isfinite(w) & (w > threshold))
+    out = np.zeros(len(w), bool)
+    if len(idx) == 0:
+        return out
+    order = idx[np.lexsort((-w[idx], obs_point[idx]))]
+    first = np.ones(len(order), bool)
+    first[1:] = obs_point[order][1:] != obs_point[order][:-1]
+    out[order[first]] = True
+    return out
+
+
+def _precision(prob: BundleProblem, opt: BundleOptions, r: np.ndarray, c: np.ndarray, xyz: np.ndarray,
+               cams: list[CameraModel], active: np.ndarray, adjusted: np.ndarray):
+    """Cofactor blocks of points ``(p, 3, 3)`` and images ``(n, 6, 6)`` and redundancy numbers ``(m,)``."""
+    fx = np.array([cm.fx for cm in cams])[prob.image_camera]
+    fy = np.array([cm.fy for cm in cams])[prob.image_camera]
+    op, oi = prob.obs_point, prob.obs_image
+    jp, jr = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
+    w_obs = np.where(active, 1.0 / opt.sigma_px**2, 0.0)
+    prior_pt = None
+    if prob.point_prior_xyz is not None:
+        has = np.isfinite(prob.point_prior_xyz[:, 0])
+        prior_pt = np.zeros((prob.n_points, 3, 3))
+        prior_pt[has] = np.linalg.inv(prob.point_prior_cov[has])
+    n_p = precision.point_normals(jp, w_obs, op, prob.n_points, prior_pt)
+    prior_im = np.zeros((prob.n_images, 6, 6))
+    ok = np.all(np.isfinite(prob.prior_sigma_att), 1) & np.all(np.isfinite(prob.prior_sigma_pos), 1)
+    idx = np.arange(3)
+    k = np.flatnonzero(ok)[:, None]
+    prior_im[k, idx, idx] = 1.0 / prob.prior_sigma_att[ok] ** 2
+    prior_im[k, idx + 3, idx + 3] = 1.0 / prob.prior_sigma_pos[ok] ** 2
+    n_i = precision.image_normals(jp, jr, w_obs, oi, prob.n_images, prior_im)
+    q_point = precision.safe_inverse(n_p)
+    q_image = precision.safe_inverse(n_i)
+    red = precision.redundancy_numbers(jp, jr, 1.0 / opt.sigma_px**2 * np.ones(len(op)), q_point, q_image, op, oi)
+    return q_point, q_image, red

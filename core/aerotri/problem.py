@@ -1,0 +1,147 @@
+"""From the block classes to bundle problems and back: image subsets, tie point subsets, initial coordinates."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry.intersection import intersect_tracks
+from ..model import ImageBlock, Pose, TiePoints
+from .bundle import BundleProblem, BundleResult
+
+
+def observation_rays(block: ImageBlock, image_ids: list[str], poses: dict[str, Pose], obs_image: np.ndarray,
+                     obs_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ray origins and unit directions ``(m, 3)`` of observations (``obs_image`` indexes ``image_ids``)."""
+    origins = np.full((len(obs_image), 3), np.nan)
+    dirs = np.full((len(obs_image), 3), np.nan)
+    order = np.argsort(obs_image, kind="stable")
+    starts = np.searchsorted(obs_image[order], np.arange(len(image_ids) + 1))
+    for k, iid in enumerate(image_ids):
+        sl = order[starts[k]:starts[k + 1]]
+        if len(sl) == 0 or poses.get(iid) is None:
+            continue
+        pose, cam = poses[iid], block.camera_of(iid)
+        xy = cam.pixel_to_normalized(obs_uv[sl])
+        d = np.concatenate([xy, np.ones((len(sl), 1))], 1) @ pose.R
+        dirs[sl] = d / np.linalg.norm(d, axis=1, keepdims=True)
+        origins[sl] = pose.C
+    return origins, dirs
+
+
+def intersect_ties(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose],
+                   obs_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Multi-ray forward intersection of all tracks from ``poses``.
+
+    Returns ``xyz (n, 3)`` (NaN for tracks with fewer than two usable rays) and the ray distances ``(m,)``
+    (NaN for observations not used).
+    """
+    mask = np.ones(ties.n_obs, bool) if obs_mask is None else obs_mask.copy()
+    o, d = observation_rays(block, ties.image_ids, poses, ties.obs_image, ties.obs_uv)
+    mask &= np.isfinite(o[:, 0])
+    xyz, dist = intersect_tracks(o[mask], d[mask], ties.obs_track[mask], ties.n_tracks)
+    out = np.full(ties.n_obs, np.nan)
+    out[mask] = dist
+    return xyz, out
+
+
+@dataclass(eq=False)
+class SubProblem:
+    """A bundle problem over a subset of a block, with the maps back to the block's arrays.
+
+    Attributes
+    ----------
+    problem : the arrays for :func:`.bundle.adjust`
+    track_index : (p,) tie track (in ``TiePoints``) of each problem point
+    obs_index : (m,) observation (in ``TiePoints``) of each problem observation
+    """
+
+    problem: BundleProblem
+    track_index: np.ndarray
+    obs_index: np.ndarray
+
+
+def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_init: np.ndarray,
+                  obs_mask: np.ndarray | None = None, use_control: bool = True,
+                  point_prior_xyz: np.ndarray | None = None, point_prior_cov: np.ndarray | None = None,
+                  prior_shift: np.ndarray | None = None, initial: dict[str, Pose] | None = None) -> SubProblem:
+    """Bundle problem for the images ``image_ids`` with the tie observations among them.
+
+    Parameters
+    ----------
+    xyz_init : (n, 3) initial coordinates of all tie tracks (NaN: track not used)
+    obs_mask : (m,) observations allowed (e.g. not rejected), all by default
+    point_prior_xyz, point_prior_cov : (n, 3), (n, 3, 3) ground observations of tracks (connection points)
+    prior_shift : (3,) added to the GNSS centres (a datum shift known from an earlier adjustment)
+    initial : starting orientations (default: the images' approximate ones)
+    """
+    index = {iid: k for k, iid in enumerate(ties.image_ids)}
+    sub = np.array([index.get(i, -1) for i in image_ids])
+    local = np.full(len(ties.image_ids), -1, np.int64)
+    local[sub[sub >= 0]] = np.flatnonzero(sub >= 0)
+    sel = local[ties.obs_image] >= 0
+    if obs_mask is not None:
+        sel &= obs_mask
+    sel &= np.isfinite(xyz_init[ties.obs_track, 0])
+    obs_index = np.flatnonzero(sel)
+    tracks, obs_point = np.unique(ties.obs_track[obs_index], return_inverse=True)
+    n = len(image_ids)
+    cams = list(block.cameras)
+    r0 = np.zeros((n, 3, 3))
+    c0 = np.zeros((n, 3))
+    pr = np.zeros((n, 3, 3))
+    pc = np.full((n, 3), np.nan)
+    s_att = np.full((n, 3), np.nan)
+    s_pos = np.full((n, 3), np.nan)
+    shift = np.zeros(3) if prior_shift is None else np.asarray(prior_shift)
+    for k, iid in enumerate(image_ids):
+        img = block.images[iid]
+        start = (initial or {}).get(iid) or img.pose_approx
+        r0[k], c0[k] = start.R, start.C
+        if img.pose_approx is not None:
+            pr[k], pc[k] = img.pose_approx.R, img.pose_approx.C + shift
+            if img.sigma_position is not None and img.sigma_attitude is not None:
+                s_pos[k], s_att[k] = img.sigma_position, img.sigma_attitude
+    prob = BundleProblem(
+        image_ids=list(image_ids), cameras=[block.cameras[c] for c in cams],
+        image_camera=np.array([cams.index(block.images[i].camera_id) for i in image_ids]),
+        r_cam_from_world=r0, c_world=c0, prior_r=pr, prior_c=pc, prior_sigma_att=s_att, prior_sigma_pos=s_pos,
+        xyz=xyz_init[tracks], obs_point=obs_point.astype(np.int64),
+        obs_image=local[ties.obs_image[obs_index]], obs_uv=ties.obs_uv[obs_index])
+    if point_prior_xyz is not None:
+        prob.point_prior_xyz = point_prior_xyz[tracks]
+        prob.point_prior_cov = point_prior_cov[tracks]
+    if use_control:
+        kidx = {iid: k for k, iid in enumerate(image_ids)}
+        names, gxyz, gsig, gsp, op, oi, ouv = [], [], [], [], [], [], []
+        for gp in block.ground_points.values():
+            if gp.kind != "control" or gp.xyz is None:
+                continue
+            obs = [(kidx[i], uv) for i, uv in gp.observations.items() if i in kidx]
+            if not obs:
+                continue
+            g = len(names)
+            names.append(gp.name)
+            gxyz.append(gp.xyz)
+            gsig.append(gp.sigma)
+            gsp.append(gp.sigma_px)
+            for k, uv in obs:
+                op.append(g)
+                oi.append(k)
+                ouv.append(uv)
+        if names:
+            prob.gcp_names = names
+            prob.gcp_xyz = np.array(gxyz)
+            prob.gcp_sigma = np.array(gsig)
+            prob.gcp_sigma_px = np.array(gsp)
+            prob.gcp_obs_point = np.array(op, np.int64)
+            prob.gcp_obs_image = np.array(oi, np.int64)
+            prob.gcp_obs_uv = np.array(ouv, np.float64)
+    return SubProblem(problem=prob, track_index=tracks, obs_index=obs_index)
+
+
+def result_poses(sub: SubProblem, result: BundleResult) -> dict[str, Pose]:
+    """Adjusted poses of the images that took part (had observations)."""
+    return {iid: Pose(result.r_cam_from_world[k], result.c_world[k])
+            for k, iid in enumerate(sub.problem.image_ids) if result.image_adjusted[k]}
