@@ -1,0 +1,255 @@
+"""COLMAP sparse models (text or binary, read and written through pycolmap) as oriented image blocks.
+
+* Pixels: COLMAP puts the origin at the outer corner of the top-left pixel (its centre is (0.5, 0.5)); the core
+  at the pixel's centre. The reader subtracts 0.5 from the principal point, the writer adds it.
+* Camera models mapped to the core's Brown model: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and
+  FULL_OPENCV when its rational terms k4 k5 k6 are zero. Any other model is refused with an error naming it.
+  The writer uses PINHOLE without distortion, OPENCV without k3, FULL_OPENCV otherwise.
+* Poses: COLMAP's ``cam_from_world`` uses OpenCV's camera axes, the same as the core.
+* Georeference: a COLMAP model usually lives in an arbitrary frame. ``sim3=FILE`` gives the similarity
+  ``X_world = scale * R @ X_colmap + t`` (COLMAP's ``model_aligner --transform_path`` output): either one line
+  ``scale qw qx qy qz tx ty tz`` (COLMAP >= 3.9), a 3x4 or 4x4 matrix ``[scale R | t]`` (older COLMAP), or a JSON
+  object ``{"scale": s, "rotation": [qw, qx, qy, qz] or 3x3, "translation": [tx, ty, tz]}``. The same can come
+  from options ``sim3_scale``, ``sim3_rotation`` (quaternion w x y z) and ``sim3_translation``. The writer applies
+  the inverse, so an exported model is in COLMAP's frame again. ``crs`` names the world CRS (required).
+* Image ids: the file name stem by default (``image_id=name`` keeps the whole relative name). 3D points are not
+  imported (tie points come from the matching stage).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry.rotations import orthonormalize
+from ..model import CameraModel, Image, ImageBlock, Pose
+from .common import finish_block
+from .validate import check_crs, option_value, parse_float
+
+COLMAP_MODELS = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+}
+"""COLMAP camera models the core can represent, with their parameter names."""
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """``X_world = scale * R @ X_model + t``."""
+
+    scale: float
+    R: np.ndarray
+    t: np.ndarray
+
+    def apply(self, xyz: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(xyz) @ self.R.T + self.t
+
+    def apply_pose(self, r_cam_from_model: np.ndarray, c_model: np.ndarray) -> Pose:
+        """Pose in the world frame: rotation ``R_cam_from_model @ R^T``, centre transformed."""
+        return Pose(r_cam_from_model @ self.R.T, self.apply(c_model[None])[0])
+
+    def inverse(self) -> Similarity:
+        return Similarity(1.0 / self.scale, self.R.T, -(self.R.T @ self.t) / self.scale)
+
+
+def _quat_wxyz_to_matrix(q: np.ndarray, path: str | None, field: str) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    n = np.linalg.norm(q)
+    if q.shape != (4,) or not np.isfinite(n) or abs(n - 1.0) > 1e-6:
+        raise InputError(f"rotation quaternion must be 4 numbers of unit norm (w x y z), got {q.tolist()}",
+                         path=path, field=field)
+    w, x, y, z = q / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _rotation(value: Any, path: str | None, field: str) -> np.ndarray:
+    a = np.asarray(value, dtype=np.float64)
+    if a.shape == (3, 3):
+        if np.abs(a @ a.T - np.eye(3)).max() > 1e-6 or np.linalg.det(a) < 0:
+            raise InputError("rotation is not a rotation matrix", path=path, field=field)
+        return orthonormalize(a)
+    return _quat_wxyz_to_matrix(a, path, field)
+
+
+def _from_matrix(m: np.ndarray, path: str) -> Similarity:
+    sr = m[:3, :3]
+    scale = float(np.cbrt(np.linalg.det(sr)))
+    if not scale > 0:
+        raise InputError("similarity matrix has no positive scale", path=path, field="sim3")
+    return Similarity(scale, _rotation(sr / scale, path, "sim3"), m[:3, 3].copy())
+
+
+def read_similarity(path: str | Path) -> Similarity:
+    """Read a similarity file (see the module docstring for the three accepted layouts)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("similarity file not found", path=p, field="sim3")
+    text = p.read_text(encoding="utf-8-sig").strip()
+    if text.startswith("{"):
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError(f"invalid JSON: {e.msg}", path=p, line=e.lineno, field="sim3") from None
+        try:
+            return Similarity(float(d.get("scale", 1.0)), _rotation(d["rotation"], str(p), "rotation"),
+                              np.asarray(d["translation"], dtype=np.float64).reshape(3))
+        except KeyError as e:
+            raise InputError("missing key", path=p, field=str(e.args[0])) from None
+    values = []
+    for i, line in enumerate(text.splitlines()):
+        if line.strip().startswith("#"):
+            continue
+        values += [parse_float(v, p, i + 1, "sim3") for v in line.replace(",", " ").split()]
+    a = np.array(values)
+    if a.size == 8:
+        return Similarity(float(a[0]), _quat_wxyz_to_matrix(a[1:5], str(p), "sim3"), a[5:8])
+    if a.size in (12, 16):
+        return _from_matrix(a.reshape(-1, 4), str(p))
+    raise InputError(f"expected 8 numbers (scale qw qx qy qz tx ty tz) or a 3x4/4x4 matrix, got {a.size}",
+                     path=p, field="sim3")
+
+
+def _similarity_option(options: dict[str, Any], source: str) -> Similarity | None:
+    path = options.pop("sim3", None)
+    scale = options.pop("sim3_scale", None)
+    rot = options.pop("sim3_rotation", None)
+    trans = options.pop("sim3_translation", None)
+    if path is not None:
+        if scale is not None or rot is not None or trans is not None:
+            raise InputError("give the georeference either as sim3=FILE or as sim3_scale/rotation/translation",
+                             path=source, field="sim3")
+        return read_similarity(str(path))
+    if scale is None and rot is None and trans is None:
+        return None
+    r = np.eye(3) if rot is None else _rotation(option_value(rot), source, "sim3_rotation")
+    t = np.zeros(3) if trans is None else np.asarray(option_value(trans), dtype=np.float64).reshape(3)
+    s = 1.0 if scale is None else parse_float(scale, source, None, "sim3_scale")
+    if s <= 0:
+        raise InputError("sim3_scale must be positive", path=source, field="sim3_scale")
+    return Similarity(s, r, t)
+
+
+def _camera_from_colmap(cam, source: str) -> CameraModel:
+    name = cam.model.name
+    if name not in COLMAP_MODELS:
+        raise InputError(f"COLMAP camera model {name} (camera {cam.camera_id}) cannot be represented by the "
+                         f"Brown model; supported: {', '.join(COLMAP_MODELS)}", path=source, field="cameras")
+    p = dict(zip(COLMAP_MODELS[name], np.asarray(cam.params, dtype=np.float64), strict=True))
+    if any(p.get(k, 0.0) != 0.0 for k in ("k4", "k5", "k6")):
+        raise InputError(f"FULL_OPENCV camera {cam.camera_id} has rational distortion k4..k6, which the Brown "
+                         "model cannot represent", path=source, field="cameras")
+    fx = p.get("fx", p.get("f"))
+    fy = p.get("fy", p.get("f"))
+    return CameraModel(id=str(cam.camera_id), width=int(cam.width), height=int(cam.height), fx=float(fx),
+                       fy=float(fy), cx=float(p["cx"]) - 0.5, cy=float(p["cy"]) - 0.5,
+                       **{k: float(p.get(k, 0.0)) for k in ("k1", "k2", "k3", "p1", "p2")})
+
+
+def read_colmap(source: str, **options: Any) -> ImageBlock:
+    """Read a COLMAP model folder (``cameras/images/points3D`` as ``.txt`` or ``.bin``)."""
+    import pycolmap
+
+    folder = Path(source)
+    if not folder.is_dir():
+        raise InputError("COLMAP model folder not found", path=source)
+    if not any((folder / f"cameras.{ext}").is_file() for ext in ("txt", "bin")):
+        raise InputError("no cameras.txt or cameras.bin in the folder", path=source, field="cameras")
+    crs = check_crs(options.pop("crs", None), source, "crs")
+    sim = _similarity_option(options, source)
+    id_mode = str(options.pop("image_id", "stem")).lower()
+    if id_mode not in ("stem", "name"):
+        raise InputError(f"image_id must be stem or name, got '{id_mode}'", path=source, field="image_id")
+    try:
+        rec = pycolmap.Reconstruction(str(folder))
+    except (RuntimeError, ValueError, IndexError) as e:
+        raise InputError(f"COLMAP could not read the model: {str(e).splitlines()[-1][:200]}", path=source) from None
+    block = ImageBlock(crs=crs, image_root=None)
+    for cid in sorted(rec.cameras):
+        block.add_camera(_camera_from_colmap(rec.cameras[cid], source))
+    for iid in sorted(rec.images):
+        im = rec.images[iid]
+        pose = None
+        if im.has_pose:
+            cfw = im.cam_from_world()
+            r = np.asarray(cfw.rotation.matrix(), dtype=np.float64)
+            c = -r.T @ np.asarray(cfw.translation, dtype=np.float64)
+            pose = Pose(r, c) if sim is None else sim.apply_pose(r, c)
+        image_id = im.name if id_mode == "name" else Path(im.name).stem
+        if image_id in block.images:
+            raise InputError(f"duplicate image id '{image_id}' (images {im.name}); try -o image_id=name",
+                             path=source, field="images")
+        block.add_image(Image(id=image_id, camera_id=str(im.camera_id), file=im.name, pose_approx=pose))
+    if not block.images:
+        raise InputError("the model has no images", path=source, field="images")
+    return finish_block(block, source, options, "colmap")
+
+
+def _camera_to_colmap(cam: CameraModel, camera_id: int):
+    import pycolmap
+
+    cx, cy = cam.cx + 0.5, cam.cy + 0.5
+    if not cam.has_distortion:
+        model, params = "PINHOLE", [cam.fx, cam.fy, cx, cy]
+    elif cam.k3 == 0.0:
+        model, params = "OPENCV", [cam.fx, cam.fy, cx, cy, cam.k1, cam.k2, cam.p1, cam.p2]
+    else:
+        model, params = "FULL_OPENCV", [cam.fx, cam.fy, cx, cy, cam.k1, cam.k2, cam.p1, cam.p2, cam.k3, 0.0, 0.0,
+                                        0.0]
+    return pycolmap.Camera(model=model, width=cam.width, height=cam.height, params=params, camera_id=camera_id)
+
+
+def write_colmap(block: ImageBlock, dest: str, binary: Any = False, sim3: str | None = None) -> None:
+    """Write the oriented images of ``block`` as a COLMAP model folder (no 3D points).
+
+    With ``sim3`` (a similarity file, world_from_model) the poses are written in the model frame. Images
+    without orientation are left out (COLMAP images.txt always has a pose). Camera ids are 1..n in block order.
+    """
+    import pycolmap
+
+    from .validate import parse_bool
+
+    inverse = None if sim3 is None else read_similarity(sim3).inverse()
+    rec = pycolmap.Reconstruction()
+    cam_ids: dict[str, int] = {}
+    for i, cam in enumerate(block.cameras.values(), start=1):
+        cam_ids[cam.id] = i
+        rec.add_camera_with_trivial_rig(_camera_to_colmap(cam, i))
+    n = 0
+    for img in block.images.values():
+        pose = img.pose
+        if pose is None:
+            continue
+        n += 1
+        if inverse is not None:
+            pose = inverse.apply_pose(pose.R, pose.C)
+        cfw = pycolmap.Rigid3d(np.hstack([pose.R, pose.t[:, None]]))
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=img.file or img.id, camera_id=cam_ids[img.camera_id], image_id=n), cfw)
+    out = Path(dest)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".colmap.", dir=out))
+    try:
+        if parse_bool(binary, dest, None, "binary"):
+            rec.write_binary(str(tmp))
+        else:
+            rec.write_text(str(tmp))
+        for f in sorted(tmp.iterdir()):  # each file replaced atomically
+            os.replace(f, out / f.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
