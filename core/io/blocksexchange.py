@@ -55,7 +55,7 @@ from ..geometry.rotations import (
 from ..model import CameraModel, GroundPoint, Image, ImageBlock, Pose
 from ..pipeline.atomic import write_bytes
 from .common import finish_block
-from .validate import check_crs, parse_bool, parse_xml
+from .validate import check_crs, parse_bool, parse_xml, reject_unknown
 
 CAMERA_ORIENTATIONS: dict[str, np.ndarray] = {
     "XRightYDown": np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1]], float),
@@ -418,12 +418,14 @@ def _fmt(v: float) -> str:
     return repr(float(v))
 
 
-def write_bex(block: ImageBlock, dest: str, rotation: str = "matrix", name: str = "Oblique City block") -> None:
+def write_bex(block: ImageBlock, dest: str, rotation: str = "matrix", name: str = "Oblique City block",
+              **unknown: Any) -> None:
     """Write ``block`` as BlocksExchange XML (CameraOrientation XRightYDown, pixel origin as the spec states).
 
     Images get their adjusted pose if any, else the approximate one; images without pose are written without
     <Pose>. ``rotation="opk"`` writes Omega/Phi/Kappa degrees instead of the exact matrix.
     """
+    reject_unknown(unknown, "bex")
     from lxml import etree
 
     if rotation not in ("matrix", "opk"):

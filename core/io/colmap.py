@@ -32,7 +32,7 @@ from ..errors import InputError
 from ..geometry.rotations import orthonormalize
 from ..model import CameraModel, Image, ImageBlock, Pose
 from .common import finish_block
-from .validate import check_crs, option_value, parse_float
+from .validate import check_crs, option_value, parse_float, reject_unknown
 
 COLMAP_MODELS = {
     "SIMPLE_PINHOLE": ("f", "cx", "cy"),
@@ -214,12 +214,13 @@ def _camera_to_colmap(cam: CameraModel, camera_id: int):
     return pycolmap.Camera(model=model, width=cam.width, height=cam.height, params=params, camera_id=camera_id)
 
 
-def write_colmap(block: ImageBlock, dest: str, binary: Any = False, sim3: str | None = None) -> None:
+def write_colmap(block: ImageBlock, dest: str, binary: Any = False, sim3: str | None = None, **unknown: Any) -> None:
     """Write the oriented images of ``block`` as a COLMAP model folder (no 3D points).
 
     With ``sim3`` (a similarity file, world_from_model) the poses are written in the model frame. Images
     without orientation are left out (COLMAP images.txt always has a pose). Camera ids are 1..n in block order.
     """
+    reject_unknown(unknown, "colmap")
     import pycolmap
 
     from .validate import parse_bool

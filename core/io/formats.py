@@ -8,15 +8,17 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..model import ImageBlock
-from . import native
+from . import blocksexchange, colmap, native, opk
 
 Reader = Callable[..., ImageBlock]
 Writer = Callable[..., None]
 
-READERS: dict[str, Reader] = {"native": lambda source, **_: native.read_block(source)}
+READERS: dict[str, Reader] = {"native": lambda source, **_: native.read_block(source),
+                              "opk": opk.read_opk, "bex": blocksexchange.read_bex, "colmap": colmap.read_colmap}
 """Format name -> ``reader(source, **options) -> ImageBlock``."""
 
-WRITERS: dict[str, Writer] = {"native": lambda block, dest, **_: native.write_block(block, dest)}
+WRITERS: dict[str, Writer] = {"native": lambda block, dest, **_: native.write_block(block, dest),
+                              "opk": opk.write_opk, "bex": blocksexchange.write_bex, "colmap": colmap.write_colmap}
 """Format name -> ``writer(block, dest, **options)``."""
 
 

@@ -38,6 +38,7 @@ from .validate import (
     parse_columns,
     parse_float,
     read_text_lines,
+    reject_unknown,
     sniff_delimiter,
     split_row,
 )
@@ -205,13 +206,14 @@ def _fmt(v: float) -> str:
 
 
 def write_opk(block: ImageBlock, dest: str, angles: str = "deg", delimiter: str = "whitespace",
-              cameras: str | None = None, sigmas: Any = True) -> None:
+              cameras: str | None = None, sigmas: Any = True, **unknown: Any) -> None:
     """Write the block's images (adjusted pose if any, else approximate) as an OPK list plus a camera file.
 
     The camera file goes to ``cameras`` (default ``<stem>_cameras.toml`` beside ``dest``); the list's header
     comments name it, the CRS and the angle unit, so :func:`read_opk` needs no options to read it back.
     Images without any orientation are skipped (OPK lists always carry EO).
     """
+    reject_unknown(unknown, "opk")
     sep = parse_delimiter(delimiter)
     sigmas = parse_bool(sigmas, None, None, "sigmas")
     unit = angle_unit(angles)
