@@ -1,0 +1,195 @@
+"""Builders: workspace results -> Blender objects, one small function per stage, in a registry.
+
+A builder is ``builder(scene, ws) -> str``: it (re)creates the objects of one stage's results in that stage's own
+collection under the scene's "Oblique City" collection and returns a one-line summary. :data:`BUILDERS` maps a
+stage name to its builder; ``block`` is the imported block (cameras and ground points). Later stages add theirs
+with :func:`register_builder` (point clouds, DSM, buildings, ...); "Build Scene from Workspace" and the end of a
+job run every builder whose stage has finished, so new layers appear without touching the operators.
+
+All positions go through :mod:`.georef` (objects at ``world - origin``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ..core.geometry.views import VIEWS
+from ..core.model import ImageBlock
+from ..core.pipeline import Workspace
+from ..core.pipeline.registry import stage_names
+from . import backgrounds, cameras, georef
+
+Builder = Callable[..., str]
+"""``builder(scene, ws) -> summary``."""
+
+BUILDERS: dict[str, Builder] = {}
+"""Stage name (or ``block``) -> builder."""
+
+ROOT_NAME = "Oblique City"
+ROLE_KEY = "oc_role"
+WORKSPACE_KEY = "oblique_city_workspace"
+CLIP_END_M = 20000.0
+
+
+def register_builder(stage: str, builder: Builder) -> None:
+    """Add (or replace) the builder of ``stage``'s results."""
+    BUILDERS[stage] = builder
+
+
+def unregister_builder(stage: str) -> None:
+    BUILDERS.pop(stage, None)
+
+
+# --- collections -----------------------------------------------------------------------------------------
+def _child(parent, role: str, name: str):
+    for c in parent.children:
+        if c.get(ROLE_KEY) == role:
+            return c
+    import bpy
+
+    c = bpy.data.collections.new(name)
+    c[ROLE_KEY] = role
+    parent.children.link(c)
+    return c
+
+
+def root_collection(scene):
+    """The scene's "Oblique City" collection (created on first use)."""
+    return _child(scene.collection, "root", ROOT_NAME)
+
+
+def stage_collection(scene, role: str, name: str, clear: bool = True):
+    """The collection of one layer (``role``) under the root; with ``clear`` its objects and sub-collections are
+    deleted first, so a builder always rebuilds from scratch."""
+    coll = _child(root_collection(scene), role, name)
+    if clear:
+        _clear(coll)
+    return coll
+
+
+def _clear(coll) -> None:
+    import bpy
+
+    for child in list(coll.children):
+        _clear(child)
+        bpy.data.collections.remove(child)
+    for obj in list(coll.objects):
+        data = obj.data
+        bpy.data.objects.remove(obj, do_unlink=True)
+        if data is not None and data.users == 0:
+            if isinstance(data, bpy.types.Camera):
+                bpy.data.cameras.remove(data)
+            elif isinstance(data, bpy.types.Mesh):
+                bpy.data.meshes.remove(data)
+
+
+def view_collection(scene, view: str):
+    """The camera collection of one cardinal view (under the block's collection)."""
+    return _child(stage_collection(scene, "block", "Block", clear=False), "view:" + view, f"Cameras {view}")
+
+
+# --- the block: cameras and ground points ----------------------------------------------------------------
+def build_cameras(scene, block: ImageBlock, ws_root=None) -> dict[str, object]:
+    """One camera object per oriented image, in one collection per cardinal view. Returns image id -> object.
+
+    The scene's georeference is set from the block when the scene has none (see :func:`georef.ensure_georef`).
+    """
+    import bpy
+
+    centres = np.array([img.pose.C for img in block.images.values() if img.pose is not None]).reshape(-1, 3)
+    gcps = np.array([g.xyz for g in block.ground_points.values() if g.xyz is not None]).reshape(-1, 3)
+    georef.ensure_georef(scene, block.crs, np.concatenate([centres, gcps]))
+    stage_collection(scene, "block", "Block", clear=True)
+    extent = float(np.ptp(centres[:, :2], axis=0).max()) if len(centres) > 1 else 100.0
+    objects: dict[str, object] = {}
+    for view in VIEWS:
+        ids = [i for i, img in block.images.items() if img.pose is not None and img.view == view]
+        if not ids:
+            continue
+        coll = view_collection(scene, view)
+        for image_id in ids:
+            img = block.images[image_id]
+            data = bpy.data.cameras.new(image_id)
+            cameras.set_intrinsics(data, block.camera_of(img))
+            data.clip_start = 1.0
+            data.clip_end = CLIP_END_M
+            data.display_size = max(1.0, extent / 60.0)
+            obj = bpy.data.objects.new(image_id, data)
+            obj["oc_image_id"] = image_id
+            obj["oc_view"] = view
+            if img.head:
+                obj["oc_head"] = img.head
+            cameras.set_pose(scene, obj, img.pose)
+            backgrounds.set_background(data, backgrounds.background_file(ws_root, block, image_id, create=False))
+            coll.objects.link(obj)
+            objects[image_id] = obj
+    return objects
+
+
+def build_ground_points(scene, block: ImageBlock) -> dict[str, object]:
+    """One empty per ground point with coordinates (plain axes: control, sphere: check). Name -> object."""
+    import bpy
+
+    points = [g for g in block.ground_points.values() if g.xyz is not None]
+    if not points:
+        return {}
+    coll = _child(stage_collection(scene, "block", "Block", clear=False), "ground_points", "Ground points")
+    out = {}
+    for g in points:
+        obj = bpy.data.objects.new(g.name, None)
+        obj.empty_display_type = "PLAIN_AXES" if g.kind == "control" else "SPHERE"
+        obj.empty_display_size = 2.0
+        obj.location = tuple(georef.world_to_local(scene, g.xyz))
+        obj["oc_ground_point"] = g.name
+        obj["oc_kind"] = g.kind
+        coll.objects.link(obj)
+        out[g.name] = obj
+    return out
+
+
+def show_first_camera(scene, objects: dict[str, object]) -> None:
+    """Make the first nadir camera (else the first camera) the scene camera, with matching render settings."""
+    if not objects:
+        return
+    nadir = [o for o in objects.values() if o.get("oc_view") == "nadir"]
+    cameras.apply_render_settings(scene, (nadir or list(objects.values()))[0])
+
+
+def build_block(scene, ws: Workspace) -> str:
+    """Builder of the block (adjusted orientations when aerial triangulation has run)."""
+    block = ws.load_block()
+    objects = build_cameras(scene, block, ws.root)
+    points = build_ground_points(scene, block)
+    show_first_camera(scene, objects)
+    views = ", ".join(f"{v} {n}" for v, n in sorted(block.summary()["views"].items()))
+    return f"{len(objects)} cameras ({views}), {len(points)} ground points"
+
+
+register_builder("block", build_block)
+register_builder("aerotri", build_block)
+
+
+# --- the whole scene -------------------------------------------------------------------------------------
+def build_scene(scene, ws: Workspace, stages: list[str] | None = None) -> list[str]:
+    """Run the builders of the block and of every finished stage (or only of ``stages``), each at most once.
+
+    Returns the builders' summaries (``"stage: summary"``). The workspace path is remembered on the scene.
+    """
+    state = ws.read_state()
+    keys = ["block"] + stage_names() if stages is None else list(stages)
+    done: set[int] = set()
+    messages = []
+    for key in keys:
+        fn = BUILDERS.get(key)
+        if fn is None or id(fn) in done:
+            continue
+        if key != "block" and state.get(key, {}).get("status") != "done":
+            continue
+        done.add(id(fn))
+        messages.append(f"{key}: {fn(scene, ws)}")
+    scene[WORKSPACE_KEY] = str(ws.root)
+    if hasattr(scene, "oblique_city"):
+        scene.oblique_city.workspace = str(ws.root)
+    return messages

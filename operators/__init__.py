@@ -1,0 +1,15 @@
+"""Operators: import a block, run stages as cancellable jobs, open / build / view a workspace."""
+
+from __future__ import annotations
+
+from .import_block import CITY_OT_import_block
+from .run import CITY_OT_cancel_job, CITY_OT_run_stages
+from .workspace import CITY_OT_build_scene, CITY_OT_open_workspace, CITY_OT_view_image
+
+CLASSES = (CITY_OT_import_block, CITY_OT_run_stages, CITY_OT_cancel_job, CITY_OT_open_workspace,
+           CITY_OT_build_scene, CITY_OT_view_image)
+
+
+def menu_import(self, context) -> None:
+    """File > Import entry."""
+    self.layout.operator(CITY_OT_import_block.bl_idname, text="Oriented Image Block (Oblique City)")

@@ -1,0 +1,154 @@
+"""File > Import > Oriented Image Block: read a block in any registered format into a workspace and build it.
+
+The format list is :data:`core.io.formats.READERS`, so a reader registered there appears here without changes.
+Reader options the user leaves empty are not passed at all (readers reject options they do not know, so a wrong
+option is a clear error rather than silently ignored); anything else goes through the "Options" field as
+``key=value`` pairs separated by ``;``, exactly as ``-o key=value`` on the CLI.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import bpy
+from bpy.props import EnumProperty, StringProperty
+from bpy_extras.io_utils import ImportHelper
+
+from ..addon import builders
+from ..core.errors import CityError, ConfigError
+from ..core.geometry.crs import normalize_crs, transform_points
+from ..core.io.formats import READERS, read_block
+from ..core.io.reproject import reproject_block
+from ..core.model import ImageBlock
+from ..core.pipeline import Workspace
+
+FORMAT_LABELS = {
+    "native": ("Oblique City JSON", "The workspace's own block file (block.json)"),
+    "opk": ("OPK List", "Text/CSV list: image, X, Y, Z, omega, phi, kappa, with a camera file"),
+    "bex": ("BlocksExchange XML", "ContextCapture / iTwin Capture BlocksExchange"),
+    "colmap": ("COLMAP Model", "COLMAP text or binary model folder (cameras, images, points3D)"),
+}
+FOLDER_FORMATS = {"colmap"}
+"""Formats whose source is a folder: picking a file inside it imports the folder."""
+
+_format_items: list[tuple[str, str, str]] = []
+
+
+def format_items(self, context) -> list[tuple[str, str, str]]:
+    """Enum items from the registered readers (the list is kept alive, as Blender requires for dynamic enums)."""
+    _format_items[:] = [(name, *FORMAT_LABELS.get(name, (name, f"Block format '{name}'"))) for name in READERS]
+    return _format_items
+
+
+def parse_options(text: str) -> dict[str, object]:
+    """``"angles=gon; crs=EPSG:25832"`` -> dict; values are JSON when they parse as JSON, else strings."""
+    out: dict[str, object] = {}
+    for part in text.replace("\n", ";").split(";"):
+        part = part.strip()
+        if not part:
+            continue
+        if "=" not in part:
+            raise ConfigError(f"option '{part}' should look like key=value")
+        k, v = (s.strip() for s in part.split("=", 1))
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out
+
+
+def import_into_workspace(fmt: str, source: str | Path, ws_root: str | Path, **options) -> tuple[Workspace,
+                                                                                                   ImageBlock]:
+    """Read a block and save it into a workspace (created if needed, in the block's CRS; an existing workspace in
+    another CRS gets the block reprojected). Relative image paths are anchored at the source's folder."""
+    source = Path(source)
+    block = read_block(fmt, source, **options)
+    if block.image_root is None:
+        block.image_root = str((source if source.is_dir() else source.parent).resolve())
+    elif not Path(block.image_root).is_absolute():
+        block.image_root = str(((source if source.is_dir() else source.parent) / block.image_root).resolve())
+    root = Path(ws_root)
+    ws = Workspace.open(root) if (root / "project.toml").exists() else Workspace.create(root, crs=block.crs)
+    if normalize_crs(block.crs) != normalize_crs(ws.crs):
+        block = reproject_block(block, ws.crs, transform_points)
+    ws.save_block(block)
+    return ws, block
+
+
+class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
+    """Import an oriented image block: one camera per image, grouped by cardinal view"""
+
+    bl_idname = "city.import_block"
+    bl_label = "Import Oriented Image Block"
+    bl_options = {"REGISTER", "UNDO", "PRESET"}
+
+    filter_glob: StringProperty(default="*.json;*.xml;*.txt;*.csv;*.opk;*.dat;*.bin", options={"HIDDEN"})
+    block_format: EnumProperty(name="Format", items=format_items)
+    angle_unit: EnumProperty(
+        name="Angles", description="Unit of omega, phi, kappa (OPK lists)",
+        items=[("file", "From File", "Use the file's header or camera file (default degrees)"),
+               ("deg", "Degrees", ""), ("gon", "Gon", ""), ("rad", "Radians", "")],
+        default="file",
+    )
+    camera_file: StringProperty(name="Camera File", subtype="FILE_PATH",
+                                description="Intrinsics (TOML or JSON) for OPK lists; empty: beside the list")
+    gcp_file: StringProperty(name="Ground Points", subtype="FILE_PATH",
+                             description="Ground control / check point list (optional)")
+    image_folder: StringProperty(name="Image Folder", subtype="DIR_PATH",
+                                 description="Folder relative image paths start from (optional)")
+    options: StringProperty(name="Options", description="More reader options: key=value; key=value")
+    workspace: StringProperty(name="Workspace", subtype="DIR_PATH",
+                              description="Workspace folder (created if needed); empty: the scene's workspace, "
+                                          "else a folder beside the block named <block>_city")
+
+    def draw(self, context):
+        layout = self.layout
+        layout.prop(self, "block_format")
+        if self.block_format == "opk":
+            layout.prop(self, "angle_unit")
+            layout.prop(self, "camera_file")
+        layout.prop(self, "gcp_file")
+        layout.prop(self, "image_folder")
+        layout.prop(self, "options")
+        layout.prop(self, "workspace")
+
+    def reader_options(self) -> dict[str, object]:
+        opts: dict[str, object] = {}
+        if self.angle_unit != "file":
+            opts["angles"] = self.angle_unit
+        if self.camera_file:
+            opts["cameras"] = bpy.path.abspath(self.camera_file)
+        if self.gcp_file:
+            opts["gcps"] = bpy.path.abspath(self.gcp_file)
+        if self.image_folder:
+            opts["image_root"] = bpy.path.abspath(self.image_folder)
+        opts.update(parse_options(self.options))
+        return opts
+
+    def source_path(self) -> Path:
+        path = Path(bpy.path.abspath(self.filepath))
+        if self.block_format in FOLDER_FORMATS and path.is_file():
+            return path.parent
+        return path
+
+    def workspace_path(self, context, source: Path) -> Path:
+        if self.workspace:
+            return Path(bpy.path.abspath(self.workspace))
+        if context.scene.oblique_city.workspace:
+            return Path(bpy.path.abspath(context.scene.oblique_city.workspace))
+        base = source if source.is_dir() else source.parent
+        return base.parent / f"{base.name}_city" if source.is_dir() else base / f"{source.stem}_city"
+
+    def execute(self, context):
+        try:
+            source = self.source_path()
+            ws, block = import_into_workspace(self.block_format, source, self.workspace_path(context, source),
+                                              **self.reader_options())
+            messages = builders.build_scene(context.scene, ws, stages=["block"])
+        except CityError as e:
+            self.report({"ERROR"}, str(e).splitlines()[0])
+            return {"CANCELLED"}
+        s = block.summary()
+        self.report({"INFO"}, f"Imported {s['images']} images into {ws.root}: {'; '.join(messages)}")
+        return {"FINISHED"}

@@ -1,0 +1,189 @@
+"""The sidebar tab "City" of the 3D viewport: the Block panel, the running job, and one panel per later stage.
+
+Stage panels show each stage's status from ``state.json`` and Run buttons that call the generic
+``city.run_stages`` operator, so they work for whichever stages are registered in ``core.pipeline.registry``; a
+stage that is not registered yet is listed as such. Panels only read cached summaries (re-read when
+``block.json`` or ``state.json`` change), never the workspace on every redraw.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import bpy
+
+from ..addon import georef, jobs
+from ..core.errors import CityError
+from ..core.pipeline.registry import get_stage, stage_names
+from ..core.pipeline.workspace import ADJUSTED_BLOCK_FILE, BLOCK_FILE, STATE_FILE, Workspace
+
+STAGE_PANELS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("Triangulation", ("match", "aerotri")),
+    ("Dense & Surfaces", ("dense", "surface")),
+    ("Buildings", ("buildings",)),
+    ("Textures", ("texture",)),
+    ("Export", ("export",)),
+)
+"""Panel label -> the stages it shows, in pipeline order. Registered stages not named here go to "More Stages"."""
+
+_cache: dict[tuple, object] = {}
+
+
+def _mtime(path: Path) -> float | None:
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return None
+
+
+def _cached(key: tuple, compute):
+    if key not in _cache:
+        if len(_cache) > 64:
+            _cache.clear()
+        try:
+            _cache[key] = compute()
+        except (CityError, OSError, ValueError) as e:
+            _cache[key] = {"error": str(e).splitlines()[0]}
+    return _cache[key]
+
+
+def block_summary(root: Path) -> dict:
+    """The block's summary (``ImageBlock.summary()``), re-read only when a block file changed."""
+    key = ("block", str(root), _mtime(root / BLOCK_FILE), _mtime(root / ADJUSTED_BLOCK_FILE))
+    if key[2] is None:
+        return {"error": "no block imported yet"}
+    return _cached(key, lambda: Workspace.open(root).load_block().summary())
+
+
+def stage_state(root: Path) -> dict:
+    """``state.json`` as a dict, re-read only when it changed."""
+    path = root / STATE_FILE
+    key = ("state", str(root), _mtime(path))
+    if key[2] is None:
+        return {}
+    return _cached(key, lambda: json.loads(path.read_text(encoding="utf-8")))
+
+
+def workspace_root(context) -> Path | None:
+    path = context.scene.oblique_city.workspace
+    return Path(bpy.path.abspath(path)) if path else None
+
+
+class CityPanel:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "City"
+
+
+class CITY_PT_block(CityPanel, bpy.types.Panel):
+    bl_idname = "CITY_PT_block"
+    bl_label = "Block"
+
+    def draw(self, context):
+        layout = self.layout
+        scene = context.scene
+        layout.prop(scene.oblique_city, "workspace")
+        row = layout.row(align=True)
+        row.operator("city.import_block", text="Import", icon="IMPORT")
+        row.operator("city.open_workspace", text="Open", icon="FILE_FOLDER")
+        row.operator("city.build_scene", text="Build", icon="FILE_REFRESH")
+        root = workspace_root(context)
+        if root is not None:
+            s = block_summary(root)
+            col = layout.column(align=True)
+            if "error" in s:
+                col.label(text=s["error"], icon="INFO")
+            else:
+                col.label(text=f"{s['images']} images, {s['cameras']} cameras, {s['adjusted']} adjusted")
+                for view, n in s["views"].items():
+                    col.label(text=f"    {view}: {n}")
+                col.label(text=f"Ground points: {s['control_points']} control, {s['check_points']} check")
+                col.label(text=f"CRS: {s['crs'][:40]}")
+        if georef.has_georef(scene):
+            o = georef.get_origin(scene)
+            layout.label(text=f"Origin: {o[0]:.3f}, {o[1]:.3f}, {o[2]:.3f}")
+        row = layout.row(align=True)
+        row.operator("city.view_image", icon="CAMERA_DATA")
+        row.prop(scene.oblique_city, "undistort_backgrounds", text="", icon="IMAGE_BACKGROUND")
+
+
+class CITY_PT_job(CityPanel, bpy.types.Panel):
+    bl_idname = "CITY_PT_job"
+    bl_label = "Job"
+
+    def draw(self, context):
+        layout = self.layout
+        state = context.window_manager.oblique_city_job
+        job = jobs.active_job()
+        if job is not None and not job.finished:
+            layout.progress(factor=state.fraction, text=state.message[:60] or state.stage)
+            layout.operator("city.cancel_job", icon="CANCEL")
+        elif state.status:
+            layout.label(text=f"Last job: {state.status}", icon="CHECKMARK" if state.status == "done" else "ERROR")
+            if state.message:
+                layout.label(text=state.message[:80])
+        row = layout.row(align=True)
+        row.operator("city.run_stages", text="Run All Stages", icon="PLAY").stages = ""
+        row.prop(context.scene.oblique_city, "force", text="", icon="FILE_REFRESH")
+
+
+def draw_stages(layout, context, names: list[str]) -> None:
+    """Status and a Run button for each stage; registered stages only get the button."""
+    root = workspace_root(context)
+    state = stage_state(root) if root is not None else {}
+    registered = set(stage_names())
+    running = jobs.active_job() is not None and not jobs.active_job().finished
+    for name in names:
+        box = layout.box()
+        if name not in registered:
+            box.label(text=f"{name}: not registered yet", icon="INFO")
+            continue
+        rec = state.get(name, {})
+        status = rec.get("status", "pending")
+        secs = f"  {rec['seconds']:.1f} s" if isinstance(rec.get("seconds"), (int, float)) else ""
+        row = box.row()
+        row.label(text=f"{name}: {status}{secs}", icon="CHECKMARK" if status == "done" else "DOT")
+        sub = row.row()
+        sub.enabled = root is not None and not running
+        sub.operator("city.run_stages", text="Run", icon="PLAY").stages = name
+        if rec.get("message"):
+            box.label(text=str(rec["message"])[:80])
+        try:
+            description = get_stage(name).description
+        except CityError as e:
+            description = str(e).splitlines()[0]
+        if description:
+            box.label(text=description[:80])
+
+
+def _stage_panel(label: str, names: tuple[str, ...]) -> type:
+    ident = "CITY_PT_" + "".join(c if c.isalnum() else "_" for c in label.lower())
+
+    def draw(self, context):
+        draw_stages(self.layout, context, list(names))
+
+    return type(ident, (CityPanel, bpy.types.Panel),
+                {"bl_idname": ident, "bl_label": label, "bl_options": {"DEFAULT_CLOSED"}, "draw": draw})
+
+
+class CITY_PT_more_stages(CityPanel, bpy.types.Panel):
+    bl_idname = "CITY_PT_more_stages"
+    bl_label = "More Stages"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @staticmethod
+    def extra_stages() -> list[str]:
+        named = {n for _, names in STAGE_PANELS for n in names}
+        return [n for n in stage_names() if n not in named]
+
+    @classmethod
+    def poll(cls, context):
+        return bool(cls.extra_stages())
+
+    def draw(self, context):
+        draw_stages(self.layout, context, self.extra_stages())
+
+
+STAGE_PANEL_CLASSES = tuple(_stage_panel(label, names) for label, names in STAGE_PANELS)
+CLASSES = (CITY_PT_block, CITY_PT_job, *STAGE_PANEL_CLASSES, CITY_PT_more_stages)
