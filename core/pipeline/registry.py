@@ -7,7 +7,10 @@ import importlib
 from ..errors import ConfigError
 from .stage import Stage
 
-STAGE_MODULES: dict[str, str] = {}
+STAGE_MODULES: dict[str, str] = {
+    "dense": ".dense.stage",
+    "surface": ".surface.stage",
+}
 """Stage name -> module (relative to the ``core`` package) that defines ``STAGE``, in pipeline order."""
 
 _extra: dict[str, Stage] = {}

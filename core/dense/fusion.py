@@ -1,0 +1,226 @@
+"""Per-master fusion of depth maps from several slaves, edge-preserving smoothing, and conversion to points.
+
+* Consistency: each slave's depth has the uncertainty of its pair, ``sigma_z = z^2 / (f B) * sigma_d``; a master
+  pixel is kept when at least ``min_agree`` slaves lie within ``tol_px`` disparity-equivalents of the median
+  depth, and its depth is the mean of those slaves.
+* Smoothing: a bilateral filter on the fused depth (range sigma in metres), holes filled by their nearest
+  neighbour for the filter and emptied again afterwards, so edges and holes stay where they are.
+* Points: back-projection of the master grid with colour, a normal from the local depth-map surface (oriented
+  towards the camera), the master's view and id.
+* Mixed-pixel filter: points whose local surface is nearly parallel to the master's viewing ray (incidence angle
+  above ``max_incidence_deg``) are the blend of a foreground and a background surface at depth edges; they are
+  removed (the ray-vs-normal test of the oblique dense-matching literature).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from ..model.camera import CameraModel
+from ..model.pose import Pose
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Attributes
+    ----------
+    min_agree : slaves that must agree for a pixel to be kept
+    tol_px : agreement tolerance, in disparity pixels converted to depth for each pair
+    bilateral : apply the bilateral depth filter
+    bilateral_diameter : filter window, grid pixels
+    bilateral_sigma_space : spatial sigma, grid pixels
+    bilateral_sigma_m : range sigma in metres (depth differences above a few sigmas are edges, kept sharp)
+    max_incidence_deg : mixed-pixel filter threshold on the ray/normal angle (90 disables it)
+    normal_offset : grid offset of the neighbours used for normals
+    """
+
+    min_agree: int = 2
+    tol_px: float = 1.0
+    bilateral: bool = True
+    bilateral_diameter: int = 5
+    bilateral_sigma_space: float = 1.5
+    bilateral_sigma_m: float = 0.3
+    max_incidence_deg: float = 82.0
+    normal_offset: int = 2
+
+
+def fuse_depths(depths: np.ndarray, focal_baselines: np.ndarray, cfg: FusionConfig = FusionConfig()
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Fuse the depth maps of several slaves of one master.
+
+    Parameters
+    ----------
+    depths : (k, rows, cols) float32 depth of each slave, NaN empty
+    focal_baselines : (k,) float64 focal length times baseline of each pair
+
+    Returns
+    -------
+    depth : (rows, cols) float32 fused depth, NaN where fewer than ``min_agree`` slaves agree
+    agree : (k, rows, cols) bool, which slaves agree at each pixel
+    """
+    depths = np.asarray(depths, np.float32)
+    with np.errstate(all="ignore"):
+        ref = np.nanmedian(depths, axis=0) if len(depths) else np.full(depths.shape[1:], np.nan)
+        tol = cfg.tol_px * ref[None] ** 2 / np.asarray(focal_baselines, np.float64)[:, None, None]
+        agree = np.abs(depths - ref[None]) <= tol
+    count = agree.sum(axis=0)
+    fused = np.where(agree, depths, 0).sum(axis=0) / np.maximum(count, 1)
+    fused = np.where(count >= cfg.min_agree, fused, np.nan).astype(np.float32)
+    agree &= (count >= cfg.min_agree)[None]
+    return fused, agree
+
+
+def smooth_depth(depth: np.ndarray, cfg: FusionConfig = FusionConfig()) -> np.ndarray:
+    """Bilateral (edge-preserving) filter of a depth map ``(rows, cols)`` with NaN holes kept as holes."""
+    valid = np.isfinite(depth)
+    if not cfg.bilateral or valid.sum() == 0:
+        return depth
+    idx = ndimage.distance_transform_edt(~valid, return_distances=False, return_indices=True)
+    filled = depth[tuple(idx)].astype(np.float32)
+    out = cv2.bilateralFilter(filled, cfg.bilateral_diameter, cfg.bilateral_sigma_m, cfg.bilateral_sigma_space)
+    out[~valid] = np.nan
+    return out
+
+
+def depth_to_points(camera: CameraModel, pose: Pose, depth: np.ndarray, step: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points of a master depth grid.
+
+    Parameters
+    ----------
+    depth : (rows, cols) z-depth on the grid ``u = step*j, v = step*i``
+
+    Returns
+    -------
+    xyz : (rows, cols, 3) float64 world points (NaN where no depth)
+    uv_px : (rows, cols, 2) float64 master pixels of the grid
+    rays : (rows, cols, 3) float64 unit viewing rays (from the camera towards the points)
+    """
+    rows, cols = depth.shape
+    uu, vv = np.meshgrid(np.arange(cols) * float(step), np.arange(rows) * float(step))
+    uv = np.stack([uu.ravel(), vv.ravel()], 1)
+    xy = camera.pixel_to_normalized(uv)
+    d_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    xyz = (d_cam * depth.reshape(-1, 1).astype(np.float64)) @ pose.R + pose.C
+    rays = d_cam @ pose.R
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    return xyz.reshape(rows, cols, 3), uv.reshape(rows, cols, 2), rays.reshape(rows, cols, 3)
+
+
+def grid_normals(xyz: np.ndarray, rays: np.ndarray, offset: int = 2) -> np.ndarray:
+    """Unit normals ``(rows, cols, 3)`` of a gridded surface ``xyz : (rows, cols, 3)`` from central differences
+    ``offset`` cells apart, oriented against the viewing ``rays``; NaN where a neighbour is missing."""
+    o = offset
+    dx = np.full_like(xyz, np.nan)
+    dy = np.full_like(xyz, np.nan)
+    dx[:, o:-o] = xyz[:, 2 * o:] - xyz[:, :-2 * o]
+    dy[o:-o] = xyz[2 * o:] - xyz[:-2 * o]
+    n = np.cross(dx, dy)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=2, keepdims=True)
+        flip = (n * rays).sum(axis=2) > 0
+    n[flip] *= -1
+    return n
+
+
+def incidence_deg(normals: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """Angle between the surface normal and the reversed viewing ray, degrees (90 = grazing), same leading shape."""
+    with np.errstate(invalid="ignore"):
+        c = -(normals * rays).sum(axis=-1)
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+@dataclass(eq=False)
+class MasterPoints:
+    """The points of one master (flat arrays, one row per point).
+
+    xyz : (n, 3) float64; rgb : (n, 3) uint8; normal : (n, 3) float32; incidence : (n,) float32 degrees;
+    uv_px : (n, 2) float64 master pixel; mixed : (n,) bool flagged by the mixed-pixel filter
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    normal: np.ndarray
+    incidence: np.ndarray
+    uv_px: np.ndarray
+    mixed: np.ndarray
+
+
+def master_points(camera: CameraModel, pose: Pose, depth: np.ndarray, step: int, image_bgr: np.ndarray,
+                  cfg: FusionConfig = FusionConfig()) -> MasterPoints:
+    """Points with colour and normal from a fused (and smoothed) master depth grid; the mixed-pixel flag marks
+    points with grazing incidence or without a normal (isolated pixels)."""
+    xyz, uv, rays = depth_to_points(camera, pose, depth, step)
+    normals = grid_normals(xyz, rays, cfg.normal_offset)
+    inc = incidence_deg(normals, rays)
+    valid = np.isfinite(depth)
+    mixed = ~(inc <= cfg.max_incidence_deg)
+    ui = np.clip(np.rint(uv[..., 0]).astype(int), 0, camera.width - 1)
+    vi = np.clip(np.rint(uv[..., 1]).astype(int), 0, camera.height - 1)
+    rgb = image_bgr[vi, ui, ::-1]
+    return MasterPoints(xyz[valid], rgb[valid].astype(np.uint8), np.nan_to_num(normals[valid]).astype(np.float32),
+                        inc[valid].astype(np.float32), uv[valid], mixed[valid])
+
+
+def statistical_outliers(xyz: np.ndarray, neighbours: int = 16, std_ratio: float = 2.5) -> np.ndarray:
+    """Mask ``(n,)`` of statistical outliers: mean distance to the ``neighbours`` nearest points above the mean
+    of all points plus ``std_ratio`` standard deviations (Open3D's statistical outlier removal)."""
+    import open3d as o3d
+
+    if len(xyz) <= neighbours:
+        return np.zeros(len(xyz), bool)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz, np.float64) - xyz.mean(axis=0)))
+    _, keep = pcd.remove_statistical_outlier(nb_neighbors=neighbours, std_ratio=std_ratio)
+    out = np.ones(len(xyz), bool)
+    out[np.asarray(keep, np.int64)] = False
+    return out
+
+
+def intersection_errors(uv_master: np.ndarray, cam_master: CameraModel, pose_master_used: Pose,
+                        pose_master_eval: Pose, slaves: list[tuple[CameraModel, Pose, Pose, np.ndarray]]
+                        ) -> np.ndarray:
+    """Forward intersection error of dense points under an orientation (quality maps).
+
+    The correspondences are the matches themselves: for every agreeing slave, the point of that pair alone (the
+    master ray at the pair's depth, with the orientation used for matching) projected into the slave. Then the
+    master ray and the slave rays are intersected with the orientation being assessed, and the RMS distance of
+    the rays to their intersection is returned.
+
+    Parameters
+    ----------
+    uv_master : (n, 2) master pixels of the points
+    pose_master_used, pose_master_eval : master orientation used for matching, and the one assessed
+    slaves : per slave ``(camera, pose_used, pose_eval, depth (n,))`` with the pair's master depth, NaN where the
+        slave does not agree
+
+    Returns
+    -------
+    rms : (n,) float64 metres (NaN for points with fewer than two rays)
+    """
+    from ..geometry.intersection import intersect_tracks
+    from ..geometry.projection import backproject_depth, pixel_rays, project
+
+    n = len(uv_master)
+    origins = [np.broadcast_to(pose_master_eval.C, (n, 3))]
+    dirs = [pixel_rays(cam_master, pose_master_eval, uv_master)]
+    track = [np.arange(n)]
+    for cam, pose_used, pose_eval, depth in slaves:
+        idx = np.flatnonzero(np.isfinite(depth))
+        xyz = backproject_depth(cam_master, pose_master_used, uv_master[idx], depth[idx])
+        uv, _ = project(cam, pose_used, xyz)
+        ok = np.isfinite(uv[:, 0])
+        idx, uv = idx[ok], uv[ok]
+        origins.append(np.broadcast_to(pose_eval.C, (len(idx), 3)))
+        dirs.append(pixel_rays(cam, pose_eval, uv))
+        track.append(idx)
+    track_all = np.concatenate(track)
+    _, dist = intersect_tracks(np.concatenate(origins), np.concatenate(dirs), track_all, n)
+    counts = np.bincount(track_all, minlength=n)
+    with np.errstate(invalid="ignore"):
+        rms = np.sqrt(np.bincount(track_all, weights=dist ** 2, minlength=n) / counts)
+    rms[counts < 2] = np.nan
+    return rms

@@ -1,0 +1,202 @@
+"""The ``dense`` stage: image selection, pair matching through the executor, fusion, filters, point cloud files.
+
+Reads ``ws.load_block()`` (the adjusted block once aerial triangulation has run, else the imported one) and
+writes into ``dense/``:
+
+* ``points.npz``: every fused point with colour, normal, view, master, incidence angle, the forward
+  intersection error with the matching orientation and with the approximate one, and why it was removed
+  (0 kept, 1 mixed pixel, 2 statistical outlier) -- the input of the ``surface`` stage and the benchmarks;
+* ``points.laz`` and ``points.ply``: the kept points (colour, normal, source view, master id);
+* ``points_display.ply``: a random subsample for display (Blender);
+* ``selection.json``: masters and slaves per view, with per-pair timings.
+"""
+
+from __future__ import annotations
+
+import glob
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ComputationError, ConfigError
+from ..geometry.views import VIEWS
+from ..io.pointcloud import PointCloud, write_las, write_ply
+from ..io.validate import resolve_image
+from ..model.block import ImageBlock
+from ..model.tiepoints import TiePoints
+from ..pipeline.atomic import atomic_path, write_json
+from ..pipeline.stage import Stage, StageResult
+from .fusion import FusionConfig, fuse_depths, intersection_errors, master_points, smooth_depth, statistical_outliers
+from .pairs import PairTask, match_pair, read_image
+from .selection import SelectionConfig, select_pairs
+from .sgm import SgmConfig
+
+KEPT, MIXED, OUTLIER = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class DenseConfig:
+    """Options of the ``dense`` stage (``[stages.dense]`` in project.toml).
+
+    z_min, z_max : height prior (world Z) for the disparity range; NaN = from tie points or ground points
+    max_object_height : height above the ground prior allowed for objects when only ground points are known
+    step : points are made on every ``step``-th master pixel
+    scale : rectified image scale (1 = full resolution)
+    views : views to reconstruct
+    master_overlap, slaves_per_master : image selection
+    block_size, sgm_mode, lr_max_diff : SGM settings
+    min_agree, tol_px : multi-slave consistency
+    bilateral, bilateral_sigma_m : depth smoothing
+    max_incidence_deg : mixed-pixel filter (90 disables it)
+    outlier_neighbours, outlier_std : statistical outlier removal (0 neighbours disables it)
+    display_points : size of the display subsample
+    """
+
+    z_min: float = math.nan
+    z_max: float = math.nan
+    max_object_height: float = 80.0
+    step: int = 1
+    scale: float = 1.0
+    views: tuple[str, ...] = ("nadir", "north", "east", "south", "west")
+    master_overlap: float = 0.35
+    slaves_per_master: int = 3
+    block_size: int = 5
+    sgm_mode: str = "sgbm_3way"
+    lr_max_diff: float = 1.0
+    min_agree: int = 2
+    tol_px: float = 1.0
+    bilateral: bool = True
+    bilateral_sigma_m: float = 0.3
+    max_incidence_deg: float = 82.0
+    outlier_neighbours: int = 16
+    outlier_std: float = 2.5
+    display_points: int = 300_000
+
+
+def height_prior(ws, block: ImageBlock, cfg: DenseConfig) -> tuple[float, float]:
+    """``(z_min, z_max)`` from the config, else the tie points of matching/aerotri, else the ground points."""
+    if math.isfinite(cfg.z_min) and math.isfinite(cfg.z_max):
+        return cfg.z_min, cfg.z_max
+    zs = []
+    for path in sorted(glob.glob(str(ws.path("aerotri", "*.npz"))) + glob.glob(str(ws.path("matching", "*.npz")))):
+        try:
+            tp = TiePoints.load(path)
+        except (KeyError, ValueError, OSError):
+            continue
+        z = tp.xyz[:, 2]
+        zs = z[np.isfinite(z)]
+        if len(zs) > 20:
+            lo, hi = np.percentile(zs, [0.5, 99.5])
+            return float(lo - 10.0), float(hi + 10.0)
+    zs = [p.xyz[2] for p in block.ground_points.values() if p.xyz is not None]
+    if zs:
+        return float(min(zs) - 10.0), float(max(zs) + cfg.max_object_height)
+    raise ConfigError("dense: no height prior (no tie points, no ground points): set [stages.dense] z_min and z_max")
+
+
+def run(ws, cfg: DenseConfig, ctx) -> StageResult:
+    block = ws.load_block()
+    for v in cfg.views:
+        if v not in VIEWS:
+            raise ConfigError(f"project.toml: [stages.dense] views has unknown view '{v}' (known: {', '.join(VIEWS)})")
+    z_min, z_max = height_prior(ws, block, cfg)
+    z_ref = z_min + 10.0 if not math.isfinite(cfg.z_min) else 0.5 * (z_min + z_max)
+    selection = select_pairs(block, z_ref, cfg=SelectionConfig(master_overlap=cfg.master_overlap,
+                                                               slaves_per_master=cfg.slaves_per_master,
+                                                               views=tuple(cfg.views)))
+    selection = [s for s in selection if len(s.slaves) >= cfg.min_agree]
+    if not selection:
+        raise ComputationError("dense: no master has enough slaves (check the overlap and the views)")
+    sgm = SgmConfig(block_size=cfg.block_size, mode=cfg.sgm_mode, lr_max_diff=cfg.lr_max_diff)
+    tasks = []
+    for sel in selection:
+        m = block.images[sel.master]
+        for sid in sel.slaves:
+            s = block.images[sid]
+            tasks.append(PairTask(m.id, s.id, block.camera_of(m), m.pose, block.camera_of(s), s.pose,
+                                  str(resolve_image(block, m.file)), str(resolve_image(block, s.file)),
+                                  z_min, z_max, cfg.step, cfg.scale, sgm))
+    total = len(tasks) + len(selection)
+    results = ctx.get_executor().map(match_pair, tasks,
+                                     on_done=lambda d, t: ctx.progress(d, total, f"matched {d}/{t} pairs"))
+    by_master: dict[str, list] = {}
+    for r in results:
+        by_master.setdefault(r.master, []).append(r)
+
+    fcfg = FusionConfig(min_agree=cfg.min_agree, tol_px=cfg.tol_px, bilateral=cfg.bilateral,
+                        bilateral_sigma_m=cfg.bilateral_sigma_m, max_incidence_deg=cfg.max_incidence_deg)
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("xyz", "rgb", "normal", "view", "master", "incidence",
+                                                          "mixed", "err_used", "err_approx")}
+    masters = [s.master for s in selection]
+    adjusted = any(img.pose_adjusted is not None for img in block.images.values())
+    for mi, sel in enumerate(selection):
+        img = block.images[sel.master]
+        cam = block.camera_of(img)
+        res = by_master[sel.master]
+        fused, agree = fuse_depths(np.stack([r.depth for r in res]), np.array([r.focal_baseline for r in res]),
+                                   fcfg)
+        valid_before = np.isfinite(fused)
+        depth = smooth_depth(fused, fcfg)
+        pts = master_points(cam, img.pose, depth, cfg.step, read_image(str(resolve_image(block, img.file))), fcfg)
+        slave_depths = [np.where(a, r.depth, np.nan)[valid_before] for r, a in zip(res, agree)]
+        slave_poses = [block.images[r.slave] for r in res]
+        err_used = intersection_errors(pts.uv_px, cam, img.pose, img.pose, [
+            (block.camera_of(s), s.pose, s.pose, d) for s, d in zip(slave_poses, slave_depths)])
+        if adjusted and img.pose_approx is not None and all(s.pose_approx is not None for s in slave_poses):
+            err_approx = intersection_errors(pts.uv_px, cam, img.pose, img.pose_approx, [
+                (block.camera_of(s), s.pose, s.pose_approx, d) for s, d in zip(slave_poses, slave_depths)])
+        else:
+            err_approx = err_used
+        n = len(pts.xyz)
+        for k, v in (("xyz", pts.xyz), ("rgb", pts.rgb), ("normal", pts.normal),
+                     ("view", np.full(n, VIEWS.index(sel.view), np.uint8)), ("master", np.full(n, mi, np.uint16)),
+                     ("incidence", pts.incidence), ("mixed", pts.mixed), ("err_used", err_used),
+                     ("err_approx", err_approx)):
+            parts[k].append(v)
+        ctx.progress(len(tasks) + mi + 1, total, f"fused master {sel.master} ({n} points)")
+    arr = {k: np.concatenate(v) for k, v in parts.items()}
+    removed = np.where(arr.pop("mixed"), MIXED, KEPT).astype(np.uint8)
+    if cfg.outlier_neighbours > 0:
+        cand = np.flatnonzero(removed == KEPT)
+        out = statistical_outliers(arr["xyz"][cand], cfg.outlier_neighbours, cfg.outlier_std)
+        removed[cand[out]] = OUTLIER
+    return _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted)
+
+
+def _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted) -> StageResult:
+    out_dir = ws.stage_dir("dense")
+    with atomic_path(out_dir / "points.npz") as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, removed=removed, masters=np.array(masters), **arr)
+    kept = removed == KEPT
+    cloud = PointCloud(arr["xyz"][kept], arr["rgb"][kept], arr["normal"][kept], arr["view"][kept],
+                       arr["master"][kept], masters, block.crs)
+    write_las(out_dir / "points.laz", cloud)
+    write_ply(out_dir / "points.ply", cloud)
+    rng = np.random.default_rng(0)
+    sub = rng.choice(len(cloud), size=min(len(cloud), cfg.display_points), replace=False) if len(cloud) else []
+    write_ply(out_dir / "points_display.ply", cloud.subset(np.sort(sub)))
+    secs = sum(r.seconds for r in results)
+    mpx = sum(r.megapixels for r in results)
+    write_json(out_dir / "selection.json", {
+        "masters": [{"master": s.master, "view": s.view, "slaves": list(s.slaves)} for s in selection],
+        "pairs": [{"master": r.master, "slave": r.slave, "seconds": r.seconds, "megapixels": r.megapixels,
+                   "valid": float(np.isfinite(r.depth).mean())} for r in results]})
+    metrics = {
+        "masters": len(selection), "pairs": len(results), "points": int(kept.sum()),
+        "points_fused": int(len(removed)), "removed_mixed": int((removed == MIXED).sum()),
+        "removed_outliers": int((removed == OUTLIER).sum()),
+        "matching_mpx_per_s_per_pair": mpx / secs if secs > 0 else None,
+        "intersection_error_m": float(np.nanmean(arr["err_used"][kept])) if kept.any() else None,
+        "intersection_error_approx_m": float(np.nanmean(arr["err_approx"][kept])) if adjusted and kept.any()
+        else None,
+        "points_per_view": {v: int((arr["view"][kept] == i).sum()) for i, v in enumerate(VIEWS)},
+    }
+    outputs = ("dense/points.npz", "dense/points.laz", "dense/points.ply", "dense/points_display.ply",
+               "dense/selection.json")
+    return StageResult(outputs, metrics, f"{kept.sum()} points from {len(selection)} masters, {len(results)} pairs")
+
+
+STAGE = Stage(name="dense", run=run, config=DenseConfig, requires=("block",),
+              description="dense matching: image selection, SGM, multi-slave fusion, filtered point cloud",
+              version="1")

@@ -1,0 +1,147 @@
+"""Ortho-DSM from a point cloud: robust per-cell height on a north-up grid, small holes filled.
+
+Per cell the height is the median of the points in the top band of the cell (within ``band`` metres below the
+cell's 90th percentile): on a roof this is the median of the roof points (robust against noise and the odd
+blunder), in a cell crossed by a wall it is the roof, not the middle of the wall, because the DSM is the top
+surface. Holes up to ``max_hole_m2`` (occlusions, poor texture) are filled by inpainting from their border;
+larger holes stay empty (NaN).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from ..model.raster import Raster
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A north-up grid: outer corner ``x0, y0`` of the top-left cell, cell size, rows, cols."""
+
+    x0: float
+    y0: float
+    cell: float
+    rows: int
+    cols: int
+
+    @classmethod
+    def around(cls, xmin: float, ymin: float, xmax: float, ymax: float, cell: float) -> GridSpec:
+        """The grid of cells aligned to multiples of ``cell`` that covers the box."""
+        x0, y0 = np.floor(xmin / cell) * cell, np.ceil(ymax / cell) * cell
+        cols = int(np.ceil((xmax - x0) / cell))
+        rows = int(np.ceil((y0 - ymin) / cell))
+        return cls(float(x0), float(y0), float(cell), max(rows, 1), max(cols, 1))
+
+    def cell_index(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Row, column ``(n,)`` int64 of world points ``(n, 2)`` and a mask of those inside the grid."""
+        c = np.floor((xy[:, 0] - self.x0) / self.cell).astype(np.int64)
+        r = np.floor((self.y0 - xy[:, 1]) / self.cell).astype(np.int64)
+        inside = (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.cols)
+        return r, c, inside
+
+    def centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """World X ``(rows, cols)`` and Y ``(rows, cols)`` of the cell centres."""
+        x = self.x0 + (np.arange(self.cols) + 0.5) * self.cell
+        y = self.y0 - (np.arange(self.rows) + 0.5) * self.cell
+        return np.meshgrid(x, y)
+
+    def raster(self, data: np.ndarray, crs: str, nodata: float | None = None) -> Raster:
+        return Raster(data, self.x0, self.y0, self.cell, crs, nodata)
+
+
+@dataclass(frozen=True)
+class DsmConfig:
+    """Attributes
+    ----------
+    cell : cell size in metres (0 = the nadir GSD of the block)
+    top_quantile : quantile defining the top of a cell's points
+    band : points within this many metres below the top quantile form the cell's top band
+    min_points : cells with fewer points are empty
+    max_hole_m2 : holes up to this area are filled
+    """
+
+    cell: float = 0.0
+    top_quantile: float = 0.9
+    band: float = 0.5
+    min_points: int = 1
+    max_hole_m2: float = 50.0
+
+
+def _group_quantile(key: np.ndarray, z: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per group (sorted unique keys) the ``q`` quantile (lower element) of ``z``, and the counts."""
+    order = np.lexsort((z, key))
+    k, zs = key[order], z[order]
+    uniq, start, counts = np.unique(k, return_index=True, return_counts=True)
+    return uniq, zs[start + np.floor(q * (counts - 1)).astype(np.int64)], counts
+
+
+def grid_points(grid: GridSpec, xyz: np.ndarray, cfg: DsmConfig = DsmConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """Robust per-cell heights of points ``xyz : (n, 3)``.
+
+    Returns
+    -------
+    height : (rows, cols) float64, NaN for cells with fewer than ``min_points``
+    top : (n,) bool, the points in their cell's top band (the ones that made the height)
+    """
+    r, c, inside = grid.cell_index(xyz[:, :2])
+    key = np.where(inside, r * grid.cols + c, -1)
+    z = xyz[:, 2]
+    idx = np.flatnonzero(inside)
+    uniq, ztop, _ = _group_quantile(key[idx], z[idx], cfg.top_quantile)
+    top_of = np.full(grid.rows * grid.cols, np.nan)
+    top_of[uniq] = ztop
+    top = np.zeros(len(xyz), bool)
+    top[idx] = z[idx] >= top_of[key[idx]] - cfg.band
+    sel = np.flatnonzero(top)
+    uniq2, zmed, counts = _group_quantile(key[sel], z[sel], 0.5)
+    height = np.full(grid.rows * grid.cols, np.nan)
+    keep = counts >= cfg.min_points
+    height[uniq2[keep]] = zmed[keep]
+    return height.reshape(grid.rows, grid.cols), top
+
+
+def fill_small_holes(height: np.ndarray, max_cells: int) -> np.ndarray:
+    """Fill NaN regions of at most ``max_cells`` cells (not touching the border) by Navier-Stokes inpainting."""
+    holes = ~np.isfinite(height)
+    if not holes.any() or holes.all():
+        return height
+    labels, n = ndimage.label(holes)
+    sizes = ndimage.sum(holes, labels, index=np.arange(1, n + 1))
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    small = np.zeros(n + 1, bool)
+    small[1:] = sizes <= max_cells
+    small[border] = False
+    fill = small[labels]
+    if not fill.any():
+        return height
+    lo = float(np.nanmin(height))
+    span = max(float(np.nanmax(height)) - lo, 1e-6)
+    norm = np.nan_to_num((height - lo) / span, nan=0.0).astype(np.float32)
+    out = cv2.inpaint(norm, fill.astype(np.uint8), 3, cv2.INPAINT_NS).astype(np.float64) * span + lo
+    result = height.copy()
+    result[fill] = out[fill]
+    return result
+
+
+def cell_colours(grid: GridSpec, xyz: np.ndarray, rgb: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Mean colour ``(rows, cols, 3)`` float64 of the points selected by ``use : (n,)`` per cell (NaN empty)."""
+    r, c, inside = grid.cell_index(xyz[:, :2])
+    ok = inside & use
+    key = r[ok] * grid.cols + c[ok]
+    n = np.bincount(key, minlength=grid.rows * grid.cols).astype(np.float64)
+    out = np.stack([np.bincount(key, weights=rgb[ok, i].astype(np.float64), minlength=grid.rows * grid.cols)
+                    for i in range(3)], 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out /= n[:, None]
+    return out.reshape(grid.rows, grid.cols, 3)
+
+
+def make_dsm(grid: GridSpec, xyz: np.ndarray, crs: str, cfg: DsmConfig = DsmConfig()) -> tuple[Raster, np.ndarray]:
+    """The DSM raster (holes filled) and the top-band mask of the points."""
+    height, top = grid_points(grid, xyz, cfg)
+    filled = fill_small_holes(height, int(cfg.max_hole_m2 / grid.cell ** 2))
+    return grid.raster(filled.astype(np.float32), crs), top

@@ -1,0 +1,183 @@
+"""DTM by robust grey-scale morphology, point classification, robust interpolation; nDSM and object masks.
+
+The production method for urban point clouds:
+
+1. Grid the point cloud at ``cell`` metres (lowest point per cell; empty cells take their nearest neighbour).
+2. Grey-scale opening with a square structuring element of about ``se_size`` metres (larger than the largest
+   building): the erosion takes the k-th *sorted* element of the window (k = 3 %, robust against points below the
+   ground, which a plain minimum would spread over the whole window), the dilation takes the maximum.
+3. Every point is classified ``above``, ``on`` or ``below`` the opened surface with a threshold (1.5 m).
+4. The DTM is a robust interpolation of the ground ("on") points: per cell their median, then iterated
+   normalised Gaussian interpolation with the asymmetric weights of Kraus and Pfeifer (1998): points far above
+   the current surface get small weights (remaining vegetation and building points), points below keep full
+   weight.
+
+The nDSM is DSM - DTM; buildings are nDSM above ``building_min_height`` without greenness; vegetation is nDSM
+above ``vegetation_min_height`` with the excess-green index ``(2G - R - B) / (R + G + B)`` above a threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from ..model.raster import Raster
+from .dsm import GridSpec
+
+ABOVE, ON, BELOW = 1, 0, -1
+
+
+@dataclass(frozen=True)
+class DtmConfig:
+    """Attributes
+    ----------
+    cell : grid cell of the morphological filter, metres (coarsened so the window stays <= 61 cells)
+    se_size : side of the square structuring element, metres
+    erosion_rank : k of the k-th sorted element for the erosion, as a fraction of the window (0.03)
+    threshold : above/on/below classification threshold, metres
+    interp_sigma : Gaussian radius of the robust interpolation, cells
+    iterations : robust interpolation iterations
+    building_min_height, vegetation_min_height : nDSM thresholds of the masks, metres
+    greenness_min : excess-green threshold for vegetation
+    min_object_m2 : objects smaller than this are removed from the masks
+    """
+
+    cell: float = 1.0
+    se_size: float = 60.0
+    erosion_rank: float = 0.03
+    threshold: float = 1.5
+    interp_sigma: float = 2.0
+    iterations: int = 4
+    building_min_height: float = 2.5
+    vegetation_min_height: float = 1.0
+    greenness_min: float = 0.06
+    min_object_m2: float = 10.0
+
+
+def _fill_nearest(a: np.ndarray) -> np.ndarray:
+    bad = ~np.isfinite(a)
+    if not bad.any() or bad.all():
+        return a
+    idx = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
+    return a[tuple(idx)]
+
+
+def lowest_per_cell(grid: GridSpec, xyz: np.ndarray) -> np.ndarray:
+    """(rows, cols) lowest point height per cell, NaN for empty cells."""
+    r, c, inside = grid.cell_index(xyz[:, :2])
+    out = np.full(grid.rows * grid.cols, np.inf)
+    np.minimum.at(out, r[inside] * grid.cols + c[inside], xyz[inside, 2])
+    out[~np.isfinite(out)] = np.nan
+    return out.reshape(grid.rows, grid.cols)
+
+
+def robust_opening(surface: np.ndarray, window: int, rank: float) -> np.ndarray:
+    """Grey-scale opening of ``surface (rows, cols)`` (no NaN) with a square ``window``: erosion by the
+    ``rank``-quantile element of the window, dilation by the maximum."""
+    eroded = ndimage.percentile_filter(surface, 100.0 * rank, size=window, mode="nearest")
+    return ndimage.maximum_filter(eroded, size=window, mode="nearest")
+
+
+def classify_points(opened: Raster, xyz: np.ndarray, threshold: float) -> np.ndarray:
+    """(n,) int8 class of each point: ``ABOVE`` (1), ``ON`` (0) or ``BELOW`` (-1) the opened surface."""
+    ref = opened.sample(xyz[:, :2])
+    dz = xyz[:, 2] - ref
+    out = np.zeros(len(xyz), np.int8)
+    out[dz > threshold] = ABOVE
+    out[dz < -threshold] = BELOW
+    return out
+
+
+def robust_interpolation(grid: GridSpec, xyz: np.ndarray, sigma: float, iterations: int,
+                         g: float = -0.2, w_half: float = 0.3) -> np.ndarray:
+    """Robust surface ``(rows, cols)`` through ground points ``xyz (n, 3)``.
+
+    Per cell the median of the points, then ``iterations`` rounds of normalised Gaussian interpolation with
+    Kraus-Pfeifer weights ``w = 1 / (1 + (a (r - g))^4)`` for residuals ``r`` above the shift ``g`` (a chosen so
+    a residual of ``g + w_half`` metres has weight 1/2) and ``w = 1`` below it.
+    """
+    r, c, inside = grid.cell_index(xyz[:, :2])
+    key = r[inside] * grid.cols + c[inside]
+    z = xyz[inside, 2]
+    order = np.lexsort((z, key))
+    k, zs = key[order], z[order]
+    uniq, start, counts = np.unique(k, return_index=True, return_counts=True)
+    obs = np.full(grid.rows * grid.cols, np.nan)
+    obs[uniq] = zs[start + (counts - 1) // 2]
+    obs = obs.reshape(grid.rows, grid.cols)
+    have = np.isfinite(obs)
+    if not have.any():
+        return obs
+    w = have.astype(np.float64)
+    z0 = np.nan_to_num(obs)
+    a = 1.0 / w_half
+    surf = obs
+    for _ in range(max(1, iterations)):
+        num = ndimage.gaussian_filter(w * z0, sigma, mode="nearest")
+        den = ndimage.gaussian_filter(w, sigma, mode="nearest")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            surf = np.where(den > 1e-3, num / den, np.nan)
+        surf = _fill_nearest(surf)
+        res = obs - surf
+        w = np.where(have, np.where(res <= g, 1.0, 1.0 / (1.0 + (a * (res - g)) ** 4)), 0.0)
+    return surf
+
+
+def make_dtm(xyz: np.ndarray, grid_out: GridSpec, crs: str, cfg: DtmConfig = DtmConfig()
+             ) -> tuple[Raster, np.ndarray, Raster]:
+    """DTM on ``grid_out`` from points ``xyz (n, 3)``.
+
+    Returns
+    -------
+    dtm : Raster on ``grid_out`` (float32)
+    classes : (n,) int8 point classes (ABOVE / ON / BELOW)
+    opened : Raster of the opened surface on the filter grid
+    """
+    cell = max(cfg.cell, cfg.se_size / 61.0)
+    x1 = grid_out.x0 + grid_out.cols * grid_out.cell
+    y1 = grid_out.y0 - grid_out.rows * grid_out.cell
+    # the filter grid covers the points too, so buildings cut by the border of the output grid are seen whole
+    lo, hi = np.percentile(xyz[:, :2], [0.1, 99.9], axis=0) if len(xyz) else (np.full(2, np.inf), -np.full(2, np.inf))
+    g = GridSpec.around(min(grid_out.x0, lo[0]), min(y1, lo[1]), max(x1, hi[0]), max(grid_out.y0, hi[1]), cell)
+    low = _fill_nearest(lowest_per_cell(g, xyz))
+    window = max(3, int(round(cfg.se_size / cell)) | 1)
+    opened = g.raster(robust_opening(low, window, cfg.erosion_rank), crs)
+    classes = classify_points(opened, xyz, cfg.threshold)
+    coarse = g.raster(robust_interpolation(g, xyz[classes == ON], cfg.interp_sigma, cfg.iterations), crs)
+    xs, ys = grid_out.centers()
+    fine = coarse.sample(np.stack([xs.ravel(), ys.ravel()], 1)).reshape(xs.shape)
+    # cells near the border of the coarse grid fall outside its cell centres: take the nearest value there
+    fine = _fill_nearest(fine)
+    return grid_out.raster(fine.astype(np.float32), crs), classes, opened
+
+
+def greenness(rgb: np.ndarray) -> np.ndarray:
+    """Excess-green index ``(2G - R - B) / (R + G + B)`` of ``rgb (..., 3)`` (NaN where black or unknown)."""
+    rgb = np.asarray(rgb, np.float64)
+    s = rgb.sum(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(s > 0, (2 * rgb[..., 1] - rgb[..., 0] - rgb[..., 2]) / s, np.nan)
+
+
+def object_masks(ndsm: np.ndarray, rgb: np.ndarray | None, cell: float, cfg: DtmConfig = DtmConfig()
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Building and vegetation masks ``(rows, cols)`` bool from the nDSM and, when given, cell colours
+    ``rgb (rows, cols, 3)`` (without colour every raised object counts as a building)."""
+    green = greenness(rgb) > cfg.greenness_min if rgb is not None else np.zeros(ndsm.shape, bool)
+    with np.errstate(invalid="ignore"):
+        veg = (ndsm > cfg.vegetation_min_height) & green
+        bld = (ndsm > cfg.building_min_height) & ~veg
+    min_cells = max(1, int(cfg.min_object_m2 / cell ** 2))
+    out = []
+    for m in (bld, veg):
+        m = ndimage.binary_opening(m, iterations=1)
+        lab, n = ndimage.label(m)
+        if n:
+            sizes = ndimage.sum(m, lab, index=np.arange(1, n + 1))
+            keep = np.zeros(n + 1, bool)
+            keep[1:] = sizes >= min_cells
+            m = keep[lab]
+        out.append(m)
+    return out[0], out[1]

@@ -1,0 +1,163 @@
+"""The ``surface`` stage: DSM, DTM, nDSM, building/vegetation masks, true orthophoto and quality maps.
+
+Reads ``dense/points.npz`` and the block; writes GeoTIFFs (with CRS and transform) and PNG previews into
+``surface/``: ``dsm.tif``, ``dtm.tif``, ``ndsm.tif``, ``buildings.tif``, ``vegetation.tif`` (uint8 masks),
+``ortho.tif`` (RGBA true orthophoto), ``ortho_source.tif`` (index of the image each cell came from),
+``quality_adjusted.tif`` / ``quality_approx.tif`` (mean forward intersection error per cell, with the
+orientation used for matching and with the approximate one), ``*.png`` previews, ``point_classes.npy`` (the
+above/on/below class of every kept dense point).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import WorkspaceError
+from ..io.geotiff import write_geotiff, write_png
+from ..io.validate import resolve_image
+from ..pipeline.stage import Stage, StageResult
+from .dsm import DsmConfig, GridSpec, cell_colours, make_dsm
+from .dtm import ABOVE, ON, DtmConfig, make_dtm, object_masks
+from .ortho import OrthoConfig, OrthoSource, true_ortho
+from .quality import colour_map, mean_per_cell
+
+
+@dataclass(frozen=True)
+class SurfaceConfig:
+    """Options of the ``surface`` stage (``[stages.surface]`` in project.toml).
+
+    cell : DSM/ortho cell in metres (0 = the nadir GSD)
+    aoi : ``[x0, y0, x1, y1]`` area of interest (empty = the ground the nadir images see, cut to the points)
+    dsm_top_quantile, dsm_band, max_hole_m2 : DSM gridding and hole filling
+    dtm_cell, se_size, erosion_rank, threshold : DTM by robust morphological opening
+    building_min_height, vegetation_min_height, greenness_min : object masks
+    ortho_views : views used for the true orthophoto
+    quality_vmax : top of the colour scale of the quality maps, metres (0 = the 98th percentile)
+    """
+
+    cell: float = 0.0
+    aoi: tuple[float, ...] = ()
+    dsm_top_quantile: float = 0.9
+    dsm_band: float = 0.5
+    max_hole_m2: float = 50.0
+    dtm_cell: float = 1.0
+    se_size: float = 60.0
+    erosion_rank: float = 0.03
+    threshold: float = 1.5
+    building_min_height: float = 2.5
+    vegetation_min_height: float = 1.0
+    greenness_min: float = 0.06
+    ortho_views: tuple[str, ...] = ("nadir",)
+    quality_vmax: float = 0.0
+
+
+def nadir_gsd(block, z_ground: float) -> float:
+    """Median ground sampling distance of the nadir images at height ``z_ground`` (all images if none)."""
+    by_view = block.images_by_view()
+    ids = by_view.get("nadir") or [i for v in by_view.values() for i in v]
+    g = [(block.images[i].pose.C[2] - z_ground) / block.camera_of(i).fx for i in ids]
+    return float(np.median(g))
+
+
+def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
+    from ..dense.selection import area_of_interest
+
+    path = ws.path("dense", "points.npz")
+    if not path.exists():
+        raise WorkspaceError(f"{path}: no dense points (run the 'dense' stage)")
+    block = ws.load_block()
+    with np.load(path) as z:
+        kept = z["removed"] == 0
+        xyz, rgb = z["xyz"][kept], z["rgb"][kept]
+        err_used, err_approx = z["err_used"][kept], z["err_approx"][kept]
+    if len(xyz) == 0:
+        raise WorkspaceError(f"{path}: the dense point cloud is empty")
+    z_ground = float(np.percentile(xyz[:, 2], 5))
+    cell = cfg.cell if cfg.cell > 0 else nadir_gsd(block, z_ground)
+    if len(cfg.aoi) == 4:
+        aoi = tuple(float(v) for v in cfg.aoi)
+    else:
+        a = area_of_interest(block, z_ground)
+        lo, hi = np.percentile(xyz[:, :2], [0.5, 99.5], axis=0)
+        aoi = (max(a[0], lo[0]), max(a[1], lo[1]), min(a[2], hi[0]), min(a[3], hi[1]))
+    grid = GridSpec.around(*aoi, cell)
+    crs = block.crs
+    steps = 6
+    ctx.progress(0, steps, "DSM")
+    dsm, top = make_dsm(grid, xyz, crs, DsmConfig(cell=cell, top_quantile=cfg.dsm_top_quantile, band=cfg.dsm_band,
+                                                  max_hole_m2=cfg.max_hole_m2))
+    ctx.progress(1, steps, "DTM")
+    dcfg = DtmConfig(cell=cfg.dtm_cell, se_size=cfg.se_size, erosion_rank=cfg.erosion_rank, threshold=cfg.threshold,
+                     building_min_height=cfg.building_min_height, vegetation_min_height=cfg.vegetation_min_height,
+                     greenness_min=cfg.greenness_min)
+    dtm, classes, _ = make_dtm(xyz, grid, crs, dcfg)
+    ndsm = grid.raster((dsm.data - dtm.data).astype(np.float32), crs)
+    ctx.progress(2, steps, "true orthophoto")
+    by_view = block.images_by_view()
+    from ..dense.pairs import read_image
+
+    sources = [OrthoSource(i, block.camera_of(i), block.images[i].pose,
+                           read_image(str(resolve_image(block, block.images[i].file))))
+               for v in cfg.ortho_views for i in by_view.get(v, [])]
+    ortho, label = true_ortho(dsm, sources, OrthoConfig(),
+                              progress=lambda d, t, m: ctx.progress(2 + d / t, steps, m)) if sources else (None, None)
+    ctx.progress(4, steps, "masks and quality maps")
+    colours = cell_colours(grid, xyz, rgb, top)
+    if ortho is not None:
+        seen = ortho.data[..., 3] > 0
+        colours[seen] = ortho.data[seen, :3]
+    bld, veg = object_masks(ndsm.data, colours, cell, dcfg)
+    q_used = mean_per_cell(grid, xyz, err_used)
+    q_approx = mean_per_cell(grid, xyz, err_approx)
+    out = ws.stage_dir("surface")
+    outputs = []
+
+    def tif(name: str, data: np.ndarray, nodata: float | None = None) -> None:
+        write_geotiff(out / name, grid.raster(data, crs, nodata))
+        outputs.append(f"surface/{name}")
+
+    tif("dsm.tif", dsm.data)
+    tif("dtm.tif", dtm.data)
+    tif("ndsm.tif", ndsm.data)
+    tif("buildings.tif", bld.astype(np.uint8))
+    tif("vegetation.tif", veg.astype(np.uint8))
+    tif("quality_adjusted.tif", q_used.astype(np.float32))
+    tif("quality_approx.tif", q_approx.astype(np.float32))
+    if ortho is not None:
+        tif("ortho.tif", ortho.data)
+        tif("ortho_source.tif", label, nodata=-1)
+        write_png(out / "ortho.png", ortho.data[..., :3])
+        outputs.append("surface/ortho.png")
+    vmax = cfg.quality_vmax
+    if vmax <= 0:
+        finite = np.concatenate([q_used[np.isfinite(q_used)], q_approx[np.isfinite(q_approx)]])
+        vmax = float(np.percentile(finite, 98)) if len(finite) else 1.0
+    for name, q in (("quality_adjusted.png", q_used), ("quality_approx.png", q_approx)):
+        write_png(out / name, colour_map(q, vmax))
+        outputs.append(f"surface/{name}")
+    np.save(out / "point_classes.npy", classes)
+    outputs.append("surface/point_classes.npy")
+    ctx.progress(steps, steps, "written")
+
+    def mean(a: np.ndarray) -> float | None:
+        v = float(np.nanmean(a)) if np.isfinite(a).any() else math.nan
+        return v if math.isfinite(v) else None
+
+    metrics = {
+        "cell": cell, "rows": grid.rows, "cols": grid.cols, "aoi": list(aoi),
+        "dsm_filled_fraction": float(np.isfinite(dsm.data).mean()),
+        "points_above": int((classes == ABOVE).sum()), "points_on": int((classes == ON).sum()),
+        "points_below": int((classes < 0).sum()),
+        "building_area_m2": float(bld.sum() * cell ** 2), "vegetation_area_m2": float(veg.sum() * cell ** 2),
+        "quality_adjusted_mean_m": mean(q_used), "quality_approx_mean_m": mean(q_approx),
+        "quality_vmax_m": vmax,
+    }
+    return StageResult(tuple(outputs), metrics,
+                       f"DSM {grid.cols}x{grid.rows} at {cell:.3f} m, {bld.sum() * cell ** 2:.0f} m2 of buildings")
+
+
+STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
+              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="1")
