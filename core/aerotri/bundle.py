@@ -202,9 +202,9 @@ class _Round:
     def __init__(self, prob: BundleProblem, opt: BundleOptions, ref: np.ndarray, r: np.ndarray, c: np.ndarray,
                  xyz: np.ndarray, cam_params: np.ndarray, gcp_xyz: np.ndarray, shift: np.ndarray,
                  active: np.ndarray, robust: bool) -> None:
+        import pyceres
         import pycolmap
         import pycolmap.cost_functions as cf
-        import pyceres
 
         self.rec = rec = pycolmap.Reconstruction()
         sp = opt.sigma_px
@@ -217,7 +217,11 @@ class _Round:
         if prob.point_prior_xyz is not None:
             has_prior_pt = np.isfinite(prob.point_prior_xyz[:, 0])
         counts = np.bincount(op, minlength=prob.n_points)
-        point_used = (counts >= 2) | (has_prior_pt & (counts >= 1))
+        point_used = counts >= 2
+        # single-ray points with a ground observation (connection points) are added beside pycolmap's tracks
+        single = has_prior_pt & (counts == 1)
+        single_obs = np.flatnonzero(single[op])
+        s_op, s_oi, s_uv = op[single_obs], oi[single_obs], ouv[single_obs]
         keep = point_used[op]
         op, oi, ouv = op[keep], oi[keep], ouv[keep]
         order = np.argsort(oi, kind="stable")
@@ -241,6 +245,7 @@ class _Round:
             tr.add_elements([pycolmap.TrackElement(int(oi[s]) + 1, int(p2d_idx[s])) for s in sl])
             self.point_ids[p] = rec.add_point3D(xyz[p] - ref, tr)
         self.used_obs = np.flatnonzero(active)[keep]
+        self.point_used = point_used | single
 
         options = pycolmap.BundleAdjustmentOptions()
         options.refine_focal_length = False
@@ -290,12 +295,23 @@ class _Round:
             self.point_xyz[p] = xv
             cost = cf.Point3DAlignmentCost(prob.point_prior_cov[p] / sp**2, prob.point_prior_xyz[p] - ref)
             problem.add_residual_block(cost, None, [xv, self.sim_const])
-        if self.point_xyz:
+        model = pycolmap.CameraModelId.FULL_OPENCV
+        self.single_points = s_op
+        self.single_x = np.array(xyz[s_op] - ref, dtype=np.float64).reshape(-1, 3)
+        for j in range(len(s_op)):
+            p, k = int(s_op[j]), int(s_oi[j])
+            if k not in self.frame_params:
+                continue
+            cost = cf.ReprojErrorCost(model, s_uv[j] + 0.5)
+            problem.add_residual_block(cost, None, [self.single_x[j], self.frame_params[k],
+                                                    self.cam_params[int(prob.image_camera[k])]])
+            cost = cf.Point3DAlignmentCost(prob.point_prior_cov[p] / sp**2, prob.point_prior_xyz[p] - ref)
+            problem.add_residual_block(cost, None, [self.single_x[j], self.sim_const])
+        if self.point_xyz or len(single_obs):
             problem.set_parameter_block_constant(self.sim_const)
         # control points: reprojection + ground observation through the datum-shift similarity
         self.sim_datum = np.array([0.0, 0.0, 0.0, 1.0, *shift, 0.0])
         self.gcp_x = gcp_x = np.array(gcp_xyz - ref, dtype=np.float64)
-        model = pycolmap.CameraModelId.FULL_OPENCV
         gcp_seen = np.zeros(len(gcp_x), bool)
         for k_obs in range(len(prob.gcp_obs_point)):
             g, k = int(prob.gcp_obs_point[k_obs]), int(prob.gcp_obs_image[k_obs])
@@ -382,11 +398,12 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         used_pts = np.flatnonzero(rd.point_ids >= 0)
         for p in used_pts:
             xyz[p] = rd.rec.point3D(int(rd.point_ids[p])).xyz + ref
+        xyz[rd.single_points] = rd.single_x + ref
         for ci, p in rd.cam_params.items():
             cam_params[ci] = p
         gcp_xyz = np.where(rd.gcp_seen[:, None], rd.gcp_x + ref, gcp_xyz)
         shift = rd.sim_datum[4:7].copy()
-        point_used = rd.point_ids >= 0
+        point_used = rd.point_used
         active &= point_used[prob.obs_point]
         eo = pyceres.EvaluateOptions()
         eo.apply_loss_function = False

@@ -1,0 +1,289 @@
+"""Integrated (IAT) and hierarchical (HAT) aerial triangulation, connection point selection (CBA), baselines.
+
+* IAT: all images, all tie points and control points in one adjustment.
+* HAT, as in the seed: (1) the nadir sub-block with the datum (GNSS priors, control points, datum shift);
+  (2) each cardinal oblique sub-block (north, east, south, west by actual viewing direction) with its own tie
+  points plus *connection points*: tie points adjusted in the nadir block and introduced as ground observations
+  with their propagated 3x3 covariance. Selection: every tie point with >= k nadir rays (k = 2, 3, 5, 10), or
+  CBA: a grid of ``cell`` metres over the block and in each cell the point with the most rays (nadir + that
+  view). The four oblique runs are independent and go through the executor (inline, processes or Dask).
+  (3) Combined statistics by error propagation: a point's information is the nadir information plus each
+  oblique block's own contribution (its information minus the connection prior it received).
+* Baselines: direct georeferencing (the navigation orientations) and nadir-only AT whose per-exposure
+  corrections are propagated to the oblique images of the same exposure.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..geometry.views import OBLIQUE_VIEWS
+from ..model import ImageBlock, Pose, TiePoints
+from .bundle import BundleOptions, BundleResult, adjust
+from .problem import SubProblem, build_problem, intersect_ties, result_poses
+
+CONNECTIONS = ("cba", "2", "3", "5", "10")
+
+
+@dataclass(eq=False)
+class Run:
+    """One adjustment of (a subset of) the block, mapped back to the block's tie arrays.
+
+    Attributes
+    ----------
+    name : ``iat``, ``nadir``, ``north``...
+    poses : adjusted orientations of the images that took part
+    image_std : image id -> (6,) std (rotation about world X Y Z in radians, centre in metres)
+    track_index : (p,) tracks adjusted; xyz (p, 3); xyz_cov (p, 3, 3)
+    obs_index : (m,) observations used; obs_rejected (m,); obs_residual (m, 2)
+    result : the bundle result (statistics); connection_count : connection points used (oblique runs)
+    """
+
+    name: str
+    poses: dict[str, Pose]
+    image_std: dict[str, np.ndarray]
+    track_index: np.ndarray
+    xyz: np.ndarray
+    xyz_cov: np.ndarray
+    obs_index: np.ndarray
+    obs_rejected: np.ndarray
+    obs_residual: np.ndarray
+    result: BundleResult
+    connection_count: int = 0
+    connection_info: np.ndarray | None = None
+    wall_s: float = 0.0
+
+
+@dataclass(eq=False)
+class ATResult:
+    """Outcome of IAT or HAT: final poses, combined tie points and every run."""
+
+    mode: str
+    poses: dict[str, Pose]
+    image_std: dict[str, np.ndarray]
+    xyz: np.ndarray
+    xyz_cov: np.ndarray
+    obs_rejected: np.ndarray
+    runs: list[Run]
+    connection: str = ""
+    wall_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+def _to_run(name: str, sub: SubProblem, res: BundleResult, wall: float) -> Run:
+    poses = result_poses(sub, res)
+    std = {iid: res.image_std[k] for k, iid in enumerate(sub.problem.image_ids) if res.image_adjusted[k]}
+    return Run(name=name, poses=poses, image_std=std, track_index=sub.track_index, xyz=res.xyz,
+               xyz_cov=res.xyz_cov, obs_index=sub.obs_index, obs_rejected=res.obs_rejected,
+               obs_residual=res.obs_residual, result=res, wall_s=wall)
+
+
+def initial_tie_coordinates(block: ImageBlock, ties: TiePoints) -> np.ndarray:
+    """Tie coordinates ``(n, 3)`` by multi-ray forward intersection from the approximate orientations."""
+    xyz, _ = intersect_ties(block, ties, {i: im.pose_approx for i, im in block.images.items()})
+    return xyz
+
+
+def integrated(block: ImageBlock, ties: TiePoints, opt: BundleOptions,
+               progress: Callable[[int, int, str], None] | None = None,
+               xyz0: np.ndarray | None = None) -> ATResult:
+    """IAT: all images in one adjustment."""
+    t0 = time.perf_counter()
+    xyz0 = initial_tie_coordinates(block, ties) if xyz0 is None else xyz0
+    sub = build_problem(block, ties, list(block.images), xyz0)
+    res = adjust(sub.problem, opt, progress)
+    run = _to_run("iat", sub, res, time.perf_counter() - t0)
+    xyz = np.full((ties.n_tracks, 3), np.nan)
+    cov = np.full((ties.n_tracks, 3, 3), np.nan)
+    xyz[run.track_index], cov[run.track_index] = run.xyz, run.xyz_cov
+    rej = np.zeros(ties.n_obs, bool)
+    rej[run.obs_index] = run.obs_rejected
+    return ATResult(mode="integrated", poses=run.poses, image_std=run.image_std, xyz=xyz, xyz_cov=cov,
+                    obs_rejected=rej, runs=[run], wall_s=time.perf_counter() - t0)
+
+
+def select_connections(xyz: np.ndarray, candidate: np.ndarray, rays: np.ndarray, nadir_rays: np.ndarray,
+                       connection: str, cell: float) -> np.ndarray:
+    """Connection points for one oblique view.
+
+    Parameters
+    ----------
+    xyz : (n, 3) tie coordinates from the nadir block (NaN: not adjusted there)
+    candidate : (n,) bool tracks seen in the oblique view and adjusted in the nadir block
+    rays : (n,) rays of each track counted for CBA (nadir + this view); nadir_rays : (n,) nadir rays
+    connection : ``cba`` or a minimum nadir ray count ``2``, ``3``, ``5``, ``10``
+    cell : CBA grid cell in metres
+
+    Returns
+    -------
+    (n,) bool mask of the selected tracks
+    """
+    if connection not in CONNECTIONS:
+        raise ConfigError(f"unknown connection selection '{connection}' (use one of {', '.join(CONNECTIONS)})")
+    ok = candidate & np.isfinite(xyz[:, 0]) & (nadir_rays >= 2)
+    if connection != "cba":
+        return ok & (nadir_rays >= int(connection))
+    idx = np.flatnonzero(ok)
+    out = np.zeros(len(xyz), bool)
+    if len(idx) == 0:
+        return out
+    ij = np.floor(xyz[idx, :2] / cell).astype(np.int64)
+    key = (ij[:, 0] - ij[:, 0].min()) * (ij[:, 1].max() - ij[:, 1].min() + 1) + (ij[:, 1] - ij[:, 1].min())
+    order = np.lexsort((-rays[idx], key))
+    first = np.ones(len(order), bool)
+    first[1:] = key[order][1:] != key[order][:-1]
+    out[idx[order[first]]] = True
+    return out
+
+
+def _adjust_unit(item: tuple[str, SubProblem, BundleOptions]) -> tuple[str, BundleResult, float]:
+    """Executor unit: one oblique sub-block (module-level so process pools and Dask can pickle it)."""
+    name, sub, opt = item
+    t0 = time.perf_counter()
+    return name, adjust(sub.problem, opt), time.perf_counter() - t0
+
+
+def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connection: str = "cba",
+                 cell: float = 50.0, executor=None, progress: Callable[[int, int, str], None] | None = None,
+                 xyz0: np.ndarray | None = None, connection_sigma_scale: float = 1.0) -> ATResult:
+    """HAT as in the module docstring. ``executor`` has ``map(fn, items, on_done)`` (see pipeline.executor);
+    ``connection_sigma_scale`` multiplies the propagated connection standard deviations."""
+    t0 = time.perf_counter()
+    if connection not in CONNECTIONS:
+        raise ConfigError(f"unknown connection selection '{connection}' (use one of {', '.join(CONNECTIONS)})")
+    xyz0 = initial_tie_coordinates(block, ties) if xyz0 is None else xyz0
+    views = block.images_by_view()
+    nadir_ids = views.get("nadir", [])
+    if not nadir_ids:
+        raise ConfigError("hierarchical AT needs nadir images (none found by viewing direction)")
+    # (1) nadir sub-block with the datum
+    t1 = time.perf_counter()
+    sub_n = build_problem(block, ties, nadir_ids, xyz0)
+    res_n = adjust(sub_n.problem, opt, None if progress is None else
+                   (lambda d, t, m: progress(d, t * 2, "nadir: " + m)))
+    nadir = _to_run("nadir", sub_n, res_n, time.perf_counter() - t1)
+    n = ties.n_tracks
+    xyz_nadir = np.full((n, 3), np.nan)
+    cov_nadir = np.full((n, 3, 3), np.nan)
+    xyz_nadir[nadir.track_index], cov_nadir[nadir.track_index] = nadir.xyz, nadir.xyz_cov
+    nadir_ok_obs = np.zeros(ties.n_obs, bool)
+    nadir_ok_obs[nadir.obs_index[~nadir.obs_rejected]] = True
+    nadir_rays = np.bincount(ties.obs_track[nadir_ok_obs], minlength=n)
+    cov_ok = np.all(np.isfinite(cov_nadir.reshape(n, 9)), 1) & (np.linalg.det(np.nan_to_num(cov_nadir)) > 0)
+    # (2) oblique sub-blocks tied by connection points
+    view_of_image = np.array([block.images[i].view for i in ties.image_ids])
+    view_of_obs = view_of_image[ties.obs_image]
+    items, conn_counts, conn_masks = [], {}, {}
+    for v in OBLIQUE_VIEWS:
+        ids = views.get(v, [])
+        if not ids:
+            continue
+        in_view = view_of_obs == v
+        rays_v = np.bincount(ties.obs_track[in_view], minlength=n)
+        sel = select_connections(xyz_nadir, (rays_v > 0) & cov_ok, nadir_rays + rays_v, nadir_rays, connection, cell)
+        prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
+        prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
+        start = np.where(sel[:, None], xyz_nadir, xyz0)
+        sub = build_problem(block, ties, ids, start, use_control=False, point_prior_xyz=prior_xyz,
+                            point_prior_cov=prior_cov, prior_shift=res_n.datum_shift)
+        conn_counts[v] = int(sel.sum())
+        conn_masks[v] = sel
+        items.append((v, sub, opt))
+    done_cb = None if progress is None else (lambda d, t: progress(t + d, 2 * t, f"oblique blocks {d}/{t}"))
+    t2 = time.perf_counter()
+    outputs = (executor.map(_adjust_unit, items, done_cb) if executor is not None
+               else [_adjust_unit(it) for it in items])
+    oblique_wall = time.perf_counter() - t2
+    runs = [nadir]
+    for (v, sub, _), (_, res, wall) in zip(items, outputs):
+        run = _to_run(v, sub, res, wall)
+        run.connection_count = conn_counts[v]
+        runs.append(run)
+    # (3) combination by error propagation
+    poses, std = {}, {}
+    for run in runs:
+        poses.update(run.poses)
+        std.update(run.image_std)
+    xyz, cov = combine_points(n, runs, conn_masks, cov_nadir, connection_sigma_scale)
+    rej = np.zeros(ties.n_obs, bool)
+    for run in runs:
+        rej[run.obs_index] |= run.obs_rejected
+    return ATResult(mode="hierarchical", poses=poses, image_std=std, xyz=xyz, xyz_cov=cov, obs_rejected=rej,
+                    runs=runs, connection=connection, wall_s=time.perf_counter() - t0,
+                    extra={"oblique_wall_s": oblique_wall, "cell": cell})
+
+
+def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], cov_nadir: np.ndarray,
+                   conn_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Combined coordinates ``(n, 3)`` and covariances ``(n, 3, 3)`` of all tracks over the runs.
+
+    Information adds up; for a connection point an oblique run's own information is its information minus the
+    connection prior (which is the nadir information already counted)."""
+    info = np.zeros((n, 3, 3))
+    rhs = np.zeros((n, 3))
+    xyz_nadir = np.full((n, 3), np.nan)
+    for run in runs:
+        ok = np.isfinite(run.xyz[:, 0]) & np.all(np.isfinite(run.xyz_cov.reshape(-1, 9)), 1)
+        t = run.track_index[ok]
+        ni = np.linalg.inv(run.xyz_cov[ok])
+        x = run.xyz[ok]
+        if run.name == "nadir":
+            xyz_nadir[t] = x
+        else:
+            conn = conn_masks.get(run.name, np.zeros(n, bool))[t]
+            if conn.any():
+                tc = t[conn]
+                prior_info = np.linalg.inv(cov_nadir[tc] * conn_scale**2)
+                own = ni[conn] - prior_info
+                # keep the own information positive semi-definite (numerical safety)
+                ev, evec = np.linalg.eigh(own)
+                own = np.einsum("kij,kj,klj->kil", evec, np.clip(ev, 0, None), evec)
+                rhs_c = np.einsum("kij,kj->ki", ni[conn], x[conn]) - np.einsum("kij,kj->ki", prior_info,
+                                                                               xyz_nadir[tc])
+                np.add.at(info, tc, own)
+                np.add.at(rhs, tc, rhs_c)
+                t, ni, x = t[~conn], ni[~conn], x[~conn]
+        np.add.at(info, t, ni)
+        np.add.at(rhs, t, np.einsum("kij,kj->ki", ni, x))
+    xyz = np.full((n, 3), np.nan)
+    cov = np.full((n, 3, 3), np.nan)
+    ok = np.linalg.det(info) > 0
+    cov[ok] = np.linalg.inv(info[ok])
+    xyz[ok] = np.einsum("kij,kj->ki", cov[ok], rhs[ok])
+    return xyz, cov
+
+
+def direct_georeferencing(block: ImageBlock) -> dict[str, Pose]:
+    """Baseline without AT: the navigation (approximate) orientations."""
+    return {i: im.pose_approx for i, im in block.images.items() if im.pose_approx is not None}
+
+
+def nadir_propagation(block: ImageBlock, nadir_poses: dict[str, Pose]) -> dict[str, Pose]:
+    """Baseline: every image gets the correction its exposure's nadir image received in a nadir-only AT.
+
+    ``R_adj = R_approx R_nadir_approx^T R_nadir_adj`` (the head's mounting is kept) and
+    ``C_adj = C_approx + (C_nadir_adj - C_nadir_approx)``. Images without an adjusted nadir partner keep their
+    navigation orientation."""
+    nadir_of_exposure = {}
+    for iid, p in nadir_poses.items():
+        img = block.images[iid]
+        if img.exposure is not None:
+            nadir_of_exposure[img.exposure] = (img.pose_approx, p)
+    out = {}
+    for iid, img in block.images.items():
+        if iid in nadir_poses:
+            out[iid] = nadir_poses[iid]
+            continue
+        pair = nadir_of_exposure.get(img.exposure)
+        if pair is None or img.pose_approx is None:
+            if img.pose_approx is not None:
+                out[iid] = img.pose_approx
+            continue
+        a, b = pair
+        out[iid] = Pose(img.pose_approx.R @ a.R.T @ b.R, img.pose_approx.C + (b.C - a.C))
+    return out
