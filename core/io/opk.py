@@ -64,16 +64,18 @@ DEFAULT_COLUMNS = "name,x,y,z,omega,phi,kappa"
 DIRECTIVES = ("crs", "angles", "cameras")
 
 
-def _directives(lines: list[str], comment: str) -> dict[str, str]:
-    out: dict[str, str] = {}
-    for text in lines:
+def _directives(lines: list[str], comment: str) -> dict[str, tuple[str, int]]:
+    """``# key: value`` comment directives -> (value, line)."""
+    out: dict[str, tuple[str, int]] = {}
+    for i, text in enumerate(lines):
         s = text.strip()
         if not s.startswith(comment):
             continue
         body = s[len(comment):].strip()
         key, sep, value = body.partition(":")
-        if sep and key.strip().lower() in DIRECTIVES and key.strip().lower() not in out:
-            out[key.strip().lower()] = value.strip()
+        key = key.strip().lower()
+        if sep and key in DIRECTIVES and key not in out:
+            out[key] = (value.strip(), i + 1)
     return out
 
 
@@ -118,7 +120,7 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
     lines = read_text_lines(path)
     directives = _directives(lines, comment)
 
-    cam_opt = options.pop("cameras", None) or directives.get("cameras")
+    cam_opt = options.pop("cameras", None) or directives.get("cameras", (None, None))[0]
     if cam_opt:
         cam_path = Path(str(cam_opt))
         if not cam_path.is_absolute() and not cam_path.is_file():
@@ -130,9 +132,19 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
                              field="cameras")
     cams = read_camera_file(cam_path)
 
-    unit = angle_unit(options.pop("angles", None) or directives.get("angles") or cams.angles or "deg", path)
-    crs_text = options.pop("crs", None) or directives.get("crs") or cams.crs
-    crs = check_crs(crs_text, path, "crs")
+    unit_opt, crs_opt = options.pop("angles", None), options.pop("crs", None)
+    if unit_opt is not None:
+        unit = angle_unit(unit_opt, path, "angles")
+    elif "angles" in directives:
+        unit = angle_unit(directives["angles"][0], path, "angles", directives["angles"][1])
+    else:
+        unit = cams.angles or "deg"
+    if crs_opt is not None:
+        crs = check_crs(crs_opt, path, "crs")
+    elif "crs" in directives:
+        crs = check_crs(directives["crs"][0], path, "crs", directives["crs"][1])
+    else:
+        crs = check_crs(cams.crs, cams.path, "crs")
     sep = parse_delimiter(options.pop("delimiter", None), path)
     header_opt = str(options.pop("header", "auto")).lower()
     header = None if header_opt == "auto" else parse_bool(header_opt, path, None, "header")

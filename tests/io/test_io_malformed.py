@@ -1,0 +1,82 @@
+"""Every malformed input gives one InputError naming the file, the line and the field; nothing is imported."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from oblique_city.core.errors import InputError
+from oblique_city.core.io.formats import read_block
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+BAD = DATA / "malformed"
+CAM = {"cameras": str(BAD / "cameras_ok.toml")}
+AB = (DATA / "opk_ab.txt", {"cameras": str(BAD / "cameras_ok.toml")})
+
+# (format, file, options, expected substring of the message: file:line, field and reason)
+CASES = [
+    ("opk", "opk_missing_column.txt", CAM,
+     "opk_missing_column.txt:1, field 'header': missing column(s): kappa"),
+    ("opk", "opk_nan.txt", CAM, "opk_nan.txt:3, field 'omega': 'nan' is not a finite number"),
+    ("opk", "opk_unknown_unit.txt", CAM, "opk_unknown_unit.txt:1, field 'angles': unknown angle unit 'grads'"),
+    ("opk", "opk_unknown_crs.txt", CAM,
+     "opk_unknown_crs.txt:1, field 'crs': unknown coordinate reference system 'EPSG:999999'"),
+    ("opk", "opk_duplicate_id.txt", CAM,
+     "opk_duplicate_id.txt:3, field 'name': duplicate image id 'A' (first on line 1)"),
+    ("opk", "opk_wrong_field_count.txt", CAM, "opk_wrong_field_count.txt:2: expected 7 fields"),
+    ("opk", "opk_text_in_number.txt", CAM, "opk_text_in_number.txt:2, field 'y': '54O4000' is not a number"),
+    ("opk", "opk_unknown_camera.txt", CAM, "opk_unknown_camera.txt:3, field 'camera': unknown camera 'nadir'"),
+    ("opk", "opk_missing_image.txt",
+     {"cameras": str(DATA / "cameras_small.toml"), "image_root": str(DATA / "images"), "image_ext": ".png"},
+     "opk_missing_image.txt:2, field 'file': image file of 'img_missing' not found"),
+    ("opk", "opk_wrong_image_size.txt",
+     {**CAM, "image_root": str(DATA / "images"), "image_ext": ".png"},
+     "opk_wrong_image_size.txt:1, field 'file': image 'img_a' is 40 x 30 px but camera 'cam' says 4000 x 3000"),
+    ("opk", "opk_ab.txt", {"cameras": str(BAD / "cameras_missing_focal.toml")},
+     "cameras_missing_focal.toml:2, field 'cameras.nadir.focal_px': camera 'nadir' needs focal_px"),
+    ("opk", "opk_ab.txt", {"cameras": str(BAD / "cameras_bad_toml.toml")},
+     "cameras_bad_toml.toml:3: invalid TOML"),
+    ("bex", "bex_malformed.xml", {}, "bex_malformed.xml:6: malformed XML: Opening and ending tag mismatch"),
+    ("bex", "bex_billion_laughs.xml", {},
+     "bex_billion_laughs.xml:3, field 'DOCTYPE': XML with a DOCTYPE declaring entities is refused"),
+    ("bex", "bex_xxe.xml", {}, "bex_xxe.xml:2, field 'DOCTYPE': XML with a DOCTYPE declaring entities is refused"),
+    ("bex", "bex_bad_rotation.xml", {}, "bex_bad_rotation.xml:23, field 'Rotation': <Rotation> is not a rotation"),
+    ("bex", "bex_heading_pitch_roll.xml", {},
+     "bex_heading_pitch_roll.xml:23, field 'Rotation': Heading/Pitch/Roll rotations are not supported"),
+    ("bex", "bex_unknown_photo_id.xml", {},
+     "bex_unknown_photo_id.xml:38, field 'PhotoId': measurement refers to unknown PhotoId 7"),
+    ("bex", "bex_unknown_srs.xml", {},
+     "bex_unknown_srs.xml:6, field 'Definition': unknown coordinate reference system 'EPSG:123456789'"),
+    ("bex", "bex_text_in_angle.xml", {}, "bex_text_in_angle.xml:23, field 'Rotation/Phi': 'abc' is not a number"),
+    ("bex", "bex_missing_dimensions.xml", {},
+     "bex_missing_dimensions.xml:12, field 'ImageDimensions': <Photogroup> lacks <ImageDimensions>"),
+    ("opk", "gcp_nan.csv", {"gcps": str(BAD / "gcp_nan.csv")},
+     "gcp_nan.csv:3, field 'z': 'NaN' is not a finite number"),
+    ("opk", "measurements_unknown_image.csv",
+     {"gcps": str(DATA / "gcp_ab.csv"), "measurements": str(BAD / "measurements_unknown_image.csv")},
+     "measurements_unknown_image.csv:3, field 'image': unknown image id 'nope'"),
+    ("opk", "measurements_outside_image.csv",
+     {"gcps": str(DATA / "gcp_ab.csv"), "measurements": str(BAD / "measurements_outside_image.csv")},
+     "measurements_outside_image.csv:3, field 'u': u = 4100.5 px is outside image 'b' (width 4000)"),
+    ("colmap", "colmap_fisheye", {"crs": "EPSG:25832"},
+     "colmap_fisheye, field 'cameras': COLMAP camera model OPENCV_FISHEYE (camera 1) cannot be represented"),
+]
+
+
+@pytest.mark.parametrize(("fmt", "name", "options", "expected"), CASES, ids=[c[1] + "-" + c[3][-12:] for c in CASES])
+def test_malformed_input(fmt, name, options, expected):
+    source = DATA / name if name == "opk_ab.txt" else BAD / name
+    if name.startswith(("gcp_", "measurements_")):
+        source, base = AB
+        options = {**base, **options}
+    with pytest.raises(InputError) as info:
+        read_block(fmt, source, **options)
+    assert expected in str(info.value), str(info.value)
+
+
+def test_at_least_fifteen_malformed_files():
+    files = {c[1] for c in CASES if (BAD / c[1]).exists() and not c[1].startswith("opk_ab")}
+    assert len(files) >= 15
+    assert files | {"cameras_ok.toml", "cameras_missing_focal.toml", "cameras_bad_toml.toml"} >= {
+        p.name for p in BAD.iterdir()}
