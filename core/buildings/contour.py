@@ -1,0 +1,296 @@
+"""Building contour from facade points (the seed's 2D initial reconstruction, walls).
+
+Points are binned into a 2D grid; facade cells are those whose points spread over a wall's height (z range and a
+filled z histogram); a RANSAC line per facade cell (fitted on the facade points of its 3x3 block so that short
+cells still give a direction); cells merged over 8-neighbourhoods when their lines agree within an angular
+threshold; one regression line per group; the fragments ordered along the building's outer boundary and
+intersected into a closed contour (a short connecting wall is inserted between parallel, offset fragments).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+
+@dataclass(frozen=True)
+class ContourConfig:
+    """cell : grid size (m); min_wall_height : z range of a facade cell (m); z_bin : histogram class (m);
+    fill_share : share of filled z classes of a facade cell; line_tol : RANSAC inlier distance (m);
+    angle_deg : merging threshold between neighbouring cell lines; min_fragment : shortest wall kept (m)."""
+
+    cell: float = 0.5
+    min_wall_height: float = 1.5
+    z_bin: float = 0.5
+    fill_share: float = 0.6
+    line_tol: float = 0.12
+    angle_deg: float = 12.0
+    min_fragment: float = 1.0
+    ransac_iterations: int = 60
+
+
+@dataclass(frozen=True)
+class Fragment:
+    """A wall line: point ``p (2,)``, unit direction ``d (2,)``, extent ``t0 <= t1`` along d, support count."""
+
+    p: np.ndarray
+    d: np.ndarray
+    t0: float
+    t1: float
+    support: int
+
+    def distance(self, xy: np.ndarray) -> np.ndarray:
+        """Distance of points (n, 2) to the segment."""
+        t = np.clip((xy - self.p) @ self.d, self.t0, self.t1)
+        return np.linalg.norm(xy - (self.p + t[:, None] * self.d), axis=1)
+
+
+@dataclass(frozen=True)
+class Contour:
+    """polygon : (m, 2) counter-clockwise wall outline; fragments : the wall lines used; facade_cells : (k, 2)
+    int grid indices (col, row); origin : grid origin (2,); cell : grid size."""
+
+    polygon: np.ndarray
+    fragments: tuple[Fragment, ...]
+    facade_cells: np.ndarray
+    origin: np.ndarray
+    cell: float
+
+
+def _ransac_line(xy: np.ndarray, tol: float, iterations: int, rng: np.random.Generator):
+    best, best_n = None, 0
+    n = len(xy)
+    for _ in range(iterations):
+        i, j = rng.choice(n, 2, replace=False)
+        d = xy[j] - xy[i]
+        norm = np.linalg.norm(d)
+        if norm < 1e-6:
+            continue
+        nrm = np.array([-d[1], d[0]]) / norm
+        inl = np.abs((xy - xy[i]) @ nrm) < tol
+        k = int(inl.sum())
+        if k > best_n:
+            best, best_n = inl, k
+    return best
+
+
+def _tls_line(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    c = xy.mean(0)
+    _, _, vt = np.linalg.svd(xy - c, full_matrices=False)
+    return c, vt[0]
+
+
+def facade_cell_grid(xyz: np.ndarray, ground_z: float, cfg: ContourConfig) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Facade cells of a building's points.
+
+    Returns
+    -------
+    origin : (2,) grid origin; cells : (k, 2) int (col, row) facade cells; members : {(col, row): point indices}
+    """
+    above = np.nonzero(xyz[:, 2] > ground_z + 0.3)[0]
+    origin = xyz[above, :2].min(0) - cfg.cell
+    cr = np.floor((xyz[above, :2] - origin) / cfg.cell).astype(np.int64)
+    keys, inv = np.unique(cr, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    order = np.argsort(inv, kind="stable")
+    starts = np.searchsorted(inv[order], np.arange(len(keys) + 1))
+    cells, members = [], {}
+    for k, key in enumerate(keys):
+        idx = above[order[starts[k]:starts[k + 1]]]
+        if len(idx) < 6:
+            continue
+        z = xyz[idx, 2]
+        lo, hi = ground_z + 0.3, z.max()
+        if hi - max(lo, z.min()) < cfg.min_wall_height:
+            continue
+        nb = max(int(np.ceil((hi - lo) / cfg.z_bin)), 1)
+        filled = np.unique(np.clip(((z - lo) / cfg.z_bin).astype(np.int64), 0, nb - 1)).size
+        if filled / nb >= cfg.fill_share:
+            cells.append(tuple(key))
+            members[tuple(key)] = idx
+    return origin, np.asarray(cells, dtype=np.int64).reshape(-1, 2), members
+
+
+def wall_fragments(xyz: np.ndarray, ground_z: float, cfg: ContourConfig,
+                   seed: int = 0) -> tuple[list[Fragment], np.ndarray, np.ndarray]:
+    """RANSAC line per facade cell, 8-neighbourhood merging by angle, one regression line per group.
+
+    Returns the fragments, the facade cells (k, 2) and the grid origin (2,).
+    """
+    rng = np.random.default_rng(seed)
+    origin, cells, members = facade_cell_grid(xyz, ground_z, cfg)
+    cellset = {tuple(c) for c in cells}
+    lines: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    for c in cellset:
+        block = [members[(c[0] + i, c[1] + j)] for i in (-1, 0, 1) for j in (-1, 0, 1)
+                 if (c[0] + i, c[1] + j) in cellset]
+        idx = np.concatenate(block)
+        xy = xyz[idx, :2]
+        inl = _ransac_line(xy, cfg.line_tol, cfg.ransac_iterations, rng)
+        if inl is None or inl.sum() < 6:
+            continue
+        p, d = _tls_line(xy[inl])
+        own = members[c]
+        nrm = np.array([-d[1], d[0]])
+        own_in = own[np.abs((xyz[own, :2] - p) @ nrm) < cfg.line_tol]
+        if len(own_in) >= 3:
+            lines[c] = (p, d, own_in)
+    # union-find over 8-neighbourhoods with an angular threshold
+    parent = {c: c for c in lines}
+
+    def find(c):
+        while parent[c] != c:
+            parent[c] = parent[parent[c]]
+            c = parent[c]
+        return c
+
+    cos_t = np.cos(np.radians(cfg.angle_deg))
+    for c, (p, d, _) in lines.items():
+        for i in (-1, 0, 1):
+            for j in (-1, 0, 1):
+                o = (c[0] + i, c[1] + j)
+                if o == c or o not in lines:
+                    continue
+                p2, d2, _ = lines[o]
+                nrm = np.array([-d[1], d[0]])
+                if abs(d @ d2) >= cos_t and abs((p2 - p) @ nrm) < 2 * cfg.line_tol + cfg.cell:
+                    parent[find(o)] = find(c)
+    groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for c in lines:
+        groups.setdefault(find(c), []).append(c)
+    frags = []
+    for g in groups.values():
+        idx = np.unique(np.concatenate([lines[c][2] for c in g]))
+        xy = xyz[idx, :2]
+        p, d = _tls_line(xy)
+        for _ in range(2):  # one robust re-weighting: drop points off the common line
+            nrm = np.array([-d[1], d[0]])
+            r = np.abs((xy - p) @ nrm)
+            good = r < max(2.5 * 1.4826 * np.median(r), cfg.line_tol / 2)
+            if good.sum() < 6:
+                break
+            p, d = _tls_line(xy[good])
+        t = (xy - p) @ d
+        t0, t1 = np.percentile(t, [1, 99])
+        if t1 - t0 >= cfg.min_fragment:
+            frags.append(Fragment(p, d, float(t0), float(t1), len(idx)))
+    return frags, cells, origin
+
+
+def building_mask(xyz: np.ndarray, ground_z: float, origin: np.ndarray, cell: float,
+                  min_height: float = 1.0) -> np.ndarray:
+    """Occupancy grid (rows = y index, cols = x index) of points higher than ``min_height`` above ground,
+    closed and hole-filled, largest component."""
+    pts = xyz[xyz[:, 2] > ground_z + min_height, :2]
+    cr = np.floor((pts - origin) / cell).astype(np.int64)
+    shape = (int(cr[:, 1].max()) + 3, int(cr[:, 0].max()) + 3)
+    m = np.zeros(shape, bool)
+    m[cr[:, 1], cr[:, 0]] = True
+    m = ndimage.binary_closing(m, np.ones((3, 3)), iterations=2)
+    m = ndimage.binary_fill_holes(m)
+    lab, n = ndimage.label(m)
+    if n > 1:
+        sizes = ndimage.sum(m, lab, range(1, n + 1))
+        m = lab == (1 + int(np.argmax(sizes)))
+    return m
+
+
+def _intersect(f: Fragment, g: Fragment) -> np.ndarray | None:
+    A = np.column_stack([f.d, -g.d])
+    if abs(np.linalg.det(A)) < 1e-9:
+        return None
+    s = np.linalg.solve(A, g.p - f.p)
+    return f.p + s[0] * f.d
+
+
+def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, cell: float,
+                  cfg: ContourConfig, max_dist: float = 3.0) -> np.ndarray:
+    """Order the fragments along the outer boundary of ``mask`` and intersect consecutive ones.
+
+    Returns the (m, 2) counter-clockwise polygon.
+    """
+    cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    boundary = max(cs, key=len)[:, 0, :].astype(np.float64)  # (col, row)
+    bxy = origin + (boundary + 0.5) * cell
+    dist = np.stack([f.distance(bxy) for f in frags], 1)
+    ids = np.where(dist.min(1) < max_dist, dist.argmin(1), -1)
+    # run-length along the closed boundary, short runs dropped
+    runs: list[list[int]] = []
+    for i, k in enumerate(ids):
+        if k < 0:
+            continue
+        if runs and runs[-1][0] == k:
+            runs[-1][2] = i
+        else:
+            runs.append([int(k), i, i])
+    min_run = max(2, int(0.8 / cell))
+    runs = [r for r in runs if r[2] - r[1] + 1 >= min_run]
+    seq: list[list[int]] = []
+    for r in runs:
+        if seq and seq[-1][0] == r[0]:
+            seq[-1][2] = r[2]
+        else:
+            seq.append(list(r))
+    if len(seq) > 1 and seq[0][0] == seq[-1][0]:
+        seq[0][1] = seq[-1][1]
+        seq.pop()
+    if len(seq) < 3:
+        raise ValueError("fewer than three wall fragments around the building")
+    cos_par = np.cos(np.radians(20.0))
+    # merge consecutive collinear fragments (a wall split by a gap)
+    order = [frags[s[0]] for s in seq]
+    merged: list[Fragment] = []
+    for f in order:
+        if merged:
+            g = merged[-1]
+            nrm = np.array([-g.d[1], g.d[0]])
+            if abs(f.d @ g.d) > cos_par and abs((f.p - g.p) @ nrm) < 3 * cfg.line_tol:
+                merged[-1] = _join(g, f)
+                continue
+        merged.append(f)
+    if len(merged) > 1:
+        g, f = merged[-1], merged[0]
+        nrm = np.array([-g.d[1], g.d[0]])
+        if abs(f.d @ g.d) > cos_par and abs((f.p - g.p) @ nrm) < 3 * cfg.line_tol:
+            merged[0] = _join(g, f)
+            merged.pop()
+    corners = []
+    m = len(merged)
+    for i in range(m):
+        f, g = merged[i], merged[(i + 1) % m]
+        if abs(f.d @ g.d) > cos_par:  # parallel, offset: a short connecting wall between their ends
+            end_f = min((f.p + f.d * f.t0, f.p + f.d * f.t1), key=lambda q: g.distance(q[None])[0])
+            start_g = min((g.p + g.d * g.t0, g.p + g.d * g.t1), key=lambda q: f.distance(q[None])[0])
+            mid = (end_f + start_g) / 2
+            corners.append(f.p + ((mid - f.p) @ f.d) * f.d)
+            corners.append(g.p + ((mid - g.p) @ g.d) * g.d)
+        else:
+            corners.append(_intersect(f, g))
+    poly = np.asarray(corners)
+    area = 0.5 * np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1])
+    return poly if area > 0 else poly[::-1]
+
+
+def _join(g: Fragment, f: Fragment) -> Fragment:
+    """One regression line through two collinear fragments (weighted by support)."""
+    d = f.d if f.d @ g.d > 0 else -f.d
+    w = g.support + f.support
+    dd = g.d * g.support + d * f.support
+    dd /= np.linalg.norm(dd)
+    p = (g.p * g.support + f.p * f.support) / w
+    ends = np.array([g.p + g.d * g.t0, g.p + g.d * g.t1, f.p + f.d * f.t0, f.p + f.d * f.t1])
+    t = (ends - p) @ dd
+    return Fragment(p, dd, float(t.min()), float(t.max()), w)
+
+
+def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = ContourConfig()) -> Contour:
+    """The wall outline of one building's points ``xyz (n, 3)`` with the ground at ``ground_z``."""
+    frags, cells, origin = wall_fragments(xyz, ground_z, cfg)
+    if len(frags) < 3:
+        raise ValueError(f"only {len(frags)} wall fragments found")
+    mask = building_mask(xyz, ground_z, origin, cfg.cell)
+    poly = close_contour(frags, mask, origin, cfg.cell, cfg)
+    return Contour(poly, tuple(frags), cells, origin, cfg.cell)

@@ -1,0 +1,85 @@
+"""Small geometric helpers of the building reconstruction: planes, lines, point-in-polygon."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def fit_plane(xyz: np.ndarray, robust: bool = False) -> tuple[np.ndarray, float]:
+    """Total-least-squares plane of points (n, 3) -> ((4,) plane n.x + d = 0 with unit n, RMS residual).
+
+    ``robust`` refits twice without the points beyond 2.5 robust sigmas (walls under an eave, chimneys).
+    """
+    p = np.asarray(xyz, dtype=np.float64)
+    keep = np.ones(len(p), bool)
+    for it in range(3 if robust else 1):
+        c = p[keep].mean(0)
+        _, _, vt = np.linalg.svd(p[keep] - c, full_matrices=False)
+        n = vt[2]
+        r = (p - c) @ n
+        if it < 2 and robust:
+            s = 1.4826 * np.median(np.abs(r[keep])) + 1e-6
+            new = np.abs(r) < 2.5 * s
+            if new.sum() < 4:
+                break
+            keep = new
+    rms = float(np.sqrt(np.mean(r[keep] ** 2)))
+    return np.append(n, -n @ c), rms
+
+
+def plane_line(p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Intersection line of two planes (4,) as (point (3,), unit direction (3,)); None when parallel."""
+    d = np.cross(p1[:3], p2[:3])
+    nd = np.linalg.norm(d)
+    if nd < 1e-6:
+        return None
+    d = d / nd
+    A = np.stack([p1[:3], p2[:3], d])
+    x = np.linalg.solve(A, np.array([-p1[3], -p2[3], 0.0]))
+    return x, d
+
+
+def line_line_closest(l1: tuple[np.ndarray, np.ndarray],
+                      l2: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """End points of the shortest segment between two lines (point, direction)."""
+    p, u = l1
+    q, v = l2
+    w = p - q
+    a, b, c = u @ u, u @ v, v @ v
+    d, e = u @ w, v @ w
+    den = a * c - b * b
+    if abs(den) < 1e-12:
+        return p, q + v * (e / c)
+    s = (b * e - c * d) / den
+    t = (a * e - b * d) / den
+    return p + s * u, q + t * v
+
+
+def three_planes(planes: np.ndarray) -> np.ndarray | None:
+    """Least-squares point of k >= 3 planes (k, 4); None if they do not fix a point."""
+    A = planes[:, :3]
+    if np.linalg.matrix_rank(A, tol=1e-6) < 3:
+        return None
+    x, *_ = np.linalg.lstsq(A, -planes[:, 3], rcond=None)
+    return x
+
+
+def points_in_polygon(xy: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Even-odd test of points (n, 2) against a polygon (m, 2) -> (n,) bool."""
+    x, y = xy[:, 0], xy[:, 1]
+    inside = np.zeros(len(xy), bool)
+    m = len(polygon)
+    for i in range(m):
+        x1, y1 = polygon[i]
+        x2, y2 = polygon[(i + 1) % m]
+        cond = (y1 > y) != (y2 > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xi = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
+        inside ^= cond & (x < xi)
+    return inside
+
+
+def polygon_area(polygon: np.ndarray) -> float:
+    """Signed area of a 2D polygon (m, 2): positive when counter-clockwise."""
+    x, y = polygon[:, 0], polygon[:, 1]
+    return float(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))

@@ -1,0 +1,298 @@
+"""A closed polyhedral hull from a set of planes: the arrangement of the planes inside a box, cells kept by an
+occupancy test, the boundary between kept and dropped cells.
+
+Every plane splits every cell it crosses (a full arrangement), so two neighbouring cells share exactly the same
+facet and vertices are the intersections of plane triplets (k-nodes where more planes meet, consolidated by
+distance). The boundary facets of the kept cells form a closed 2-manifold surface; facets of one plane are
+merged into polygons and vertices that only subdivide a straight edge are removed where no other polygon uses
+them. Used by both reconstruction paths: the 2D path passes wall planes from the contour and roof planes from
+the label grid with an occupancy from the contour and the labels; the volumetric fallback passes the planes it
+found in the voxels with an occupancy from the points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+EPS = 1e-7
+
+
+@dataclass
+class Hull:
+    """vertices : (n, 3) float64; faces : list of (plane id, ring of vertex indices, counter-clockwise seen from
+    outside); plane ids index the input planes, negative ids are the box's sides."""
+
+    vertices: np.ndarray
+    faces: list[tuple[int, list[int]]]
+    n_cells: int
+    n_inside: int
+
+
+def _clip(poly: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Split a convex polygon (k, 3) with signed distances s (k,) into its s >= 0 and s <= 0 parts."""
+    pos, neg, cut = [], [], []
+    k = len(poly)
+    for i in range(k):
+        a, b = poly[i], poly[(i + 1) % k]
+        sa, sb = s[i], s[(i + 1) % k]
+        if sa >= -EPS:
+            pos.append(a)
+        if sa <= EPS:
+            neg.append(a)
+        if abs(sa) <= EPS:
+            cut.append(a)
+        if (sa > EPS and sb < -EPS) or (sa < -EPS and sb > EPS):
+            t = sa / (sa - sb)
+            x = a + t * (b - a)
+            pos.append(x)
+            neg.append(x)
+            cut.append(x)
+    return np.asarray(pos), np.asarray(neg), cut
+
+
+def _order_on_plane(pts: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Points on a plane ordered counter-clockwise seen from the side ``normal`` points to (duplicates dropped)."""
+    c = pts.mean(0)
+    u = pts[np.argmax(np.linalg.norm(pts - c, axis=1))] - c
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    ang = np.arctan2((pts - c) @ v, (pts - c) @ u)
+    pts = pts[np.argsort(ang)]
+    keep = [0]
+    for i in range(1, len(pts)):
+        if np.linalg.norm(pts[i] - pts[keep[-1]]) > 1e-9:
+            keep.append(i)
+    if len(keep) > 1 and np.linalg.norm(pts[keep[-1]] - pts[keep[0]]) <= 1e-9:
+        keep.pop()
+    return pts[keep]
+
+
+Cell = list[tuple[int, np.ndarray]]
+
+
+def _split(cell: Cell, plane: np.ndarray, pid: int) -> tuple[Cell, Cell] | None:
+    allv = np.concatenate([f for _, f in cell])
+    s_all = allv @ plane[:3] + plane[3]
+    if s_all.min() > -1e-6 or s_all.max() < 1e-6:
+        return None
+    pos: Cell = []
+    neg: Cell = []
+    cut_pts: list[np.ndarray] = []
+    for fid, poly in cell:
+        s = poly @ plane[:3] + plane[3]
+        p, n, cut = _clip(poly, s)
+        if len(p) >= 3 and np.abs(s).max() > EPS and (s > EPS).any():
+            pos.append((fid, p))
+        if len(n) >= 3 and (s < -EPS).any():
+            neg.append((fid, n))
+        cut_pts.extend(cut)
+    if len(cut_pts) < 3:
+        return None
+    cap = _order_on_plane(np.asarray(cut_pts), plane[:3])
+    if len(cap) < 3:
+        return None
+    pos.append((pid, cap[::-1]))  # outward of the positive cell is -n
+    neg.append((pid, cap))
+    return pos, neg
+
+
+def _box(lo: np.ndarray, hi: np.ndarray) -> Cell:
+    x0, y0, z0 = lo
+    x1, y1, z1 = hi
+    P = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
+                  [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]])
+    rings = [(-1, [0, 3, 2, 1]), (-2, [4, 5, 6, 7]), (-3, [0, 1, 5, 4]), (-4, [1, 2, 6, 5]),
+             (-5, [2, 3, 7, 6]), (-6, [3, 0, 4, 7])]
+    return [(fid, P[r]) for fid, r in rings]
+
+
+def dedupe_planes(planes: np.ndarray, angle_deg: float = 1.0, offset: float = 0.02) -> np.ndarray:
+    """Drop planes (k, 4) that repeat an earlier one (either orientation)."""
+    out: list[np.ndarray] = []
+    cos_t = np.cos(np.radians(angle_deg))
+    for p in planes:
+        dup = False
+        for q in out:
+            c = p[:3] @ q[:3]
+            if abs(c) > cos_t and abs(p[3] - np.sign(c) * q[3]) < offset:
+                dup = True
+                break
+        if not dup:
+            out.append(p)
+    return np.asarray(out).reshape(-1, 4)
+
+
+def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+               inside: Callable[[np.ndarray], np.ndarray], merge_tol: float = 1e-5) -> Hull:
+    """The closed surface of the occupied cells of the arrangement of ``planes (k, 4)`` in the box [lo, hi].
+
+    Parameters
+    ----------
+    inside : ``inside(xyz (n, 3)) -> (n,) bool`` occupancy of sample points; a cell is kept when most of its
+        samples (the centroid and points between it and each vertex) are inside
+    """
+    cells: list[Cell] = [_box(np.asarray(lo, float), np.asarray(hi, float))]
+    for pid, pl in enumerate(planes):
+        nxt: list[Cell] = []
+        for cell in cells:
+            r = _split(cell, pl, pid)
+            if r is None:
+                nxt.append(cell)
+            else:
+                nxt.extend(r)
+        cells = nxt
+    # occupancy by majority of samples per cell
+    samples, owner = [], []
+    for ci, cell in enumerate(cells):
+        v = np.unique(np.concatenate([f for _, f in cell]).round(9), axis=0)
+        c = v.mean(0)
+        s = np.vstack([c[None], c + 0.6 * (v - c), c + 0.3 * (v - c)])
+        samples.append(s)
+        owner.append(np.full(len(s), ci))
+    S = np.concatenate(samples)
+    own = np.concatenate(owner)
+    occ = inside(S).astype(np.float64)
+    frac = np.bincount(own, occ, minlength=len(cells)) / np.bincount(own, minlength=len(cells))
+    keep = frac > 0.5
+    # facets of kept cells; vertices consolidated by distance
+    facets = [(fid, poly) for ci, cell in enumerate(cells) if keep[ci] for fid, poly in cell]
+    if not facets:
+        return Hull(np.zeros((0, 3)), [], len(cells), 0)
+    allv = np.concatenate([p for _, p in facets])
+    tree = cKDTree(allv)
+    pairs = tree.query_pairs(merge_tol, output_type="ndarray")
+    parent = np.arange(len(allv))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b in pairs:
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+    roots = np.array([find(i) for i in range(len(allv))])
+    uniq, vid = np.unique(roots, return_inverse=True)
+    vertices = allv[uniq]
+    rings, k = [], 0
+    for fid, poly in facets:
+        ring = [int(x) for x in vid[k:k + len(poly)]]
+        k += len(poly)
+        ring = [v for i, v in enumerate(ring) if v != ring[i - 1]]
+        if len(set(ring)) >= 3:
+            rings.append((fid, ring))
+    # facets shared by two kept cells are interior
+    count: dict[frozenset, int] = {}
+    for _, ring in rings:
+        key = frozenset(ring)
+        count[key] = count.get(key, 0) + 1
+    boundary = [(fid, ring) for fid, ring in rings if count[frozenset(ring)] == 1]
+    faces = _merge_coplanar(boundary)
+    faces = _drop_straight_vertices(vertices, faces)
+    used = sorted({v for _, r in faces for v in r})
+    remap = {v: i for i, v in enumerate(used)}
+    return Hull(vertices[used], [(fid, [remap[v] for v in r]) for fid, r in faces], len(cells), int(keep.sum()))
+
+
+def _merge_coplanar(facets: list[tuple[int, list[int]]]) -> list[tuple[int, list[int]]]:
+    """Merge boundary facets of one plane into polygons (kept apart where a merged region would have holes)."""
+    by_plane: dict[int, list[list[int]]] = {}
+    for fid, ring in facets:
+        by_plane.setdefault(fid, []).append(ring)
+    out = []
+    for fid, rings in by_plane.items():
+        # components of facets sharing an edge
+        n = len(rings)
+        parent = list(range(n))
+
+        def find(i: int, parent: list[int] = parent) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        edge_owner: dict[tuple[int, int], int] = {}
+        for i, r in enumerate(rings):
+            for a, b in zip(r, r[1:] + r[:1]):
+                edge_owner[(a, b)] = i
+        for (a, b), i in edge_owner.items():
+            j = edge_owner.get((b, a))
+            if j is not None:
+                parent[find(i)] = find(j)
+        comps: dict[int, list[int]] = {}
+        for i in range(n):
+            comps.setdefault(find(i), []).append(i)
+        for members in comps.values():
+            if len(members) == 1:
+                out.append((fid, rings[members[0]]))
+                continue
+            edges = {}
+            for i in members:
+                r = rings[i]
+                for a, b in zip(r, r[1:] + r[:1]):
+                    edges[(a, b)] = True
+            outer = [(a, b) for (a, b) in edges if (b, a) not in edges]
+            nxt: dict[int, int] = {}
+            ok = True
+            for a, b in outer:
+                if a in nxt:
+                    ok = False
+                    break
+                nxt[a] = b
+            loops = []
+            if ok:
+                seen: set[int] = set()
+                for start in nxt:
+                    if start in seen:
+                        continue
+                    loop, v = [], start
+                    while v not in seen:
+                        seen.add(v)
+                        loop.append(v)
+                        v = nxt.get(v)
+                        if v is None:
+                            ok = False
+                            break
+                    loops.append(loop)
+            if ok and len(loops) == 1:
+                out.append((fid, loops[0]))
+            else:
+                out.extend((fid, rings[i]) for i in members)
+    return out
+
+
+def _drop_straight_vertices(vertices: np.ndarray, faces: list[tuple[int, list[int]]],
+                            tol: float = 1e-6) -> list[tuple[int, list[int]]]:
+    """Remove ring vertices lying on a straight edge when no polygon but the two along that edge uses them."""
+    faces = [(fid, list(r)) for fid, r in faces]
+    changed = True
+    while changed:
+        changed = False
+        usage: dict[int, list[int]] = {}
+        for fi, (_, r) in enumerate(faces):
+            for v in r:
+                usage.setdefault(v, []).append(fi)
+        for v, fs in usage.items():
+            if len(fs) != 2:
+                continue
+            ok = True
+            for fi in fs:
+                r = faces[fi][1]
+                i = r.index(v)
+                a, b = vertices[r[i - 1]], vertices[r[(i + 1) % len(r)]]
+                d = b - a
+                t = np.clip((vertices[v] - a) @ d / (d @ d), 0, 1)
+                if len(r) <= 3 or np.linalg.norm(a + t * d - vertices[v]) > tol:
+                    ok = False
+            if ok:
+                for fi in fs:
+                    faces[fi][1].remove(v)
+                changed = True
+                break
+    return faces

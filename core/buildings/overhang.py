@@ -1,0 +1,201 @@
+"""Roof overhangs from the ortho DSM.
+
+The wall outline (from the facade points) is projected onto the DSM; each outline edge is moved along its
+outward normal to the sub-pixel zero crossing of the second directional derivative of the height map taken in
+the gradient direction (the eave: where the height drops fastest), measured on profiles across the edge and
+reduced by the median. The offset is the overhang width of that edge; :func:`overhang_surfaces` extends the roof
+polygons over it and closes the underside.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from ..model.raster import Raster
+from .geometry import plane_line
+
+
+@dataclass(frozen=True)
+class OverhangConfig:
+    """max_width : search range beyond the wall (m); smooth_px : Gaussian sigma (px) before derivatives;
+    min_width : narrower overhangs are set to 0 (m); thickness : overhang slab thickness (m)."""
+
+    max_width: float = 1.5
+    smooth_px: float = 1.0
+    min_width: float = 0.15
+    thickness: float = 0.2
+
+
+def _derivatives(z: np.ndarray, cell: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient magnitude and the second derivative along the gradient of a north-up grid (world units)."""
+    zs = ndimage.gaussian_filter(z, sigma)
+    gy_r, gx = np.gradient(zs, cell)
+    gy = -gy_r  # rows run south
+    gxy_r, gxx = np.gradient(gx, cell)
+    gyy_r, _ = np.gradient(gy, cell)
+    gxy = -gxy_r
+    gyy = -gyy_r
+    g2 = gx * gx + gy * gy
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d2 = (gx * gx * gxx + 2 * gx * gy * gxy + gy * gy * gyy) / g2
+    return np.sqrt(g2), np.nan_to_num(d2)
+
+
+def overhang_widths(polygon: np.ndarray, dsm: Raster, cfg: OverhangConfig = OverhangConfig()) -> np.ndarray:
+    """Overhang width (m) of each outline edge (edge i from corner i to i+1 of the counter-clockwise
+    ``polygon (m, 2)``); NaN where no eave was found."""
+    lo = polygon.min(0) - cfg.max_width - 5 * dsm.cell
+    hi = polygon.max(0) + cfg.max_width + 5 * dsm.cell
+    c0, r0 = np.floor(dsm.world_to_cell(np.array([[lo[0], hi[1]]]))[0]).astype(int)
+    c1, r1 = np.ceil(dsm.world_to_cell(np.array([[hi[0], lo[1]]]))[0]).astype(int)
+    rows, cols = dsm.shape
+    c0, r0 = max(c0, 0), max(r0, 0)
+    c1, r1 = min(c1, cols - 1), min(r1, rows - 1)
+    sub = np.asarray(dsm.data[r0:r1 + 1, c0:c1 + 1], dtype=np.float64)
+    if np.isnan(sub).any():
+        _, (ri, ci) = ndimage.distance_transform_edt(np.isnan(sub), return_indices=True)
+        sub = sub[ri, ci]
+    win = Raster(sub, dsm.x0 + c0 * dsm.cell, dsm.y0 - r0 * dsm.cell, dsm.cell, dsm.crs)
+    G, D2 = _derivatives(sub, dsm.cell, cfg.smooth_px)
+    gw = Raster(G, win.x0, win.y0, win.cell, win.crs)
+    dw = Raster(D2, win.x0, win.y0, win.cell, win.crs)
+    m = len(polygon)
+    out = np.full(m, np.nan)
+    step = dsm.cell / 4
+    s = np.arange(-2 * dsm.cell, cfg.max_width + 2 * dsm.cell, step)
+    for i in range(m):
+        p0, p1 = polygon[i], polygon[(i + 1) % m]
+        d = p1 - p0
+        length = float(np.linalg.norm(d))
+        d /= length
+        nrm = np.array([d[1], -d[0]])  # outward for a counter-clockwise outline
+        ts = np.arange(0.15 * length, 0.85 * length + 1e-9, dsm.cell)
+        found = []
+        for t in ts:
+            pts = p0 + t * d + s[:, None] * nrm
+            g = gw.sample(pts)
+            dd = dw.sample(pts)
+            if np.isnan(g).all():
+                continue
+            k = int(np.nanargmax(g))
+            # zero crossing of D2 next to the gradient maximum
+            cand = []
+            for j in range(max(k - 8, 0), min(k + 8, len(s) - 1)):
+                if dd[j] == 0 or dd[j] * dd[j + 1] < 0:
+                    frac = dd[j] / (dd[j] - dd[j + 1]) if dd[j] != dd[j + 1] else 0.0
+                    cand.append(s[j] + frac * step)
+            if cand:
+                found.append(min(cand, key=lambda x: abs(x - s[k])))
+        if found:
+            w = float(np.median(found))
+            out[i] = 0.0 if w < cfg.min_width else min(w, cfg.max_width)
+    return out
+
+
+def _offset_corners(polygon: np.ndarray, widths: np.ndarray) -> np.ndarray:
+    """Mitred corners of the outline offset outward by a width per edge (m, 2)."""
+    m = len(polygon)
+    out = np.zeros_like(polygon)
+    for i in range(m):
+        a0, a1 = polygon[i - 1], polygon[i]
+        b0, b1 = polygon[i], polygon[(i + 1) % m]
+        da = (a1 - a0) / np.linalg.norm(a1 - a0)
+        db = (b1 - b0) / np.linalg.norm(b1 - b0)
+        na, nb = np.array([da[1], -da[0]]), np.array([db[1], -db[0]])
+        pa, pb = a0 + widths[i - 1] * na, b0 + widths[i] * nb
+        A = np.column_stack([da, -db])
+        if abs(np.linalg.det(A)) < 1e-9:
+            out[i] = polygon[i] + widths[i] * nb
+        else:
+            t = np.linalg.solve(A, pb - pa)
+            out[i] = pa + t[0] * da
+    return out
+
+
+def _orient(V: list[np.ndarray], ring: list[int], want: np.ndarray) -> list[int]:
+    """The ring, reversed if its normal points away from ``want``."""
+    P = np.asarray([V[i] for i in ring])
+    c = P - P.mean(0)
+    n = np.cross(c, np.roll(c, -1, axis=0)).sum(0)
+    return ring if n @ want >= 0 else ring[::-1]
+
+
+def overhang_surfaces(vertices: np.ndarray, faces: list[tuple[str, list[int]]], polygon: np.ndarray,
+                      widths: np.ndarray, wall_of_edge: dict[int, list[int]], roof_plane_of_face: dict[int, np.ndarray],
+                      thickness: float) -> tuple[np.ndarray, list[tuple[str, list[int]]]]:
+    """Extend the roof over each outline edge with an overhang and close the overhang's underside.
+
+    Parameters
+    ----------
+    vertices : (n, 3) body vertices; faces : body faces as (kind, ring)
+    wall_of_edge : outline edge index -> indices (into ``faces``) of the wall faces on that edge's plane
+    roof_plane_of_face : face index -> its plane (4,) for the roof faces
+
+    Returns
+    -------
+    vertices : (n + k, 3) with the new vertices appended; new faces (kind, ring) of kinds ``overhang_roof``,
+    ``overhang_fascia`` and ``overhang_underside``
+    """
+    V = [v for v in vertices]
+    new: list[tuple[str, list[int]]] = []
+    mitre = _offset_corners(polygon, widths)
+    m = len(polygon)
+    edge_owner: dict[tuple[int, int], int] = {}
+    for fi, (_, ring) in enumerate(faces):
+        for a, b in zip(ring, ring[1:] + ring[:1]):
+            edge_owner[(a, b)] = fi
+
+    def add(p: np.ndarray) -> int:
+        V.append(np.asarray(p, dtype=np.float64))
+        return len(V) - 1
+
+    for i in range(m):
+        w = widths[i]
+        if not np.isfinite(w) or w <= 0:
+            continue
+        p0, p1 = polygon[i], polygon[(i + 1) % m]
+        d = (p1 - p0) / np.linalg.norm(p1 - p0)
+        nrm = np.array([d[1], -d[0]])
+        outer = np.append(nrm, -(nrm @ p0) - w)  # vertical plane of the eave line
+        outer = np.array([outer[0], outer[1], 0.0, outer[2]])
+        for wf in wall_of_edge.get(i, []):
+            ring = faces[wf][1]
+            for a, b in zip(ring, ring[1:] + ring[:1]):
+                rf = edge_owner.get((b, a))
+                if rf is None or rf not in roof_plane_of_face:
+                    continue
+                qs = []
+                for v in (a, b):
+                    pv = vertices[v]
+                    t = (pv[:2] - p0) @ d
+                    planes_here = [roof_plane_of_face[f] for (x, y), f in edge_owner.items()
+                                   if x == v and f in roof_plane_of_face]
+                    if abs(t) < 1e-3:
+                        xy = mitre[i]
+                    elif abs(t - np.linalg.norm(p1 - p0)) < 1e-3:
+                        xy = mitre[(i + 1) % m]
+                    else:
+                        xy = pv[:2] + w * nrm
+                    q = None
+                    if len(planes_here) >= 2 and abs(t) > 1e-3 and abs(t - np.linalg.norm(p1 - p0)) > 1e-3:
+                        ln = plane_line(planes_here[0], planes_here[1])
+                        if ln is not None and abs(ln[1] @ outer[:3]) > 1e-6:
+                            s = -(outer[:3] @ ln[0] + outer[3]) / (outer[:3] @ ln[1])
+                            q = ln[0] + s * ln[1]
+                    if q is None:
+                        pl = roof_plane_of_face[rf]
+                        q = np.array([xy[0], xy[1], -(pl[0] * xy[0] + pl[1] * xy[1] + pl[3]) / pl[2]])
+                    qs.append(q)
+                pa, pb = vertices[a], vertices[b]
+                qa, qb = qs
+                down = np.array([0.0, 0.0, thickness])
+                ia, ib, iqa, iqb = a, b, add(qa), add(qb)
+                ua, ub, uqa, uqb = add(pa - down), add(pb - down), add(qa - down), add(qb - down)
+                n3 = np.append(nrm, 0.0)
+                new.append(("overhang_roof", _orient(V, [ia, ib, iqb, iqa], np.array([0.0, 0.0, 1.0]))))
+                new.append(("overhang_fascia", _orient(V, [iqa, iqb, uqb, uqa], n3)))
+                new.append(("overhang_underside", _orient(V, [ua, ub, uqb, uqa], np.array([0.0, 0.0, -1.0]))))
+    return np.asarray(V), new

@@ -1,0 +1,252 @@
+"""One building from its points: noise filter, 2D initial reconstruction or volumetric fallback, overhangs.
+
+The 2D path (contour from facade cells, roof planes and topology from the label grid) is tried first; when the
+topology and the plane intersections disagree (a height discontinuity between roof planes, or a node far from
+where its planes meet) or its hull does not close, the building is rebuilt with the volumetric fallback. The
+building records which path it took and why.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from ..model.raster import Raster
+from .contour import ContourConfig, extract_contour
+from .denoise import voxel_noise_filter
+from .geometry import points_in_polygon
+from .hull import Hull, build_hull, dedupe_planes
+from .model import BuildingModel, Surface, ring_normal, triangulate_ring
+from .overhang import OverhangConfig, overhang_surfaces, overhang_widths
+from .roof import RoofConfig, _wall_plane, check_topology, plane_z, roof_labels, topology
+from .volumetric import VolumetricConfig, height_grid, voxel_planes
+
+KIND_ORDER = ("ground", "wall", "roof", "overhang_roof", "overhang_fascia", "overhang_underside")
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """voxel : noise filter cube (m, 0 = guessed); force_path : '' (automatic), '2d' or 'volumetric'."""
+
+    voxel: float = 0.0
+    denoise: bool = True
+    force_path: str = ""
+    contour: ContourConfig = field(default_factory=ContourConfig)
+    roof: RoofConfig = field(default_factory=RoofConfig)
+    volumetric: VolumetricConfig = field(default_factory=VolumetricConfig)
+    overhang: OverhangConfig = field(default_factory=OverhangConfig)
+
+
+def solid_check(vertices: np.ndarray, rings: list[list[int]]) -> tuple[bool, float, str]:
+    """Closed valid solid? (watertight, consistent winding, positive volume) -> (ok, volume, why not)."""
+    tris = [t for r in rings for t in triangulate_ring(vertices, r)]
+    if not tris:
+        return False, 0.0, "no faces"
+    m = trimesh.Trimesh(vertices, np.asarray(tris), process=False)
+    if not m.is_watertight:
+        return False, float(m.volume), "not watertight"
+    if not m.is_winding_consistent:
+        return False, float(m.volume), "inconsistent winding"
+    if m.volume <= 0:
+        return False, float(m.volume), "non-positive volume"
+    return True, float(m.volume), ""
+
+
+def _hull_2d(polygon, roof, ground_z, walls, lo, hi) -> Hull:
+    planes = np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray([roof.planes[k] for k in sorted(roof.planes)])])
+    labs = sorted(roof.planes)
+
+    def inside(P: np.ndarray) -> np.ndarray:
+        xy = P[:, :2]
+        ok = points_in_polygon(xy, polygon) & (P[:, 2] > ground_z)
+        lab = roof.label_at(xy)
+        zr = np.full(len(P), -np.inf)
+        for k in labs:
+            m = lab == k
+            zr[m] = plane_z(roof.planes[k], xy[m])
+        return ok & (P[:, 2] < zr)
+
+    return build_hull(planes, lo, hi, inside)
+
+
+def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, cfg) -> tuple[Hull, int]:
+    segs = voxel_planes(xyz[xyz[:, 2] > ground_z + 0.5], voxel, noise, cfg)
+    found = []
+    cos_w = np.cos(np.radians(cfg.angle_deg))
+    for s in segs:
+        p = s.plane
+        if abs(p[2]) < 0.2:  # vertical: keep only walls that are not the contour's (the steps inside)
+            if any(abs(p[:3] @ w[:3]) > cos_w and abs(abs(p[3]) - abs(w[3])) < 0.6 for w in walls):
+                continue
+            nxy = p[:2] / np.linalg.norm(p[:2])
+            p = np.array([nxy[0], nxy[1], 0.0, p[3] / np.linalg.norm(p[:2])])
+        elif abs(p[:3] @ [0, 0, 1]) > 0.995 and abs(-p[3] / p[2] - ground_z) < 0.5:
+            continue
+        found.append(p)
+    planes = dedupe_planes(np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray(found).reshape(-1, 4)]))
+    H = height_grid(xyz, roof.origin, roof.cell, roof.labels.shape)
+
+    def inside(P: np.ndarray) -> np.ndarray:
+        xy = P[:, :2]
+        ok = points_in_polygon(xy, polygon) & (P[:, 2] > ground_z)
+        cr = np.floor((xy - roof.origin) / roof.cell).astype(np.int64)
+        cr[:, 0] = np.clip(cr[:, 0], 0, H.shape[1] - 1)
+        cr[:, 1] = np.clip(cr[:, 1], 0, H.shape[0] - 1)
+        return ok & (P[:, 2] < H[cr[:, 1], cr[:, 0]])
+
+    return build_hull(planes, lo, hi, inside), len(found)
+
+
+def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, bid: str,
+                         cfg: ReconstructionConfig = ReconstructionConfig()) -> BuildingModel:
+    """Reconstruct one building.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64 world points of the building (with some ground around it)
+    ground_z : terrain height at the building (from the DTM)
+    dsm : ortho DSM for the overhangs (None: no overhangs)
+    bid : building id
+
+    Raises
+    ------
+    ValueError when the building cannot be reconstructed (the message says which step failed)
+    """
+    t0 = time.perf_counter()
+    info: dict = {"n_points": int(len(xyz))}
+    offset = np.array([float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])), 0.0])
+    xl = np.asarray(xyz, dtype=np.float64) - offset
+    if cfg.denoise:
+        nf = voxel_noise_filter(xl, cfg.voxel or None)
+        xl = xl[nf.keep]
+        voxel, noise = nf.voxel, nf.sigma
+        info.update(noise_removed=int((~nf.keep).sum()), voxel=voxel, noise=noise)
+    else:
+        voxel, noise = (cfg.voxel or 0.6), 0.05
+    try:
+        contour = extract_contour(xl, ground_z, cfg.contour)
+    except ValueError as e:
+        raise ValueError(f"contour: {e}") from None
+    polygon = contour.polygon
+    info["corners"] = int(len(polygon))
+    roof = topology(roof_labels(xl, polygon, noise, cfg.roof), polygon)
+    if not roof.planes:
+        raise ValueError("roof: no roof plane found")
+    check = check_topology(roof, polygon, cfg.roof)
+    info.update(roof_planes=len(roof.planes), topology_edges=len(roof.edges), topology_nodes=len(roof.nodes),
+                arrises=len(roof.arrises))
+    m = len(polygon)
+    walls = np.asarray([_wall_plane(polygon[i], polygon[(i + 1) % m]) for i in range(m)])
+    ztop = float(np.percentile(xl[:, 2], 99.5))
+    lo = np.append(polygon.min(0) - 1.0, ground_z - 1.0)
+    hi = np.append(polygon.max(0) + 1.0, ztop + 1.5)
+    path = "2d"
+    reason = check.reason
+    hull = None
+    if cfg.force_path == "volumetric" or (not check.agree and cfg.force_path != "2d"):
+        path = "volumetric"
+    else:
+        hull = _hull_2d(polygon, roof, ground_z, walls, lo, hi)
+        ok, _, why = solid_check(hull.vertices, [r for _, r in hull.faces])
+        if not ok and cfg.force_path != "2d":
+            path, reason = "volumetric", f"2D hull {why}"
+    n_found = 0
+    if path == "volumetric":
+        # about half the filter's cube, but large enough to hold a plane's worth of points on a surface
+        density = _surface_density(xl)
+        vvox = cfg.volumetric.voxel or max(voxel / 2, float(np.sqrt(2.0 * cfg.volumetric.min_points / density)))
+        hull, n_found = _hull_volumetric(xl, polygon, roof, ground_z, walls, lo, hi, vvox, noise, cfg.volumetric)
+        info.update(volumetric_planes=n_found, volumetric_voxel=vvox)
+    info.update(cells=hull.n_cells, cells_inside=hull.n_inside)
+    all_planes = {}
+    faces: list[tuple[str, list[int]]] = []
+    face_plane: list[np.ndarray | None] = []
+    for pid, ring in hull.faces:
+        n = ring_normal(hull.vertices[ring])
+        if pid < 0:
+            kind = "wall"
+        elif pid < m:
+            kind = "wall"
+        elif n[2] > 0.2:
+            kind = "roof"
+        elif n[2] < -0.2:
+            kind = "ground" if abs(hull.vertices[ring][:, 2] - ground_z).max() < 1e-3 else "overhang_underside"
+        else:
+            kind = "wall"
+        faces.append((kind, ring))
+        if kind == "roof":
+            c = hull.vertices[ring].mean(0)
+            pl = np.append(n, -n @ c)
+            face_plane.append(pl)
+            all_planes[pid] = pl
+        else:
+            face_plane.append(None)
+    ok, volume, why = solid_check(hull.vertices, [r for _, r in faces])
+    if any(pid < 0 for pid, _ in hull.faces):
+        ok, why = False, "touches the search box"
+    info.update(closed=ok, volume=volume, solid_problem=why)
+    # overhangs
+    widths = np.zeros(m)
+    if dsm is not None:
+        widths = overhang_widths(polygon + offset[:2], dsm, cfg.overhang)
+        info["overhang_missing_edges"] = int(np.isnan(widths).sum())
+        widths = np.nan_to_num(widths)
+    wall_of_edge = {i: [fi for fi, (pid, _) in enumerate(hull.faces) if pid == i] for i in range(m)}
+    roof_of_face = {fi: pl for fi, pl in enumerate(face_plane) if pl is not None}
+    verts, extra = overhang_surfaces(hull.vertices, faces, polygon, widths, wall_of_edge, roof_of_face,
+                                     cfg.overhang.thickness)
+    model = _assemble(bid, verts + offset, faces, extra, path, reason, polygon + offset[:2], widths,
+                      [_to_world(p, offset) for p in all_planes.values()], info)
+    model.info["seconds"] = time.perf_counter() - t0
+    return model
+
+
+def _surface_density(xyz: np.ndarray, sample: int = 2000) -> float:
+    """Points per square metre of surface from the 8-nearest-neighbour radius of a subset."""
+    sub = xyz[np.random.default_rng(0).choice(len(xyz), min(sample, len(xyz)), replace=False)]
+    d, _ = cKDTree(xyz).query(sub, k=9)
+    r = float(np.median(d[:, 8]))
+    return 8.0 / (np.pi * r * r)
+
+
+def _to_world(pl: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    return np.append(pl[:3], pl[3] - pl[:3] @ offset)
+
+
+def _assemble(bid, verts, body, extra, path, reason, footprint, widths, planes, info) -> BuildingModel:
+    """Weld vertices, give stable ids (kind order, then position), build the model."""
+    tree = cKDTree(verts)
+    parent = np.arange(len(verts))
+    for a, b in sorted(tree.query_pairs(1e-6)):
+        ra, rb = parent[a], parent[b]
+        while parent[ra] != ra:
+            ra = parent[ra]
+        while parent[rb] != rb:
+            rb = parent[rb]
+        parent[max(ra, rb)] = min(ra, rb)
+    root = np.array([_root(parent, i) for i in range(len(verts))])
+    used = sorted({int(root[v]) for _, r in body + extra for v in r})
+    remap = {v: i for i, v in enumerate(used)}
+    V = verts[used]
+    items = [(k, [remap[int(root[v])] for v in r], True) for k, r in body]
+    items += [(k, [remap[int(root[v])] for v in r], False) for k, r in extra]
+    items = [(k, [v for i, v in enumerate(r) if v != r[i - 1]], s) for k, r, s in items]
+    items = [it for it in items if len(set(it[1])) >= 3]
+    items.sort(key=lambda it: (KIND_ORDER.index(it[0]), *np.round(V[it[1]].mean(0), 3)))
+    counters: dict[str, int] = {}
+    surfaces = []
+    for kind, ring, in_solid in items:
+        counters[kind] = counters.get(kind, 0) + 1
+        surfaces.append(Surface(f"{bid}_{kind}_{counters[kind]}", kind, tuple(ring), in_solid))
+    return BuildingModel(bid, V, surfaces, path, reason, np.asarray(footprint), np.asarray(widths, float),
+                         np.asarray(planes).reshape(-1, 4), info)
+
+
+def _root(parent: np.ndarray, i: int) -> int:
+    while parent[i] != i:
+        i = parent[i]
+    return int(i)

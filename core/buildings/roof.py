@@ -1,0 +1,379 @@
+"""Roof planes and roof topology of a monolithic building (the seed's 2D initial reconstruction, roof).
+
+Cells keep their heights; a regression plane per cell (from its 3x3 block, with one robust re-weighting); roof
+cells by a smoothness threshold; labelled groups by normal direction (region growing that also checks the height,
+so parallel roofs at different heights stay apart); region growing over roof installations and the unlabelled
+cells along ridges (each cell takes the neighbouring label whose plane fits its points best); planes fitted per
+group; the topology by a 2x2 window over the label grid (edges and nodes tables, label 0 = outside the contour);
+roof-to-facade arrises by scanning the contour; edges by plane intersections; nodes at the centre of the shortest
+segment between the edge lines. :func:`check_topology` compares the topology with the intersections and says why
+the building must go to the volumetric fallback when they disagree.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .geometry import fit_plane, line_line_closest, plane_line, points_in_polygon
+
+
+@dataclass(frozen=True)
+class RoofConfig:
+    """cell : grid (m); smooth_tol : max RMS of a roof cell's plane (m, 0 = 3 x noise); angle_deg : normal
+    grouping threshold; step_tol : height jump that separates groups / marks a discontinuity (m);
+    min_group_area : smallest roof plane (m^2); node_tol : allowed distance between a topology node and the
+    plane-intersection node (m); segment_tol : longest shortest-segment between edge lines at a node (m);
+    edge_tol : largest median distance (m) of a labelled boundary from its plane intersection line (else step)."""
+
+    cell: float = 0.5
+    smooth_tol: float = 0.0
+    angle_deg: float = 8.0
+    step_tol: float = 0.35
+    min_group_area: float = 3.0
+    node_tol: float = 1.5
+    segment_tol: float = 0.5
+    edge_tol: float = 1.0
+
+
+@dataclass
+class RoofTopology:
+    """Label grid and the topology derived from it.
+
+    Attributes
+    ----------
+    labels : (rows, cols) int grid, 0 outside the contour, -1 unresolved, 1.. roof groups
+    origin : (2,) world xy of the grid's lower-left corner; row index grows with y
+    cell : grid size
+    planes : {label: (4,) plane n.x + d = 0, unit n with n_z > 0}
+    edges : {(a, b): list of (2,) xy window centres} for a < b (a may be 0 = facade)
+    nodes : {frozenset(labels): (2,) mean xy} for windows holding three or more labels
+    arrises : list of (contour edge index, (2,) xy, label before, label after) along the contour
+    """
+
+    labels: np.ndarray
+    origin: np.ndarray
+    cell: float
+    planes: dict[int, np.ndarray]
+    edges: dict[tuple[int, int], list[np.ndarray]] = field(default_factory=dict)
+    nodes: dict[frozenset, np.ndarray] = field(default_factory=dict)
+    arrises: list[tuple[int, np.ndarray, int, int]] = field(default_factory=list)
+
+    def label_at(self, xy: np.ndarray) -> np.ndarray:
+        """Label of the cell under each world point (n, 2); 0 outside the grid."""
+        cr = np.floor((xy - self.origin) / self.cell).astype(np.int64)
+        rows, cols = self.labels.shape
+        ok = (cr[:, 0] >= 0) & (cr[:, 0] < cols) & (cr[:, 1] >= 0) & (cr[:, 1] < rows)
+        out = np.zeros(len(xy), np.int64)
+        out[ok] = self.labels[cr[ok, 1], cr[ok, 0]]
+        return out
+
+
+def plane_z(plane: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Height of a non-vertical plane over points (n, 2)."""
+    return -(plane[0] * xy[:, 0] + plane[1] * xy[:, 1] + plane[3]) / plane[2]
+
+
+def roof_labels(xyz: np.ndarray, polygon: np.ndarray, noise: float, cfg: RoofConfig = RoofConfig()) -> RoofTopology:
+    """Cells, per-cell planes, smoothness, normal groups, region growing, group planes.
+
+    Parameters
+    ----------
+    xyz : (n, 3) building points (denoised)
+    polygon : (m, 2) wall outline, counter-clockwise
+    noise : noise level of the points (m), for the smoothness threshold
+    """
+    c = cfg.cell
+    origin = polygon.min(0) - c
+    cols, rows = (np.ceil((polygon.max(0) - origin) / c).astype(int) + 2)
+    xc = origin[0] + (np.arange(cols) + 0.5) * c
+    yc = origin[1] + (np.arange(rows) + 0.5) * c
+    X, Y = np.meshgrid(xc, yc)
+    inside = points_in_polygon(np.column_stack([X.ravel(), Y.ravel()]), polygon).reshape(rows, cols)
+    # top points per cell (walls below the roof are dropped: keep points within 1.5 m of the cell's top)
+    cr = np.floor((xyz[:, :2] - origin) / c).astype(np.int64)
+    ok = (cr[:, 0] >= 0) & (cr[:, 0] < cols) & (cr[:, 1] >= 0) & (cr[:, 1] < rows)
+    pidx = np.nonzero(ok)[0]
+    flat = cr[ok, 1] * cols + cr[ok, 0]
+    order = np.argsort(flat, kind="stable")
+    pidx, flat = pidx[order], flat[order]
+    starts = np.searchsorted(flat, np.arange(rows * cols + 1))
+
+    def cell_points(r: int, q: int) -> np.ndarray:
+        f = r * cols + q
+        return pidx[starts[f]:starts[f + 1]]
+
+    top = np.full((rows, cols), np.nan)
+    for r in range(rows):
+        for q in range(cols):
+            idx = cell_points(r, q)
+            if len(idx):
+                top[r, q] = np.percentile(xyz[idx, 2], 90)
+
+    def block_points(r: int, q: int) -> np.ndarray:
+        parts = []
+        for i in (-1, 0, 1):
+            for j in (-1, 0, 1):
+                rr, qq = r + i, q + j
+                if 0 <= rr < rows and 0 <= qq < cols and inside[rr, qq]:
+                    idx = cell_points(rr, qq)
+                    if len(idx):
+                        parts.append(idx[xyz[idx, 2] > top[rr, qq] - 1.5])
+        return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+    smooth_tol = cfg.smooth_tol if cfg.smooth_tol > 0 else max(3.0 * noise, 0.05)
+    normals = np.full((rows, cols, 3), np.nan)
+    cell_plane = np.full((rows, cols, 4), np.nan)
+    smooth = np.zeros((rows, cols), bool)
+    for r in range(rows):
+        for q in range(cols):
+            if not inside[r, q]:
+                continue
+            idx = block_points(r, q)
+            if len(idx) < 8:
+                continue
+            pl, rms = fit_plane(xyz[idx], robust=True)
+            if pl[2] < 0:
+                pl = -pl
+            cell_plane[r, q] = pl
+            normals[r, q] = pl[:3]
+            smooth[r, q] = rms < smooth_tol and pl[2] > np.cos(np.radians(70))
+    labels = np.where(inside, -1, 0).astype(np.int64)
+    cos_t = np.cos(np.radians(cfg.angle_deg))
+    next_label = 1
+    # seeds in order of flatness of their fit
+    cand = [(r, q) for r in range(rows) for q in range(cols) if smooth[r, q]]
+    for r0, q0 in cand:
+        if labels[r0, q0] != -1:
+            continue
+        group = [(r0, q0)]
+        labels[r0, q0] = next_label
+        n0 = normals[r0, q0]
+        queue = deque([(r0, q0)])
+        while queue:
+            r, q = queue.popleft()
+            pl = cell_plane[r, q]
+            for i, j in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+                rr, qq = r + i, q + j
+                if not (0 <= rr < rows and 0 <= qq < cols) or labels[rr, qq] != -1 or not smooth[rr, qq]:
+                    continue
+                if normals[rr, qq] @ n0 < cos_t or normals[rr, qq] @ pl[:3] < cos_t:
+                    continue
+                zc = plane_z(pl, np.array([[xc[qq], yc[rr]]]))[0]
+                zn = plane_z(cell_plane[rr, qq], np.array([[xc[qq], yc[rr]]]))[0]
+                if abs(zc - zn) > cfg.step_tol:
+                    continue
+                labels[rr, qq] = next_label
+                group.append((rr, qq))
+                queue.append((rr, qq))
+        if len(group) * c * c < cfg.min_group_area:
+            for r, q in group:
+                labels[r, q] = -2  # too small: resolved by growing, never a seed again
+        else:
+            next_label += 1
+    labels[labels == -2] = -1
+    # planes per group
+    planes: dict[int, np.ndarray] = {}
+    for lab in range(1, next_label):
+        rr, qq = np.nonzero(labels == lab)
+        idx = np.concatenate([cell_points(r, q)[xyz[cell_points(r, q), 2] > top[r, q] - 1.0]
+                              for r, q in zip(rr, qq)])
+        pl, _ = fit_plane(xyz[idx], robust=True)
+        planes[lab] = pl if pl[2] > 0 else -pl
+    # region growing over installations and unresolved cells: the neighbouring label whose plane fits best
+    for _ in range(rows + cols):
+        todo = np.argwhere(labels == -1)
+        if len(todo) == 0:
+            break
+        changed = False
+        new = labels.copy()
+        for r, q in todo:
+            nb = {labels[r + i, q + j] for i in (-1, 0, 1) for j in (-1, 0, 1)
+                  if 0 <= r + i < rows and 0 <= q + j < cols and labels[r + i, q + j] > 0}
+            if not nb:
+                continue
+            idx = cell_points(r, q)
+            if len(idx):
+                p = xyz[idx]
+                p = p[p[:, 2] > top[r, q] - 1.0]
+                best = min(nb, key=lambda k: float(np.median(np.abs(p @ planes[k][:3] + planes[k][3]))))
+            else:
+                best = min(nb)
+            new[r, q] = best
+            changed = True
+        labels = new
+        if not changed:
+            break
+    return merge_coplanar(RoofTopology(labels, origin, c, planes), xyz, cfg)
+
+
+def topology(roof: RoofTopology, polygon: np.ndarray) -> RoofTopology:
+    """Edges and nodes tables from a 2x2 window over the label grid, arrises by scanning the contour."""
+    L = roof.labels
+    rows, cols = L.shape
+    c = roof.cell
+    win = np.stack([L[:-1, :-1], L[:-1, 1:], L[1:, :-1], L[1:, 1:]], -1)
+    edges: dict[tuple[int, int], list[np.ndarray]] = {}
+    node_pts: dict[frozenset, list[np.ndarray]] = {}
+    for r in range(rows - 1):
+        for q in range(cols - 1):
+            s = {int(v) for v in win[r, q] if v >= 0}
+            if len(s) < 2:
+                continue
+            xy = roof.origin + np.array([q + 1, r + 1]) * c
+            w = win[r, q]
+            for i, j in ((0, 1), (2, 3), (0, 2), (1, 3)):  # 4-adjacent cells of the window only
+                a, b = int(w[i]), int(w[j])
+                if a != b and a >= 0 and b >= 0:
+                    edges.setdefault((min(a, b), max(a, b)), []).append(xy)
+            if len(s) >= 3:
+                node_pts.setdefault(frozenset(s), []).append(xy)
+    roof.edges = edges
+    roof.nodes = {k: np.mean(v, 0) for k, v in node_pts.items()}
+    # arrises: walk every contour edge just inside the wall
+    arrises = []
+    m = len(polygon)
+    for i in range(m):
+        p0, p1 = polygon[i], polygon[(i + 1) % m]
+        d = p1 - p0
+        length = np.linalg.norm(d)
+        d = d / length
+        inward = np.array([-d[1], d[0]])  # counter-clockwise polygon: interior on the left
+        t = np.arange(c, length - c / 2, c / 2)
+        if len(t) == 0:
+            continue
+        pts = p0 + t[:, None] * d + 1.5 * c * inward
+        lab = roof.label_at(pts)
+        for k in range(1, len(lab)):
+            if lab[k] != lab[k - 1] and lab[k] > 0 and lab[k - 1] > 0:
+                arrises.append((i, (pts[k] + pts[k - 1]) / 2 - 1.5 * c * inward, int(lab[k - 1]), int(lab[k])))
+    roof.arrises = arrises
+    return roof
+
+
+@dataclass(frozen=True)
+class TopologyCheck:
+    """agree : the 2D path can be trusted; reason : why not; step_edges : label pairs with a height jump;
+    node_errors : {node labels: distance between the topology node and the intersection node (m)}."""
+
+    agree: bool
+    reason: str
+    step_edges: tuple[tuple[int, int], ...]
+    node_errors: dict
+
+
+def _boundary_offset(pa: np.ndarray, pb: np.ndarray, xy: np.ndarray) -> float:
+    """Median distance (m) of observed boundary points (n, 2) to the plane intersection line seen from above
+    (inf when the planes are parallel): small for ridges, hips and valleys, large for steps."""
+    ln = plane_line(pa, pb)
+    if ln is None or np.linalg.norm(ln[1][:2]) < 1e-6:
+        return float("inf")
+    p, d = ln[0][:2], ln[1][:2] / np.linalg.norm(ln[1][:2])
+    nrm = np.array([-d[1], d[0]])
+    return float(np.median(np.abs((xy - p) @ nrm)))
+
+
+def merge_coplanar(roof: RoofTopology, xyz: np.ndarray, cfg: RoofConfig) -> RoofTopology:
+    """Merge neighbouring labels whose planes coincide (same normal within ``angle_deg``, no height gap along
+    their boundary) and refit the merged plane on the points of both."""
+    L = roof.labels
+    cos_t = np.cos(np.radians(cfg.angle_deg))
+    while True:
+        pairs = {}
+        for a_, b_ in ((L[:, :-1], L[:, 1:]), (L[:-1, :], L[1:, :])):
+            m = (a_ > 0) & (b_ > 0) & (a_ != b_)
+            for x, y in zip(a_[m], b_[m]):
+                pairs[(min(x, y), max(x, y))] = pairs.get((min(x, y), max(x, y)), 0) + 1
+        best = None
+        for (a, b), _ in sorted(pairs.items(), key=lambda kv: -kv[1]):
+            pa, pb = roof.planes[a], roof.planes[b]
+            if pa[:3] @ pb[:3] < cos_t:
+                continue
+            rr, qq = np.nonzero((L == a) | (L == b))
+            xy = roof.origin + (np.column_stack([qq, rr]) + 0.5) * roof.cell
+            if np.median(np.abs(plane_z(pa, xy) - plane_z(pb, xy))) < cfg.step_tol:
+                best = (a, b)
+                break
+        if best is None:
+            break
+        a, b = best
+        L[L == b] = a
+        cell_of = np.floor((xyz[:, :2] - roof.origin) / roof.cell).astype(np.int64)
+        ok = (cell_of[:, 0] >= 0) & (cell_of[:, 0] < L.shape[1]) & (cell_of[:, 1] >= 0) & (cell_of[:, 1] < L.shape[0])
+        lab = np.zeros(len(xyz), np.int64)
+        lab[ok] = L[cell_of[ok, 1], cell_of[ok, 0]]
+        pts = xyz[lab == a]
+        pa = roof.planes[a]
+        pts = pts[np.abs(pts @ pa[:3] + pa[3]) < cfg.step_tol]
+        pl, _ = fit_plane(pts, robust=True)
+        roof.planes[a] = pl if pl[2] > 0 else -pl
+        del roof.planes[b]
+    # renumber 1..k
+    old = sorted(roof.planes)
+    new = np.zeros(max(old) + 2, np.int64)
+    new[-1] = -1
+    for i, k in enumerate(old):
+        new[k] = i + 1
+    roof.labels = np.where(L > 0, new[np.clip(L, 0, None)], L)
+    roof.planes = {i + 1: roof.planes[k] for i, k in enumerate(old)}
+    return roof
+
+
+def _wall_plane(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    d = (p1 - p0) / np.linalg.norm(p1 - p0)
+    n = np.array([d[1], -d[0], 0.0])  # outward for a counter-clockwise polygon
+    return np.append(n, -n[:2] @ p0)
+
+
+def check_topology(roof: RoofTopology, polygon: np.ndarray, cfg: RoofConfig = RoofConfig()) -> TopologyCheck:
+    """Compare the label topology with the plane intersections.
+
+    Each roof-roof edge: the two planes must meet where the labels meet (the observed boundary within
+    ``edge_tol`` of the intersection line seen from above), else it is a step (discontinuity). Each node: the
+    centre of the shortest segment between two of its edge lines (roof-roof lines, or a roof line and a wall's
+    eave line for arrises) must lie within ``node_tol`` of the node seen in the label grid, with that segment
+    shorter than ``segment_tol``.
+    """
+    steps = []
+    for (a, b), pts in roof.edges.items():
+        if a <= 0 or b <= 0:
+            continue
+        if _boundary_offset(roof.planes[a], roof.planes[b], np.asarray(pts)) > cfg.edge_tol:
+            steps.append((a, b))
+    node_err: dict = {}
+    bad = []
+    m = len(polygon)
+    walls = [_wall_plane(polygon[i], polygon[(i + 1) % m]) for i in range(m)]
+    node_items = [(k, v, None) for k, v in roof.nodes.items() if 0 not in k]
+    node_items += [(frozenset((0, a, b)), xy, i) for i, xy, a, b in roof.arrises]
+    for labs, xy, wall_i in node_items:
+        roofs = sorted(k for k in labs if k > 0)
+        if any((min(a, b), max(a, b)) in steps for a in roofs for b in roofs if a != b):
+            continue
+        lines = []
+        for ia in range(len(roofs)):
+            for ib in range(ia + 1, len(roofs)):
+                ln = plane_line(roof.planes[roofs[ia]], roof.planes[roofs[ib]])
+                if ln is not None:
+                    lines.append(ln)
+        if wall_i is not None:
+            ln = plane_line(roof.planes[roofs[0]], walls[wall_i])
+            if ln is not None:
+                lines.append(ln)
+        if len(lines) < 2:
+            continue
+        p, q = line_line_closest(lines[0], lines[1])
+        centre = (p + q) / 2
+        err = float(np.linalg.norm(centre[:2] - xy))
+        node_err[tuple(sorted(labs))] = err
+        if err > cfg.node_tol or np.linalg.norm(p - q) > cfg.segment_tol:
+            bad.append((tuple(sorted(labs)), err, float(np.linalg.norm(p - q))))
+    if steps:
+        return TopologyCheck(False, f"height discontinuity between roof planes {steps}", tuple(steps), node_err)
+    if bad:
+        labs, err, seg = max(bad, key=lambda t: t[1])
+        return TopologyCheck(False, f"node {labs} off by {err:.2f} m (segment {seg:.2f} m) from the plane "
+                                    f"intersections", (), node_err)
+    return TopologyCheck(True, "topology and plane intersections agree", (), node_err)
