@@ -1,0 +1,125 @@
+"""Hand-written sample files in every format, read and checked value by value against hand computations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pyproj import Transformer
+
+from oblique_city.core.geometry.rotations import opk_to_cam_from_world
+from oblique_city.core.io.formats import read_block
+from oblique_city.core.io.validate import image_size
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+GON = np.pi / 200.0
+
+
+def test_opk_sample_semicolon_gon_header_two_cameras():
+    b = read_block("opk", DATA / "opk_sample.txt", cameras=str(DATA / "opk_sample_cameras.toml"), angles="gon",
+                   gcps=str(DATA / "gcp_sample.csv"), measurements=str(DATA / "measurements_sample.txt"),
+                   measurement_origin="corner", measurement_delimiter="whitespace")
+    assert b.crs == "EPSG:25832" and list(b.images) == ["N_0001", "N_0002", "F_0001"]
+    nadir, fwd = b.cameras["nadir"], b.cameras["forward"]
+    assert nadir.fx == pytest.approx(100.5 / 0.0046, abs=1e-9) and nadir.pixel_size_mm == pytest.approx(0.0046)
+    assert (nadir.cx, nadir.cy) == pytest.approx((5803.5 + 10.0, 4353.5 - 5.0), abs=1e-9)  # ppx/ppy in mm
+    assert (fwd.cx, fwd.cy) == (4999.5, 3499.5)  # pixel_origin = corner
+    assert nadir.k1 == -1.5e-3 and nadir.name == "Nadir head, 100 mm"
+    img = b.images["N_0001"]
+    assert img.camera_id == "nadir" and img.file == "N_0001"
+    assert np.array_equal(img.pose.C, [512000.125, 5404000.250, 1050.5])
+    assert np.allclose(img.pose.R, opk_to_cam_from_world(0.125 * GON, -0.05 * GON, 100.0 * GON), atol=1e-15)
+    assert np.array_equal(img.sigma_position, [0.05, 0.05, 0.10])
+    assert b.images["F_0001"].sigma_position is None and b.images["F_0001"].view in ("north", "south")
+    assert b.images["N_0001"].view == "nadir"
+    g = b.ground_points
+    assert [g[n].kind for n in ("G1", "G2", "C1")] == ["control", "control", "check"]
+    assert np.array_equal(g["G1"].sigma, [0.02, 0.02, 0.03])
+    assert np.array_equal(g["G1"].observations["N_0001"], [6200.0, 4100.0])  # corner -> centre: -0.5
+    assert set(g["G1"].observations) == {"N_0001", "N_0002"} and not g["G2"].observations
+
+
+def test_opk_sample_whitespace_json_cameras_assign():
+    b = read_block("opk", DATA / "opk_sample2.txt")  # finds opk_sample2_cameras.json beside it
+    assert b.images["N_0001"].camera_id == "nadir" and b.images["F_0001"].camera_id == "forward"
+    assert np.allclose(b.images["F_0001"].pose.R, opk_to_cam_from_world(0.78540, 0.0, 0.0), atol=1e-15)
+    assert b.cameras["nadir"].cx == (11608 - 1) / 2
+
+
+def test_bex_sample():
+    b = read_block("bex", DATA / "bex_sample.xml")
+    assert b.crs == "EPSG:2154"
+    assert b.image_root == r"D:\data\Paris2012sample\Images"
+    ucx, obl = b.cameras["UCX"], b.cameras["Oblique"]
+    assert ucx.fx == pytest.approx(100.735601903992 / (103.896 / 14430), rel=1e-14)
+    assert (ucx.cx, ucx.cy) == (4683.755692, 7223.0141002)  # centre-of-pixel origin: unchanged
+    assert (ucx.p1, ucx.p2) == (0.0001, -0.0002)
+    # XRightYUp: xmm right, ymm up -> +5 px in u, -10 px in v from the sensor centre
+    assert (obl.cx, obl.cy) == pytest.approx((2999.5 + 5.0, 1999.5 - 10.0), abs=1e-9)
+    assert list(b.images) == ["071_2810", "071_2811", "071_2812", "N_0001"]
+    assert b.images["071_2812"].pose is None
+    assert b.images["N_0001"].file == "oblique/N_0001.tif"
+    # the specification's matrix and its omega/phi/kappa describe the same rotation
+    r_matrix, r_opk = b.images["071_2810"].pose.R, b.images["071_2811"].pose.R
+    assert np.abs(r_matrix - r_opk).max() < 1e-9
+    # omega = phi = kappa = 0 in XRightYUp: camera looks straight down, image top to the north
+    assert np.allclose(b.images["N_0001"].pose.R, np.diag([1.0, -1.0, -1.0]), atol=1e-15)
+    assert b.images["N_0001"].view == "nadir" and b.images["071_2810"].view == "nadir"
+    cp = b.ground_points
+    assert cp["Control point #1"].kind == "control" and cp["Control point #2"].kind == "check"
+    assert np.array_equal(cp["Control point #2"].sigma, [0.01, 0.01, 0.10])
+    assert np.array_equal(cp["Control point #1"].observations["071_2810"], [7270.31, 6599.44])
+    # mm measurement relative to the principal point, XRightYUp: +1.2 mm right, -0.6 mm (down) -> +200, +100 px
+    assert np.allclose(cp["Control point #1"].observations["N_0001"], [3004.5 + 200.0, 1989.5 + 100.0])
+    h = cp["Control point #3"]
+    assert np.isnan(h.xyz[2]) and h.sigma[2] == np.inf and h.xyz[0] == 652365.1205012415
+    ref = Transformer.from_crs("EPSG:4326", "EPSG:2154", always_xy=True).transform(2.2945, 48.8584)
+    assert np.allclose(cp["Tower top"].xyz[:2], ref, atol=1e-6) and cp["Tower top"].xyz[2] == pytest.approx(330.0)
+
+
+def test_bex_image_id_modes():
+    b = read_block("bex", DATA / "bex_sample.xml", image_id="id")
+    assert list(b.images) == ["146", "147", "148", "200"]
+    b = read_block("bex", DATA / "bex_sample.xml", image_id="name")
+    assert "N_0001.tif" in b.images
+
+
+def test_bex_swapped_tangential_option():
+    b = read_block("bex", DATA / "bex_sample.xml", tangential="swapped")
+    assert (b.cameras["UCX"].p1, b.cameras["UCX"].p2) == (-0.0002, 0.0001)
+
+
+def test_colmap_sample_text_model():
+    b = read_block("colmap", DATA / "colmap_sample", crs="EPSG:25832")
+    c1, c2 = b.cameras["1"], b.cameras["2"]
+    assert (c1.fx, c1.fy, c1.cx, c1.cy, c1.k1) == (2559.69, 2559.69, 1535.5, 1151.5, -0.0218531)
+    assert (c2.fx, c2.fy, c2.cx, c2.cy) == (2560.56, 2561.0, 1530.0, 1149.75)
+    assert set(b.images) == {"P1180141", "P1180142"} and b.images["P1180142"].file == "sub/P1180142.JPG"
+    img = b.images["P1180142"]  # identity rotation, t = (-1, 2, 3) -> C = -t
+    assert np.array_equal(img.pose.R, np.eye(3)) and np.array_equal(img.pose.C, [1.0, -2.0, -3.0])
+
+
+@pytest.mark.parametrize(("name", "size"), [("img_a.png", (40, 30)), ("img_b.jpg", (40, 30))])
+def test_image_size_from_header(name, size):
+    assert image_size(DATA / "images" / name) == size
+
+
+def test_image_size_tiff(tmp_path):
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "a.tif", np.zeros((21, 33, 3), np.uint8), photometric="rgb")
+    assert image_size(tmp_path / "a.tif") == (33, 21)
+
+
+def test_image_files_checked(tmp_path):
+    b = read_block("opk", DATA / "opk_ab.txt", cameras=str(DATA / "cameras_small.toml"),
+                   image_root=str(DATA / "images"), image_ext=".png", check_images="false")
+    assert b.image_root == str((DATA / "images").resolve())
+
+
+def test_unknown_option_is_refused():
+    from oblique_city.core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown option.*angle"):
+        read_block("opk", DATA / "opk_sample2.txt", angle="gon")
