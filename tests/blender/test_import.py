@@ -1,0 +1,94 @@
+"""The import operator on a block in every registered format: one camera per image, in collections by cardinal
+view, with the block's intrinsics and poses, the image file as background, and the block saved in a workspace."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from oblique_city.core.geometry.rotations import rotation_angle
+from oblique_city.core.io.formats import READERS, WRITERS
+
+pytestmark = pytest.mark.xdist_group("bpy")
+
+DEST = {"native": "block.json", "opk": "block.txt", "bex": "block.xml", "colmap": "colmap"}
+"""Where each format's writer puts the test block (a file, or a folder for COLMAP)."""
+OPTIONS = {"colmap": "crs=EPSG:32632"}
+"""Operator "Options" a format needs (COLMAP models carry no CRS)."""
+
+
+def write_images(folder: Path, block) -> None:
+    import cv2
+
+    rng = np.random.default_rng(2)
+    for img in block.images.values():
+        cam = block.camera_of(img)
+        cv2.imwrite(str(folder / img.file), rng.integers(0, 255, (cam.height, cam.width, 3), dtype=np.uint8))
+
+
+@pytest.mark.parametrize("fmt", sorted(READERS))
+def test_import_every_format(addon, tmp_path, utm_block, fmt):
+    bpy = addon
+    from oblique_city.addon import cameras, georef
+    from oblique_city.core.pipeline import Workspace
+
+    source = tmp_path / "src" / DEST[fmt]
+    source.parent.mkdir()
+    WRITERS[fmt](utm_block, str(source))
+    write_images(source if source.is_dir() else source.parent, utm_block)
+    ws_root = tmp_path / "ws"
+    result = bpy.ops.city.import_block(filepath=str(source), block_format=fmt, workspace=str(ws_root),
+                                       options=OPTIONS.get(fmt, ""))
+    assert result == {"FINISHED"}
+    scene = bpy.context.scene
+    assert Workspace.open(ws_root).load_block().summary()["images"] == len(utm_block.images)
+    assert scene.oblique_city.workspace == str(ws_root.resolve())
+    assert georef.get_crs(scene) == "EPSG:32632"
+
+    objs = {o["oc_image_id"]: o for o in bpy.data.objects if o.type == "CAMERA" and "oc_image_id" in o}
+    assert sorted(objs) == sorted(utm_block.images)
+    for image_id, img in utm_block.images.items():
+        obj = objs[image_id]
+        assert obj.users_collection[0].name == f"Cameras {img.view}"
+        assert obj["oc_view"] == img.view
+        cam, ref = cameras.intrinsics_of(obj.data), utm_block.camera_of(img)
+        for k in ("width", "height", "fx", "fy", "cx", "cy", "k1", "k2", "k3", "p1", "p2"):
+            assert getattr(cam, k) == pytest.approx(getattr(ref, k), rel=1e-9, abs=1e-9), k
+        pose = cameras.pose_of(scene, obj)
+        assert np.abs(pose.C - img.pose.C).max() < 1e-3
+        assert rotation_angle(pose.R, img.pose.R) < 1e-6
+        bg = obj.data.background_images
+        assert obj.data.show_background_images and len(bg) == 1
+        assert Path(bpy.path.abspath(bg[0].image.filepath)).name == img.file
+        assert bg[0].image.size[:] == (ref.width, ref.height)
+    views = {img.view for img in utm_block.images.values()}
+    assert {c.name for c in bpy.data.collections if c.name.startswith("Cameras ")} == {f"Cameras {v}" for v in views}
+
+
+def test_import_error_is_one_line_report(addon, tmp_path):
+    bpy = addon
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "oblique_city.block", "crs": "EPSG:32632", "cameras": [], "images": [{"id": "a"}]}')
+    with pytest.raises(RuntimeError) as e:
+        bpy.ops.city.import_block(filepath=str(bad), block_format="native", workspace=str(tmp_path / "ws"))
+    assert "bad.json" in str(e.value) and "camera_id" in str(e.value)
+    assert not [o for o in bpy.data.objects if "oc_image_id" in o]
+    assert not (tmp_path / "ws" / "block" / "block.json").exists()
+
+
+def test_import_into_existing_workspace_in_another_crs(addon, tmp_path, utm_block):
+    """A workspace in ETRS89 / UTM 32N (EPSG:25832) receives a WGS84 / UTM 32N block reprojected."""
+    bpy = addon
+    from oblique_city.core.io.native import write_block
+    from oblique_city.core.pipeline import Workspace
+
+    Workspace.create(tmp_path / "ws", crs="EPSG:25832")
+    write_block(utm_block, tmp_path / "b.json")
+    assert bpy.ops.city.import_block(filepath=str(tmp_path / "b.json"), block_format="native",
+                                     workspace=str(tmp_path / "ws")) == {"FINISHED"}
+    from oblique_city.addon import georef
+
+    assert georef.get_crs(bpy.context.scene) == "EPSG:25832"
+    assert Workspace.open(tmp_path / "ws").load_block().crs == "EPSG:25832"
