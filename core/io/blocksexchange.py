@@ -423,10 +423,12 @@ def write_bex(block: ImageBlock, dest: str, rotation: str = "matrix", name: str 
     """Write ``block`` as BlocksExchange XML (CameraOrientation XRightYDown, pixel origin as the spec states).
 
     Images get their adjusted pose if any, else the approximate one; images without pose are written without
-    <Pose>. ``rotation="opk"`` writes Omega/Phi/Kappa degrees instead of the exact matrix.
+    <Pose>. The block's ``image_root`` becomes <BaseImagePath>. ``rotation="opk"`` writes Omega/Phi/Kappa
+    degrees instead of the exact matrix.
     """
-    reject_unknown(unknown, "bex")
     from lxml import etree
+
+    reject_unknown(unknown, "bex")
 
     if rotation not in ("matrix", "opk"):
         raise InputError(f"rotation must be matrix or opk, got '{rotation}'", path=dest, field="rotation")
@@ -443,6 +445,8 @@ def write_bex(block: ImageBlock, dest: str, rotation: str = "matrix", name: str 
     sub(srs, "Id", "0")
     sub(srs, "Name", parse_crs(block.crs).name)
     sub(srs, "Definition", block.crs)
+    if block.image_root:
+        sub(root, "BaseImagePath", block.image_root)
     b = sub(root, "Block")
     sub(b, "Name", name)
     sub(b, "SRSId", "0")

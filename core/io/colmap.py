@@ -32,7 +32,7 @@ from ..errors import InputError
 from ..geometry.rotations import orthonormalize
 from ..model import CameraModel, Image, ImageBlock, Pose
 from .common import finish_block
-from .validate import check_crs, option_value, parse_float, reject_unknown
+from .validate import check_crs, option_value, parse_bool, parse_float, reject_unknown
 
 COLMAP_MODELS = {
     "SIMPLE_PINHOLE": ("f", "cx", "cy"),
@@ -220,10 +220,9 @@ def write_colmap(block: ImageBlock, dest: str, binary: Any = False, sim3: str | 
     With ``sim3`` (a similarity file, world_from_model) the poses are written in the model frame. Images
     without orientation are left out (COLMAP images.txt always has a pose). Camera ids are 1..n in block order.
     """
-    reject_unknown(unknown, "colmap")
     import pycolmap
 
-    from .validate import parse_bool
+    reject_unknown(unknown, "colmap")
 
     inverse = None if sim3 is None else read_similarity(sim3).inverse()
     rec = pycolmap.Reconstruction()

@@ -8,7 +8,8 @@ Rows hold ``name X Y Z omega phi kappa`` (order set by the ``columns`` option or
 
 The intrinsics come from a camera file (``cameras`` option, see :mod:`.camerafile`). Lines starting with the
 comment character (``#``) are skipped, except directives the writer puts there and the reader honours when no
-option overrides them: ``# crs: EPSG:25832``, ``# angles: deg``, ``# cameras: block_cameras.toml``.
+option overrides them: ``# crs: EPSG:25832``, ``# angles: deg``, ``# cameras: block_cameras.toml``,
+``# image_root: /data/images`` (relative paths start at the list's folder).
 
 Reader options (all accept strings, as given on the CLI with ``-o key=value``):
 ``cameras`` camera file (default: ``<stem>_cameras.toml`` or ``.json`` beside the list), ``angles`` (default
@@ -61,7 +62,7 @@ COLUMN_ALIASES = {
 }
 REQUIRED = ("name", "x", "y", "z", "omega", "phi", "kappa")
 DEFAULT_COLUMNS = "name,x,y,z,omega,phi,kappa"
-DIRECTIVES = ("crs", "angles", "cameras")
+DIRECTIVES = ("crs", "angles", "cameras", "image_root")
 
 
 def _directives(lines: list[str], comment: str) -> dict[str, tuple[str, int]]:
@@ -210,6 +211,9 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
                               sigma_position=sig_pos, sigma_attitude=sig_att))
     if not block.images:
         raise InputError("no image rows after the header", path=path)
+    if "image_root" in directives and "image_root" not in options:
+        root = Path(directives["image_root"][0])
+        block.image_root = str(root if root.is_absolute() else (path.parent / root).resolve())
     return finish_block(block, path, options, "opk", lines=seen)
 
 
@@ -243,7 +247,10 @@ def write_opk(block: ImageBlock, dest: str, angles: str = "deg", delimiter: str 
     join = (lambda f: " ".join(f)) if sep is None else sep.join
     rel_cam = cam_path.name if cam_path.parent.resolve() == dest_path.parent.resolve() else str(cam_path)
     out = ["# Oblique City OPK list: omega-phi-kappa as PATB (M = Rx(omega) Ry(phi) Rz(kappa), image x right, "
-           "y up, z back)", f"# crs: {block.crs}", f"# angles: {unit}", f"# cameras: {rel_cam}", join(cols)]
+           "y up, z back)", f"# crs: {block.crs}", f"# angles: {unit}", f"# cameras: {rel_cam}"]
+    if block.image_root:
+        out.append(f"# image_root: {block.image_root}")
+    out.append(join(cols))
     for img in images:
         if sep is None and any(ch.isspace() for ch in img.id + (img.file or "")):
             raise InputError(f"image '{img.id}' has blanks in its name or file: choose another delimiter",

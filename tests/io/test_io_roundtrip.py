@@ -105,3 +105,10 @@ def test_pose_adjusted_option(tmp_path, oblique_block):
     back = read_block("bex", tmp_path / "b.xml", pose="adjusted")
     assert all(i.pose_adjusted is not None for i in back.images.values())
     assert back.summary()["adjusted"] == 8
+
+
+@pytest.mark.parametrize("fmt", ["opk", "bex"])
+def test_image_root_travels(tmp_path, oblique_block, fmt):
+    oblique_block.image_root = str(tmp_path / "images")
+    write_block(fmt, oblique_block, tmp_path / "block.out")
+    assert read_block(fmt, tmp_path / "block.out").image_root == str(tmp_path / "images")
