@@ -252,9 +252,10 @@ def write_opk(block: ImageBlock, dest: str, angles: str = "deg", delimiter: str 
         out.append(f"# image_root: {block.image_root}")
     out.append(join(cols))
     for img in images:
-        if sep is None and any(ch.isspace() for ch in img.id + (img.file or "")):
-            raise InputError(f"image '{img.id}' has blanks in its name or file: choose another delimiter",
-                             path=dest, field="delimiter")
+        text = img.id + (img.file or "") + img.camera_id
+        if any(ch.isspace() for ch in text) if sep is None else sep in text:
+            raise InputError(f"image '{img.id}': its name, file or camera contains the delimiter; choose another "
+                             "delimiter", path=dest, field="delimiter")
         o, p, k = cam_from_world_to_opk(img.pose.R)
         row = [img.id, *(_fmt(c) for c in img.pose.C), *(_fmt(from_radians(a, unit)) for a in (o, p, k)),
                img.camera_id, img.file or img.id]
