@@ -123,3 +123,18 @@ def test_unknown_option_is_refused():
 
     with pytest.raises(ConfigError, match="unknown option.*angle"):
         read_block("opk", DATA / "opk_sample2.txt", angle="gon")
+
+
+def test_image_files_present_and_right_size():
+    b = read_block("opk", DATA / "malformed" / "opk_wrong_image_size.txt", cameras=str(DATA / "cameras_small.toml"),
+                   image_root=str(DATA / "images"), image_ext=".png")
+    assert b.images["img_a"].file == "img_a.png"
+
+
+def test_ground_points_in_another_crs(tmp_path):
+    (tmp_path / "g.txt").write_text("name x y z\nT1 9.01 48.75 300.5\n")  # longitude, latitude, height
+    b = read_block("opk", DATA / "opk_ab.txt", cameras=str(DATA / "malformed" / "cameras_ok.toml"),
+                   gcps=str(tmp_path / "g.txt"), gcp_crs="EPSG:4326", gcp_kind="check", gcp_sigma="0.05")
+    ref = Transformer.from_crs("EPSG:4326", "EPSG:25832", always_xy=True).transform(9.01, 48.75)
+    g = b.ground_points["T1"]
+    assert np.allclose(g.xyz, [*ref, 300.5], atol=1e-6) and g.kind == "check" and np.all(g.sigma == 0.05)
