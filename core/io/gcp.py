@@ -80,7 +80,7 @@ def _table(path: Path, columns: Any, aliases: dict[str, str], required: tuple[st
     rows = [(i + 1, t) for i, t in enumerate(lines) if t.strip() and not t.strip().startswith(comment)]
     if not rows:
         raise InputError("no data rows", path=path)
-    if sep is None:
+    if delimiter is None:
         sep = sniff_delimiter([t for _, t in rows[1:] or rows])
     cols = None if columns is None else parse_columns(columns, aliases, required, path)
     first_line, first_text = rows[0]

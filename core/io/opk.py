@@ -146,7 +146,8 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
         crs = check_crs(directives["crs"][0], path, "crs", directives["crs"][1])
     else:
         crs = check_crs(cams.crs, cams.path, "crs")
-    sep = parse_delimiter(options.pop("delimiter", None), path)
+    sep_opt = options.pop("delimiter", None)
+    sep = parse_delimiter(sep_opt, path)
     header_opt = str(options.pop("header", "auto")).lower()
     header = None if header_opt == "auto" else parse_bool(header_opt, path, None, "header")
     col_opt = options.pop("columns", None)
@@ -155,7 +156,7 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
     rows = [(i + 1, t) for i, t in enumerate(lines) if t.strip() and not t.strip().startswith(comment)]
     if not rows:
         raise InputError("no data rows", path=path)
-    if sep is None:
+    if sep_opt is None:
         sep = sniff_delimiter([t for _, t in rows[1:] or rows])
 
     columns = None if col_opt is None else parse_columns(col_opt, COLUMN_ALIASES, REQUIRED, path)

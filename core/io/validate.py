@@ -44,15 +44,6 @@ def parse_float(text: str, path: str | Path | None, line: int | None, field: str
     return value
 
 
-def parse_int(text: str, path: str | Path | None, line: int | None, field: str) -> int:
-    """An integer from ``text``; InputError naming path, line and field otherwise."""
-    s = str(text).strip()
-    try:
-        return int(s)
-    except ValueError:
-        raise InputError(f"'{s[:40]}' is not an integer", path=path, line=line, field=field) from None
-
-
 def parse_bool(value: Any, path: str | Path | None, line: int | None, field: str) -> bool:
     """``true/false/yes/no/1/0`` (any case) or a bool."""
     if isinstance(value, bool):
@@ -97,14 +88,6 @@ def delimiter(value: Any, path: str | Path | None = None) -> str | None:
     return DELIMITERS[key]
 
 
-def finite_array(values: Iterable[float], path: str | Path | None, line: int | None, field: str) -> np.ndarray:
-    """A float64 array with only finite values."""
-    a = np.asarray(list(values), dtype=np.float64)
-    if not np.all(np.isfinite(a)):
-        raise InputError("contains NaN or infinity", path=path, line=line, field=field)
-    return a
-
-
 # ----------------------------------------------------------------------------------------------- options
 
 def option_value(value: Any) -> Any:
@@ -115,11 +98,6 @@ def option_value(value: Any) -> Any:
         except json.JSONDecodeError:
             return value
     return value
-
-
-def take_option(options: dict[str, Any], name: str, default: Any = None) -> Any:
-    """Remove and return option ``name`` (``default`` when absent)."""
-    return options.pop(name, default)
 
 
 def reject_unknown(options: dict[str, Any], fmt: str) -> None:
@@ -154,9 +132,6 @@ def sniff_delimiter(rows: list[str]) -> str | None:
         if rows and all(sep in r for r in rows):
             return sep
     return None
-
-
-COLUMN_RE = re.compile(r"^[a-z_][a-z0-9_]*$")
 
 
 def parse_columns(spec: Any, known: dict[str, str], required: Iterable[str], path: str | Path | None,

@@ -138,3 +138,11 @@ def test_ground_points_in_another_crs(tmp_path):
     ref = Transformer.from_crs("EPSG:4326", "EPSG:25832", always_xy=True).transform(9.01, 48.75)
     g = b.ground_points["T1"]
     assert np.allclose(g.xyz, [*ref, 300.5], atol=1e-6) and g.kind == "check" and np.all(g.sigma == 0.05)
+
+
+def test_whitespace_delimiter_is_not_sniffed(tmp_path):
+    """Names containing semicolons stay whole when the delimiter is given as whitespace."""
+    (tmp_path / "b.txt").write_text("a;1 512000 5404000 1000 0 0 0\nb;2 512100 5404000 1000 0 0 0\n")
+    b = read_block("opk", tmp_path / "b.txt", cameras=str(DATA / "malformed" / "cameras_ok.toml"),
+                   delimiter="whitespace")
+    assert list(b.images) == ["a;1", "b;2"]
