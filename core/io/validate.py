@@ -167,7 +167,7 @@ DOCTYPE_RE = re.compile(rb"<!DOCTYPE", re.IGNORECASE)
 
 
 def parse_xml(path: str | Path):
-    """Parse an XML file safely with lxml and return its root element.
+    """Parse an XML file (or a zip holding one, like BlocksExchange ``.xmlz``) safely with lxml; return its root.
 
     No network, no DTD loading, no entity resolution; a DOCTYPE that declares entities (the "billion laughs"
     and external-entity attacks) is refused before parsing. Syntax errors name the line.
@@ -178,6 +178,18 @@ def parse_xml(path: str | Path):
     if not p.is_file():
         raise InputError("file not found", path=path)
     data = p.read_bytes()
+    if data[:4] == b"PK\x03\x04":  # a zipped XML (BlocksExchange .xmlz): its first .xml member
+        import io
+        import zipfile
+
+        try:
+            with zipfile.ZipFile(io.BytesIO(data)) as z:
+                members = [n for n in z.namelist() if n.lower().endswith(".xml")]
+                if not members:
+                    raise InputError("zip archive without an .xml file", path=path)
+                data = z.read(members[0])
+        except zipfile.BadZipFile as e:
+            raise InputError(f"broken zip archive ({e})", path=path) from None
     m = DOCTYPE_RE.search(data)
     if m is not None:
         ent = ENTITY_RE.search(data, m.start())

@@ -146,3 +146,12 @@ def test_whitespace_delimiter_is_not_sniffed(tmp_path):
     b = read_block("opk", tmp_path / "b.txt", cameras=str(DATA / "malformed" / "cameras_ok.toml"),
                    delimiter="whitespace")
     assert list(b.images) == ["a;1", "b;2"]
+
+
+def test_bex_xmlz(tmp_path):
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "b.xmlz", "w", compression=zipfile.ZIP_DEFLATED) as z:
+        z.write(DATA / "bex_sample.xml", "block.xml")
+    b = read_block("bex", tmp_path / "b.xmlz")
+    assert len(b.images) == 4 and b.crs == "EPSG:2154"
