@@ -1,4 +1,4 @@
-"""ContextCapture / iTwin Capture BlocksExchange XML: read and write.
+"""ContextCapture / iTwin Capture BlocksExchange XML (and zipped .xmlz): read and write.
 
 Conventions, from Bentley's format specification (the commented sample of "BlocksExchange XML/XMLZ format" in the
 ContextCapture user guide) and checked against its own numeric example:
