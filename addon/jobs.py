@@ -222,7 +222,8 @@ def active_job() -> Job | None:
 def start_job(ws_root: str | Path, stages: list[str] | None, force: bool = False, mode: str = "subprocess",
               executor: ExecutorSettings | None = None, launcher: list[str] | None = None) -> Job:
     """Start stages on a workspace. ``mode`` is ``subprocess`` or ``thread``; stages registered at run time force
-    ``thread`` (a child process would not know them). Raises :class:`CityError` for unknown stages, a missing
+    ``thread`` (a child process would not know them), unless a ``launcher`` (the command before ``run WS ...``)
+    is given, which must then register them in the child itself. Raises :class:`CityError` for unknown stages, a missing
     block, or when another job is running."""
     global _active
     if _active is not None and not _active.finished:
@@ -234,7 +235,7 @@ def start_job(ws_root: str | Path, stages: list[str] | None, force: bool = False
     if not planned:
         raise CityError("no stages are registered yet")
     runtime_only = set(stage_names()) - set(STAGE_MODULES)
-    if mode == "thread" or runtime_only & set(planned):
+    if mode == "thread" or (launcher is None and runtime_only & set(planned)):
         job: Job = ThreadJob(ws.root, stages, force, executor or ExecutorSettings())
     else:
         job = SubprocessJob(ws.root, stages, force, executor or ExecutorSettings())

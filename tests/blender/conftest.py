@@ -7,14 +7,7 @@ they share one worker and bpy is imported once. Each test starts from factory se
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-import numpy as np
 import pytest
-
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parents[1]
 
 
 @pytest.fixture
@@ -31,26 +24,3 @@ def addon():
     finally:
         oblique_city.unregister()
 
-
-@pytest.fixture
-def image_files(tmp_path, utm_block) -> Path:
-    """Real 1200 x 900 image files for the images of ``utm_block`` in ``tmp_path/images``; returns the folder."""
-    import cv2
-
-    folder = tmp_path / "images"
-    folder.mkdir()
-    rng = np.random.default_rng(1)
-    for img in utm_block.images.values():
-        cam = utm_block.camera_of(img)
-        cv2.imwrite(str(folder / img.file), rng.integers(0, 255, (cam.height, cam.width, 3), dtype=np.uint8))
-    return folder
-
-
-def run_python(args: list[str], env: dict[str, str] | None = None, timeout: float = 120.0):
-    """Run ``python args...`` in a subprocess (bpy imported there), returning the CompletedProcess."""
-    import os
-    import subprocess
-
-    full_env = dict(os.environ)
-    full_env.update(env or {})
-    return subprocess.run([sys.executable, *args], capture_output=True, text=True, env=full_env, timeout=timeout)
