@@ -141,7 +141,7 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
                 arrises=len(roof.arrises))
     m = len(polygon)
     walls = np.asarray([_wall_plane(polygon[i], polygon[(i + 1) % m]) for i in range(m)])
-    ztop = float(np.percentile(xl[:, 2], 99.5))
+    ztop = float(xl[:, 2].max())
     lo = np.append(polygon.min(0) - 1.0, ground_z - 1.0)
     hi = np.append(polygon.max(0) + 1.0, ztop + 1.5)
     path = "2d"

@@ -251,3 +251,65 @@ def test_buildings() -> tuple[SyntheticBuilding, ...]:
                                            Part(9, 0, 18, 10, 5, 5, "flat", 0.0)),
                           _rect(0, 0, 18, 10), (0.0,) * 4, origin=(60.0, 170.0), angle_deg=25.0, stepped=True),
     )
+
+
+VIEW_DIRECTIONS = np.array([[0.0, 0.0, 1.0], [0.0, 0.7071, 0.7071], [0.0, -0.7071, 0.7071],
+                            [0.7071, 0.0, 0.7071], [-0.7071, 0.0, 0.7071]])
+"""Directions towards the cameras of a Maltese-cross system: nadir and four 45-degree obliques."""
+
+
+def city_point_cloud(city, density: float, noise: float, seed: int = 0,
+                     area: tuple[float, float, float, float] | None = None,
+                     outlier_share: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """An oblique-like point cloud of the simulator's city from its ground-truth mesh.
+
+    Triangles are sampled by area (``density`` points per m^2); a sample is kept when at least one of the
+    :data:`VIEW_DIRECTIONS` sees it (the surface faces that way and a ray cast towards it escapes the city),
+    so hidden faces (inside parts, under neighbours) are dropped; Gaussian ``noise`` (m) is then added.
+
+    Returns
+    -------
+    xyz : (n, 3) float64 world points; semantic : (n,) uint8 codes of the triangles they came from
+    """
+    import open3d as o3d
+
+    rng = np.random.default_rng(seed)
+    V = city.vertices - city.origin
+    T = city.triangles
+    a, b, c = V[T[:, 0]], V[T[:, 1]], V[T[:, 2]]
+    if area is not None:
+        lo = np.asarray(area[:2]) - city.origin[:2]
+        hi = np.asarray(area[2:]) - city.origin[:2]
+        cen = (a + b + c)[:, :2] / 3
+        sel = np.all((cen >= lo) & (cen <= hi), axis=1)
+        a, b, c, sem = a[sel], b[sel], c[sel], city.semantic[sel]
+    else:
+        sem = city.semantic
+    cr = np.cross(b - a, c - a)
+    areas = 0.5 * np.linalg.norm(cr, axis=1)
+    normals = cr / np.maximum(2 * areas[:, None], 1e-12)
+    counts = rng.poisson(areas * density)
+    tri = np.repeat(np.arange(len(a)), counts)
+    r1, r2 = rng.random(len(tri)), rng.random(len(tri))
+    s = np.sqrt(r1)
+    p = (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
+    n = normals[tri]
+    scene = city.scene()
+    visible = np.zeros(len(p), bool)
+    for d in VIEW_DIRECTIONS:
+        facing = n @ d > 0.05
+        idx = np.nonzero(facing & ~visible)[0]
+        if len(idx) == 0:
+            continue
+        origin = p[idx] + 0.02 * n[idx]
+        rays = np.hstack([origin, np.broadcast_to(d, (len(idx), 3))]).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        visible[idx[~np.isfinite(hit)]] = True
+    p, sem_p = p[visible], sem[tri][visible]
+    p = p + rng.normal(0, noise, p.shape)
+    if outlier_share > 0:
+        k = int(outlier_share * len(p))
+        lo, hi = p.min(0), p.max(0)
+        p = np.vstack([p, rng.uniform(lo, hi, (k, 3))])
+        sem_p = np.concatenate([sem_p, np.full(k, 255, np.uint8)])
+    return p + city.origin, sem_p

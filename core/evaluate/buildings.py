@@ -1,0 +1,210 @@
+"""Metrics of reconstructed buildings against ground truth (tests, benchmark, reports).
+
+Per building: outline corner deviation (each true footprint corner to the nearest reconstructed corner),
+roof plane normal error (each true roof plane against the reconstructed roof surface over it), overhang width
+error (each exposed true wall edge against the reconstructed outline edge that runs along it), whether the body
+is a closed valid solid, which path it took, and the time it needed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..buildings.geometry import points_in_polygon
+from ..buildings.model import BuildingModel
+
+
+@dataclass(frozen=True)
+class BuildingTruth:
+    """Ground truth of one building.
+
+    name : label; footprint : list of (m, 2) wall outline rings; planes : list of ((3,) unit normal up,
+    (3,) a point on the plane inside its face); edges : list of ((2, 2) wall segment, overhang width) for the
+    exposed outline edges
+    """
+
+    name: str
+    footprint: list[np.ndarray]
+    planes: list[tuple[np.ndarray, np.ndarray]]
+    edges: list[tuple[np.ndarray, float]]
+
+    @classmethod
+    def from_city(cls, b) -> BuildingTruth:
+        """From a :class:`oblique_city.core.simulate.city.Building` (roof installations left out)."""
+        planes = []
+        for rp in b.roof_planes:
+            if rp.get("kind", "roof") != "roof":
+                continue
+            n = np.asarray(rp["normal"], dtype=np.float64)
+            n = n if n[2] > 0 else -n
+            poly = np.asarray(rp["polygon"], dtype=np.float64)
+            planes.append((n, _inner_point(poly)))
+        edges = [(np.asarray(e["segment"], dtype=np.float64), float(e["width"]))
+                 for e in b.overhang_edges() if e["exposed"]]
+        return cls(f"{b.id}:{b.name}", [np.asarray(r, dtype=np.float64) for r in b.footprint], planes, edges)
+
+    @classmethod
+    def from_synthetic(cls, sb) -> BuildingTruth:
+        """From a :class:`oblique_city.core.buildings.synthetic.SyntheticBuilding`."""
+        fp = sb.footprint
+        lo, hi = fp.min(0), fp.max(0)
+        X, Y = np.meshgrid(np.arange(lo[0], hi[0], 0.25), np.arange(lo[1], hi[1], 0.25))
+        xy = np.column_stack([X.ravel(), Y.ravel()])
+        xy = xy[points_in_polygon(xy, fp)]
+        z = sb.height(xy)
+        P = np.column_stack([xy, z])
+        planes = []
+        for pl in sb.roof_planes():
+            on = np.abs(P @ pl[:3] + pl[3]) < 1e-6
+            if on.sum() == 0:
+                continue
+            q = P[on]
+            planes.append((pl[:3], q[np.argmin(np.linalg.norm(q - np.median(q, 0), axis=1))]))
+        m = len(fp)
+        edges = [(np.stack([fp[i], fp[(i + 1) % m]]), float(sb.overhangs[i])) for i in range(m)]
+        return cls(sb.name, [fp], planes, edges)
+
+
+def _inner_point(poly: np.ndarray) -> np.ndarray:
+    """A point of a planar polygon (k, 3) well inside it (the vertex mean pulled to the nearest interior sample)."""
+    c = poly.mean(0)
+    if points_in_polygon(c[None, :2], poly[:, :2])[0]:
+        return c
+    for t in (0.5, 0.25, 0.1):
+        for v in poly:
+            q = c + (1 - t) * (v - c)
+            if points_in_polygon(q[None, :2], poly[:, :2])[0]:
+                return q
+    return c
+
+
+@dataclass(frozen=True)
+class BuildingScore:
+    """Figures of one building (NaN where not measurable)."""
+
+    name: str
+    id: str
+    path: str
+    reason: str
+    closed: bool
+    seconds: float
+    corner_median: float
+    corner_mean: float
+    corner_max: float
+    n_corners_true: int
+    n_corners_est: int
+    normal_median_deg: float
+    normal_max_deg: float
+    overhang_errors: list[float]
+    overhang_median: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def corner_deviation(truth: list[np.ndarray], est: np.ndarray) -> np.ndarray:
+    """Distance (m) of each true corner (all rings) to the nearest estimated corner (k, 2)."""
+    gt = np.concatenate(truth)
+    return np.linalg.norm(gt[:, None, :] - est[None, :, :], axis=2).min(1)
+
+
+def normal_errors(truth: BuildingTruth, model: BuildingModel) -> np.ndarray:
+    """Angle (deg) between each true roof plane and the reconstructed roof surface over its inner point (the
+    nearest roof surface where none covers it)."""
+    roofs = [(model.vertices[list(s.ring)]) for s in model.surfaces if s.kind == "roof"]
+    if not roofs:
+        return np.full(len(truth.planes), np.nan)
+    out = []
+    for n, p in truth.planes:
+        best, best_d = None, np.inf
+        for ring in roofs:
+            if points_in_polygon(p[None, :2], ring[:, :2])[0]:
+                d = abs(np.mean(ring[:, 2]) - p[2]) * 0.0
+            else:
+                d = float(np.min(np.linalg.norm(ring[:, :2] - p[:2], axis=1)))
+            if d < best_d:
+                best, best_d = ring, d
+        c = best - best.mean(0)
+        nn = np.cross(c, np.roll(c, -1, axis=0)).sum(0)
+        nn /= np.linalg.norm(nn)
+        out.append(float(np.degrees(np.arccos(np.clip(abs(nn @ n), 0, 1)))))
+    return np.asarray(out)
+
+
+def overhang_errors(truth: BuildingTruth, model: BuildingModel, max_offset: float = 1.0) -> np.ndarray:
+    """|estimated - true| overhang width (m) for each exposed true edge matched to a parallel reconstructed edge
+    whose line passes within ``max_offset`` of the true edge's midpoint and overlaps it."""
+    fp = model.footprint
+    m = len(fp)
+    out = []
+    for seg, w in truth.edges:
+        d = seg[1] - seg[0]
+        length = np.linalg.norm(d)
+        d = d / length
+        mid = seg.mean(0)
+        best, best_off = None, max_offset
+        for i in range(m):
+            a, b = fp[i], fp[(i + 1) % m]
+            e = (b - a) / np.linalg.norm(b - a)
+            if abs(e @ d) < np.cos(np.radians(10)):
+                continue
+            off = abs((mid - a) @ np.array([-e[1], e[0]]))
+            t = (mid - a) @ e
+            if off < best_off and -0.25 * length <= t <= np.linalg.norm(b - a) + 0.25 * length:
+                best, best_off = i, off
+        if best is not None:
+            out.append(abs(float(model.overhangs[best]) - w))
+    return np.asarray(out)
+
+
+def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
+    c = corner_deviation(truth.footprint, model.footprint)
+    ne = normal_errors(truth, model)
+    oe = overhang_errors(truth, model)
+
+    def med(a):
+        return float(np.nanmedian(a)) if len(a) and np.isfinite(a).any() else float("nan")
+
+    return BuildingScore(truth.name, model.id, model.path, model.reason, bool(model.info.get("closed", False)),
+                         float(model.info.get("seconds", np.nan)), med(c), float(np.mean(c)), float(np.max(c)),
+                         int(sum(len(r) for r in truth.footprint)), int(len(model.footprint)), med(ne),
+                         float(np.nanmax(ne)) if len(ne) and np.isfinite(ne).any() else float("nan"),
+                         [float(x) for x in oe], med(oe))
+
+
+def match_truth(model: BuildingModel, truths: list[BuildingTruth]) -> int | None:
+    """Index of the true building whose footprint holds the reconstructed outline's centroid (else the one with
+    the nearest footprint centroid within 10 m)."""
+    c = model.footprint.mean(0)
+    for i, t in enumerate(truths):
+        if any(points_in_polygon(c[None], r)[0] for r in t.footprint):
+            return i
+    d = [min(np.linalg.norm(r.mean(0) - c) for r in t.footprint) for t in truths]
+    i = int(np.argmin(d))
+    return i if d[i] < 10.0 else None
+
+
+def summary(scores: list[BuildingScore], n_truth: int) -> dict:
+    """Overall figures: pooled corner deviations (median, mean), normal and overhang errors, closed share."""
+    def pool(attr):
+        v = np.array([getattr(s, attr) for s in scores], dtype=np.float64)
+        return v[np.isfinite(v)]
+
+    cm = pool("corner_median")
+    nm = pool("normal_median_deg")
+    oh = np.array([e for s in scores for e in s.overhang_errors])
+    return {
+        "buildings_true": n_truth, "buildings_reconstructed": len(scores),
+        "corner_median_of_medians": float(np.median(cm)) if len(cm) else None,
+        "corner_mean_of_means": float(np.mean(pool("corner_mean"))) if len(cm) else None,
+        "normal_median_deg": float(np.median(nm)) if len(nm) else None,
+        "overhang_median_error": float(np.median(oh)) if len(oh) else None,
+        "overhang_p90_error": float(np.percentile(oh, 90)) if len(oh) else None,
+        "closed_share": float(np.mean([s.closed for s in scores])) if scores else 0.0,
+        "closed_share_of_true": float(sum(s.closed for s in scores) / n_truth) if n_truth else 0.0,
+        "paths": {p: sum(s.path == p for s in scores) for p in ("2d", "volumetric")},
+        "seconds_median": float(np.median(pool("seconds"))) if scores else None,
+        "seconds_max": float(np.max(pool("seconds"))) if scores else None,
+    }
