@@ -151,7 +151,7 @@ def draw_stages(layout, context, names: list[str]) -> None:
             box.label(text=str(rec["message"])[:80])
         try:
             description = get_stage(name).description
-        except CityError as e:
+        except (CityError, ImportError) as e:  # a stage whose dependencies are missing still gets a panel line
             description = str(e).splitlines()[0]
         if description:
             box.label(text=description[:80])
