@@ -8,8 +8,11 @@ from ..errors import ConfigError
 from .stage import Stage
 
 STAGE_MODULES: dict[str, str] = {
+    "match": ".matching.stage",
+    "aerotri": ".aerotri.stage",
     "dense": ".dense.stage",
     "surface": ".surface.stage",
+    "buildings": ".buildings.stage",
 }
 """Stage name -> module (relative to the ``core`` package) that defines ``STAGE``, in pipeline order."""
 

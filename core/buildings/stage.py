@@ -1,0 +1,122 @@
+"""The ``buildings`` stage: LOD2 buildings with discontinuities and roof overhangs.
+
+Reads ``dense/points.npz`` (the kept dense points) and ``surface/dsm.tif``, ``dtm.tif``, ``buildings.tif`` and
+``vegetation.tif``; detects the buildings (or takes user footprints from a GeoJSON file), reconstructs each one
+through the executor (in-process, processes or Dask) and writes ``buildings/buildings.json`` (the models, see
+:mod:`.model`) and ``buildings/report.json`` (per building: path, reason, closed solid, timings; failures with
+their reason).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import WorkspaceError
+from ..model.raster import Raster
+from ..pipeline.atomic import write_json
+from ..pipeline.stage import Stage, StageResult
+from .detect import DetectConfig, building_labels, points_per_building, points_per_footprint, read_footprints
+from .model import BuildingModel, save_buildings
+from .overhang import OverhangConfig
+from .reconstruct import ReconstructionConfig, reconstruct_building
+
+
+@dataclass(frozen=True)
+class BuildingsConfig:
+    """Options of the ``buildings`` stage (``[stages.buildings]`` in project.toml).
+
+    min_height, min_area : detection on the nDSM (m, m^2); use_masks : use the surface stage's building and
+    vegetation masks (else roughness rejects vegetation); footprints : GeoJSON file of user footprints (empty:
+    detect); voxel : noise filter cube (m, 0 = guessed); force_path : '' (automatic), '2d' or 'volumetric';
+    max_overhang, overhang_thickness : overhang search range and slab thickness (m)
+    """
+
+    min_height: float = 2.5
+    min_area: float = 25.0
+    use_masks: bool = True
+    footprints: str = ""
+    voxel: float = 0.0
+    force_path: str = ""
+    max_overhang: float = 1.5
+    overhang_thickness: float = 0.2
+
+
+def _window(r: Raster, xy: np.ndarray, margin: float) -> Raster:
+    """The part of a raster around points (n, 2), ``margin`` metres wide."""
+    lo, hi = xy.min(0) - margin, xy.max(0) + margin
+    c0 = max(int(np.floor((lo[0] - r.x0) / r.cell)), 0)
+    c1 = min(int(np.ceil((hi[0] - r.x0) / r.cell)), r.shape[1])
+    r0 = max(int(np.floor((r.y0 - hi[1]) / r.cell)), 0)
+    r1 = min(int(np.ceil((r.y0 - lo[1]) / r.cell)), r.shape[0])
+    return Raster(np.asarray(r.data[r0:r1, c0:c1]), r.x0 + c0 * r.cell, r.y0 - r0 * r.cell, r.cell, r.crs)
+
+
+def reconstruct_unit(unit: tuple) -> tuple[str, dict | None, str]:
+    """Executor unit: ``(id, xyz, ground_z, dsm window, config)`` -> (id, model dict or None, error)."""
+    bid, xyz, ground_z, dsm, cfg = unit
+    try:
+        return bid, reconstruct_building(xyz, ground_z, dsm, bid, cfg).to_dict(), ""
+    except ValueError as e:
+        return bid, None, str(e)
+
+
+def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
+    from ..io.geotiff import read_geotiff
+
+    pts_path = ws.path("dense", "points.npz")
+    if not pts_path.exists():
+        raise WorkspaceError(f"{pts_path}: no dense points (run the 'dense' stage)")
+    for name in ("dsm.tif", "dtm.tif"):
+        if not ws.path("surface", name).exists():
+            raise WorkspaceError(f"{ws.path('surface', name)}: missing (run the 'surface' stage)")
+    with np.load(pts_path) as z:
+        xyz = z["xyz"][z["removed"] == 0].astype(np.float64)
+    dsm = read_geotiff(ws.path("surface", "dsm.tif"))
+    dtm = read_geotiff(ws.path("surface", "dtm.tif"))
+    bmask = vmask = None
+    if cfg.use_masks:
+        if ws.path("surface", "buildings.tif").exists():
+            bmask = read_geotiff(ws.path("surface", "buildings.tif")).data > 0
+        if ws.path("surface", "vegetation.tif").exists():
+            vmask = read_geotiff(ws.path("surface", "vegetation.tif")).data > 0
+    dcfg = DetectConfig(min_height=cfg.min_height, min_area=cfg.min_area)
+    ctx.progress(0, 1, "detecting buildings")
+    if cfg.footprints:
+        dets = points_per_footprint(xyz, read_footprints(ws.path(cfg.footprints)), dtm, dcfg)
+        stats = {"footprints": len(dets)}
+    else:
+        labels, n, stats = building_labels(dsm, dtm, dcfg, bmask, vmask)
+        dets = points_per_building(xyz, labels, dsm, dtm, dcfg)
+    rcfg = ReconstructionConfig(voxel=cfg.voxel, force_path=cfg.force_path,
+                                overhang=OverhangConfig(max_width=cfg.max_overhang, thickness=cfg.overhang_thickness))
+    units = [(f"B{d.label:04d}", xyz[d.indices], d.ground_z, _window(dsm, xyz[d.indices, :2], 5.0), rcfg)
+             for d in dets if len(d.indices) >= 50]
+    skipped = [{"id": f"B{d.label:04d}", "reason": f"only {len(d.indices)} points"} for d in dets
+               if len(d.indices) < 50]
+    results = ctx.get_executor().map(reconstruct_unit, units,
+                                     on_done=lambda k, t: ctx.progress(k, t, f"building {k}/{t}"))
+    models = [BuildingModel.from_dict(m) for _, m, _ in results if m is not None]
+    failures = skipped + [{"id": bid, "reason": err} for bid, m, err in results if m is None]
+    out = ws.stage_dir("buildings")
+    save_buildings(out / "buildings.json", models, ws.crs)
+    report = {
+        "detection": stats,
+        "buildings": [{"id": m.id, "path": m.path, "reason": m.reason, "closed": m.info.get("closed"),
+                       "solid_problem": m.info.get("solid_problem"), "seconds": m.info.get("seconds"),
+                       "corners": len(m.footprint), "roof_planes": len(m.roof_planes),
+                       "overhangs": m.overhangs.tolist()} for m in models],
+        "failures": failures,
+    }
+    write_json(out / "report.json", report)
+    closed = sum(bool(m.info.get("closed")) for m in models)
+    metrics = {"buildings": len(models), "closed": closed, "failures": len(failures),
+               "path_2d": sum(m.path == "2d" for m in models),
+               "path_volumetric": sum(m.path == "volumetric" for m in models)}
+    return StageResult(("buildings/buildings.json", "buildings/report.json"), metrics,
+                       f"{len(models)} buildings ({closed} closed solids), {len(failures)} failed")
+
+
+STAGE = Stage(name="buildings", run=run, config=BuildingsConfig, requires=("surface",),
+              description="LOD2 buildings with discontinuities and roof overhangs", version="1")
