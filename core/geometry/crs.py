@@ -45,6 +45,9 @@ def transform_points(xyz: np.ndarray, src: str, dst: str) -> np.ndarray:
     if normalize_crs(src) == normalize_crs(dst):
         return np.array(xyz, dtype=np.float64)
     t = Transformer.from_crs(parse_crs(src), parse_crs(dst), always_xy=True)
-    xyz = np.asarray(xyz, dtype=np.float64)
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    n = len(xyz)
+    if n == 1:  # pyproj takes size-1 arrays for scalars (a NumPy deprecation): pad to two points
+        xyz = np.repeat(xyz, 2, axis=0)
     x, y, z = t.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2])
-    return np.stack([x, y, z], axis=1)
+    return np.stack([x, y, z], axis=1)[:n]

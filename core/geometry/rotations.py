@@ -12,8 +12,9 @@ Omega-phi-kappa
 ---------------
 ``M = Rx(omega) @ Ry(phi) @ Rz(kappa)`` rotates photo-frame vectors into the world frame
 (``world_from_photo``), with the usual right-handed active rotations
-``Rx(a) = [[1, 0, 0], [0, cos a, -sin a], [0, sin a, cos a]]`` etc. This is the convention of PATB, BINGO,
-Pix4D and ContextCapture's BlocksExchange ``<Omega>/<Phi>/<Kappa>``; it equals Blender's ``rotation_mode='ZYX'``
+``Rx(a) = [[1, 0, 0], [0, cos a, -sin a], [0, sin a, cos a]]`` etc. This is the convention of PATB, BINGO
+and Pix4D (BlocksExchange ``<Omega>/<Phi>/<Kappa>`` follow it only with ``CameraOrientation XRightYUp``; its reader
+handles the other axis orders); it equals Blender's ``rotation_mode='ZYX'``
 with ``rotation_euler = (omega, phi, kappa)``. The OpenCV rotation is ``R = diag(1, -1, -1) @ M.T``.
 
 Yaw-pitch-roll (navigation)
