@@ -9,6 +9,7 @@ setup:
 
 demo: setup
 	$(PYTHON) -m oblique_city demo $(DEMO)
+	$(PYTHON) tools/make_blend.py $(DEMO)/workspace $(DEMO)/city.blend
 
 test: setup
 	$(PYTHON) -m ruff check .
