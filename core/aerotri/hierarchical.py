@@ -223,7 +223,7 @@ def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], c
     """Combined coordinates ``(n, 3)`` and covariances ``(n, 3, 3)`` of all tracks over the runs.
 
     Information adds up; for a connection point an oblique run's own information is its information minus the
-    connection prior (which is the nadir information already counted)."""
+    connection prior (which is the nadir information already counted), applied to the oblique run's estimate."""
     info = np.zeros((n, 3, 3))
     rhs = np.zeros((n, 3))
     xyz_nadir = np.full((n, 3), np.nan)
@@ -243,8 +243,7 @@ def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], c
                 # keep the own information positive semi-definite (numerical safety)
                 ev, evec = np.linalg.eigh(own)
                 own = np.einsum("kij,kj,klj->kil", evec, np.clip(ev, 0, None), evec)
-                rhs_c = np.einsum("kij,kj->ki", ni[conn], x[conn]) - np.einsum("kij,kj->ki", prior_info,
-                                                                               xyz_nadir[tc])
+                rhs_c = np.einsum("kij,kj->ki", own, x[conn])
                 np.add.at(info, tc, own)
                 np.add.at(rhs, tc, rhs_c)
                 t, ni, x = t[~conn], ni[~conn], x[~conn]

@@ -305,10 +305,12 @@ def simulate_block(cfg: SimulationConfig = SimulationConfig()) -> SimulatedBlock
                                   sigma_position=sig_pos.copy(), sigma_attitude=sig_att.copy()))
     ids = list(block.images)
 
-    # tie points over the area the nadir images cover, bucketed in a grid for per-image look-up
+    # tie points bucketed in a grid for per-image look-up
     z_ref = cfg.city.ground_z
-    lo = centres[:, :2].min(0) - 0.5 * np.array([cfg.camera.width, cfg.camera.height]) * gsd
-    hi = centres[:, :2].max(0) + 0.5 * np.array([cfg.camera.width, cfg.camera.height]) * gsd
+    # the city extends beyond the flight area as far as the oblique image centres reach
+    reach = cfg.flying_height * np.tan(np.radians(cfg.camera.tilt_deg))
+    lo = centres[:, :2].min(0) - max(reach, 0.5 * cfg.camera.width * gsd)
+    hi = centres[:, :2].max(0) + max(reach, 0.5 * cfg.camera.width * gsd)
     xyz, normal = cfg.city.sample_points(rng, lo[0], hi[0], lo[1], hi[1], cfg.tie_density, cfg.facade_share)
     bucket = 100.0
     bij = np.floor((xyz[:, :2] - lo) / bucket).astype(np.int64)

@@ -1,0 +1,51 @@
+"""CLI command ``oblique-city aerotri WS --mode integrated|hierarchical --connection cba|2|3|5|10``.
+
+A shortcut for ``oblique-city run WS --stages aerotri --set aerotri.mode=... --set aerotri.connection=...``
+that stores the options in ``project.toml`` and runs the stage (forced, since the options are the point).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from .hierarchical import CONNECTIONS
+from .stage import MODES
+
+
+def cmd_aerotri(args: argparse.Namespace) -> int:
+    from ..cli import _ctx
+    from ..pipeline import Workspace, run_stages
+
+    ws = Workspace.open(args.workspace)
+    opts = ws.project.setdefault("stages", {}).setdefault("aerotri", {})
+    for key in ("mode", "connection", "cell_size", "sigma_px"):
+        value = getattr(args, key)
+        if value is not None:
+            opts[key] = value
+    if args.self_calibration is not None:
+        opts["self_calibration"] = [g for g in args.self_calibration.split(",") if g]
+    ws.save_project()
+    ctx, progress, ex = _ctx(args)
+    try:
+        records = run_stages(ws, ["aerotri"], ctx, force=True)
+    finally:
+        progress.close()
+        ex.close()
+    for r in records:
+        print(f"{r.name:10s} {r.status:9s} {r.seconds:8.1f} s  {r.message}")
+    return 0
+
+
+def add_commands(sub) -> None:
+    s = sub.add_parser("aerotri", help="aerial triangulation (integrated or hierarchical with CBA)")
+    s.add_argument("workspace")
+    s.add_argument("--mode", choices=MODES)
+    s.add_argument("--connection", choices=CONNECTIONS)
+    s.add_argument("--cell-size", dest="cell_size", type=float, help="CBA grid cell, metres")
+    s.add_argument("--sigma-px", dest="sigma_px", type=float, help="a priori tie measurement sigma, pixels")
+    s.add_argument("--self-calibration", help="comma-separated: focal,principal_point,radial,tangential")
+    s.add_argument("--executor", choices=("inline", "processes", "dask"), default="inline")
+    s.add_argument("--workers", type=int, default=2)
+    s.add_argument("--scheduler", help="Dask scheduler address")
+    s.add_argument("--json-progress", action="store_true")
+    s.set_defaults(func=cmd_aerotri)

@@ -1,0 +1,268 @@
+"""Statistics, quality layers and the report of an aerial triangulation (JSON + self-contained HTML).
+
+* Per run: sigma0 a priori and a posteriori, iterations, rejection rounds, blunder share, RMS of image residuals,
+  control point residuals, EO prior residuals, datum shift, median standard deviations of orientations and
+  points, wall time, connection points.
+* For the block: check point RMS (all / nadir / oblique views), internal accuracy, the boresight of each head
+  estimated from the adjusted orientations of each exposure, and the forward intersection error of all tie
+  points before (navigation orientation) and after adjustment.
+* CBA layers over a grid: mean ray count of the tie points per cell and their intersection standard deviation
+  XY and Z; and the intersection error map. Written as GeoTIFF (float32, NaN for empty cells) and as coloured
+  PNG, embedded in the HTML page as base64.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+from pathlib import Path
+
+import numpy as np
+
+from ..evaluate.aerotri import SPLITS, check_point_errors, rms_xy_z, std_xy_z, tie_point_std
+from ..geometry.rotations import matrix_to_rotvec
+from ..model import ImageBlock, Raster, TiePoints
+from .hierarchical import ATResult, Run
+from .problem import intersect_ties
+
+_VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float64)
+
+
+def colourise(values: np.ndarray, vmin: float | None = None, vmax: float | None = None) -> np.ndarray:
+    """A viridis-like RGB picture ``(rows, cols, 3) uint8`` of a grid; NaN cells are white."""
+    v = np.asarray(values, np.float64)
+    fin = np.isfinite(v)
+    lo = np.nanpercentile(v, 2) if vmin is None and fin.any() else (vmin or 0.0)
+    hi = np.nanpercentile(v, 98) if vmax is None and fin.any() else (vmax or 1.0)
+    t = np.clip((np.nan_to_num(v, nan=lo) - lo) / max(hi - lo, 1e-12), 0, 1) * (len(_VIRIDIS) - 1)
+    i = np.minimum(np.floor(t).astype(int), len(_VIRIDIS) - 2)
+    f = (t - i)[..., None]
+    rgb = _VIRIDIS[i] * (1 - f) + _VIRIDIS[i + 1] * f
+    rgb[~fin] = 255
+    return rgb.astype(np.uint8)
+
+
+def grid_layer(xy: np.ndarray, values: np.ndarray, cell: float, crs: str, reduce: str = "mean",
+               bounds: tuple[float, float, float, float] | None = None) -> Raster:
+    """Aggregate point values ``(n,)`` at ``xy (n, 2)`` into a north-up grid of ``cell`` metres (``mean`` or
+    ``median`` per cell; NaN where empty)."""
+    ok = np.all(np.isfinite(xy), 1) & np.isfinite(values)
+    if bounds is not None:
+        ok &= (xy[:, 0] >= bounds[0]) & (xy[:, 0] <= bounds[2]) & (xy[:, 1] >= bounds[1]) & (xy[:, 1] <= bounds[3])
+    xy, values = xy[ok], values[ok]
+    if bounds is None:
+        bounds = (float(xy[:, 0].min()), float(xy[:, 1].min()), float(xy[:, 0].max()), float(xy[:, 1].max()))
+    x0 = np.floor(bounds[0] / cell) * cell
+    y0 = np.ceil(bounds[3] / cell) * cell
+    cols = int(np.ceil((bounds[2] - x0) / cell)) + 1
+    rows = int(np.ceil((y0 - bounds[1]) / cell)) + 1
+    c = np.clip(((xy[:, 0] - x0) / cell).astype(int), 0, cols - 1)
+    r = np.clip(((y0 - xy[:, 1]) / cell).astype(int), 0, rows - 1)
+    key = r * cols + c
+    out = np.full(rows * cols, np.nan)
+    if reduce == "mean":
+        s = np.bincount(key, values, rows * cols)
+        n = np.bincount(key, minlength=rows * cols)
+        out[n > 0] = s[n > 0] / n[n > 0]
+    else:
+        order = np.lexsort((values, key))
+        ks, vs = key[order], values[order]
+        starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+        ends = np.r_[starts[1:], len(ks)]
+        out[ks[starts]] = [np.median(vs[a:b]) for a, b in zip(starts, ends)]
+    return Raster(data=out.reshape(rows, cols).astype(np.float32), x0=float(x0), y0=float(y0), cell=cell, crs=crs)
+
+
+def run_statistics(run: Run, sigma_px: float) -> dict:
+    """Figures of one adjustment run (see the module docstring)."""
+    res = run.result
+    used = ~run.obs_rejected
+    v = run.obs_residual[used]
+    v = v[np.all(np.isfinite(v), 1)]
+    std = np.array(list(run.image_std.values())) if run.image_std else np.zeros((0, 6))
+    pt_std = np.sqrt(np.abs(np.diagonal(run.xyz_cov, axis1=1, axis2=2)))
+    sxy, sz = std_xy_z(pt_std)
+    pos = res.prior_residual_pos[np.all(np.isfinite(res.prior_residual_pos), 1)]
+    att = res.prior_residual_att[np.all(np.isfinite(res.prior_residual_att), 1)]
+    return {
+        "name": run.name, "images": len(run.poses), "points": int(np.isfinite(run.xyz[:, 0]).sum()),
+        "observations": int(len(run.obs_index)), "rejected": int(run.obs_rejected.sum()),
+        "blunder_percent": float(100.0 * run.obs_rejected.mean()) if len(run.obs_rejected) else 0.0,
+        "sigma0_a_priori_px": sigma_px, "sigma0": res.sigma0, "sigma0_px": res.sigma0 * sigma_px,
+        "redundancy": res.redundancy, "iterations": res.iterations, "rounds": res.rounds,
+        "rms_image_px": [float(np.sqrt(np.mean(v[:, 0] ** 2))), float(np.sqrt(np.mean(v[:, 1] ** 2)))]
+        if len(v) else [None, None],
+        "rms_control_m": np.sqrt(np.mean(res.gcp_residual**2, 0)).tolist() if len(res.gcp_residual) else None,
+        "rms_prior_position_m": np.sqrt(np.mean(pos**2, 0)).tolist() if len(pos) else None,
+        "rms_prior_attitude_deg": np.degrees(np.sqrt(np.mean(att**2, 0))).tolist() if len(att) else None,
+        "datum_shift_m": res.datum_shift.tolist(),
+        "median_std_attitude_deg": np.degrees(np.nanmedian(std[:, :3], 0)).tolist() if len(std) else None,
+        "median_std_position_m": np.nanmedian(std[:, 3:], 0).tolist() if len(std) else None,
+        "point_std_xy_m": sxy, "point_std_z_m": sz,
+        "connection_points": run.connection_count, "wall_s": run.wall_s, "log": res.log,
+    }
+
+
+def boresight(block: ImageBlock, poses: dict) -> dict:
+    """Per rig head: mean rotation (degrees, rotation vector in the head frame) between the adjusted
+    ``R_head R_nadir^T`` of each exposure and the nominal ``sensor_from_rig``."""
+    out = {}
+    by_exp: dict[str, dict[str, str]] = {}
+    for iid, img in block.images.items():
+        if img.exposure is not None and img.head is not None and iid in poses:
+            by_exp.setdefault(img.exposure, {})[img.head] = iid
+    for rig in block.rigs.values():
+        ref = rig.heads[0]
+        for h in rig.heads[1:]:
+            vecs = []
+            for heads in by_exp.values():
+                if ref.name in heads and h.name in heads:
+                    rel = poses[heads[h.name]].R @ poses[heads[ref.name]].R.T
+                    nominal = h.sensor_from_rig @ ref.sensor_from_rig.T
+                    vecs.append(matrix_to_rotvec(rel @ nominal.T))
+            if vecs:
+                vecs = np.array(vecs)
+                out[h.name] = {"mean_deg": np.degrees(vecs.mean(0)).tolist(),
+                               "std_deg": np.degrees(vecs.std(0)).tolist(), "exposures": len(vecs)}
+    return out
+
+
+def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float) -> dict:
+    """Figures of the whole adjustment (combined over runs)."""
+    runs = [run_statistics(r, sigma_px) for r in at.runs]
+    obs_ok = ~at.obs_rejected
+    chi = sum(r.result.sigma0**2 * r.result.redundancy for r in at.runs)
+    dof = sum(r.result.redundancy for r in at.runs)
+    sigma0 = float(np.sqrt(chi / max(dof, 1)))
+    check = {}
+    for split in SPLITS:
+        names, err = check_point_errors(block, at.poses, split)
+        xy, z = rms_xy_z(err)
+        check[split] = {"n": len(names), "rms_xy_m": xy, "rms_z_m": z}
+    internal = {}
+    for split in SPLITS:
+        std = tie_point_std(block, ties, at.poses, at.xyz, obs_ok, sigma0, sigma_px, split)
+        xy, z = std_xy_z(std)
+        internal[split] = {"points": int(np.isfinite(std[:, 0]).sum()), "std_xy_m": xy, "std_z_m": z}
+    return {"mode": at.mode, "connection": at.connection, "images": len(at.poses), "sigma0": sigma0,
+            "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
+            "boresight": boresight(block, at.poses), "wall_s": at.wall_s,
+            "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0}
+
+
+def quality_layers(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float,
+                   cell: float) -> dict[str, Raster]:
+    """CBA layers and intersection error maps (see the module docstring)."""
+    ok = ~at.obs_rejected
+    xyz = at.xyz
+    rays = np.bincount(ties.obs_track[ok], minlength=ties.n_tracks).astype(np.float64)
+    std = np.sqrt(np.abs(np.diagonal(at.xyz_cov, axis1=1, axis2=2)))
+    fin = np.isfinite(xyz[:, 0])
+    # the grid covers the bulk of the points (a few badly determined points far away must not blow it up)
+    lo = np.percentile(xyz[fin, :2], 0.5, axis=0) - cell
+    hi = np.percentile(xyz[fin, :2], 99.5, axis=0) + cell
+    fin &= np.all((xyz[:, :2] >= lo) & (xyz[:, :2] <= hi), axis=1)
+    xyz = np.where(fin[:, None], xyz, np.nan)
+    bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+    layers = {
+        "cba_rays": grid_layer(xyz[:, :2], np.where(fin, rays, np.nan), cell, block.crs, "mean", bounds),
+        "cba_std_xy": grid_layer(xyz[:, :2], np.hypot(std[:, 0], std[:, 1]) / np.sqrt(2), cell, block.crs,
+                                 "median", bounds),
+        "cba_std_z": grid_layer(xyz[:, :2], std[:, 2], cell, block.crs, "median", bounds),
+    }
+    for name, poses in (("before", {i: im.pose_approx for i, im in block.images.items()}), ("after", at.poses)):
+        _, dist = intersect_ties(block, ties, poses, ok)
+        per_track = np.sqrt(np.bincount(ties.obs_track[ok], np.nan_to_num(dist[ok]) ** 2, ties.n_tracks)
+                            / np.maximum(rays, 1))
+        layers[f"intersection_error_{name}"] = grid_layer(xyz[:, :2], np.where(fin & (rays >= 2), per_track,
+                                                                                 np.nan), cell, block.crs,
+                                                           "median", bounds)
+    return layers
+
+
+def write_layers(layers: dict[str, Raster], folder: Path) -> list[str]:
+    """GeoTIFF + coloured PNG per layer (intersection error maps share one colour scale). Returns file names."""
+    from ..io.geotiff import write_geotiff, write_png
+
+    folder.mkdir(parents=True, exist_ok=True)
+    files = []
+    err = [layers[k].data for k in layers if k.startswith("intersection_error")]
+    hi = float(np.nanpercentile(np.concatenate([e.ravel() for e in err]), 98)) if err else None
+    for name, r in layers.items():
+        write_geotiff(folder / f"{name}.tif", r)
+        scale = (0.0, hi) if name.startswith("intersection_error") else (None, None)
+        write_png(folder / f"{name}.png", colourise(r.data, *scale))
+        files += [f"{name}.tif", f"{name}.png"]
+    return files
+
+
+def _png_b64(rgb: np.ndarray) -> str:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]))
+    return base64.b64encode(buf.tobytes()).decode("ascii") if ok else ""
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, list):
+        return ", ".join(_fmt(x) for x in v)
+    return html.escape(str(v))
+
+
+def _histogram_svg(values: np.ndarray, title: str, bins: int = 30) -> str:
+    v = values[np.isfinite(values)]
+    if len(v) == 0:
+        return ""
+    h, e = np.histogram(v, bins=bins, range=(0, float(np.percentile(v, 99)) or 1.0))
+    w, hh = 420, 160
+    bars = "".join(f'<rect x="{30 + i * (w - 40) / bins:.1f}" y="{hh - 20 - 120 * c / max(h.max(), 1):.1f}" '
+                   f'width="{(w - 40) / bins - 1:.1f}" height="{120 * c / max(h.max(), 1):.1f}" fill="#3b528b"/>'
+                   for i, c in enumerate(h))
+    return (f'<svg width="{w}" height="{hh}" xmlns="http://www.w3.org/2000/svg"><text x="30" y="14" '
+            f'font-size="12">{html.escape(title)}</text>{bars}<text x="30" y="{hh - 4}" font-size="10">0</text>'
+            f'<text x="{w - 60}" y="{hh - 4}" font-size="10">{e[-1]:.3g}</text></svg>')
+
+
+def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarray) -> str:
+    """A self-contained HTML page: tables of the report, layer pictures and a residual histogram."""
+    parts = [f"<h1>Aerial triangulation: {html.escape(report['mode'])}"
+             f"{' (' + html.escape(report['connection']) + ')' if report.get('connection') else ''}</h1>",
+             f"<p>{report['images']} images; sigma0 {report['sigma0']:.3f} "
+             f"({report['sigma0_px']:.3f} px); wall time {report['wall_s']:.1f} s; "
+             f"rejected {report['blunder_percent']:.2f} % of the observations.</p>"]
+    keys = ["images", "points", "observations", "connection_points", "sigma0", "sigma0_px", "iterations", "rounds",
+            "blunder_percent", "rms_image_px", "rms_control_m", "rms_prior_position_m", "rms_prior_attitude_deg",
+            "datum_shift_m", "median_std_attitude_deg", "median_std_position_m", "point_std_xy_m",
+            "point_std_z_m", "wall_s"]
+    head = "".join(f"<th>{html.escape(r['name'])}</th>" for r in report["runs"])
+    rows = "".join(f"<tr><td>{k}</td>" + "".join(f"<td>{_fmt(r.get(k))}</td>" for r in report["runs"]) + "</tr>"
+                   for k in keys)
+    parts.append(f"<h2>Runs</h2><table><tr><th></th>{head}</tr>{rows}</table>")
+    rows = "".join(f"<tr><td>{s}</td><td>{c['n']}</td><td>{_fmt(c['rms_xy_m'])}</td><td>{_fmt(c['rms_z_m'])}</td>"
+                   f"<td>{_fmt(report['internal_accuracy'][s]['std_xy_m'])}</td>"
+                   f"<td>{_fmt(report['internal_accuracy'][s]['std_z_m'])}</td></tr>"
+                   for s, c in report["check_points"].items())
+    parts.append("<h2>Accuracy</h2><table><tr><th>views</th><th>check points</th><th>RMS XY [m]</th>"
+                 f"<th>RMS Z [m]</th><th>tie std XY [m]</th><th>tie std Z [m]</th></tr>{rows}</table>")
+    if report.get("boresight"):
+        rows = "".join(f"<tr><td>{h}</td><td>{_fmt(b['mean_deg'])}</td><td>{_fmt(b['std_deg'])}</td></tr>"
+                       for h, b in report["boresight"].items())
+        parts.append("<h2>Boresight from adjusted orientations [deg]</h2><table><tr><th>head</th><th>mean</th>"
+                     f"<th>std</th></tr>{rows}</table>")
+    parts.append("<h2>Image residuals</h2>" + _histogram_svg(np.linalg.norm(residuals_px, axis=1),
+                                                             "|v| [px] of accepted observations"))
+    parts.append("<h2>Layers</h2>")
+    for name, r in layers.items():
+        d = r.data[np.isfinite(r.data)]
+        rng = f"{d.min():.3g} to {d.max():.3g}" if len(d) else "empty"
+        parts.append(f"<figure><img alt='{name}' src='data:image/png;base64,{_png_b64(colourise(r.data))}' "
+                     f"style='image-rendering:pixelated;width:320px'><figcaption>{name} ({rng}; cell {r.cell} m)"
+                     "</figcaption></figure>")
+    style = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}td,th{border:1px solid #ccc;"
+             "padding:3px 8px;text-align:right}figure{display:inline-block;margin:8px}")
+    return f"<!DOCTYPE html><html><head><meta charset='utf-8'><style>{style}</style></head><body>" + \
+        "".join(parts) + "</body></html>"

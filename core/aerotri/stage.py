@@ -1,0 +1,115 @@
+"""The ``aerotri`` stage: integrated or hierarchical aerial triangulation of the workspace's block.
+
+Reads the imported block and the tie points of the ``match`` stage (``matching/ties.npz``); writes
+``aerotri/block.json`` (the block with ``pose_adjusted`` set, read by later stages through ``ws.load_block()``),
+``aerotri/ties.npz`` (adjusted tie coordinates, rejected observations flagged), ``aerotri/report.json``,
+``aerotri/report.html`` and the quality layers ``aerotri/layers/*.tif|png``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ConfigError, WorkspaceError
+from ..model import TiePoints
+from ..pipeline.atomic import write_json, write_text
+from ..pipeline.stage import Stage, StageResult
+from .bundle import CALIBRATION_GROUPS, BundleOptions
+from .hierarchical import CONNECTIONS, hierarchical, integrated
+from .report import block_report, html_report, quality_layers, write_layers
+
+MODES = ("integrated", "hierarchical")
+TIES_FILE = "matching/ties.npz"
+
+
+@dataclass(frozen=True)
+class AerotriConfig:
+    """Options of the ``aerotri`` stage.
+
+    Attributes
+    ----------
+    mode : ``integrated`` (IAT) or ``hierarchical`` (HAT)
+    connection : HAT connection points: ``cba`` or a minimum nadir ray count ``2``, ``3``, ``5``, ``10``
+    cell_size : CBA grid cell, metres
+    sigma_px : a priori standard deviation of tie measurements, pixels
+    self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
+    datum_shift : estimate a 3D shift between the GNSS frame and the control frame
+    blunder_threshold : normalised residual rejection threshold; max_rejection_rounds : rounds after the robust one
+    robust_scale : Cauchy loss scale of the first solve in sigmas
+    threads : Ceres threads per adjustment
+    layer_cell : cell of the quality layers in metres (0: the CBA cell size)
+    """
+
+    mode: str = "integrated"
+    connection: str = "cba"
+    cell_size: float = 50.0
+    sigma_px: float = 0.5
+    self_calibration: tuple[str, ...] = ()
+    datum_shift: bool = True
+    blunder_threshold: float = 4.3
+    max_rejection_rounds: int = 4
+    robust_scale: float = 3.0
+    threads: int = 2
+    layer_cell: float = 0.0
+
+    def bundle_options(self) -> BundleOptions:
+        for g in self.self_calibration:
+            if g not in CALIBRATION_GROUPS:
+                raise ConfigError(f"aerotri.self_calibration: unknown group '{g}' "
+                                  f"(use {', '.join(CALIBRATION_GROUPS)})")
+        return BundleOptions(sigma_px=self.sigma_px, robust_scale=self.robust_scale,
+                             blunder_threshold=self.blunder_threshold,
+                             max_rejection_rounds=self.max_rejection_rounds,
+                             self_calibration=tuple(self.self_calibration), datum_shift=self.datum_shift,
+                             threads=self.threads)
+
+
+def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
+    if cfg.mode not in MODES:
+        raise ConfigError(f"aerotri.mode '{cfg.mode}' unknown (use integrated or hierarchical)")
+    if str(cfg.connection) not in CONNECTIONS:
+        raise ConfigError(f"aerotri.connection '{cfg.connection}' unknown (use {', '.join(CONNECTIONS)})")
+    block = ws.load_block(adjusted=False)
+    ties_path = ws.path(TIES_FILE)
+    if not ties_path.exists():
+        raise WorkspaceError(f"{ties_path}: no tie points (run the 'match' stage first)")
+    ties = TiePoints.load(str(ties_path))
+    opt = cfg.bundle_options()
+    ctx.progress(0, 1, "forward intersection")
+    if cfg.mode == "integrated":
+        at = integrated(block, ties, opt, progress=ctx.progress)
+    else:
+        at = hierarchical(block, ties, opt, connection=str(cfg.connection), cell=cfg.cell_size,
+                          executor=ctx.get_executor(), progress=ctx.progress)
+    for iid, pose in at.poses.items():
+        block.images[iid].pose_adjusted = pose
+    out = ws.stage_dir("aerotri")
+    ws.save_block(block, "aerotri/block.json")
+    adj = TiePoints(xyz=at.xyz, obs_track=ties.obs_track, obs_image=ties.obs_image, obs_uv=ties.obs_uv,
+                    image_ids=ties.image_ids, obs_blunder=at.obs_rejected, colour=ties.colour,
+                    extra={"std": np.sqrt(np.abs(np.diagonal(at.xyz_cov, axis1=1, axis2=2)))})
+    adj.save(str(out / "ties.npz"))
+    ctx.progress(1, 2, "statistics and layers")
+    report = block_report(block, ties, at, cfg.sigma_px)
+    layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size)
+    files = write_layers(layers, out / "layers")
+    write_json(out / "report.json", report)
+    res = np.concatenate([r.obs_residual[~r.obs_rejected] for r in at.runs])
+    write_text(out / "report.html", html_report(report, layers, res[np.all(np.isfinite(res), 1)]))
+    ctx.progress(2, 2, "done")
+    check = report["check_points"]["all"]
+    return StageResult(
+        outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
+                 *(f"aerotri/layers/{f}" for f in files)),
+        metrics={"sigma0": report["sigma0"], "sigma0_px": report["sigma0_px"], "images": report["images"],
+                 "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],
+                 "blunder_percent": report["blunder_percent"], "wall_s": report["wall_s"]},
+        message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
+                f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m")
+
+
+STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
+              description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
+              version="1")

@@ -1,0 +1,1 @@
+"""Tie point generation: connectivity graph from the approximate orientation, SIFT, guided matching, tracks."""

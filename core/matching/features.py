@@ -1,0 +1,112 @@
+"""SIFT features, matching guided by the approximate orientation, and geometric verification.
+
+* Features: OpenCV SIFT on the grey image (keypoint positions use OpenCV's pixel-centre origin, as the core).
+* Guided matching: a keypoint of image A, intersected with the planes ``z_lo`` and ``z_hi`` (the height range
+  of the scene), projects into image B as a segment of the epipolar line. Only keypoints of B within
+  ``band_px`` of that segment are candidates; among them the best descriptor must pass Lowe's ratio test
+  against the second best candidate, and the match must be mutual. Wrong matches outside the band are
+  rejected before any robust estimation.
+* Verification: a fundamental matrix by MAGSAC++ on distortion-free pixel coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry.projection import intersect_with_plane_z, project
+from ..model import CameraModel, Pose
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """max_features : SIFT features per image; ratio : Lowe ratio; band_px : epipolar band half-width;
+    z_lo, z_hi : scene height range for the guided search (metres); ransac_px : verification threshold;
+    min_matches : fewer verified matches drop the pair."""
+
+    max_features: int = 8000
+    ratio: float = 0.85
+    band_px: float = 25.0
+    z_lo: float = 0.0
+    z_hi: float = 100.0
+    ransac_px: float = 1.5
+    min_matches: int = 15
+
+
+def sift_features(grey: np.ndarray, max_features: int = 8000) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT keypoints ``uv (n, 2) float64`` and descriptors ``(n, 128) float32`` of a uint8 image."""
+    import cv2
+
+    sift = cv2.SIFT_create(nfeatures=max_features)
+    kps, des = sift.detectAndCompute(grey, None)
+    if des is None:
+        return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
+    return np.array([k.pt for k in kps], np.float64), des.astype(np.float32)
+
+
+def epipolar_segments(uv_a: np.ndarray, cam_a: CameraModel, pose_a: Pose, cam_b: CameraModel, pose_b: Pose,
+                      z_lo: float, z_hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """End points ``(n, 2), (n, 2)`` in image B of the rays of ``uv_a`` between heights ``z_lo`` and ``z_hi``."""
+    p_lo = intersect_with_plane_z(cam_a, pose_a, uv_a, z_lo)
+    p_hi = intersect_with_plane_z(cam_a, pose_a, uv_a, z_hi)
+    s0, _ = project(cam_b, pose_b, p_lo)
+    s1, _ = project(cam_b, pose_b, p_hi)
+    return s0, s1
+
+
+def segment_distance(p: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> np.ndarray:
+    """Distance of points ``p (k, 2)`` to segments ``s0, s1 (k, 2)`` (row-wise)."""
+    d = s1 - s0
+    t = np.clip(np.einsum("ij,ij->i", p - s0, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0, 1)
+    return np.linalg.norm(p - (s0 + t[:, None] * d), axis=1)
+
+
+def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: np.ndarray,
+                 cam_a: CameraModel, pose_a: Pose, cam_b: CameraModel, pose_b: Pose,
+                 opt: MatchOptions = MatchOptions()) -> np.ndarray:
+    """Mutual ratio-test matches inside the epipolar band (module docstring). Returns ``(k, 2)`` index pairs."""
+    from scipy.spatial import cKDTree
+
+    if len(uv_a) == 0 or len(uv_b) == 0:
+        return np.zeros((0, 2), np.int64)
+    s0, s1 = epipolar_segments(uv_a, cam_a, pose_a, cam_b, pose_b, opt.z_lo, opt.z_hi)
+    ok = np.all(np.isfinite(s0), 1) & np.all(np.isfinite(s1), 1)
+    mid = (s0 + s1) / 2
+    half = np.linalg.norm(s1 - s0, axis=1) / 2
+    tree = cKDTree(uv_b)
+    best = np.full(len(uv_a), -1, np.int64)
+    best_d = np.full(len(uv_a), np.inf)
+    for i in np.flatnonzero(ok):
+        cand = np.array(tree.query_ball_point(mid[i], half[i] + opt.band_px), np.int64)
+        if len(cand) == 0:
+            continue
+        cand = cand[segment_distance(uv_b[cand], np.repeat(s0[i:i + 1], len(cand), 0),
+                                     np.repeat(s1[i:i + 1], len(cand), 0)) <= opt.band_px]
+        if len(cand) == 0:
+            continue
+        d = np.linalg.norm(des_b[cand] - des_a[i], axis=1)
+        order = np.argsort(d)
+        if len(order) > 1 and d[order[0]] > opt.ratio * d[order[1]]:
+            continue
+        best[i], best_d[i] = cand[order[0]], d[order[0]]
+    pairs = np.stack([np.flatnonzero(best >= 0), best[best >= 0]], 1)
+    if len(pairs) == 0:
+        return pairs
+    # mutual: each keypoint of B keeps only its closest A partner
+    order = np.lexsort((best_d[pairs[:, 0]], pairs[:, 1]))
+    first = np.r_[True, pairs[order][1:, 1] != pairs[order][:-1, 1]]
+    return pairs[order[first]]
+
+
+def verify(uv_a: np.ndarray, uv_b: np.ndarray, cam_a: CameraModel, cam_b: CameraModel,
+           threshold_px: float = 1.5) -> np.ndarray:
+    """Inlier mask ``(k,)`` of matches under a fundamental matrix (MAGSAC++) on undistorted pixels."""
+    import cv2
+
+    if len(uv_a) < 8:
+        return np.zeros(len(uv_a), bool)
+    a = cam_a.normalized_to_pixel(cam_a.pixel_to_normalized(uv_a), distort=False)
+    b = cam_b.normalized_to_pixel(cam_b.pixel_to_normalized(uv_b), distort=False)
+    _, mask = cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, threshold_px, 0.9999, 10000)
+    return np.zeros(len(uv_a), bool) if mask is None else mask.ravel().astype(bool)

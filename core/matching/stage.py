@@ -1,0 +1,159 @@
+"""The ``match`` stage: connectivity graph, SIFT features, guided matching along graph edges, tracks.
+
+Writes ``matching/graph.json`` (nodes, edges with overlap and match counts; weak pairs dropped),
+``matching/ties.npz`` (tracks with their image observations) and ``matching/features/<n>.npz`` (keypoints and
+descriptors per image, reused when the stage reruns with the same feature count).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError, InputError, WorkspaceError
+from ..pipeline.atomic import atomic_path, write_json
+from ..pipeline.stage import Stage, StageResult
+from .features import MatchOptions, guided_match, sift_features, verify
+from .graph import GraphOptions, build_graph
+from .tracks import build_tracks
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """Options of the ``match`` stage (see :class:`GraphOptions` and :class:`MatchOptions`).
+
+    ``z_ref`` is the footprint height and ``z_lo``/``z_hi`` the guided search range; NaN derives them from
+    the ground points (or 0 m) and ``height_range`` metres above. ``tie_source``: ``images`` (SIFT and guided
+    matching) or ``file`` (tie points already in ``matching/ties.npz``, e.g. from another matcher or the
+    observation simulator: only the graph is built, its edges counting the shared tracks)."""
+
+    min_overlap: float = 0.2
+    max_axis_angle_deg: float = 50.0
+    max_neighbours: int = 40
+    max_features: int = 8000
+    ratio: float = 0.85
+    band_px: float = 25.0
+    ransac_px: float = 1.5
+    min_matches: int = 15
+    min_rays: int = 2
+    max_tracks_per_image: int = 0
+    z_ref: float = float("nan")
+    height_range: float = 80.0
+    tie_source: str = "images"
+
+
+def _ground_height(block, cfg: MatchConfig) -> float:
+    if np.isfinite(cfg.z_ref):
+        return cfg.z_ref
+    z = [gp.xyz[2] for gp in block.ground_points.values() if gp.xyz is not None]
+    return float(np.median(z)) if z else 0.0
+
+
+def _read_grey(block, iid: str) -> np.ndarray:
+    import cv2
+
+    img = block.images[iid]
+    if img.file is None:
+        raise InputError(f"image '{iid}' has no file", field="file")
+    p = Path(img.file)
+    if not p.is_absolute() and block.image_root:
+        p = Path(block.image_root) / p
+    grey = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+    if grey is None:
+        raise InputError(f"cannot read image '{iid}'", path=str(p), field="file")
+    return grey
+
+
+def run(ws, cfg: MatchConfig, ctx) -> StageResult:
+    block = ws.load_block(adjusted=False)
+    z0 = _ground_height(block, cfg)
+    graph = build_graph(block, GraphOptions(min_overlap=cfg.min_overlap, max_axis_angle_deg=cfg.max_axis_angle_deg,
+                                            z_ref=z0, max_neighbours=cfg.max_neighbours))
+    ids = graph.image_ids
+    out = ws.stage_dir("matching")
+    if cfg.tie_source == "file":
+        return _graph_from_ties(ws, block, graph, cfg, ctx)
+    if cfg.tie_source != "images":
+        raise ConfigError(f"match.tie_source '{cfg.tie_source}' unknown (use images or file)")
+    feat_dir = out / "features"
+    feat_dir.mkdir(parents=True, exist_ok=True)
+    uv, des = [], []
+    for k, iid in enumerate(ids):
+        ctx.progress(k, len(ids) * 2, f"features {iid}")
+        f = feat_dir / f"{k:06d}.npz"
+        if f.exists():
+            with np.load(f) as z:
+                if str(z["image"]) == iid and int(z["max_features"]) == cfg.max_features:
+                    uv.append(z["uv"])
+                    des.append(z["des"])
+                    continue
+        u, d = sift_features(_read_grey(block, iid), cfg.max_features)
+        with atomic_path(f, suffix=".npz") as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, uv=u, des=d, image=iid, max_features=cfg.max_features)
+        uv.append(u)
+        des.append(d)
+    opt = MatchOptions(max_features=cfg.max_features, ratio=cfg.ratio, band_px=cfg.band_px, z_lo=z0 - 5.0,
+                       z_hi=z0 + cfg.height_range, ransac_px=cfg.ransac_px, min_matches=cfg.min_matches)
+    matches = {}
+    for e, (a, b) in enumerate(graph.edges):
+        ctx.progress(len(ids) + e * len(ids) // max(len(graph.edges), 1), len(ids) * 2, "matching")
+        ia, ib = ids[a], ids[b]
+        ca, cb = block.camera_of(ia), block.camera_of(ib)
+        pa, pb = block.images[ia].pose_approx, block.images[ib].pose_approx
+        m = guided_match(uv[a], des[a], uv[b], des[b], ca, pa, cb, pb, opt)
+        if len(m):
+            m = m[verify(uv[a][m[:, 0]], uv[b][m[:, 1]], ca, cb, opt.ransac_px)]
+        graph.matches[e] = len(m)
+        if len(m) >= opt.min_matches:
+            matches[(int(a), int(b))] = m
+    dropped = graph.drop_weak(opt.min_matches)
+    ties = build_tracks(uv, matches, ids, min_rays=cfg.min_rays, max_per_image=cfg.max_tracks_per_image)
+    ties.save(str(out / "ties.npz"))
+    write_json(out / "graph.json", graph.to_dict(block))
+    rays = ties.ray_counts()
+    ctx.progress(1, 1, "done")
+    return StageResult(
+        outputs=("matching/graph.json", "matching/ties.npz"),
+        metrics={"edges": len(graph.edges), "dropped_edges": dropped, "tracks": ties.n_tracks,
+                 "observations": ties.n_obs, "mean_rays": float(rays.mean()) if len(rays) else 0.0},
+        message=f"{len(graph.edges)} pairs ({dropped} weak dropped), {ties.n_tracks} tracks, "
+                f"{ties.n_obs} observations")
+
+
+def _graph_from_ties(ws, block, graph, cfg: MatchConfig, ctx) -> StageResult:
+    """Graph edges weighted by the tracks two images share in existing tie points."""
+    from ..model import TiePoints
+
+    path = ws.path("matching/ties.npz")
+    if not path.exists():
+        raise WorkspaceError(f"{path}: match.tie_source is 'file' but there are no tie points")
+    ties = TiePoints.load(str(path))
+    ctx.progress(0, 1, "graph from tie points")
+    graph.matches = pair_counts(ties, graph.image_ids, graph.edges)
+    dropped = graph.drop_weak(cfg.min_matches)
+    write_json(ws.path("matching/graph.json"), graph.to_dict(block))
+    ctx.progress(1, 1, "done")
+    return StageResult(outputs=("matching/graph.json", "matching/ties.npz"),
+                       metrics={"edges": len(graph.edges), "dropped_edges": dropped, "tracks": ties.n_tracks,
+                                "observations": ties.n_obs},
+                       message=f"{len(graph.edges)} pairs ({dropped} weak dropped), {ties.n_tracks} tracks "
+                               "from matching/ties.npz")
+
+
+def pair_counts(ties, image_ids: list[str], edges: np.ndarray) -> np.ndarray:
+    """Number of tracks observed in both images of each edge ``(e, 2)`` (indices into ``image_ids``)."""
+    from scipy.sparse import csr_matrix
+
+    index = {iid: k for k, iid in enumerate(image_ids)}
+    col = np.array([index.get(i, -1) for i in ties.image_ids])[ties.obs_image]
+    ok = col >= 0
+    m = csr_matrix((np.ones(ok.sum()), (ties.obs_track[ok], col[ok])), shape=(ties.n_tracks, len(image_ids)))
+    m.data[:] = 1.0
+    co = (m.T @ m).tocsr()
+    return np.asarray(co[edges[:, 0], edges[:, 1]]).ravel().astype(np.int64) if len(edges) else np.zeros(0, np.int64)
+
+
+STAGE = Stage(name="match", run=run, config=MatchConfig, requires=("block",),
+              description="connectivity graph, SIFT, guided matching along graph edges, tracks", version="1")
