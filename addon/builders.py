@@ -29,7 +29,6 @@ BUILDERS: dict[str, Builder] = {}
 
 ROOT_NAME = "Oblique City"
 ROLE_KEY = "oc_role"
-WORKSPACE_KEY = "oblique_city_workspace"
 CLIP_END_M = 20000.0
 
 
@@ -75,14 +74,9 @@ def _clear(coll) -> None:
     for child in list(coll.children):
         _clear(child)
         bpy.data.collections.remove(child)
-    for obj in list(coll.objects):
-        data = obj.data
-        bpy.data.objects.remove(obj, do_unlink=True)
-        if data is not None and data.users == 0:
-            if isinstance(data, bpy.types.Camera):
-                bpy.data.cameras.remove(data)
-            elif isinstance(data, bpy.types.Mesh):
-                bpy.data.meshes.remove(data)
+    datas = {obj.data for obj in coll.objects if obj.data is not None}
+    bpy.data.batch_remove(list(coll.objects))
+    bpy.data.batch_remove([d for d in datas if d.users == 0])
 
 
 def view_collection(scene, view: str):
@@ -129,10 +123,11 @@ def build_cameras(scene, block: ImageBlock, ws_root=None) -> dict[str, object]:
 
 
 def build_ground_points(scene, block: ImageBlock) -> dict[str, object]:
-    """One empty per ground point with coordinates (plain axes: control, sphere: check). Name -> object."""
+    """One empty per ground point with all three coordinates (plain axes: control, sphere: check); points known
+    only in plan or only in height are left out. Name -> object."""
     import bpy
 
-    points = [g for g in block.ground_points.values() if g.xyz is not None]
+    points = [g for g in block.ground_points.values() if g.xyz is not None and np.all(np.isfinite(g.xyz))]
     if not points:
         return {}
     coll = _child(stage_collection(scene, "block", "Block", clear=False), "ground_points", "Ground points")
@@ -175,7 +170,8 @@ register_builder("aerotri", build_block)
 def build_scene(scene, ws: Workspace, stages: list[str] | None = None) -> list[str]:
     """Run the builders of the block and of every finished stage (or only of ``stages``), each at most once.
 
-    Returns the builders' summaries (``"stage: summary"``). The workspace path is remembered on the scene.
+    Returns the builders' summaries (``"stage: summary"``). The workspace path is remembered in the scene's
+    settings.
     """
     state = ws.read_state()
     keys = ["block"] + stage_names() if stages is None else list(stages)
@@ -189,7 +185,6 @@ def build_scene(scene, ws: Workspace, stages: list[str] | None = None) -> list[s
             continue
         done.add(id(fn))
         messages.append(f"{key}: {fn(scene, ws)}")
-    scene[WORKSPACE_KEY] = str(ws.root)
-    if hasattr(scene, "oblique_city"):
+    if hasattr(scene, "oblique_city"):  # the add-on's scene settings (registered by the add-on and make_blend)
         scene.oblique_city.workspace = str(ws.root)
     return messages

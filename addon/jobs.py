@@ -132,7 +132,8 @@ def child_environment() -> dict[str, str]:
     """The child's environment: this process's import path (and the folder holding the extension) as
     ``PYTHONPATH``, so it imports the same ``oblique_city`` and the same dependencies."""
     root = Path(__file__).resolve().parents[1]
-    paths = [str(root.parent)] + [p for p in sys.path if p and os.path.isdir(p)]
+    extension_dir = [str(root.parent)] if root.name == "oblique_city" else []  # an editable checkout needs none
+    paths = extension_dir + [p for p in sys.path if p and os.path.isdir(p)]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
     env["PYTHONUNBUFFERED"] = "1"
