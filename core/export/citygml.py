@@ -1,0 +1,162 @@
+"""CityGML 2.0 LoD2 export and offline schema validation.
+
+Each building becomes a ``bldg:Building`` with ``bldg:measuredHeight``, a ``bldg:lod2Solid`` (a ``gml:Solid``
+whose exterior references the polygons of the body by ``xlink:href``) and ``bldg:boundedBy`` thematic surfaces
+(``RoofSurface``, ``WallSurface``, ``GroundSurface``, ``OuterCeilingSurface`` for the overhang underside) each
+holding a ``lod2MultiSurface``. The overhang's roof and fascia are Roof and Wall surfaces outside the solid.
+``srsName`` is the project CRS (EPSG codes as OGC URNs).
+
+:func:`validate_citygml` checks a file against the official CityGML 2.0 XSDs without network access, using the
+copies shipped in the PyPI package ``citysmith`` and an lxml resolver that maps the schema URLs to them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from lxml import etree
+
+from ..errors import ComputationError, InputError
+from ..pipeline.atomic import write_bytes
+
+NS = {
+    "core": "http://www.opengis.net/citygml/2.0",
+    "bldg": "http://www.opengis.net/citygml/building/2.0",
+    "gml": "http://www.opengis.net/gml",
+    "xlink": "http://www.w3.org/1999/xlink",
+    "xsi": "http://www.w3.org/2001/XMLSchema-instance",
+}
+SCHEMA_LOCATION = ("http://www.opengis.net/citygml/2.0 http://schemas.opengis.net/citygml/2.0/cityGMLBase.xsd "
+                   "http://www.opengis.net/citygml/building/2.0 "
+                   "http://schemas.opengis.net/citygml/building/2.0/building.xsd")
+THEMATIC = {"roof": "RoofSurface", "wall": "WallSurface", "ground": "GroundSurface",
+            "overhang_roof": "RoofSurface", "overhang_fascia": "WallSurface",
+            "overhang_underside": "OuterCeilingSurface"}
+
+
+def srs_name(crs: str) -> str:
+    """``EPSG:25832`` -> ``urn:ogc:def:crs:EPSG::25832``; other CRS texts unchanged."""
+    if crs.upper().startswith("EPSG:"):
+        return "urn:ogc:def:crs:EPSG::" + crs.split(":", 1)[1]
+    return crs
+
+
+def _q(prefix: str, name: str) -> str:
+    return f"{{{NS[prefix]}}}{name}"
+
+
+def _pos_list(xyz: np.ndarray) -> str:
+    ring = np.vstack([xyz, xyz[:1]])
+    return " ".join(f"{v:.4f}" for v in ring.ravel())
+
+
+def citygml_tree(buildings, crs: str) -> etree._ElementTree:
+    """The CityGML document of ``buildings`` (list of :class:`~..buildings.model.BuildingModel`)."""
+    root = etree.Element(_q("core", "CityModel"), nsmap=NS)
+    root.set(_q("xsi", "schemaLocation"), SCHEMA_LOCATION)
+    allv = np.concatenate([b.vertices for b in buildings]) if buildings else np.zeros((1, 3))
+    env = etree.SubElement(etree.SubElement(root, _q("gml", "boundedBy")), _q("gml", "Envelope"),
+                           srsName=srs_name(crs), srsDimension="3")
+    etree.SubElement(env, _q("gml", "lowerCorner")).text = " ".join(f"{v:.4f}" for v in allv.min(0))
+    etree.SubElement(env, _q("gml", "upperCorner")).text = " ".join(f"{v:.4f}" for v in allv.max(0))
+    for b in buildings:
+        member = etree.SubElement(root, _q("core", "cityObjectMember"))
+        bel = etree.SubElement(member, _q("bldg", "Building"))
+        bel.set(_q("gml", "id"), b.id)
+        ground = [s for s in b.surfaces if s.kind == "ground"]
+        z0 = float(b.vertices[list(ground[0].ring), 2].min()) if ground else float(b.vertices[:, 2].min())
+        h = etree.SubElement(bel, _q("bldg", "measuredHeight"), uom="m")
+        h.text = f"{float(b.vertices[:, 2].max()) - z0:.3f}"
+        solid_surfaces = [s for s in b.surfaces if s.in_solid]
+        if solid_surfaces:
+            solid = etree.SubElement(etree.SubElement(bel, _q("bldg", "lod2Solid")), _q("gml", "Solid"))
+            solid.set(_q("gml", "id"), f"{b.id}_solid")
+            comp = etree.SubElement(etree.SubElement(solid, _q("gml", "exterior")), _q("gml", "CompositeSurface"))
+            for s in solid_surfaces:
+                etree.SubElement(comp, _q("gml", "surfaceMember")).set(_q("xlink", "href"), f"#{s.id}_poly")
+        for s in b.surfaces:
+            bb = etree.SubElement(bel, _q("bldg", "boundedBy"))
+            th = etree.SubElement(bb, _q("bldg", THEMATIC[s.kind]))
+            th.set(_q("gml", "id"), s.id)
+            ms = etree.SubElement(etree.SubElement(th, _q("bldg", "lod2MultiSurface")), _q("gml", "MultiSurface"))
+            poly = etree.SubElement(etree.SubElement(ms, _q("gml", "surfaceMember")), _q("gml", "Polygon"))
+            poly.set(_q("gml", "id"), f"{s.id}_poly")
+            ring = etree.SubElement(etree.SubElement(poly, _q("gml", "exterior")), _q("gml", "LinearRing"))
+            pl = etree.SubElement(ring, _q("gml", "posList"), srsDimension="3")
+            pl.text = _pos_list(b.vertices[list(s.ring)])
+    return etree.ElementTree(root)
+
+
+def write_citygml(path: str | Path, buildings, crs: str) -> None:
+    """Write a CityGML 2.0 LoD2 file atomically."""
+    data = etree.tostring(citygml_tree(buildings, crs), xml_declaration=True, encoding="UTF-8", pretty_print=True)
+    write_bytes(path, data)
+
+
+def schema_dir() -> Path:
+    """Folder of the offline CityGML 2.0 / GML 3.1.1 / xAL / XLink schemas (from the package ``citysmith``)."""
+    try:
+        import citysmith
+    except ImportError:
+        raise ComputationError("CityGML validation needs the package citysmith (pip install citysmith==0.2.0, "
+                               "or export with --no-validate)") from None
+    d = Path(citysmith.__file__).parent / "data" / "schemas"
+    if not (d / "schemas.opengis.net" / "citygml" / "building" / "2.0" / "building.xsd").exists():
+        raise ComputationError(f"{d}: the CityGML 2.0 schemas are missing from the citysmith package")
+    return d
+
+
+class _LocalSchemas(etree.Resolver):
+    """Maps ``http(s)://host/path`` schema URLs to ``<schema dir>/host/path``; refuses anything else."""
+
+    def __init__(self, root: Path) -> None:
+        super().__init__()
+        self.root = root
+
+    def resolve(self, url, pubid, context):
+        for prefix in ("http://", "https://"):
+            if url.startswith(prefix):
+                local = self.root / url[len(prefix):]
+                if local.exists():
+                    return self.resolve_filename(str(local), context)
+                raise ComputationError(f"schema {url} has no local copy under {self.root}")
+        return None
+
+
+_SCHEMA: etree.XMLSchema | None = None
+
+
+def citygml_schema() -> etree.XMLSchema:
+    """The compiled CityGML 2.0 building schema (with core and GML), built once."""
+    global _SCHEMA
+    if _SCHEMA is None:
+        root = schema_dir()
+        parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False)
+        parser.resolvers.add(_LocalSchemas(root))
+        driver = (b'<xs:schema xmlns:xs="http://www.w3.org/2001/XMLSchema" elementFormDefault="qualified">'
+                  b'<xs:import namespace="http://www.opengis.net/citygml/building/2.0" '
+                  b'schemaLocation="http://schemas.opengis.net/citygml/building/2.0/building.xsd"/>'
+                  b'<xs:import namespace="http://www.opengis.net/citygml/2.0" '
+                  b'schemaLocation="http://schemas.opengis.net/citygml/2.0/cityGMLBase.xsd"/></xs:schema>')
+        doc = etree.fromstring(driver, parser, base_url=str(root / "driver.xsd"))
+        _SCHEMA = etree.XMLSchema(doc)
+    return _SCHEMA
+
+
+def validate_citygml(path: str | Path) -> list[str]:
+    """Schema errors of a CityGML 2.0 file (empty when valid). DOCTYPEs and entities are rejected."""
+    path = Path(path)
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False)
+    try:
+        doc = etree.parse(str(path), parser)
+    except OSError:
+        raise InputError("CityGML file not found", path) from None
+    except etree.XMLSyntaxError as e:
+        raise InputError(f"not well-formed XML ({e.msg})", path, line=e.lineno) from None
+    if doc.docinfo.doctype:
+        raise InputError("DOCTYPE declarations are not accepted", path, line=1)
+    schema = citygml_schema()
+    if schema.validate(doc):
+        return []
+    return [f"{path}:{e.line}: {e.message}" for e in schema.error_log]

@@ -1,0 +1,144 @@
+"""CityJSON 2.0 export (LoD 2.2 Solid with semantic surfaces; overhangs as a MultiSurface) and a structural check.
+
+Vertices are quantised integers with ``transform`` (scale 1 mm, translate = the minimum corner). The official
+validator (cjval) is not installable from the registries here, so :func:`check_cityjson` checks the structure
+the specification prescribes for what we write: top-level members, object types, geometry types and LoDs,
+the nesting depth of ``boundaries``, vertex indices in range, closed rings of at least three distinct vertices,
+and ``semantics.values`` mirroring the boundaries.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..pipeline.atomic import write_text
+
+SEMANTIC_TYPES = {"roof": "RoofSurface", "wall": "WallSurface", "ground": "GroundSurface",
+                  "overhang_roof": "RoofSurface", "overhang_fascia": "WallSurface",
+                  "overhang_underside": "OuterCeilingSurface"}
+
+
+def _reference_system(crs: str) -> str:
+    if crs.upper().startswith("EPSG:"):
+        return "https://www.opengis.net/def/crs/EPSG/0/" + crs.split(":", 1)[1]
+    return crs
+
+
+def cityjson_document(buildings, crs: str, scale: float = 0.001) -> dict[str, Any]:
+    """The CityJSON 2.0 document of ``buildings`` (list of :class:`~..buildings.model.BuildingModel`)."""
+    allv = np.concatenate([b.vertices for b in buildings]) if buildings else np.zeros((1, 3))
+    translate = np.floor(allv.min(0))
+    vertices: list[list[int]] = []
+    objects: dict[str, Any] = {}
+    for b in buildings:
+        base = len(vertices)
+        q = np.round((b.vertices - translate) / scale).astype(np.int64)
+        vertices.extend(q.tolist())
+        geoms = []
+        for in_solid in (True, False):
+            surfaces = [s for s in b.surfaces if s.in_solid == in_solid]
+            if not surfaces:
+                continue
+            kinds = sorted({s.kind for s in surfaces}, key=list(SEMANTIC_TYPES).index)
+            sem = {"surfaces": [{"type": SEMANTIC_TYPES[k], "oc_kind": k} for k in kinds],
+                   "values": [kinds.index(s.kind) for s in surfaces]}
+            faces = [[[base + i for i in s.ring]] for s in surfaces]
+            if in_solid:
+                geoms.append({"type": "Solid", "lod": "2.2", "boundaries": [faces],
+                              "semantics": {"surfaces": sem["surfaces"], "values": [sem["values"]]}})
+            else:
+                geoms.append({"type": "MultiSurface", "lod": "2.2", "boundaries": faces, "semantics": sem})
+        ground = [s for s in b.surfaces if s.kind == "ground"]
+        z0 = float(b.vertices[list(ground[0].ring), 2].min()) if ground else float(b.vertices[:, 2].min())
+        objects[b.id] = {"type": "Building", "geometry": geoms,
+                         "attributes": {"measuredHeight": round(float(b.vertices[:, 2].max()) - z0, 3),
+                                        "reconstruction_path": b.path, "closed_solid": bool(b.info.get("closed"))}}
+    return {"type": "CityJSON", "version": "2.0",
+            "transform": {"scale": [scale] * 3, "translate": translate.tolist()},
+            "metadata": {"referenceSystem": _reference_system(crs),
+                         "geographicalExtent": [*allv.min(0).tolist(), *allv.max(0).tolist()]},
+            "CityObjects": objects, "vertices": vertices}
+
+
+def write_cityjson(path: str | Path, buildings, crs: str) -> None:
+    """Write a CityJSON 2.0 file atomically."""
+    write_text(path, json.dumps(cityjson_document(buildings, crs), separators=(",", ":")))
+
+
+def _check_surface(surface: Any, nv: int, where: str, errors: list[str]) -> None:
+    if not isinstance(surface, list) or not surface:
+        errors.append(f"{where}: a surface must be a non-empty list of rings")
+        return
+    for k, ring in enumerate(surface):
+        if not isinstance(ring, list) or not all(isinstance(i, int) for i in ring):
+            errors.append(f"{where}[{k}]: a ring must be a list of vertex indices")
+            continue
+        if len(set(ring)) < 3:
+            errors.append(f"{where}[{k}]: fewer than three distinct vertices")
+        if any(i < 0 or i >= nv for i in ring):
+            errors.append(f"{where}[{k}]: vertex index out of range")
+
+
+def check_cityjson(doc: dict[str, Any]) -> list[str]:
+    """Structural errors of a CityJSON 2.0 document (empty when it is well formed)."""
+    errors: list[str] = []
+    if doc.get("type") != "CityJSON":
+        errors.append("type must be 'CityJSON'")
+    if doc.get("version") != "2.0":
+        errors.append("version must be '2.0'")
+    tr = doc.get("transform", {})
+    if len(tr.get("scale", [])) != 3 or len(tr.get("translate", [])) != 3:
+        errors.append("transform needs 3 scale and 3 translate values")
+    verts = doc.get("vertices")
+    if not isinstance(verts, list) or not all(isinstance(v, list) and len(v) == 3 and
+                                              all(isinstance(c, int) for c in v) for v in verts):
+        errors.append("vertices must be a list of integer triplets")
+        return errors
+    nv = len(verts)
+    for oid, obj in doc.get("CityObjects", {}).items():
+        if obj.get("type") not in ("Building", "BuildingPart"):
+            errors.append(f"{oid}: unexpected type {obj.get('type')!r}")
+        for gi, g in enumerate(obj.get("geometry", [])):
+            where = f"{oid}.geometry[{gi}]"
+            if g.get("lod") not in ("2", "2.0", "2.1", "2.2", "2.3"):
+                errors.append(f"{where}: lod {g.get('lod')!r} is not an LoD2 value")
+            b = g.get("boundaries")
+            sem = g.get("semantics")
+            if g.get("type") == "Solid":
+                if not isinstance(b, list) or not b:
+                    errors.append(f"{where}: a Solid needs at least one shell")
+                    continue
+                for si, shell in enumerate(b):
+                    for fi, surface in enumerate(shell):
+                        _check_surface(surface, nv, f"{where}.boundaries[{si}][{fi}]", errors)
+                if sem is not None and [len(v) for v in sem.get("values", [])] != [len(s) for s in b]:
+                    errors.append(f"{where}: semantics.values does not mirror the shells")
+            elif g.get("type") == "MultiSurface":
+                for fi, surface in enumerate(b or []):
+                    _check_surface(surface, nv, f"{where}.boundaries[{fi}]", errors)
+                if sem is not None and len(sem.get("values", [])) != len(b or []):
+                    errors.append(f"{where}: semantics.values does not mirror the surfaces")
+            else:
+                errors.append(f"{where}: unexpected geometry type {g.get('type')!r}")
+            if sem is not None:
+                n_sem = len(sem.get("surfaces", []))
+                flat = [v for v in (sem.get("values") or []) for v in (v if isinstance(v, list) else [v])]
+                if any(v is not None and not (0 <= v < n_sem) for v in flat):
+                    errors.append(f"{where}: semantics value out of range")
+    return errors
+
+
+def read_cityjson(path: str | Path) -> dict[str, Any]:
+    """Load a CityJSON file (InputError on malformed JSON)."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("CityJSON file not found", path) from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None

@@ -1,0 +1,81 @@
+"""Wavefront OBJ of building models: one object per building, one group per building and surface type.
+
+Polygons are written as n-gons over shared vertices (full float64 precision, world coordinates minus an optional
+``origin`` noted in a comment so Blender's float32 keeps millimetres); a ``.mtl`` beside the file gives one
+material per surface type.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..pipeline.atomic import atomic_path, write_text
+
+KIND_COLOURS = {"ground": (0.35, 0.3, 0.25), "wall": (0.85, 0.82, 0.75), "roof": (0.7, 0.2, 0.15),
+                "overhang_roof": (0.6, 0.18, 0.12), "overhang_fascia": (0.5, 0.45, 0.4),
+                "overhang_underside": (0.45, 0.4, 0.35)}
+
+
+def write_obj(path: str | Path, buildings, origin: np.ndarray | None = None) -> None:
+    """Write ``buildings`` (list of :class:`~..buildings.model.BuildingModel`) to ``path`` and ``path.mtl``."""
+    path = Path(path)
+    origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+    mtl = path.with_suffix(".mtl")
+    lines = ["# Oblique City LOD2 buildings", f"# origin {origin[0]!r} {origin[1]!r} {origin[2]!r}",
+             f"mtllib {mtl.name}"]
+    base = 1
+    for b in buildings:
+        lines.append(f"o {b.id}")
+        for v in b.vertices - origin:
+            lines.append(f"v {v[0]:.6f} {v[1]:.6f} {v[2]:.6f}")
+        by_kind: dict[str, list] = {}
+        for s in b.surfaces:
+            by_kind.setdefault(s.kind, []).append(s)
+        for kind, surfaces in by_kind.items():
+            lines.append(f"g {b.id}_{kind}")
+            lines.append(f"usemtl {kind}")
+            for s in surfaces:
+                lines.append("f " + " ".join(str(base + i) for i in s.ring))
+        base += len(b.vertices)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    write_text(mtl, "".join(f"newmtl {k}\nKd {c[0]} {c[1]} {c[2]}\n\n" for k, c in KIND_COLOURS.items()))
+
+
+def read_obj(path: str | Path) -> tuple[np.ndarray, dict[str, list[list[int]]], np.ndarray]:
+    """Read an OBJ written by :func:`write_obj` (or any polygon OBJ).
+
+    Returns
+    -------
+    vertices : (n, 3) float64 (the origin comment added back); groups : {group name: faces as 0-based index
+    lists}; origin : (3,)
+    """
+    path = Path(path)
+    verts: list[list[float]] = []
+    groups: dict[str, list[list[int]]] = {}
+    origin = np.zeros(3)
+    group = "default"
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("OBJ file not found", path) from None
+    for ln, line in enumerate(text.splitlines(), start=1):
+        parts = line.split()
+        if not parts:
+            continue
+        try:
+            if parts[0] == "#" and len(parts) == 5 and parts[1] == "origin":
+                origin = np.array([float(x) for x in parts[2:5]])
+            elif parts[0] == "v":
+                verts.append([float(x) for x in parts[1:4]])
+            elif parts[0] == "g":
+                group = parts[1] if len(parts) > 1 else "default"
+            elif parts[0] == "f":
+                idx = [int(p.split("/")[0]) for p in parts[1:]]
+                groups.setdefault(group, []).append([i - 1 if i > 0 else len(verts) + i for i in idx])
+        except (ValueError, IndexError):
+            raise InputError(f"malformed '{parts[0]}' record", path, line=ln, field=parts[0]) from None
+    return np.asarray(verts, dtype=np.float64).reshape(-1, 3) + origin, groups, origin
