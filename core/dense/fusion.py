@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -63,7 +64,8 @@ def fuse_depths(depths: np.ndarray, focal_baselines: np.ndarray, cfg: FusionConf
     agree : (k, rows, cols) bool, which slaves agree at each pixel
     """
     depths = np.asarray(depths, np.float32)
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels give NaN, as they should
         ref = np.nanmedian(depths, axis=0) if len(depths) else np.full(depths.shape[1:], np.nan)
         tol = cfg.tol_px * ref[None] ** 2 / np.asarray(focal_baselines, np.float64)[:, None, None]
         agree = np.abs(depths - ref[None]) <= tol

@@ -118,13 +118,16 @@ def filter_effect(dist_before: np.ndarray, removed: np.ndarray) -> dict:
 
 
 def roof_edge_displacement(ortho_rgb: np.ndarray, reference_rgb: np.ndarray, edges: np.ndarray,
-                           window: int = 24, samples: int = 400, seed: int = 0) -> np.ndarray:
+                           window: int = 24, search: int = 12, samples: int = 400, min_valid: float = 0.8,
+                           min_score: float = 0.5, seed: int = 0) -> np.ndarray:
     """Displacement (cells) of the orthophoto against a reference true ortho around roof edges.
 
-    Windows of ``window`` cells centred on (a random sample of) the true roof edge cells ``edges (rows, cols)``
-    are registered by phase correlation (``cv2.phaseCorrelate``); a leaning, non-true ortho shows roofs shifted
-    by their relief displacement, a true ortho none. Windows with a weak correlation peak (< 0.1) or missing
-    data are skipped. Returns the shift magnitudes ``(k,)`` in cells.
+    A ``window``-cell patch of the ortho centred on each of (a random sample of) the true roof edge cells
+    ``edges (rows, cols)`` is searched in the reference within +-``search`` cells by normalised cross-correlation
+    (``cv2.matchTemplate``, sub-cell peak by a parabola fit); a leaning, non-true ortho shows roofs shifted by
+    their relief displacement, a true ortho none. Empty ortho cells (occlusions) take the patch mean; patches
+    with less than ``min_valid`` of their cells filled or a peak below ``min_score`` are skipped.
+    Returns the shift magnitudes ``(k,)`` in cells.
     """
     def grey(a: np.ndarray) -> np.ndarray:
         return cv2.cvtColor(np.ascontiguousarray(a[..., :3]), cv2.COLOR_RGB2GRAY).astype(np.float32)
@@ -133,19 +136,32 @@ def roof_edge_displacement(ortho_rgb: np.ndarray, reference_rgb: np.ndarray, edg
     valid = ortho_rgb[..., 3] > 0 if ortho_rgb.shape[-1] == 4 else np.ones(g.shape, bool)
     rows, cols = g.shape
     h = window // 2
+    m = h + search
     rr, cc = np.nonzero(edges)
-    keep = (rr >= h) & (rr < rows - h) & (cc >= h) & (cc < cols - h)
+    keep = (rr >= m) & (rr < rows - m) & (cc >= m) & (cc < cols - m)
     rr, cc = rr[keep], cc[keep]
     if len(rr) == 0:
         return np.zeros(0)
     pick = np.random.default_rng(seed).choice(len(rr), size=min(samples, len(rr)), replace=False)
-    han = cv2.createHanningWindow((2 * h, 2 * h), cv2.CV_32F)
+
+    def peak(v: np.ndarray, i: int) -> float:
+        if 0 < i < len(v) - 1:
+            den = v[i - 1] - 2 * v[i] + v[i + 1]
+            return i + (0.5 * (v[i - 1] - v[i + 1]) / den if den < 0 else 0.0)
+        return float(i)
+
     out = []
     for i in pick:
         sl = (slice(rr[i] - h, rr[i] + h), slice(cc[i] - h, cc[i] + h))
-        if not valid[sl].all() or r[sl].std() < 1.0 or g[sl].std() < 1.0:
+        ok = valid[sl]
+        if ok.mean() < min_valid or g[sl][ok].std() < 1.0:
             continue
-        (dx, dy), resp = cv2.phaseCorrelate(r[sl], g[sl], han)
-        if resp >= 0.1:
-            out.append(np.hypot(dx, dy))
+        patch = np.where(ok, g[sl], g[sl][ok].mean()).astype(np.float32)
+        area = np.ascontiguousarray(r[rr[i] - m:rr[i] + m, cc[i] - m:cc[i] + m])
+        score = cv2.matchTemplate(area, patch, cv2.TM_CCOEFF_NORMED)
+        y, x = np.unravel_index(int(np.argmax(score)), score.shape)
+        if score[y, x] < min_score:
+            continue
+        dy, dx = peak(score[:, x], y) - search, peak(score[y, :], x) - search
+        out.append(float(np.hypot(dx, dy)))
     return np.array(out)

@@ -21,7 +21,7 @@ ORIGIN = np.array([500000.0, 5400000.0, 0.0])
 GROUND_Z = 100.0
 # (x0, y0, x1, y1, height above ground, is_tree), local metres
 BOXES = [(-30.0, -25.0, -5.0, 5.0, 18.0, False), (10.0, -30.0, 35.0, -10.0, 10.0, False),
-         (5.0, 10.0, 30.0, 30.0, 24.0, False), (-35.0, 18.0, -22.0, 31.0, 8.0, True)]
+         (5.0, 10.0, 30.0, 30.0, 24.0, False), (-18.0, 9.0, -8.0, 19.0, 8.0, True)]
 
 
 def _box(x0, y0, x1, y1, z0, z1) -> o3d.geometry.TriangleMesh:
@@ -62,13 +62,19 @@ class Scene:
 
 
 _rng = np.random.default_rng(7)
-_WAVES = [(_rng.uniform(-1, 1, 2) * f, _rng.uniform(0, 2 * np.pi)) for f in np.geomspace(0.4, 6.0, 24)]
+_FREQ = np.geomspace(0.3, 5.0, 48)
+_ANGLE = _rng.uniform(0, 2 * np.pi, 48)
+_WAVES = [(f * np.array([np.cos(t), np.sin(t)]), _rng.uniform(0, 2 * np.pi), f ** -0.6)
+          for f, t in zip(_FREQ, _ANGLE)]
+_NORM = np.sqrt(0.5 * sum(w[2] ** 2 for w in _WAVES))
 
 
 def texture(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Grey texture in [0, 1] of surface coordinates ``a, b`` (metres)."""
-    s = sum(np.sin(k[0] * a + k[1] * b + p) for k, p in _WAVES)
-    return 0.5 + 0.5 * np.tanh(s / 3.0)
+    """Grey texture in [0, 1] of surface coordinates ``a, b`` (metres): random plane waves in all directions,
+    amplitude falling with frequency (blobs of every size, no dominant direction)."""
+    a, b = np.where(np.isfinite(a), a, 0.0), np.where(np.isfinite(b), b, 0.0)  # rays into the sky
+    s = sum(amp * np.sin(k[0] * a + k[1] * b + p) for k, p, amp in _WAVES) / _NORM
+    return 0.5 + 0.5 * np.tanh(s / 1.5)
 
 
 def look_at(c_local: np.ndarray, target_local: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -91,7 +97,14 @@ def render(scene: Scene, cam: CameraModel, pose_local: Pose, supersample: int = 
     d = d_cam @ pose_local.R
     hit = scene.cast(np.broadcast_to(pose_local.C, d.shape), d)
     t = hit["t_hit"].astype(np.float64)
-    p = pose_local.C + d * t[:, None]
+    rgb = _colour(scene, hit, pose_local.C + d * t[:, None])
+    img = (rgb.reshape(cam.height, s, cam.width, s, 3).mean(axis=(1, 3)) * 255).clip(0, 255).astype(np.uint8)
+    depth = (d_cam[:, 2] * t).reshape(cam.height * s, cam.width * s)[::s, ::s]
+    return np.ascontiguousarray(img[..., ::-1]), depth
+
+
+def _colour(scene: Scene, hit: dict, p: np.ndarray) -> np.ndarray:
+    """RGB in [0, 1] ``(n, 3)`` of ray hits at local points ``p (n, 3)`` (sky grey)."""
     n = hit["primitive_normals"]
     ax = np.argmax(np.abs(n), axis=1)
     a = np.where(ax == 2, p[:, 0], np.where(ax == 0, p[:, 1], p[:, 0]))
@@ -103,10 +116,23 @@ def render(scene: Scene, cam: CameraModel, pose_local: Pose, supersample: int = 
     rgb = np.stack([g, g, g], 1) * shade[:, None]
     rgb[tree] *= np.array([0.35, 1.0, 0.3])
     rgb[roof] *= np.array([1.0, 0.6, 0.5])
-    rgb[~np.isfinite(t)] = 0.7
-    img = (rgb.reshape(cam.height, s, cam.width, s, 3).mean(axis=(1, 3)) * 255).clip(0, 255).astype(np.uint8)
-    depth = (d_cam[:, 2] * t).reshape(cam.height * s, cam.width * s)[::s, ::s]
-    return np.ascontiguousarray(img[..., ::-1]), depth
+    rgb[~np.isfinite(hit["t_hit"])] = 0.7
+    return rgb
+
+
+def reference_ortho(scene: Scene, x_local: np.ndarray, y_local: np.ndarray, supersample: int = 3) -> np.ndarray:
+    """The ideal true orthophoto (vertical rays, ``supersample``^2 per cell) at local cell centres
+    ``(rows, cols)`` on a regular grid: RGB uint8."""
+    cell = abs(float(x_local[0, 1] - x_local[0, 0]))
+    off = ((np.arange(supersample) + 0.5) / supersample - 0.5) * cell
+    acc = np.zeros((*x_local.shape, 3))
+    for dx in off:
+        for dy in off:
+            n = x_local.size
+            o = np.stack([x_local.ravel() + dx, y_local.ravel() + dy, np.full(n, 500.0)], 1)
+            hit = scene.cast(o, np.tile([0.0, 0.0, -1.0], (n, 1)))
+            acc += _colour(scene, hit, o - np.outer(hit["t_hit"], [0.0, 0.0, 1.0])).reshape(acc.shape)
+    return (acc / supersample ** 2 * 255).clip(0, 255).astype(np.uint8)
 
 
 def camera(width: int = 400, height: int = 300, f: float = 500.0) -> CameraModel:

@@ -1,0 +1,117 @@
+"""Pair matching on rendered images, multi-slave fusion, filters, image selection."""
+
+from __future__ import annotations
+
+import dense_scene
+import numpy as np
+
+from oblique_city.core.dense.fusion import (
+    FusionConfig,
+    depth_to_points,
+    fuse_depths,
+    grid_normals,
+    incidence_deg,
+    intersection_errors,
+    smooth_depth,
+    statistical_outliers,
+)
+from oblique_city.core.dense.pairs import PairTask, match_pair
+from oblique_city.core.dense.selection import select_pairs
+from oblique_city.core.model import Pose
+
+
+def _true_depth(block, scene, iid):
+    img = block.images[iid]
+    local = Pose(img.pose.R, img.pose.C - dense_scene.ORIGIN)
+    return dense_scene.render(scene, block.camera_of(img), local, supersample=1)[1]
+
+
+def _task(block, m, s):
+    im, is_ = block.images[m], block.images[s]
+    root = block.image_root
+    return PairTask(m, s, block.camera_of(im), im.pose, block.camera_of(is_), is_.pose, f"{root}/{im.file}",
+                    f"{root}/{is_.file}", dense_scene.GROUND_Z - 5, dense_scene.GROUND_Z + 30)
+
+
+def test_pair_depth_matches_truth(nadir_oblique_block):
+    block, scene = nadir_oblique_block
+    for m, s, med_tol in (("img01", "img00", 0.1), ("img01", "img04", 0.1), ("img07", "img06", 0.5)):
+        r = match_pair(_task(block, m, s))
+        err = r.depth - _true_depth(block, scene, m)
+        ok = np.isfinite(err)
+        assert ok.mean() > 0.4, (m, s)
+        assert np.median(np.abs(err[ok])) < med_tol, (m, s)
+        assert (np.abs(err[ok]) < 1.0).mean() > 0.9, (m, s)
+
+
+def test_fusion_keeps_agreeing_slaves():
+    d = np.full((3, 4, 5), 100.0, np.float32)
+    d[1] += 0.05
+    d[2, 0] = 130.0          # one slave wrong in row 0: the other two still agree
+    d[1:, 1] = np.nan        # only one slave in row 1: not enough
+    d[1, 2] = 80.0           # three different answers in row 2
+    d[2, 2] = 120.0
+    fb = np.full(3, 100.0 * 100.0 / 0.5)  # tolerance = 1 px = 0.5 m at 100 m
+    fused, agree = fuse_depths(d, fb, FusionConfig(min_agree=2, tol_px=1.0))
+    assert np.allclose(fused[0], 100.025) and not agree[2, 0].any()
+    assert np.isnan(fused[1]).all() and np.isnan(fused[2]).all()
+    assert np.allclose(fused[3], (100.0 + 100.05 + 100.0) / 3, atol=1e-4)
+
+
+def test_bilateral_keeps_edges_and_holes():
+    rng = np.random.default_rng(0)
+    d = np.where(np.arange(40)[None, :] < 20, 100.0, 80.0) + rng.normal(0, 0.05, (30, 40))
+    d = d.astype(np.float32)
+    d[5:8, 5:8] = np.nan
+    s = smooth_depth(d, FusionConfig(bilateral_sigma_m=0.2))
+    assert np.isnan(s[5:8, 5:8]).all()
+    assert np.nanstd(s[:, 2:17] - 100.0) < 0.6 * np.nanstd(d[:, 2:17] - 100.0)
+    assert np.abs(s[:, 19] - 100.0).max() < 0.3 and np.abs(s[:, 20] - 80.0).max() < 0.3
+
+
+def test_mixed_pixels_are_grazing(nadir_oblique_block):
+    block, _ = nadir_oblique_block
+    img = block.images["img01"]
+    cam = block.camera_of(img)
+    depth = np.full((cam.height, cam.width), 160.0, np.float32)
+    depth[:, 200:] = 140.0
+    depth[:, 199] = 150.0  # a blend of foreground and background at the edge
+    xyz, _, rays = depth_to_points(cam, img.pose, depth, 1)
+    inc = incidence_deg(grid_normals(xyz, rays, 1), rays)
+    assert np.nanmax(inc[50:250, 20:180]) < 25.0  # a plane facing the camera: the off-axis angle
+    assert (inc[50:250, 199] > 82.0).all()
+
+
+def test_statistical_outliers_found():
+    rng = np.random.default_rng(2)
+    xyz = np.column_stack([rng.uniform(0, 50, 5000), rng.uniform(0, 50, 5000), rng.normal(0, 0.02, 5000)])
+    xyz[:20, 2] += rng.uniform(5, 20, 20)
+    out = statistical_outliers(xyz + [500000.0, 5400000.0, 100.0])
+    assert out[:20].all() and out[20:].mean() < 0.01
+
+
+def test_intersection_error_grows_with_orientation_error(nadir_oblique_block):
+    block, _ = nadir_oblique_block
+    m = block.images["img01"]
+    cam = block.camera_of(m)
+    rng = np.random.default_rng(3)
+    uv = np.column_stack([rng.uniform(50, 350, 200), rng.uniform(50, 250, 200)])
+    depth = np.full(200, 160.0)
+    slaves = [(cam, block.images[s].pose, block.images[s].pose, depth) for s in ("img00", "img02")]
+    exact = intersection_errors(uv, cam, m.pose, m.pose, slaves)
+    assert np.nanmax(exact) < 1e-6
+    shifted = [(c, pu, Pose(pu.R, pu.C + [0.3, -0.2, 0.0]), d) for c, pu, _, d in slaves]
+    worse = intersection_errors(uv, cam, m.pose, m.pose, shifted)
+    assert 0.05 < np.nanmean(worse) < 0.4
+
+
+def test_selection_covers_and_pairs_are_rectifiable(nadir_oblique_block):
+    block, _ = nadir_oblique_block
+    sel = select_pairs(block, dense_scene.GROUND_Z)
+    views = {s.view for s in sel}
+    assert views == {"nadir", "north"}
+    for s in sel:
+        assert 1 <= len(s.slaves) <= 3
+        assert all(block.images[x].view == s.view for x in s.slaves)
+    nadir_masters = [s.master for s in sel if s.view == "nadir"]
+    assert 2 <= len(nadir_masters) <= 4

@@ -1,0 +1,60 @@
+"""SGM stage against the Middlebury ground truth, padding coverage and the left-right check."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from skimage.data import stereo_motorcycle
+
+from oblique_city.core.dense.sgm import SgmConfig, disparity_search, lr_consistency, plain_sgbm, sgm_disparity
+
+
+@pytest.fixture(scope="module")
+def motorcycle():
+    return stereo_motorcycle()
+
+
+def _scores(disp, gt):
+    m = np.isfinite(gt)
+    v = m & np.isfinite(disp)
+    err = np.abs(disp - gt)
+    return {"bad2_all": float((~v[m] | (err[m] > 2)).mean()), "bad2_valid": float((err[v] > 2).mean()),
+            "epe": float(err[v].mean()), "coverage": float(v.sum() / m.sum())}
+
+
+def test_sgm_beats_plain_sgbm_on_middlebury(motorcycle):
+    left, right, gt = motorcycle
+    ours = _scores(sgm_disparity(left, right, 0, 80), gt)
+    plain = _scores(plain_sgbm(left, right, 0, 80), gt)
+    # measured: ours bad-2.0 0.159 (all GT pixels, missing = bad), 0.050 on matched pixels, EPE 0.86 px;
+    # plain SGBM 0.226 / 0.062 / 1.06 px
+    assert ours["bad2_all"] < 0.19
+    assert ours["bad2_valid"] < 0.07
+    assert ours["epe"] < 1.0
+    assert ours["bad2_all"] < plain["bad2_all"] - 0.03
+    assert ours["epe"] < plain["epe"]
+
+
+def test_padding_matches_the_left_strip(motorcycle):
+    left, right, gt = motorcycle
+    d_min, num = disparity_search(0, 80)
+    strip = slice(0, d_min + num - 1)
+    gt_strip = np.isfinite(gt[:, strip]) & (np.arange(gt.shape[1])[strip] - gt[:, strip] >= 0)
+    plain = plain_sgbm(left, right, 0, 80)
+    ours = sgm_disparity(left, right, 0, 80, SgmConfig(lr_check=False))
+    assert np.isfinite(plain[:, strip]).mean() == 0.0
+    covered = np.isfinite(ours[:, strip]) & gt_strip
+    assert covered.sum() / gt_strip.sum() > 0.7
+    err = np.abs(ours[:, strip] - gt[:, strip])[covered]
+    assert np.median(err) < 1.0
+
+
+def test_lr_consistency_keeps_consistent_and_drops_occluded():
+    h, w = 4, 40
+    dl = np.full((h, w), 5.0, np.float32)
+    dr = np.full((h, w), 5.0, np.float32)
+    dr[:, 20] = 9.0  # the right map disagrees where left pixel 25 lands
+    ok = lr_consistency(dl, dr, 1.0)
+    assert ok[:, 25].sum() == 0
+    assert ok[:, 5:20].all() and ok[:, 26:].all()
+    assert not ok[:, :5].any()  # these land outside the right image
