@@ -10,6 +10,9 @@ Two ways to run, one interface (:class:`Job`: ``start``, ``cancel``, ``queue``):
   OpenCV) ends the child, never Blender; the GIL of Blender's UI is never held by a stage; and cancelling is
   a SIGTERM, which the CLI turns into ``RunContext.cancel()`` so the stage stops at its next ``ctx.progress`` and
   records ``cancelled`` in ``state.json`` (a child that does not stop within :data:`KILL_AFTER_S` is killed).
+  The child imports the package as plain ``oblique_city``, so the ``processes`` and ``dask`` executors can pickle
+  its functions by name; inside Blender's process they would be ``bl_ext.<repo>.oblique_city...``, a name no
+  worker process can import.
 * :class:`ThreadJob`: the runner in a background thread of this process. Needed for stages registered at run
   time with ``core.pipeline.registry.register`` (plug-ins, tests), which a child process does not know; cancel
   sets the :class:`RunContext` cancel event.

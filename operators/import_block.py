@@ -137,8 +137,7 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
             return Path(bpy.path.abspath(self.workspace))
         if context.scene.oblique_city.workspace:
             return Path(bpy.path.abspath(context.scene.oblique_city.workspace))
-        base = source if source.is_dir() else source.parent
-        return base.parent / f"{base.name}_city" if source.is_dir() else base / f"{source.stem}_city"
+        return source.parent / f"{source.name if source.is_dir() else source.stem}_city"
 
     def execute(self, context):
         try:

@@ -92,3 +92,19 @@ def test_import_into_existing_workspace_in_another_crs(addon, tmp_path, utm_bloc
 
     assert georef.get_crs(bpy.context.scene) == "EPSG:25832"
     assert Workspace.open(tmp_path / "ws").load_block().crs == "EPSG:25832"
+
+
+def test_default_workspace_beside_the_block(addon, tmp_path, utm_block):
+    """Without a workspace (operator field or scene), the block goes to ``<stem>_city`` beside the source; a second
+    import then reuses the scene's workspace."""
+    bpy = addon
+    from oblique_city.core.io.native import write_block
+
+    write_block(utm_block, tmp_path / "flight7.json")
+    assert bpy.ops.city.import_block(filepath=str(tmp_path / "flight7.json"), block_format="native") == {"FINISHED"}
+    ws_root = tmp_path / "flight7_city"
+    assert (ws_root / "block" / "block.json").is_file()
+    assert bpy.context.scene.oblique_city.workspace == str(ws_root.resolve())
+    write_block(utm_block, tmp_path / "again.json")
+    assert bpy.ops.city.import_block(filepath=str(tmp_path / "again.json"), block_format="native") == {"FINISHED"}
+    assert not (tmp_path / "again_city").exists()
