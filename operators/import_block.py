@@ -95,6 +95,8 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
                                 description="Intrinsics (TOML or JSON) for OPK lists; empty: beside the list")
     gcp_file: StringProperty(name="Ground Points", subtype="FILE_PATH",
                              description="Ground control / check point list (optional)")
+    measurements_file: StringProperty(name="Image Measurements", subtype="FILE_PATH",
+                                      description="Ground point measurements in the images (optional)")
     image_folder: StringProperty(name="Image Folder", subtype="DIR_PATH",
                                  description="Folder relative image paths start from (optional)")
     options: StringProperty(name="Options", description="More reader options: key=value; key=value")
@@ -109,6 +111,7 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
             layout.prop(self, "angle_unit")
             layout.prop(self, "camera_file")
         layout.prop(self, "gcp_file")
+        layout.prop(self, "measurements_file")
         layout.prop(self, "image_folder")
         layout.prop(self, "options")
         layout.prop(self, "workspace")
@@ -121,6 +124,8 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
             opts["cameras"] = bpy.path.abspath(self.camera_file)
         if self.gcp_file:
             opts["gcps"] = bpy.path.abspath(self.gcp_file)
+        if self.measurements_file:
+            opts["measurements"] = bpy.path.abspath(self.measurements_file)
         if self.image_folder:
             opts["image_root"] = bpy.path.abspath(self.image_folder)
         opts.update(parse_options(self.options))

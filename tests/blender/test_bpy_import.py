@@ -108,3 +108,54 @@ def test_default_workspace_beside_the_block(addon, tmp_path, utm_block):
     write_block(utm_block, tmp_path / "again.json")
     assert bpy.ops.city.import_block(filepath=str(tmp_path / "again.json"), block_format="native") == {"FINISHED"}
     assert not (tmp_path / "again_city").exists()
+
+
+def test_opk_operator_fields(addon, tmp_path, utm_block):
+    """Angle unit, camera file, ground points and image measurements given in the operator's fields reach the
+    reader: without the unit a gon list reads as degrees (wrong attitudes), with it the poses are exact."""
+    bpy = addon
+    from oblique_city.addon import cameras
+    from oblique_city.core.geometry.projection import project
+    from oblique_city.core.io.gcp import write_ground_points, write_measurements
+    from oblique_city.core.model import GroundPoint
+    from oblique_city.core.pipeline import Workspace
+
+    for j, xyz in enumerate([(500100.0, 5399900.0, 310.0), (500300.0, 5400000.0, 305.0)]):
+        g = GroundPoint(f"P{j}", np.array(xyz), kind="control" if j == 0 else "check")
+        for img in utm_block.images.values():
+            uv, _ = project(utm_block.camera_of(img), img.pose, g.xyz[None])
+            if utm_block.camera_of(img).contains(uv)[0]:
+                g.observations[img.id] = uv[0]
+        utm_block.add_ground_point(g)
+    n_obs = sum(len(g.observations) for g in utm_block.ground_points.values())
+    assert n_obs > 0
+    (tmp_path / "intr").mkdir()
+    WRITERS["opk"](utm_block, str(tmp_path / "eo.txt"), angles="gon", cameras=str(tmp_path / "intr" / "cams.toml"))
+    lines = (tmp_path / "eo.txt").read_text().splitlines()
+    (tmp_path / "eo.txt").write_text("\n".join(s for s in lines if not s.startswith(("# angles", "# cameras"))))
+    cams = (tmp_path / "intr" / "cams.toml").read_text().splitlines()
+    (tmp_path / "intr" / "cams.toml").write_text("\n".join(s for s in cams if not s.startswith("angles")))
+    write_ground_points(utm_block, tmp_path / "gcp.csv")
+    write_measurements(utm_block, tmp_path / "meas.csv")
+
+    def run(ws: str, **fields):
+        return bpy.ops.city.import_block(filepath=str(tmp_path / "eo.txt"), block_format="opk",
+                                         workspace=str(tmp_path / ws), **fields)
+
+    with pytest.raises(RuntimeError, match="camera"):
+        run("ws0")
+    common = {"camera_file": str(tmp_path / "intr" / "cams.toml"), "gcp_file": str(tmp_path / "gcp.csv"),
+              "measurements_file": str(tmp_path / "meas.csv")}
+    assert run("ws1", **common) == {"FINISHED"}
+    scene = bpy.context.scene
+    worst = max(rotation_angle(cameras.pose_of(scene, bpy.data.objects[i]).R, img.pose.R)
+                for i, img in utm_block.images.items())
+    assert worst > 0.01  # 45 gon read as 45 degrees
+
+    assert run("ws2", angle_unit="gon", **common) == {"FINISHED"}
+    for image_id, img in utm_block.images.items():
+        assert rotation_angle(cameras.pose_of(scene, bpy.data.objects[image_id]).R, img.pose.R) < 1e-6
+    points = {o["oc_ground_point"]: o["oc_kind"] for o in bpy.data.objects if "oc_ground_point" in o}
+    assert points == {"P0": "control", "P1": "check"}
+    block = Workspace.open(tmp_path / "ws2").load_block()
+    assert sum(len(g.observations) for g in block.ground_points.values()) == n_obs
