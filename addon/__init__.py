@@ -1,7 +1,8 @@
 """The Blender side of Oblique City: registration, preferences and properties, georeference, builders, jobs.
 
 :func:`register` registers one ordered tuple of classes (properties first, then operators, then panels) and adds
-the File > Import menu entry; :func:`unregister` undoes it in reverse order, cancelling a running job first.
+the File > Import menu entry and a ``load_pre`` handler that cancels a running job; :func:`unregister` undoes it
+in reverse order, cancelling a running job first.
 This package and the modules it registers are the only ones that import bpy; ``core`` never does.
 """
 
@@ -19,6 +20,14 @@ def classes() -> tuple:
     return (*PROPERTY_CLASSES, *OPERATOR_CLASSES, *PANEL_CLASSES)
 
 
+@bpy.app.handlers.persistent
+def cancel_job_on_load(*_args) -> None:
+    """``load_pre`` handler: a running job is cancelled when another file is loaded (its modal operator ends)."""
+    from . import jobs
+
+    jobs.cancel_active()
+
+
 def register() -> None:
     from ..operators import menu_import
     from . import properties
@@ -27,17 +36,18 @@ def register() -> None:
         bpy.utils.register_class(cls)
     properties.attach()
     bpy.types.TOPBAR_MT_file_import.append(menu_import)
+    bpy.app.handlers.load_pre.append(cancel_job_on_load)
 
 
 def unregister() -> None:
     from ..operators import menu_import
     from . import jobs, properties
 
+    jobs.cancel_active()
     job = jobs.active_job()
     if job is not None:
-        if not job.finished:
-            job.cancel()
         jobs.forget_job(job)
+    bpy.app.handlers.load_pre.remove(cancel_job_on_load)
     bpy.types.TOPBAR_MT_file_import.remove(menu_import)
     properties.detach()
     for cls in reversed(classes()):

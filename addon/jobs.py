@@ -34,6 +34,7 @@ import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 from ..core.errors import Cancelled, CityError
 from ..core.pipeline import Executor, RunContext, Workspace, run_stages
@@ -219,7 +220,7 @@ _active: Job | None = None
 
 
 def active_job() -> Job | None:
-    """The job started last, while it has not been drained to its end."""
+    """The job started last, until its end has been handled."""
     return _active
 
 
@@ -230,7 +231,7 @@ def start_job(ws_root: str | Path, stages: list[str] | None, force: bool = False
     is given, which must then register them in the child itself. Raises :class:`CityError` for unknown stages, a missing
     block, or when another job is running."""
     global _active
-    if _active is not None and not _active.finished:
+    if _active is not None and not _active.finished and not drain(_active, SimpleNamespace()):
         raise CityError("another Oblique City job is running (cancel it first)")
     ws = Workspace.open(ws_root)
     if not ws.has_block():
@@ -248,6 +249,13 @@ def start_job(ws_root: str | Path, stages: list[str] | None, force: bool = False
     job.start()
     _active = job
     return job
+
+
+def cancel_active() -> None:
+    """Cancel the active job, if it is running (when Blender loads another file or the add-on is disabled, the
+    operator that would have drained it is gone)."""
+    if _active is not None and not _active.finished:
+        _active.cancel()
 
 
 def forget_job(job: Job) -> None:

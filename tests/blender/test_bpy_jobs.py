@@ -173,3 +173,28 @@ def test_no_workspace_is_an_error_report(addon):
     with pytest.raises(RuntimeError, match="no workspace"):
         bpy.ops.city.run_stages(stages="count")
 
+
+
+def test_an_undrained_finished_job_does_not_block_the_next(ws):
+    from oblique_city.addon import jobs
+
+    first = jobs.start_job(ws.root, ["count"], mode="thread")
+    first.thread.join(timeout=20)
+    assert not first.finished  # its end is still in the queue: nobody drained it
+    second = jobs.start_job(ws.root, ["count"], mode="thread", force=True)
+    assert first.finished and first.end.status == "done"
+    assert jobs.wait(second, new_state(), timeout_s=20).status == "done"
+
+
+def test_loading_a_file_cancels_the_running_job(addon, ws):
+    bpy = addon
+    from oblique_city.addon import jobs
+
+    slow(ws)
+    job = jobs.start_job(ws.root, ["count"], mode="thread")
+    state = new_state()
+    drain_until(job, state, lambda: state.fraction > 0.0)
+    bpy.ops.wm.read_homefile(app_template="")
+    assert job.ctx.cancelled  # set by the add-on's load_pre handler
+    drain_until(job, state, lambda: job.finished, timeout_s=5)
+    assert job.end.status == "cancelled"
