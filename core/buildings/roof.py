@@ -241,14 +241,24 @@ def topology(roof: RoofTopology, polygon: np.ndarray) -> RoofTopology:
         length = np.linalg.norm(d)
         d = d / length
         inward = np.array([-d[1], d[0]])  # counter-clockwise polygon: interior on the left
-        t = np.arange(c, length - c / 2, c / 2)
+        t = np.arange(0.0, length + c / 4, c / 2)
         if len(t) == 0:
             continue
         pts = p0 + t[:, None] * d + 1.5 * c * inward
         lab = roof.label_at(pts)
-        for k in range(1, len(lab)):
-            if lab[k] != lab[k - 1] and lab[k] > 0 and lab[k - 1] > 0:
-                arrises.append((i, (pts[k] + pts[k - 1]) / 2 - 1.5 * c * inward, int(lab[k - 1]), int(lab[k])))
+        # runs along the edge; single-sample runs are label flicker at a corner or a ridge end
+        runs: list[list[int]] = []
+        for k, v in enumerate(lab):
+            if runs and runs[-1][0] == v:
+                runs[-1][2] = k
+            else:
+                runs.append([int(v), k, k])
+        runs = [r for r in runs if r[0] > 0 and r[2] - r[1] + 1 >= 2]
+        for r, s in zip(runs, runs[1:]):
+            if r[0] != s[0]:
+                k = (r[2] + s[1] + 1) // 2
+                xy = (pts[min(k, len(pts) - 1)] + pts[max(k - 1, 0)]) / 2 - 1.5 * c * inward
+                arrises.append((i, xy, r[0], s[0]))
     roof.arrises = arrises
     return roof
 
@@ -276,8 +286,8 @@ def _boundary_offset(pa: np.ndarray, pb: np.ndarray, xy: np.ndarray) -> float:
 
 
 def merge_coplanar(roof: RoofTopology, xyz: np.ndarray, cfg: RoofConfig) -> RoofTopology:
-    """Merge neighbouring labels whose planes coincide (same normal within ``angle_deg``, no height gap along
-    their boundary) and refit the merged plane on the points of both."""
+    """Merge labels whose planes coincide (same normal within ``angle_deg``, heights within ``step_tol`` over
+    both regions), neighbours first, and refit the merged plane on the points of both."""
     L = roof.labels
     cos_t = np.cos(np.radians(cfg.angle_deg))
     while True:
@@ -287,6 +297,11 @@ def merge_coplanar(roof: RoofTopology, xyz: np.ndarray, cfg: RoofConfig) -> Roof
             for x, y in zip(a_[m], b_[m]):
                 pairs[(min(x, y), max(x, y))] = pairs.get((min(x, y), max(x, y)), 0) + 1
         best = None
+        labs = sorted(roof.planes)
+        for a in labs:  # coplanar groups that do not touch (a roof interrupted by a wing) share one plane too
+            for b in labs:
+                if a < b and (a, b) not in pairs:
+                    pairs[(a, b)] = 0
         for (a, b), _ in sorted(pairs.items(), key=lambda kv: -kv[1]):
             pa, pb = roof.planes[a], roof.planes[b]
             if pa[:3] @ pb[:3] < cos_t:

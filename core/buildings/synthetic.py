@@ -231,7 +231,7 @@ def _rect(u0, v0, u1, v1):
     return ((u0, v0), (u1, v0), (u1, v1), (u0, v1))
 
 
-def test_buildings() -> tuple[SyntheticBuilding, ...]:
+def parametric_buildings() -> tuple[SyntheticBuilding, ...]:
     """Gabled, hipped, flat, an L-shape, a two-part building with different eave heights, a stepped flat one."""
     return (
         SyntheticBuilding("gabled", (Part(0, 0, 12, 8, 6, 9, "gable_u", 0.6),), _rect(0, 0, 12, 8), (0.6,) * 4,

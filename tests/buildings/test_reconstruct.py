@@ -1,0 +1,82 @@
+"""Whole buildings: paths, closed solids, volumes, overhangs, the model file, detection and the stage."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from oblique_city.core.buildings.model import load_buildings, save_buildings
+from oblique_city.core.buildings.reconstruct import reconstruct_building, solid_check
+from oblique_city.core.errors import InputError
+from oblique_city.core.evaluate.buildings import BuildingTruth, score_building
+
+
+def _volume(b) -> float:
+    """True volume of a synthetic building (parts do not overlap in the volume cases used here)."""
+    v = 0.0
+    for p in b.parts:
+        area = (p.u1 - p.u0) * (p.v1 - p.v0)
+        v += area * p.eave + (area * (p.ridge - p.eave) / 2 if p.roof.startswith("gable") else 0.0)
+    return v
+
+
+@pytest.fixture(scope="module")
+def models(synthetic):
+    return {name: reconstruct_building(xyz, 0.0, dsm, f"B{i:04d}")
+            for i, (name, (b, xyz, dsm, _)) in enumerate(synthetic.items())}
+
+
+@pytest.mark.parametrize("name,path", [("gabled", "2d"), ("hipped", "2d"), ("flat", "2d"),
+                                       ("twopart", "volumetric"), ("stepped_flat", "volumetric")])
+def test_path_and_closed_solid(models, synthetic, name, path):
+    m = models[name]
+    assert m.path == path, m.reason
+    assert m.info["closed"], m.info["solid_problem"]
+    body = [list(s.ring) for s in m.surfaces if s.in_solid]
+    ok, vol, _ = solid_check(m.vertices, body)
+    assert ok
+    b = synthetic[name][0]
+    if name != "hipped":
+        assert vol == pytest.approx(_volume(b), rel=0.03)
+
+
+def test_volumetric_fallback_on_stepped_building_gives_the_step(models):
+    m = models["stepped_flat"]
+    roofs = [m.vertices[list(s.ring), 2].mean() for s in m.surfaces if s.kind == "roof"]
+    assert sorted(np.round(roofs, 0)) == [5.0, 10.0]
+    walls = [s for s in m.surfaces if s.kind == "wall"]
+    assert len(walls) >= 5  # four outer walls and the step wall between the two roofs
+
+
+def test_scores_against_truth(models, synthetic):
+    for name in ("gabled", "hipped", "lshape"):
+        s = score_building(BuildingTruth.from_synthetic(synthetic[name][0]), models[name])
+        assert s.corner_median < 0.1 and s.normal_median_deg < 1.0
+        assert max(s.overhang_errors) <= 0.2
+
+
+def test_overhang_surfaces_and_semantics(models):
+    m = models["gabled"]
+    kinds = {s.kind for s in m.surfaces}
+    assert {"ground", "wall", "roof", "overhang_roof", "overhang_fascia", "overhang_underside"} <= kinds
+    assert all(not s.in_solid for s in m.surfaces if s.kind.startswith("overhang"))
+    under = [s for s in m.surfaces if s.kind == "overhang_underside"]
+    for s in under:  # underside faces down
+        p = m.vertices[list(s.ring)]
+        c = p - p.mean(0)
+        assert np.cross(c, np.roll(c, -1, 0)).sum(0)[2] < 0
+    ids = [s.id for s in m.surfaces]
+    assert len(set(ids)) == len(ids)
+
+
+def test_model_file_round_trip_and_errors(models, tmp_path):
+    path = tmp_path / "buildings.json"
+    save_buildings(path, list(models.values()), "EPSG:25832")
+    back, crs = load_buildings(path)
+    assert crs == "EPSG:25832" and [b.id for b in back] == [m.id for m in models.values()]
+    assert np.array_equal(back[0].vertices, models["gabled"].vertices)
+    assert [s.ring for s in back[0].surfaces] == [s.ring for s in models["gabled"].surfaces]
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "oblique-city-buildings", "buildings": [{"id": "X"}]}')
+    with pytest.raises(InputError, match="bad.json"):
+        load_buildings(bad)
