@@ -166,7 +166,8 @@ class SimulationConfig:
 
     Attributes
     ----------
-    n_images : approximate total image count (5 per exposure); the block is made about square
+    n_images : approximate total image count (5 per exposure)
+    strips : number of flight strips (0: as many as make the block about square)
     flying_height : above the mean terrain, metres
     forward_overlap, side_overlap : of the nadir images
     tie_density : tie points per square metre of ground
@@ -180,6 +181,7 @@ class SimulationConfig:
     """
 
     n_images: int = 500
+    strips: int = 0
     flying_height: float = 1000.0
     forward_overlap: float = 0.8
     side_overlap: float = 0.6
@@ -229,7 +231,7 @@ def _flight_plan(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray]:
     base = (1.0 - cfg.forward_overlap) * cam.height * gsd
     spacing = (1.0 - cfg.side_overlap) * cam.width * gsd
     n_exp = max(4, int(round(cfg.n_images / 5)))
-    n_strips = max(2, int(round(np.sqrt(n_exp * base / spacing))))
+    n_strips = cfg.strips or max(2, int(round(np.sqrt(n_exp * base / spacing))))
     per_strip = max(2, int(round(n_exp / n_strips)))
     z = cfg.city.ground_z + cfg.flying_height
     centres, headings = [], []

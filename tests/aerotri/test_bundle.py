@@ -1,0 +1,87 @@
+"""Bundle adjustment engine on a simulated penta block: poses, sigma0, check points, blunders, datum shift,
+self-calibration."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from oblique_city.core.aerotri.bundle import BundleOptions, adjust
+from oblique_city.core.aerotri.problem import build_problem
+from oblique_city.core.evaluate.aerotri import blunder_scores, check_point_errors, rms_xy_z
+from oblique_city.core.geometry.rotations import rotation_angle
+
+
+def test_iat_recovers_poses_better_than_navigation(sim, iat):
+    ids = list(iat.poses)
+    assert len(ids) == len(sim.block.images)
+    err_adj = np.array([iat.poses[i].C - sim.true_poses[i].C for i in ids])
+    err_nav = np.array([sim.block.images[i].pose_approx.C - sim.true_poses[i].C for i in ids])
+    # the navigation carries a 6/4/10 cm datum offset plus noise; the adjustment removes the offset
+    assert np.sqrt(np.mean(err_adj**2)) < 0.6 * np.sqrt(np.mean(err_nav**2))
+    ang_adj = np.degrees([rotation_angle(iat.poses[i].R, sim.true_poses[i].R) for i in ids])
+    ang_nav = np.degrees([rotation_angle(sim.block.images[i].pose_approx.R, sim.true_poses[i].R) for i in ids])
+    assert np.median(ang_adj) < np.median(ang_nav)
+    assert np.median(ang_adj) < 0.004
+
+
+def test_sigma0_matches_simulated_noise(iat):
+    # sigma_px a priori is the simulated 0.3 px: the a posteriori factor must be 1 within 10 %
+    assert abs(iat.runs[0].result.sigma0 - 1.0) < 0.1
+
+
+def test_check_points_near_their_measurement_limit(sim, iat):
+    """Check points intersected from the adjusted orientations are about as good as from the true ones: the
+    remaining error is the check points' own 0.3 px measurement noise."""
+    _, e_adj = check_point_errors(sim.block, iat.poses)
+    _, e_true = check_point_errors(sim.block, sim.true_poses)
+    xy, z = rms_xy_z(e_adj)
+    xy_t, z_t = rms_xy_z(e_true)
+    assert len(e_adj) >= 20
+    assert xy < 0.3 * sim.gsd and xy < 1.5 * xy_t + 0.003
+    assert z < 1.5 * z_t + 0.005
+    _, e_nav = check_point_errors(sim.block, {i: im.pose_approx for i, im in sim.block.images.items()})
+    assert xy < 0.5 * rms_xy_z(e_nav)[0]
+
+
+def test_planted_blunders_are_found(sim, iat):
+    s = blunder_scores(sim.ties.obs_blunder, iat.obs_rejected)
+    assert s["planted"] > 300
+    assert s["recall"] >= 0.95
+    assert s["false_alarm"] <= 0.01
+
+
+def test_datum_shift_and_precision(sim, iat):
+    res = iat.runs[0].result
+    # the GNSS frame is offset by gnss_bias from the control frame: the shift is its negative
+    np.testing.assert_allclose(res.datum_shift, -np.array(sim.config.gnss_bias), atol=0.04)
+    # reported point precision agrees with the true errors (ratio of RMS within a factor 1.5)
+    rc = sim.ties.ray_counts()
+    ok = np.isfinite(iat.xyz[:, 0]) & (rc >= 5)
+    err = iat.xyz[ok] - sim.true_xyz[ok]
+    std = np.sqrt(np.abs(np.diagonal(iat.xyz_cov[ok], axis1=1, axis2=2)))
+    good = np.all(np.abs(err) < 5 * std + 0.05, 1)
+    assert good.mean() > 0.97
+    ratio = np.sqrt(np.mean(err[good] ** 2, 0)) / np.sqrt(np.mean(std[good] ** 2, 0))
+    assert np.all(ratio > 0.5) and np.all(ratio < 1.6), ratio
+
+
+def test_self_calibration_recovers_focal_length(sim, xyz0):
+    """The nadir camera's focal length is given 0.3 % too long; with focal self-calibration on the nadir images
+    the adjustment returns it within 0.05 %."""
+    block = sim.block
+    true_f = block.cameras["nadir"].fx
+    wrong = replace(block.cameras["nadir"], fx=true_f * 1.003, fy=true_f * 1.003)
+    saved = block.cameras["nadir"]
+    block.cameras["nadir"] = wrong
+    try:
+        nadir = [i for i, im in block.images.items() if im.view == "nadir"]
+        sub = build_problem(block, sim.ties, nadir, xyz0, obs_mask=~sim.ties.obs_blunder)
+        res = adjust(sub.problem, BundleOptions(sigma_px=0.3, self_calibration=("focal",),
+                                                max_rejection_rounds=1))
+    finally:
+        block.cameras["nadir"] = saved
+    cam = res.cameras[sub.problem.cameras.index(wrong)]
+    assert abs(cam.fx / true_f - 1.0) < 5e-4
+    assert abs(res.sigma0 - 1.0) < 0.15

@@ -1,0 +1,66 @@
+"""Hierarchical AT with connection points against the integrated adjustment; CBA selection; baselines."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from oblique_city.core.aerotri.hierarchical import hierarchical, nadir_propagation, select_connections
+from oblique_city.core.evaluate.aerotri import check_point_errors, rms_xy_z
+from oblique_city.core.geometry.rotations import rotation_angle
+from oblique_city.core.pipeline import Executor
+
+
+def test_hat_cba_agrees_with_iat(sim, xyz0, options, iat):
+    hat = hierarchical(sim.block, sim.ties, options, connection="cba", cell=50.0, xyz0=xyz0)
+    assert [r.name for r in hat.runs] == ["nadir", "north", "east", "south", "west"]
+    assert all(r.connection_count > 20 for r in hat.runs[1:])
+    assert set(hat.poses) == set(iat.poses)
+    xy_h, z_h = rms_xy_z(check_point_errors(sim.block, hat.poses)[1])
+    xy_i, z_i = rms_xy_z(check_point_errors(sim.block, iat.poses)[1])
+    assert xy_h < 1.3 * xy_i + 0.002 and z_h < 1.3 * z_i + 0.005
+    # multi-ray tie points agree to a fraction of the GSD, about their own standard deviation
+    rays = sim.ties.ray_counts()
+    d = np.linalg.norm(hat.xyz - iat.xyz, axis=1)[rays >= 5]
+    std = np.sqrt(np.abs(np.trace(iat.xyz_cov, axis1=1, axis2=2)))[rays >= 5]
+    assert np.nanmedian(d) < 0.25 * sim.gsd and np.nanpercentile(d, 90) < 0.6 * sim.gsd
+    assert np.nanmedian(d / std) < 1.5
+    # oblique orientations agree to a few thousandths of a degree
+    ang = [np.degrees(rotation_angle(hat.poses[i].R, iat.poses[i].R)) for i in iat.poses]
+    assert np.median(ang) < 0.003
+
+
+def test_hat_oblique_runs_in_worker_processes_give_the_same_result(sim, xyz0, options):
+    inline = hierarchical(sim.block, sim.ties, options, connection="10", xyz0=xyz0)
+    with Executor("processes", workers=2) as ex:
+        par = hierarchical(sim.block, sim.ties, options, connection="10", xyz0=xyz0, executor=ex)
+    for iid, p in inline.poses.items():
+        np.testing.assert_allclose(par.poses[iid].C, p.C, atol=1e-6)
+    assert [r.connection_count for r in par.runs] == [r.connection_count for r in inline.runs]
+
+
+def test_cba_picks_the_point_with_most_rays_per_cell():
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack([rng.uniform(0, 200, 500), rng.uniform(0, 100, 500), np.zeros(500)])
+    rays = rng.integers(2, 30, 500)
+    nadir = rng.integers(0, 12, 500)
+    cand = rng.random(500) < 0.8
+    sel = select_connections(xyz, cand, rays, nadir, "cba", 25.0)
+    ok = cand & (nadir >= 2)
+    cell = (xyz[:, 0] // 25).astype(int) * 100 + (xyz[:, 1] // 25).astype(int)
+    for c in np.unique(cell[ok]):
+        members = np.flatnonzero(ok & (cell == c))
+        chosen = np.flatnonzero(sel & (cell == c))
+        assert len(chosen) == 1 and rays[chosen[0]] == rays[members].max()
+    assert not (sel & ~ok).any()
+    k5 = select_connections(xyz, cand, rays, nadir, "5", 25.0)
+    np.testing.assert_array_equal(k5, cand & (nadir >= 5))
+
+
+def test_nadir_propagation_is_exact_for_rigid_heads(sim):
+    """The simulator's navigation errors are per exposure (rigid heads): propagating the true nadir
+    orientations to the other heads of each exposure gives their true orientations."""
+    nadir = {i: sim.true_poses[i] for i, im in sim.block.images.items() if im.head == "nadir"}
+    out = nadir_propagation(sim.block, nadir)
+    for iid, p in out.items():
+        np.testing.assert_allclose(p.R, sim.true_poses[iid].R, atol=1e-9)
+        np.testing.assert_allclose(p.C, sim.true_poses[iid].C, atol=1e-6)
