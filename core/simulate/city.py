@@ -696,6 +696,10 @@ class City:
     """Radius of the white disc of a signalised target, metres (on a 1.6 m black square)."""
     TARGET_HALF = 0.8
 
+    def __getstate__(self) -> dict:
+        """Pickle without the Open3D scene (rebuilt on demand in the receiving process)."""
+        return {**self.__dict__, "_scene": None}
+
     def terrain_z(self, xy_world: np.ndarray) -> np.ndarray:
         """The known DTM: terrain height at world points ``(n, 2)`` -> ``(n,)`` (NaN outside)."""
         return self.terrain.z(np.atleast_2d(xy_world)[:, :2] - self.origin[:2])
