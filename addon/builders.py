@@ -1,10 +1,12 @@
 """Builders: workspace results -> Blender objects, one small function per stage, in a registry.
 
 A builder is ``builder(scene, ws) -> str``: it (re)creates the objects of one stage's results in that stage's own
-collection under the scene's "Oblique City" collection and returns a one-line summary. :data:`BUILDERS` maps a
-stage name to its builder; ``block`` is the imported block (cameras and ground points). Later stages add theirs
-with :func:`register_builder` (point clouds, DSM, buildings, ...); "Build Scene from Workspace" and the end of a
-job run every builder whose stage has finished, so new layers appear without touching the operators.
+collection under the scene's "Oblique City" collection (:func:`.scene_tree.layer_collection`) and returns a
+one-line summary. :data:`BUILDERS` maps a stage name to its builder; ``block`` is the imported block (cameras and
+ground points, also rebuilt after ``aerotri`` with the adjusted orientations); :mod:`.layers` has the dense
+points and the DSM. Later stages add theirs with :func:`register_builder` (buildings, textures, ...); "Build Scene
+from Workspace" and the end of a job run every builder whose stage has finished, so new layers appear without
+touching the operators.
 
 All positions go through :mod:`.georef` (objects at ``world - origin``).
 """
@@ -19,7 +21,8 @@ from ..core.geometry.views import VIEWS
 from ..core.model import ImageBlock
 from ..core.pipeline import Workspace
 from ..core.pipeline.registry import stage_names
-from . import backgrounds, cameras, georef
+from . import backgrounds, cameras, georef, layers
+from .scene_tree import child_collection, layer_collection
 
 Builder = Callable[..., str]
 """``builder(scene, ws) -> summary``."""
@@ -27,8 +30,6 @@ Builder = Callable[..., str]
 BUILDERS: dict[str, Builder] = {}
 """Stage name (or ``block``) -> builder."""
 
-ROOT_NAME = "Oblique City"
-ROLE_KEY = "oc_role"
 CLIP_END_M = 20000.0
 
 
@@ -41,50 +42,13 @@ def unregister_builder(stage: str) -> None:
     BUILDERS.pop(stage, None)
 
 
-# --- collections -----------------------------------------------------------------------------------------
-def _child(parent, role: str, name: str):
-    for c in parent.children:
-        if c.get(ROLE_KEY) == role:
-            return c
-    import bpy
-
-    c = bpy.data.collections.new(name)
-    c[ROLE_KEY] = role
-    parent.children.link(c)
-    return c
-
-
-def root_collection(scene):
-    """The scene's "Oblique City" collection (created on first use)."""
-    return _child(scene.collection, "root", ROOT_NAME)
-
-
-def stage_collection(scene, role: str, name: str, clear: bool = True):
-    """The collection of one layer (``role``) under the root; with ``clear`` its objects and sub-collections are
-    deleted first, so a builder always rebuilds from scratch."""
-    coll = _child(root_collection(scene), role, name)
-    if clear:
-        _clear(coll)
-    return coll
-
-
-def _clear(coll) -> None:
-    import bpy
-
-    for child in list(coll.children):
-        _clear(child)
-        bpy.data.collections.remove(child)
-    datas = {obj.data for obj in coll.objects if obj.data is not None}
-    bpy.data.batch_remove(list(coll.objects))
-    bpy.data.batch_remove([d for d in datas if d.users == 0])
-
-
+# --- the block: cameras and ground points ----------------------------------------------------------------
 def view_collection(scene, view: str):
     """The camera collection of one cardinal view (under the block's collection)."""
-    return _child(stage_collection(scene, "block", "Block", clear=False), "view:" + view, f"Cameras {view}")
+    return child_collection(layer_collection(scene, "block", "Block", clear=False), "view:" + view,
+                            f"Cameras {view}")
 
 
-# --- the block: cameras and ground points ----------------------------------------------------------------
 def build_cameras(scene, block: ImageBlock, ws_root=None) -> dict[str, object]:
     """One camera object per oriented image, in one collection per cardinal view. Returns image id -> object.
 
@@ -95,7 +59,7 @@ def build_cameras(scene, block: ImageBlock, ws_root=None) -> dict[str, object]:
     centres = np.array([img.pose.C for img in block.images.values() if img.pose is not None]).reshape(-1, 3)
     gcps = np.array([g.xyz for g in block.ground_points.values() if g.xyz is not None]).reshape(-1, 3)
     georef.ensure_georef(scene, block.crs, np.concatenate([centres, gcps]))
-    stage_collection(scene, "block", "Block", clear=True)
+    layer_collection(scene, "block", "Block", clear=True)
     extent = float(np.ptp(centres[:, :2], axis=0).max()) if len(centres) > 1 else 100.0
     objects: dict[str, object] = {}
     for view in VIEWS:
@@ -130,7 +94,7 @@ def build_ground_points(scene, block: ImageBlock) -> dict[str, object]:
     points = [g for g in block.ground_points.values() if g.xyz is not None and np.all(np.isfinite(g.xyz))]
     if not points:
         return {}
-    coll = _child(stage_collection(scene, "block", "Block", clear=False), "ground_points", "Ground points")
+    coll = child_collection(layer_collection(scene, "block", "Block", clear=False), "ground_points", "Ground points")
     out = {}
     for g in points:
         obj = bpy.data.objects.new(g.name, None)
@@ -164,6 +128,8 @@ def build_block(scene, ws: Workspace) -> str:
 
 register_builder("block", build_block)
 register_builder("aerotri", build_block)
+register_builder("dense", layers.build_dense_points)
+register_builder("surface", layers.build_surface)
 
 
 # --- the whole scene -------------------------------------------------------------------------------------

@@ -136,10 +136,10 @@ def test_run_operator_builds_the_stage_layer(addon, ws):
     """``city.run_stages`` (EXEC, as from a script) runs the job, and the main thread then runs the builder
     registered for the stage."""
     bpy = addon
-    from oblique_city.addon import builders
+    from oblique_city.addon import builders, scene_tree
 
     def build_count(scene, w):
-        coll = builders.stage_collection(scene, "count", "Count")
+        coll = scene_tree.layer_collection(scene, "count", "Count")
         obj = bpy.data.objects.new("count-marker", None)
         obj["steps"] = w.read_state()["count"]["metrics"]["steps"]
         coll.objects.link(obj)
