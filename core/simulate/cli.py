@@ -35,7 +35,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
           f"{s['views']}) at GSD {s['gsd_m']:.3f} m from {s['flying_height_m']:.0f} m; "
           f"{s['ground_points']} ground points")
     print(f"rendered in {s['render_seconds']:.1f} s = {s['images_per_second']:.2f} images/s with {s['workers']} "
-          f"worker(s) on {s['cpu_count']} CPUs (shared machine: other jobs may slow this); total "
+          f"worker(s) on {s['cpu_count']} CPUs ({s['render_cpu_seconds']:.0f} CPU s; load average "
+          f"{s['load_average_1min']:.1f}: other jobs on the machine slow the wall time); total "
           f"{s['total_seconds']:.1f} s -> {args.out}")
     if args.verbose:
         print(json.dumps(s, indent=1))

@@ -188,9 +188,11 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
     depth_folder = str(out / "truth") if cfg.depth_maps else None
     jobs = [(img.id, truth.camera_of(img), img.pose_approx, img.head, cfg.seed * 100003 + k,
              str(out / img.file), cfg.jpeg_quality, depth_folder) for k, img in enumerate(truth.images.values())]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), os.times()
     done = render_images(city, jobs, cfg.render, cfg.workers, progress)
-    t_render = time.perf_counter() - t0
+    t_render, c1 = time.perf_counter() - t0, os.times()
+    cpu_render = (c1.user + c1.system + c1.children_user + c1.children_system
+                  - c0.user - c0.system - c0.children_user - c0.children_system)
 
     write_block("bex", approx, out / "block.xml")
     native.write_block(approx, out / "block.json")
@@ -205,10 +207,17 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
     rgb, _ = renderer.render(cam, pose, "nadir", seed=1)
     with atomic_path(preview / "city_overview.png") as tmp:
         cv2.imwrite(tmp, rgb[:, :, ::-1])
-    centre = np.array([0.5 * (area[0] + area[2]), 0.5 * (area[1] + area[3]), ground_z])
+    from ..geometry.projection import project
+
+    b_xyz = np.array([[*b.center, b.ground_z + 3.0] for b in city.buildings])
     for head in nominal.heads:
         imgs = [i for i in truth.images.values() if i.head == head.name]
-        best = min(imgs, key=lambda i: np.linalg.norm(np.cross(i.pose_approx.R[2], centre - i.pose_approx.C)))
+
+        def seen(i, b_xyz=b_xyz):
+            uv, d = project(truth.camera_of(i), i.pose_approx, b_xyz)
+            return int(np.sum((d > 0) & truth.camera_of(i).contains(np.nan_to_num(uv, nan=-1e9), margin=50)))
+
+        best = max(imgs, key=seen)
         pic = cv2.imread(str(out / best.file))
         with atomic_path(preview / f"head_{head.name}.png") as tmp:
             cv2.imwrite(tmp, pic)
@@ -222,6 +231,7 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
         "images": len(truth.images), "exposures": len(exposures), "megapixels": n_px / 1e6,
         "flying_height_m": h, "gsd_m": cfg.gsd, "views": views, "ground_points": len(approx.ground_points),
         "render_seconds": t_render, "images_per_second": len(done) / max(t_render, 1e-9),
+        "render_cpu_seconds": cpu_render, "load_average_1min": os.getloadavg()[0],
         "plan_seconds": t_plan, "workers": cfg.workers, "cpu_count": os.cpu_count(),
         "coverage_median_per_view": {v: float(np.median(cov_flat[:, k])) for k, v in
                                      enumerate(("nadir", "north", "east", "south", "west"))},
