@@ -198,3 +198,55 @@ def test_loading_a_file_cancels_the_running_job(addon, ws):
     assert job.ctx.cancelled  # set by the add-on's load_pre handler
     drain_until(job, state, lambda: job.finished, timeout_s=5)
     assert job.end.status == "cancelled"
+
+
+class FakeWindowManager:
+    """The real window manager's job state, with the window-only calls (timers, cursor progress) recorded."""
+
+    def __init__(self, wm):
+        self.oblique_city_job = wm.oblique_city_job
+        self.calls = []
+
+    def progress_update(self, value):
+        self.calls.append(("progress", value))
+
+    def progress_end(self):
+        self.calls.append(("progress_end",))
+
+    def event_timer_remove(self, timer):
+        self.calls.append(("timer_remove", timer))
+
+
+@pytest.mark.parametrize("cancel", [False, True])
+def test_modal_handler_drains_cancels_and_finishes(addon, ws, cancel):
+    """The modal operator's handler, fed timer and Esc events as Blender would (modal events do not fire
+    headless): it only drains the queue, Esc cancels, and the end is handled on this (the main) thread."""
+    bpy = addon
+    from oblique_city.addon import jobs
+    from oblique_city.operators.run import CITY_OT_run_stages
+
+    slow(ws, steps=400 if cancel else 5, sleep_s=0.02 if cancel else 0.0)
+    wm = FakeWindowManager(bpy.context.window_manager)
+    context = SimpleNamespace(scene=bpy.context.scene, window_manager=wm, workspace=None, screen=None)
+    reports = []
+    op = SimpleNamespace(_job=jobs.start_job(ws.root, ["count"], mode="subprocess", launcher=LAUNCHER),
+                         _timer="timer", report=lambda kind, msg: reports.append((kind, msg)))
+    timer = SimpleNamespace(type="TIMER", value="NOTHING")
+    assert CITY_OT_run_stages.modal(op, context, SimpleNamespace(type="MOUSEMOVE", value="NOTHING")) == \
+        {"PASS_THROUGH"}
+    t0 = time.monotonic()
+    result = CITY_OT_run_stages.modal(op, context, timer)
+    while result == {"PASS_THROUGH"}:
+        assert time.monotonic() - t0 < 30
+        if cancel and wm.oblique_city_job.fraction > 0.0 and not op._job.cancel_time:
+            assert CITY_OT_run_stages.modal(op, context, SimpleNamespace(type="ESC", value="PRESS")) == \
+                {"RUNNING_MODAL"}
+        time.sleep(0.02)
+        result = CITY_OT_run_stages.modal(op, context, timer)
+    assert result == ({"CANCELLED"} if cancel else {"FINISHED"})
+    assert ("timer_remove", "timer") in wm.calls and wm.calls[-1] == ("progress_end",)
+    if cancel:  # Esc came after some progress had been shown
+        assert any(c[0] == "progress" and 0.0 < c[1] < 1.0 for c in wm.calls)
+    assert jobs.active_job() is None
+    assert reports[-1][0] == ({"WARNING"} if cancel else {"INFO"})
+    assert ws.read_state()["count"]["status"] == ("cancelled" if cancel else "done")
