@@ -17,10 +17,12 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..core.errors import CityError
 from ..core.geometry.views import VIEWS
 from ..core.model import ImageBlock
 from ..core.pipeline import Workspace
 from ..core.pipeline.registry import stage_names
+from ..core.pipeline.runner import is_up_to_date
 from . import backgrounds, cameras, georef, layers
 from .scene_tree import child_collection, layer_collection
 
@@ -116,9 +118,22 @@ def show_first_camera(scene, objects: dict[str, object]) -> None:
     cameras.apply_render_settings(scene, (nadir or list(objects.values()))[0])
 
 
+def adjusted_is_current(ws: Workspace) -> bool:
+    """Whether ``aerotri`` finished on the block that is imported now (a block imported after the adjustment
+    makes the adjusted one stale: it is then not shown)."""
+    state = ws.read_state()
+    if state.get("aerotri", {}).get("status") != "done":
+        return False
+    try:
+        return is_up_to_date(ws, "aerotri", state)
+    except (CityError, ImportError):  # the stage is not registered or cannot load here
+        return False
+
+
 def build_block(scene, ws: Workspace) -> str:
-    """Builder of the block (adjusted orientations when aerial triangulation has run)."""
-    block = ws.load_block()
+    """Builder of the block: the adjusted orientations when aerial triangulation is up to date, else the
+    imported ones."""
+    block = ws.load_block(adjusted=adjusted_is_current(ws))
     objects = build_cameras(scene, block, ws.root)
     points = build_ground_points(scene, block)
     show_first_camera(scene, objects)

@@ -93,7 +93,9 @@ def set_pose(scene, cam_obj, pose: Pose) -> None:
 
 
 def pose_of(scene, cam_obj) -> Pose:
-    """The world pose of a camera object (inverse of :func:`set_pose`), float64, from its world matrix."""
+    """The world pose of a camera object (inverse of :func:`set_pose`), float64, from its world matrix (which
+    Blender updates when the depsgraph is evaluated: call ``view_layer.update()`` in a script that has just
+    moved the object)."""
     m = np.array(cam_obj.matrix_world, dtype=np.float64)
     world_from_photo = m[:3, :3] / np.linalg.norm(m[:3, :3], axis=0)
     r_cam_from_world = FLIP_YZ @ orthonormalize(world_from_photo).T

@@ -93,7 +93,8 @@ def local_to_world(scene, xyz_local: np.ndarray) -> np.ndarray:
 
 
 def object_location_world(scene, obj) -> np.ndarray:
-    """The world position of an object's origin (its evaluated ``matrix_world`` translation), (3,) float64."""
+    """The world position of an object's origin (its ``matrix_world`` translation, current once the depsgraph
+    has been evaluated), (3,) float64."""
     return local_to_world(scene, np.array(obj.matrix_world.translation, dtype=np.float64))
 
 

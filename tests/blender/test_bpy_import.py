@@ -159,3 +159,50 @@ def test_opk_operator_fields(addon, tmp_path, utm_block):
     assert points == {"P0": "control", "P1": "check"}
     block = Workspace.open(tmp_path / "ws2").load_block()
     assert sum(len(g.observations) for g in block.ground_points.values()) == n_obs
+
+
+def test_adjusted_orientations_only_while_current(addon, tmp_path, utm_block):
+    """After aerial triangulation the cameras show the adjusted poses; a block imported later makes them stale,
+    and the cameras then show the new imported poses."""
+    import copy
+    from dataclasses import dataclass
+
+    bpy = addon
+    from oblique_city.addon import builders, cameras
+    from oblique_city.core.model import Pose
+    from oblique_city.core.pipeline import Stage, StageResult, Workspace
+    from oblique_city.core.pipeline.registry import register, unregister
+    from oblique_city.core.pipeline.runner import fingerprint
+    from oblique_city.core.pipeline.workspace import ADJUSTED_BLOCK_FILE
+
+    @dataclass(frozen=True)
+    class NoConfig:
+        pass
+
+    register(Stage("aerotri", run=lambda ws, cfg, ctx: StageResult(), config=NoConfig))
+    try:
+        ws = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
+        ws.save_block(utm_block)
+        adjusted = copy.deepcopy(utm_block)
+        for img in adjusted.images.values():
+            img.pose_adjusted = Pose(img.pose_approx.R, img.pose_approx.C + [1.0, 0.0, 0.0])
+        ws.save_block(adjusted, ADJUSTED_BLOCK_FILE)
+        ws.write_state({"aerotri": {"status": "done", "fingerprint": fingerprint(ws, "aerotri", {}),
+                                    "outputs": [ADJUSTED_BLOCK_FILE]}})
+        scene = bpy.context.scene
+
+        def centre(image_id):
+            bpy.context.view_layer.update()  # matrix_world of objects created by a script
+            return cameras.pose_of(scene, bpy.data.objects[image_id]).C
+
+        builders.build_scene(scene, ws)
+        assert np.abs(centre("img0") - adjusted.images["img0"].pose.C).max() < 1e-3
+
+        moved = copy.deepcopy(utm_block)
+        moved.images["img0"].pose_approx = Pose(moved.images["img0"].pose_approx.R,
+                                                moved.images["img0"].pose_approx.C + [0.0, 5.0, 0.0])
+        ws.save_block(moved)
+        builders.build_scene(scene, ws)
+        assert np.abs(centre("img0") - moved.images["img0"].pose_approx.C).max() < 1e-3
+    finally:
+        unregister("aerotri")
