@@ -23,3 +23,9 @@ extension: setup
 
 clean:
 	rm -rf build dist demo .pytest_cache .setup-stamp
+
+bench-at:
+	$(PYTHON) benchmarks/bench_at.py $(ARGS)
+
+bench-buildings:
+	$(PYTHON) benchmarks/bench_buildings.py $(ARGS)

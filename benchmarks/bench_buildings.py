@@ -1,0 +1,166 @@
+"""LOD2 building benchmark on the simulated city: (a) ground-truth point clouds with noise, (b) our dense cloud.
+
+    python benchmarks/bench_buildings.py                          # (a) on make_city(0); (b) if --workspace given
+    python benchmarks/bench_buildings.py --workspace demo/workspace
+    make bench-buildings ARGS="--workspace demo/workspace"
+
+(a) samples the simulator's ground-truth mesh at one point per GSD^2 where a nadir or 45-degree oblique view sees
+it, adds Gaussian noise (``--noise``, in GSD), grids the DSM with the surface stage's ``make_dsm`` and takes the
+DTM from the simulator's terrain; detection uses the nDSM and the roughness test (no masks). (b) reads a workspace
+where the ``dense`` and ``surface`` stages ran on the simulated block of the same city (``dense/points.npz``,
+``surface/*.tif``) and runs the ``buildings`` stage's detection (with the surface stage's masks) and
+reconstruction on it.
+
+Per building and overall: outline corner deviation against the true footprint (median and mean, m and GSD), roof
+plane normal error, overhang width error (m and DSM pixels), closed valid solid, path (2D or volumetric) and why,
+time per building. Buildings that failed or were not detected are listed with the reason. Tables are printed
+and written as JSON (``--out``, default ``build/bench_buildings.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT.parent) not in sys.path:
+    sys.path.insert(0, str(ROOT.parent))
+
+from oblique_city.core.buildings.detect import DetectConfig, building_labels, points_per_building  # noqa: E402
+from oblique_city.core.buildings.reconstruct import ReconstructionConfig, reconstruct_building  # noqa: E402
+from oblique_city.core.buildings.synthetic import city_point_cloud  # noqa: E402
+from oblique_city.core.evaluate.buildings import BuildingTruth, match_truth, score_building, summary  # noqa: E402
+from oblique_city.core.simulate.city import make_city  # noqa: E402
+from oblique_city.core.surface.dsm import DsmConfig, GridSpec, make_dsm  # noqa: E402
+
+TARGETS = {"corner_median_gsd": 2.0, "normal_median_deg": 3.0, "overhang_px": 2.0, "closed_share": 0.9,
+           "seconds": 5.0}
+
+
+def run_case(name: str, xyz: np.ndarray, dsm, dtm, truths: list[BuildingTruth], gsd: float,
+             masks: tuple | None = None) -> dict:
+    """Detect, reconstruct and score every building of one point cloud."""
+    t0 = time.perf_counter()
+    bm, vm = masks if masks else (None, None)
+    labels, n, stats = building_labels(dsm, dtm, DetectConfig(), bm, vm)
+    dets = points_per_building(xyz, labels, dsm, dtm)
+    t_detect = time.perf_counter() - t0
+    scores, failures, matched = [], [], set()
+    for d in dets:
+        bid = f"B{d.label:04d}"
+        try:
+            m = reconstruct_building(xyz[d.indices], d.ground_z, dsm, bid, ReconstructionConfig())
+        except ValueError as e:
+            c = xyz[d.indices, :2].mean(0)
+            failures.append({"id": bid, "at": c.round(1).tolist(), "reason": f"reconstruction failed: {e}"})
+            continue
+        ti = match_truth(m, truths)
+        if ti is None:
+            failures.append({"id": bid, "at": m.footprint.mean(0).round(1).tolist(),
+                             "reason": "no true building here (false detection)"})
+            continue
+        if ti in matched:
+            failures.append({"id": bid, "truth": truths[ti].name,
+                             "reason": "second detection of a building already reconstructed (split)"})
+            continue
+        matched.add(ti)
+        scores.append(score_building(truths[ti], m))
+    for i, t in enumerate(truths):
+        if i not in matched:
+            failures.append({"truth": t.name, "reason": "not detected / not reconstructed"})
+    summ = summary(scores, len(truths))
+    summ.update(detect_seconds=t_detect, detection=stats, gsd=gsd, dsm_cell=dsm.cell)
+    return {"case": name, "summary": summ, "buildings": [s.to_dict() for s in scores], "failures": failures}
+
+
+def print_case(res: dict) -> None:
+    s = res["summary"]
+    gsd, px = s["gsd"], s["dsm_cell"]
+    print(f"\n=== {res['case']} (GSD {gsd:.3f} m, DSM cell {px:.3f} m) ===")
+    hdr = (f"{'building':20s} {'path':10s} {'closed':6s} {'corner med/mean m':>18s} {'(GSD)':>7s} "
+           f"{'normal med/max deg':>19s} {'overhang err m':>15s} {'(px)':>6s} {'time s':>7s}  reason")
+    print(hdr)
+    print("-" * len(hdr))
+    for b in res["buildings"]:
+        oh = b["overhang_median"]
+        print(f"{b['name']:20s} {b['path']:10s} {'yes' if b['closed'] else 'NO':6s} "
+              f"{b['corner_median']:8.2f}/{b['corner_mean']:<8.2f} {b['corner_median'] / gsd:7.1f} "
+              f"{b['normal_median_deg']:9.2f}/{b['normal_max_deg']:<8.2f} {oh:15.2f} {oh / px:6.1f} "
+              f"{b['seconds']:7.2f}  {b['reason'][:70]}")
+    print("-" * len(hdr))
+    cm, nm, om = s["corner_median_of_medians"], s["normal_median_deg"], s["overhang_median_error"]
+
+    def f(v, k=1.0):
+        return "n/a" if v is None else f"{v * k:.2f}"
+
+    print(f"overall: corner median {f(cm)} m = {f(cm, 1 / gsd)} GSD (target <= {TARGETS['corner_median_gsd']}), "
+          f"corner mean {f(s['corner_mean_of_means'])} m; normal median {f(nm)} deg "
+          f"(target <= {TARGETS['normal_median_deg']}); overhang median {f(om)} m = {f(om, 1 / px)} px, "
+          f"p90 {f(s['overhang_p90_error'])} m (target <= {TARGETS['overhang_px']} px)")
+    print(f"closed valid solids {s['closed_share']:.0%} of reconstructed, {s['closed_share_of_true']:.0%} of true "
+          f"(target >= {TARGETS['closed_share']:.0%}); paths {s['paths']}; time per building median "
+          f"{f(s['seconds_median'])} s, max {f(s['seconds_max'])} s (target <= {TARGETS['seconds']} s); "
+          f"detection {s['detect_seconds']:.1f} s")
+    if res["failures"]:
+        print("failures:")
+        for fl in res["failures"]:
+            print("  ", json.dumps(fl))
+
+
+def case_ground_truth(seed: int, gsd: float, noise_gsd: float, truths, city) -> dict:
+    density = 1.0 / gsd ** 2
+    xyz, _ = city_point_cloud(city, density, noise_gsd * gsd, seed=seed, area=tuple(city.core))
+    grid = GridSpec.around(*city.core, gsd)
+    dsm, _ = make_dsm(grid, xyz, city.crs, DsmConfig(cell=gsd))
+    X, Y = grid.centers()
+    dtm = grid.raster(city.terrain_z(np.column_stack([X.ravel(), Y.ravel()])).reshape(X.shape), city.crs)
+    name = f"(a) ground-truth mesh sampled at {density:.0f} pts/m2, noise {noise_gsd * gsd:.3f} m"
+    return run_case(name, xyz, dsm, dtm, truths, gsd)
+
+
+def case_workspace(ws_path: Path, truths) -> dict:
+    from oblique_city.core.io.geotiff import read_geotiff
+
+    with np.load(ws_path / "dense" / "points.npz") as z:
+        xyz = z["xyz"][z["removed"] == 0].astype(np.float64)
+    dsm = read_geotiff(ws_path / "surface" / "dsm.tif")
+    dtm = read_geotiff(ws_path / "surface" / "dtm.tif")
+    bm = read_geotiff(ws_path / "surface" / "buildings.tif").data > 0
+    vm = read_geotiff(ws_path / "surface" / "vegetation.tif").data > 0
+    state = json.loads((ws_path / "state.json").read_text())
+    gsd = float(state.get("surface", {}).get("metrics", {}).get("cell", dsm.cell))
+    name = f"(b) our dense cloud {ws_path} ({len(xyz)} points)"
+    return run_case(name, xyz, dsm, dtm, truths, gsd, masks=(bm, vm))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0, help="city seed (the simulator's default block uses 0)")
+    ap.add_argument("--gsd", type=float, default=0.155, help="GSD of case (a), m (the simulator's default)")
+    ap.add_argument("--noise", type=float, default=0.5, help="noise of case (a) in GSD")
+    ap.add_argument("--workspace", help="workspace with dense + surface outputs of the simulated block (case b)")
+    ap.add_argument("--out", default=str(ROOT / "build" / "bench_buildings.json"))
+    args = ap.parse_args()
+    city = make_city(args.seed)
+    truths = [BuildingTruth.from_city(b) for b in city.buildings]
+    results = [case_ground_truth(args.seed, args.gsd, args.noise, truths, city)]
+    print_case(results[0])
+    if args.workspace:
+        results.append(case_workspace(Path(args.workspace), truths))
+        print_case(results[-1])
+    else:
+        print("\n(b) our dense cloud: not run (no --workspace with dense and surface outputs given)")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"targets": TARGETS, "cases": results}, indent=1, default=float))
+    print(f"\nwritten {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
