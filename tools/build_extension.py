@@ -40,8 +40,17 @@ EXCLUDED_DEPENDENCIES = {"numpy", "bpy"}
 """Not bundled: Blender ships numpy; bpy is Blender itself."""
 PLATFORMS = ["manylinux2014_x86_64"] + [f"manylinux_2_{v}_x86_64" for v in (17, 24, 27, 28, 31, 34, 35)]
 """pip tags accepted for Blender's ``linux-x64`` (glibc 2.35 and older, like Blender's own build baseline)."""
-COPY_IGNORE = shutil.ignore_patterns(".git", "build", "dist", "wheels", "wheels_cache", "demo", "__pycache__",
-                                     "*.egg-info", ".pytest_cache", ".ruff_cache", "*.blend1")
+TOP_LEVEL_SKIP = {".git", ".ci", "build", "dist", "wheels", "wheels_cache", "demo", "tests", "benchmarks", "tools"}
+"""Top-level folders never copied into the build tree (the manifest's ``paths_exclude_pattern`` drops them from
+the zip anyway; not copying them keeps test data and outputs from slowing the build)."""
+ANYWHERE_SKIP = shutil.ignore_patterns("__pycache__", "*.egg-info", ".pytest_cache", ".ruff_cache", "*.blend1")
+
+
+def _copy_ignore(folder: str, names: list[str]) -> set[str]:
+    skip = set(ANYWHERE_SKIP(folder, names))
+    if Path(folder).resolve() == REPO:
+        skip |= TOP_LEVEL_SKIP & set(names)
+    return skip
 
 
 def blender_cli() -> tuple[Path, Path]:
@@ -122,7 +131,7 @@ def stage_source(build_dir: Path, wheels: list[Path]) -> Path:
     src = build_dir / "oblique_city"
     if src.exists():
         shutil.rmtree(src)
-    shutil.copytree(REPO, src, ignore=COPY_IGNORE)
+    shutil.copytree(REPO, src, ignore=_copy_ignore)
     if wheels:
         (src / "wheels").mkdir()
         for w in wheels:
