@@ -109,9 +109,11 @@ class ThreadJob(Job):
         self.thread.start()
 
     def _run(self) -> None:
-        ex = Executor(self.executor.mode, workers=self.executor.workers, address=self.executor.scheduler or None)
-        self.ctx.executor = ex
+        ex = None
         try:
+            ex = Executor(self.executor.mode, workers=self.executor.workers,
+                          address=self.executor.scheduler or None)
+            self.ctx.executor = ex
             records = run_stages(Workspace.open(self.ws_root), self.stages, self.ctx, force=self.force)
         except Cancelled as e:
             self._put_end("cancelled", str(e))
@@ -122,7 +124,8 @@ class ThreadJob(Job):
         else:
             self._put_end("done", "; ".join(f"{r.name} {r.status} ({r.seconds:.1f} s)" for r in records))
         finally:
-            ex.close()
+            if ex is not None:
+                ex.close()
 
     def cancel(self) -> None:
         self.ctx.cancel()
@@ -236,7 +239,10 @@ def start_job(ws_root: str | Path, stages: list[str] | None, force: bool = False
     ws = Workspace.open(ws_root)
     if not ws.has_block():
         raise CityError(f"{ws.root}: no block imported yet")
-    planned = plan(stages)
+    try:
+        planned = plan(stages)
+    except ImportError as e:  # a registered stage whose module or dependencies are missing
+        raise CityError(f"a stage cannot be loaded: {e}") from e
     if not planned:
         raise CityError("no stages are registered yet")
     runtime_only = set(stage_names()) - set(STAGE_MODULES)
