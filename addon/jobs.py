@@ -197,14 +197,15 @@ class SubprocessJob(Job):
         code = self.proc.wait()
         for t in readers:
             t.join()
+        said = [s.removeprefix("oblique-city: ").removeprefix("error: ") for s in self.stderr_lines
+                if s.startswith("oblique-city:")]  # the CLI's one-line messages
         if code == 0:
             self._put_end("done", "; ".join(" ".join(s.split()[:4]) for s in self.stdout_lines))
         elif code == 130 or self.cancel_time is not None:
-            self._put_end("cancelled", "cancelled")
+            self._put_end("cancelled", said[-1] if said else "cancelled")
         else:
-            errors = [s for s in self.stderr_lines if s.startswith("oblique-city:")]
-            last = errors[-1] if errors else (self.stderr_lines[-1] if self.stderr_lines else f"exit code {code}")
-            self._put_end("failed", last.removeprefix("oblique-city: ").removeprefix("error: "))
+            last = said[-1] if said else (self.stderr_lines[-1] if self.stderr_lines else f"exit code {code}")
+            self._put_end("failed", last)
 
     def cancel(self) -> None:
         if self.proc.poll() is None:

@@ -41,7 +41,7 @@ def finish_job(context, job: jobs.Job, report) -> None:
             return
         report({"INFO"}, "; ".join(filter(None, [end.message, *messages])) or "done")
     elif end.status == "cancelled":
-        report({"WARNING"}, f"Cancelled: {end.message}")
+        report({"WARNING"}, end.message.splitlines()[0] if end.message else "cancelled")
     else:
         report({"ERROR"}, end.message.splitlines()[0] if end.message else "the job failed")
 

@@ -95,6 +95,7 @@ def test_cancel_stops_the_stage(ws, mode):
     drain_until(job, state, lambda: job.finished)
     assert time.monotonic() - t0 < 3.0
     assert job.end.status == "cancelled" and state.status == "cancelled"
+    assert job.end.message == "stage 'count' cancelled"
     assert ws.read_state()["count"]["status"] == "cancelled"
     assert not (ws.root / "count" / "count.json").exists()
 
