@@ -1,0 +1,300 @@
+"""Aerial triangulation benchmark: the seed's tables for IAT, HAT (>= 3, >= 5, >= 10 rays, CBA), nadir-only AT
+propagated to the obliques, and direct georeferencing, on a block of the observation-only simulator.
+
+    python benchmarks/bench_at.py                 # quick: about 500 images
+    python benchmarks/bench_at.py --images 3000   # the size of the targets
+    make bench-at ARGS="--images 3000"
+
+Prints the tables and writes them as JSON (``--out``, default ``build/bench_at_<images>.json``).
+Times are wall-clock seconds measured in this run on this machine; peak memory is the largest resident set of
+this process plus its worker processes, sampled every 0.2 s during each step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT.parent) not in sys.path:
+    sys.path.insert(0, str(ROOT.parent))
+
+from oblique_city.core.aerotri.bundle import BundleOptions, _Round  # noqa: E402
+from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
+    direct_georeferencing,
+    hierarchical,
+    initial_tie_coordinates,
+    integrated,
+    nadir_propagation,
+)
+from oblique_city.core.aerotri.problem import build_problem  # noqa: E402
+from oblique_city.core.evaluate.aerotri import (  # noqa: E402
+    SPLITS,
+    blunder_scores,
+    check_point_errors,
+    rms_xy_z,
+    std_xy_z,
+    tie_point_std,
+)
+from oblique_city.core.pipeline import Executor  # noqa: E402
+from oblique_city.core.simulate.observations import SimulationConfig, simulate_block  # noqa: E402
+
+
+class PeakMemory:
+    """Samples the resident memory of this process and its children; ``peak_gb`` after the block."""
+
+    def __init__(self) -> None:
+        import psutil
+
+        self.proc = psutil.Process()
+        self.peak = 0
+        self._stop = threading.Event()
+
+    def _rss(self) -> int:
+        total = self.proc.memory_info().rss
+        for c in self.proc.children(recursive=True):
+            try:
+                total += c.memory_info().rss
+            except Exception:  # noqa: BLE001 - a child may exit between listing and reading
+                pass
+        return total
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self._rss())
+            self._stop.wait(0.2)
+
+    def __enter__(self) -> PeakMemory:
+        self.peak = self._rss()
+        self._t = threading.Thread(target=self._loop, daemon=True)
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._t.join()
+        self.peak = max(self.peak, self._rss())
+
+    @property
+    def peak_gb(self) -> float:
+        return self.peak / 1e9
+
+
+def stock_colmap_time(block, ties, xyz0, opt: BundleOptions) -> float:
+    """Wall time of pycolmap's own bundle adjuster (Cauchy loss, same solver and threads, no priors, gauge fixed
+    by two cameras) on the same images and tie observations."""
+    import pycolmap
+
+    sub = build_problem(block, ties, list(block.images), xyz0, use_control=False)
+    p = sub.problem
+    ref = np.round(p.c_world.mean(0), 0)
+    cams = np.array([[c.fx, c.fy, c.cx + 0.5, c.cy + 0.5, c.k1, c.k2, c.p1, c.p2, c.k3, 0, 0, 0] for c in p.cameras])
+    rd = _Round(p, opt, ref, p.r_cam_from_world, p.c_world, p.xyz, cams, np.zeros((0, 3)), np.zeros(3),
+                np.ones(len(p.obs_point), bool), robust=True)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = False
+    options.refine_principal_point = False
+    options.refine_extra_params = False
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = opt.robust_scale * opt.sigma_px
+    options.ceres.solver_options.num_threads = opt.threads
+    options.ceres.solver_options.max_num_iterations = opt.max_iterations
+    t0 = time.perf_counter()
+    pycolmap.bundle_adjustment(rd.rec, options)
+    return time.perf_counter() - t0
+
+
+def evaluate(name, block, ties, sim, poses, xyz, obs_ok, sigma0, sigma_px, wall, mem_gb, extra=None) -> dict:
+    row = {"method": name, "wall_s": wall, "peak_gb": mem_gb, "sigma0": sigma0, "images": len(poses)}
+    for split in SPLITS:
+        _, err = check_point_errors(block, poses, split)
+        xy, z = rms_xy_z(err)
+        row[f"check_{split}"] = {"n": len(err), "xy_m": xy, "z_m": z, "xy_gsd": xy / sim.gsd, "z_gsd": z / sim.gsd}
+        if xyz is not None:
+            std = tie_point_std(block, ties, poses, xyz, obs_ok, sigma0, sigma_px, split)
+            sxy, sz = std_xy_z(std)
+            row[f"internal_{split}"] = {"xy_m": sxy, "z_m": sz}
+    row.update(extra or {})
+    return row
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--images", type=int, default=500, help="approximate block size (5 images per exposure)")
+    ap.add_argument("--connections", default="cba,3,5,10")
+    ap.add_argument("--cell", type=float, default=50.0, help="CBA cell size, metres")
+    ap.add_argument("--density", type=float, default=0.0008, help="tie points per square metre")
+    ap.add_argument("--executor", choices=("inline", "processes", "dask"), default="processes")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2, help="Ceres threads per adjustment")
+    ap.add_argument("--skip-iat", action="store_true", help="only HAT (for blocks too large for IAT here)")
+    ap.add_argument("--skip-stock", action="store_true", help="do not time pycolmap's stock adjuster")
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--out")
+    args = ap.parse_args(argv)
+    noise = 0.3
+    cfg = SimulationConfig(n_images=args.images, tie_density=args.density, noise_px=noise, seed=args.seed,
+                           blunder_fraction=0.03)
+    opt = BundleOptions(sigma_px=noise, threads=args.threads)
+    out: dict = {"config": vars(args), "noise_px": noise, "rows": [], "timing": {}}
+    t0 = time.perf_counter()
+    with PeakMemory() as mem:
+        sim = simulate_block(cfg)
+    block, ties = sim.block, sim.ties
+    rays = ties.ray_counts()
+    views = np.array([block.images[i].view for i in ties.image_ids])
+    nadir_rays = np.bincount(ties.obs_track[views[ties.obs_image] == "nadir"], minlength=ties.n_tracks)
+    out["simulation"] = {"images": len(block.images), "tracks": ties.n_tracks, "observations": ties.n_obs,
+                         "median_rays": float(np.median(rays)),
+                         "median_nadir_rays_of_nadir_points": float(np.median(nadir_rays[nadir_rays > 0])),
+                         "p90_nadir_rays": float(np.percentile(nadir_rays[nadir_rays > 0], 90)),
+                         "blunders": int(ties.obs_blunder.sum()), "gsd_m": sim.gsd,
+                         "wall_s": time.perf_counter() - t0, "peak_gb": mem.peak_gb}
+    print(f"simulated {len(block.images)} images, {ties.n_tracks} tie points, {ties.n_obs} observations, "
+          f"{ties.obs_blunder.sum()} blunders, GSD {sim.gsd:.3f} m in {time.perf_counter() - t0:.1f} s")
+    t = time.perf_counter()
+    xyz0 = initial_tie_coordinates(block, ties)
+    out["timing"]["forward_intersection_s"] = time.perf_counter() - t
+
+    rows = out["rows"]
+    rows.append(evaluate("direct georeferencing", block, ties, sim, direct_georeferencing(block), None, None,
+                         float("nan"), noise, 0.0, 0.0))
+    iat = None
+    if not args.skip_iat:
+        with PeakMemory() as mem:
+            t = time.perf_counter()
+            iat = integrated(block, ties, opt, xyz0=xyz0)
+            wall = time.perf_counter() - t
+        r = iat.runs[0].result
+        rows.append(evaluate("IAT", block, ties, sim, iat.poses, iat.xyz, ~iat.obs_rejected, r.sigma0, noise,
+                             wall, mem.peak_gb, {"blunders": blunder_scores(ties.obs_blunder, iat.obs_rejected),
+                                                 "iterations": r.iterations, "rounds": r.rounds,
+                                                 "datum_shift": r.datum_shift.tolist()}))
+        print(f"IAT {wall:.1f} s, sigma0 {r.sigma0:.3f}, peak {mem.peak_gb:.2f} GB")
+        if not args.skip_stock:
+            stock = stock_colmap_time(block, ties, xyz0, opt)
+            out["timing"]["pycolmap_stock_ba_s"] = stock
+            out["timing"]["iat_over_stock"] = wall / stock
+            print(f"pycolmap stock bundle_adjustment {stock:.1f} s (one robust solve, no priors); IAT total / stock "
+                  f"{wall / stock:.2f}")
+    ex = Executor(args.executor, workers=args.workers) if args.executor != "inline" else None
+    hats = {}
+    try:
+        for conn in [c for c in args.connections.split(",") if c]:
+            with PeakMemory() as mem:
+                t = time.perf_counter()
+                hat = hierarchical(block, ties, opt, connection=conn, cell=args.cell, executor=ex, xyz0=xyz0)
+                wall = time.perf_counter() - t
+            hats[conn] = hat
+            chi = sum(r.result.sigma0**2 * r.result.redundancy for r in hat.runs)
+            dof = sum(r.result.redundancy for r in hat.runs)
+            s0 = float(np.sqrt(chi / dof))
+            extra = {"blunders": blunder_scores(ties.obs_blunder, hat.obs_rejected),
+                     "runs": {r.name: {"wall_s": r.wall_s, "sigma0": r.result.sigma0, "images": len(r.poses),
+                                       "connection_points": r.connection_count} for r in hat.runs},
+                     "oblique_parallel_wall_s": hat.extra["oblique_wall_s"]}
+            if iat is not None:
+                d = hat.xyz - iat.xyz
+                for k in (3, 10):
+                    sel = (rays >= k) & np.all(np.isfinite(d), 1)
+                    dxy = float(np.sqrt(np.mean((d[sel, 0] ** 2 + d[sel, 1] ** 2) / 2)))
+                    extra[f"diff_vs_iat_rays{k}"] = {"n": int(sel.sum()), "xy_m": dxy,
+                                                     "z_m": float(np.sqrt(np.mean(d[sel, 2] ** 2)))}
+            rows.append(evaluate(f"HAT {conn}", block, ties, sim, hat.poses, hat.xyz, ~hat.obs_rejected, s0, noise,
+                                 wall, mem.peak_gb, extra))
+            print(f"HAT {conn}: {wall:.1f} s (" + ", ".join(f"{r.name} {r.wall_s:.1f}" for r in hat.runs)
+                  + f"), peak {mem.peak_gb:.2f} GB")
+    finally:
+        if ex is not None:
+            ex.close()
+    if hats:
+        nadir_run = next(iter(hats.values())).runs[0]
+        prop = nadir_propagation(block, nadir_run.poses)
+        rows.append(evaluate("nadir AT + propagation", block, ties, sim, prop, None, None, nadir_run.result.sigma0,
+                             noise, nadir_run.wall_s, 0.0))
+    print_tables(out, sim)
+    targets(out)
+    path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1, default=float))
+    print(f"\nwritten {path}")
+    return 0
+
+
+def _f(v, scale=1.0, nd=3):
+    return "-" if v is None or not np.isfinite(v) else f"{v * scale:.{nd}f}"
+
+
+def print_tables(out: dict, sim) -> None:
+    rows = out["rows"]
+    g = sim.gsd
+    print("\nTable 1. Check point RMS [GSD] (intersection from the views' rays)")
+    print(f"{'method':26s} {'n':>4s} " + " ".join(f"{s + ' XY':>10s} {s + ' Z':>10s}" for s in SPLITS))
+    for r in rows:
+        print(f"{r['method']:26s} {r['check_all']['n']:4d} " + " ".join(
+            f"{_f(r[f'check_{s}']['xy_m'], 1 / g):>10s} {_f(r[f'check_{s}']['z_m'], 1 / g):>10s}" for s in SPLITS))
+    print("\nTable 2. Internal accuracy: tie point standard deviations [m] (sigma_XY per axis, sigma_Z)")
+    print(f"{'method':26s} " + " ".join(f"{s + ' XY':>10s} {s + ' Z':>10s}" for s in SPLITS))
+    for r in rows:
+        if "internal_all" in r:
+            print(f"{r['method']:26s} " + " ".join(
+                f"{_f(r[f'internal_{s}']['xy_m'], 1, 4):>10s} {_f(r[f'internal_{s}']['z_m'], 1, 4):>10s}"
+                for s in SPLITS))
+    print("\nTable 3. Tie point differences HAT - IAT [m] (RMS per axis XY, Z)")
+    for r in rows:
+        if "diff_vs_iat_rays3" in r:
+            a, b = r["diff_vs_iat_rays3"], r["diff_vs_iat_rays10"]
+            print(f"{r['method']:26s} >=3 rays n={a['n']:7d} XY {_f(a['xy_m'], 1, 4)} Z {_f(a['z_m'], 1, 4)}   "
+                  f">=10 rays n={b['n']:7d} XY {_f(b['xy_m'], 1, 4)} Z {_f(b['z_m'], 1, 4)}")
+    print("\nTable 4. Connection points per oblique view")
+    for r in rows:
+        if "runs" in r:
+            print(f"{r['method']:26s} " + "  ".join(f"{k} {v['connection_points']}" for k, v in r["runs"].items()
+                                                    if k != "nadir"))
+    print("\nTable 5. Wall time [s] per run and total, peak memory [GB], sigma0 (simulated noise = 1.0)")
+    for r in rows:
+        runs = "  ".join(f"{k} {v['wall_s']:.1f}" for k, v in r.get("runs", {}).items())
+        print(f"{r['method']:26s} total {r['wall_s']:8.1f}  peak {r['peak_gb']:5.2f}  sigma0 {_f(r['sigma0'])}  {runs}")
+    print("\nTable 6. Blunder detection (planted 3 %)")
+    for r in rows:
+        if "blunders" in r:
+            b = r["blunders"]
+            print(f"{r['method']:26s} planted {b['planted']}  flagged {b['flagged']}  recall {b['recall']:.3f}  "
+                  f"false alarm {b['false_alarm']:.4f}")
+
+
+def targets(out: dict) -> None:
+    rows = {r["method"]: r for r in out["rows"]}
+    iat, cba = rows.get("IAT"), rows.get("HAT cba")
+    res = {}
+    if iat and cba:
+        res["HAT-CBA wall <= IAT / 5"] = (cba["wall_s"] <= iat["wall_s"] / 5, f"{iat['wall_s'] / cba['wall_s']:.2f}x")
+        for ax in ("xy", "z"):
+            ratio = cba["check_all"][f"{ax}_m"] / iat["check_all"][f"{ax}_m"]
+            res[f"HAT-CBA check {ax.upper()} <= 1.2 IAT"] = (ratio <= 1.2, f"{ratio:.2f}")
+    if iat:
+        for ax in ("xy", "z"):
+            res[f"IAT check {ax.upper()} <= 0.3 GSD"] = (iat["check_all"][f"{ax}_gsd"] <= 0.3,
+                                                         f"{iat['check_all'][f'{ax}_gsd']:.3f} GSD")
+        res["sigma0 within 10 %"] = (abs(iat["sigma0"] - 1) <= 0.1, f"{iat['sigma0']:.3f}")
+        b = iat["blunders"]
+        res["blunder recall >= 95 %"] = (b["recall"] >= 0.95, f"{b['recall']:.3f}")
+        res["false alarms <= 1 %"] = (b["false_alarm"] <= 0.01, f"{b['false_alarm']:.4f}")
+        if "iat_over_stock" in out["timing"]:
+            res["IAT time / pycolmap stock BA"] = (out["timing"]["iat_over_stock"] <= 1.0,
+                                                   f"{out['timing']['iat_over_stock']:.2f}")
+    print("\nTargets")
+    for k, (ok, v) in res.items():
+        print(f"  {'PASS' if ok else 'FAIL'}  {k:38s} {v}")
+    out["targets"] = {k: {"pass": bool(ok), "value": v} for k, (ok, v) in res.items()}
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

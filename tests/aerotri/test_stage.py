@@ -1,0 +1,46 @@
+"""The ``match`` (tie points from a file) and ``aerotri`` stages through the CLI, with their outputs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from oblique_city.core.cli import main
+from oblique_city.core.io.geotiff import read_geotiff
+from oblique_city.core.pipeline import Workspace
+from oblique_city.core.simulate.observations import SimulationConfig, simulate_block
+
+
+def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
+    s = simulate_block(SimulationConfig(n_images=60, tie_density=0.0004, seed=2))
+    ws = Workspace.create(tmp_path / "ws", "EPSG:32632")
+    ws.save_block(s.block)
+    ws.stage_dir("matching")
+    s.ties.save(str(ws.path("matching/ties.npz")))
+    ws.project["stages"] = {"match": {"tie_source": "file"}, "aerotri": {"sigma_px": 0.3}}
+    ws.save_project()
+    assert main(["aerotri", str(ws.root), "--mode", "hierarchical", "--connection", "cba",
+                 "--cell-size", "40"]) == 0
+    ws = Workspace.open(ws.root)
+    assert ws.stage_options("aerotri")["mode"] == "hierarchical"
+    block = ws.load_block()
+    adjusted = [i for i, im in block.images.items() if im.pose_adjusted is not None]
+    assert len(adjusted) > 0.9 * len(block.images)
+    err = np.array([block.images[i].pose_adjusted.C - s.true_poses[i].C for i in adjusted])
+    nav = np.array([block.images[i].pose_approx.C - s.true_poses[i].C for i in adjusted])
+    assert np.sqrt(np.mean(err**2)) < np.sqrt(np.mean(nav**2))
+    report = json.loads(ws.path("aerotri/report.json").read_text())
+    assert report["mode"] == "hierarchical" and report["connection"] == "cba"
+    assert [r["name"] for r in report["runs"]][0] == "nadir"
+    assert abs(report["sigma0"] - 1.0) < 0.1
+    assert report["check_points"]["all"]["n"] >= 20
+    html = ws.path("aerotri/report.html").read_text()
+    assert "data:image/png;base64," in html and "<svg" in html and "src='http" not in html
+    rays = read_geotiff(ws.path("aerotri/layers/cba_rays.tif"))
+    assert rays.cell == 40.0 and np.nanmax(rays.data) >= 3
+    before = read_geotiff(ws.path("aerotri/layers/intersection_error_before.tif")).data
+    after = read_geotiff(ws.path("aerotri/layers/intersection_error_after.tif")).data
+    assert np.nanmedian(after) < np.nanmedian(before)
+    graph = json.loads(ws.path("matching/graph.json").read_text())
+    assert graph["edges"] and all(e["matches"] >= 15 for e in graph["edges"])
