@@ -14,12 +14,22 @@ import pytest
 pytestmark = pytest.mark.xdist_group("bpy")
 
 
+def valid_icons() -> set[str]:
+    import bpy
+
+    return set(bpy.types.UILayout.bl_rna.functions["label"].parameters["icon"].enum_items.keys())
+
+
 class RecordingLayout:
-    """Stands in for ``bpy.types.UILayout``: records labels, properties and operators."""
+    """Stands in for ``bpy.types.UILayout``: records labels, properties and operators, and checks icon names."""
 
     def __init__(self, log=None):
         self.log = [] if log is None else log
         self.enabled = True
+        self.icons = valid_icons()
+
+    def _icon(self, kwargs):
+        assert kwargs.get("icon", "NONE") in self.icons, kwargs["icon"]
 
     def _sub(self, *args, **kwargs):
         return RecordingLayout(self.log)
@@ -27,15 +37,18 @@ class RecordingLayout:
     row = column = box = _sub
 
     def label(self, text="", icon="NONE"):
+        self._icon({"icon": icon})
         self.log.append(("label", text))
 
     def prop(self, data, name, **kwargs):
+        self._icon(kwargs)
         assert hasattr(data, name), name
         self.log.append(("prop", name))
 
     def operator(self, idname, **kwargs):
         import bpy
 
+        self._icon(kwargs)
         mod, name = idname.split(".")
         getattr(getattr(bpy.ops, mod), name).get_rna_type()  # raises KeyError for an unregistered operator
         props = SimpleNamespace()
