@@ -359,11 +359,11 @@ def _part_mesh(mb: _MeshBuilder, part: Part, mats: dict[str, int], installation:
             rows |= {wz0, wz1}
     rows_z = np.array(sorted(rows))
     bottom_ring = []
-    s_start = 0.0
     for k in range(4):
         pa, pb = fp[k], fp[(k + 1) % 4]
         ln = float(np.linalg.norm(pb - pa))
         e2 = (pb - pa) / ln
+        s_start = float(pa @ e2) + 50.0 * float(pa @ np.array([e2[1], -e2[0]]))  # same for coplanar walls
         e = np.array([e2[0], e2[1], 0.0])
         nrm = np.array([e2[1], -e2[0], 0.0])
         p3 = np.array([pa[0], pa[1], 0.0])
@@ -434,7 +434,6 @@ def _part_mesh(mb: _MeshBuilder, part: Part, mats: dict[str, int], installation:
             if np.linalg.norm(np.cross(p[1] - p[0], p[2] - p[0])) > 1e-9:
                 mb.add_tri(p, uv + uv_offset, nrm, sem_wall, mats["wall"])
         bottom_ring += [at(s, part.base) for s in cols_s[:-1]]
-        s_start += ln
     ring = np.array(bottom_ring)
     mb.add_poly(ring, ring[:, :2], -up, sem_wall, mats["wall"])
     return roof_polys
@@ -489,7 +488,7 @@ def _recipes() -> list[tuple[str, object]]:
 
     def l_gable(rng, g):
         main = _gable((-10, -5, 10, 5), g + 7.0, 42, "x", (0.4, 0.4, 0.6, 0.6))
-        wing = _gable((2, -14, 9.6, -5), g + 5.5, 42, "y", (0.5, 0.5, 0.4, 0.2))
+        wing = _gable((2, -14, 10, -5), g + 5.5, 42, "y", (0.5, 0.5, 0.4, 0.2))
         return [main, _embed(main, wing, "y0")]
 
     def t_mixed(rng, g):
@@ -499,8 +498,8 @@ def _recipes() -> list[tuple[str, object]]:
 
     def u_mixed(rng, g):
         main = _gable((-12, -4, 12, 4), g + 8.0, 40, "x", (0.3, 0.3, 0.5, 0.5))
-        w1 = Part((-11.6, -14.0, -5.0, -2.0), "flat", g + 6.0, 0.0, "x", (0.2, 0.2, 0.2, 0.0))
-        w2 = Part((5.0, -14.0, 11.6, -2.0), "flat", g + 6.0, 0.0, "x", (0.2, 0.2, 0.2, 0.0))
+        w1 = Part((-12.0, -14.0, -5.0, -2.0), "flat", g + 6.0, 0.0, "x", (0.2, 0.2, 0.2, 0.0))
+        w2 = Part((5.0, -14.0, 12.0, -2.0), "flat", g + 6.0, 0.0, "x", (0.2, 0.2, 0.2, 0.0))
         return [main, w1, w2]
 
     def stepped_flat(rng, g):
@@ -515,7 +514,7 @@ def _recipes() -> list[tuple[str, object]]:
 
     def l_flat_shed(rng, g):
         main = Part((-9.0, -6.0, 9.0, 6.0), "flat", g + 9.0, 0.0, "x", (0.3,) * 4)
-        wing = Part((-8.7, 6.0, -1.0, 13.0), "shed", g + 4.0, 15.0, "-y", (0.4, 0.4, 0.0, 0.9))
+        wing = Part((-9.0, 6.0, -1.0, 13.0), "shed", g + 4.0, 15.0, "-y", (0.4, 0.4, 0.0, 0.9))
         return [main, _embed(main, wing, "y1")]
 
     def split_gable(rng, g):
@@ -533,7 +532,7 @@ def _recipes() -> list[tuple[str, object]]:
 
     def l_hip(rng, g):
         main = Part((-10.0, -5.0, 10.0, 5.0), "hip", g + 7.0, 35.0, "x", (0.6,) * 4)
-        wing = Part((2.0, -13.0, 9.0, -5.0), "hip", g + 4.5, 35.0, "y", (0.6, 0.6, 0.6, 0.2))
+        wing = Part((3.0, -13.0, 10.0, -5.0), "hip", g + 4.5, 35.0, "y", (0.6, 0.6, 0.6, 0.2))
         return [main, _embed(main, wing, "y0")]
 
     return [("gable_house", gable_house), ("hip_house", hip_house), ("flat_office", flat_office),

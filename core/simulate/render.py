@@ -200,10 +200,13 @@ class Renderer:
         return {"t_hit": r["t_hit"].numpy(), "ids": r["primitive_ids"].numpy().astype(np.int64),
                 "bary": r["primitive_uvs"].numpy(), "d_world": d_world}
 
-    def depth_map(self, camera: CameraModel, pose: Pose) -> np.ndarray:
-        """Z-depth (distance along the optical axis) per pixel, (h, w) float32, +inf where the ray misses."""
+    def trace(self, camera: CameraModel, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """Z-depth (distance along the optical axis, float32, +inf where the ray misses) and the index of the hit
+        triangle (int64, -1 for none) of every pixel's centre ray, both (h, w)."""
         r = self.cast(pose, self._camera_dirs(camera, 1, 0)[0])
-        return r["t_hit"].reshape(camera.height, camera.width)
+        t = r["t_hit"].reshape(camera.height, camera.width)
+        ids = np.where(np.isfinite(t), r["ids"].reshape(t.shape), -1)
+        return t, ids
 
     # ------------------------------------------------------------------ shading
 
