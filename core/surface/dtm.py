@@ -2,7 +2,8 @@
 
 The production method for urban point clouds:
 
-1. Grid the point cloud at ``cell`` metres (lowest point per cell; empty cells take their nearest neighbour).
+1. Grid the point cloud at ``cell`` metres (a low quantile of the points per cell; empty cells take their
+   nearest neighbour).
 2. Grey-scale opening with a square structuring element of about ``se_size`` metres (larger than the largest
    building): the erosion takes the k-th *sorted* element of the window (k = 3 %, robust against points below the
    ground, which a plain minimum would spread over the whole window), the dilation takes the maximum.
@@ -34,6 +35,8 @@ class DtmConfig:
     """Attributes
     ----------
     cell : grid cell of the morphological filter, metres (coarsened so the window stays <= 61 cells)
+    cell_quantile : height of a grid cell as this quantile of its points (a low one: ground where it shows,
+        yet single blunders below the ground do not make the cell)
     se_size : side of the square structuring element, metres
     erosion_rank : k of the k-th sorted element for the erosion, as a fraction of the window (0.03)
     threshold : above/on/below classification threshold, metres
@@ -45,6 +48,7 @@ class DtmConfig:
     """
 
     cell: float = 1.0
+    cell_quantile: float = 0.25
     se_size: float = 60.0
     erosion_rank: float = 0.03
     threshold: float = 1.5
@@ -64,12 +68,16 @@ def _fill_nearest(a: np.ndarray) -> np.ndarray:
     return a[tuple(idx)]
 
 
-def lowest_per_cell(grid: GridSpec, xyz: np.ndarray) -> np.ndarray:
-    """(rows, cols) lowest point height per cell, NaN for empty cells."""
+def low_quantile_per_cell(grid: GridSpec, xyz: np.ndarray, q: float) -> np.ndarray:
+    """(rows, cols) ``q``-quantile of the point heights per cell (0 = the lowest point), NaN for empty cells."""
     r, c, inside = grid.cell_index(xyz[:, :2])
-    out = np.full(grid.rows * grid.cols, np.inf)
-    np.minimum.at(out, r[inside] * grid.cols + c[inside], xyz[inside, 2])
-    out[~np.isfinite(out)] = np.nan
+    key = r[inside] * grid.cols + c[inside]
+    z = xyz[inside, 2]
+    order = np.lexsort((z, key))
+    k, zs = key[order], z[order]
+    uniq, start, counts = np.unique(k, return_index=True, return_counts=True)
+    out = np.full(grid.rows * grid.cols, np.nan)
+    out[uniq] = zs[start + np.floor(q * (counts - 1)).astype(np.int64)]
     return out.reshape(grid.rows, grid.cols)
 
 
@@ -141,7 +149,7 @@ def make_dtm(xyz: np.ndarray, grid_out: GridSpec, crs: str, cfg: DtmConfig = Dtm
     # the filter grid covers the points too, so buildings cut by the border of the output grid are seen whole
     lo, hi = np.percentile(xyz[:, :2], [0.1, 99.9], axis=0) if len(xyz) else (np.full(2, np.inf), -np.full(2, np.inf))
     g = GridSpec.around(min(grid_out.x0, lo[0]), min(y1, lo[1]), max(x1, hi[0]), max(grid_out.y0, hi[1]), cell)
-    low = _fill_nearest(lowest_per_cell(g, xyz))
+    low = _fill_nearest(low_quantile_per_cell(g, xyz, cfg.cell_quantile))
     window = max(3, int(round(cfg.se_size / cell)) | 1)
     opened = g.raster(robust_opening(low, window, cfg.erosion_rank), crs)
     classes = classify_points(opened, xyz, cfg.threshold)
