@@ -29,3 +29,6 @@ bench-at:
 
 bench-buildings:
 	$(PYTHON) benchmarks/bench_buildings.py $(ARGS)
+
+bench-surface:
+	$(PYTHON) benchmarks/bench_surface.py $(ARGS)
