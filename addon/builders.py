@@ -151,8 +151,9 @@ register_builder("surface", layers.build_surface)
 def build_scene(scene, ws: Workspace, stages: list[str] | None = None) -> list[str]:
     """Run the builders of the block and of every finished stage (or only of ``stages``), each at most once.
 
-    Returns the builders' summaries (``"stage: summary"``). The workspace path is remembered in the scene's
-    settings.
+    Returns the builders' summaries (``"stage: summary"``). A stage layer that cannot be built (a missing or bad
+    output file) is reported as ``"stage: not built (reason)"`` and the other layers are still built; an error in
+    the block itself is raised. The workspace path is remembered in the scene's settings.
     """
     state = ws.read_state()
     keys = ["block"] + stage_names() if stages is None else list(stages)
@@ -165,7 +166,12 @@ def build_scene(scene, ws: Workspace, stages: list[str] | None = None) -> list[s
         if key != "block" and state.get(key, {}).get("status") != "done":
             continue
         done.add(id(fn))
-        messages.append(f"{key}: {fn(scene, ws)}")
+        try:
+            messages.append(f"{key}: {fn(scene, ws)}")
+        except CityError as e:
+            if key == "block":
+                raise
+            messages.append(f"{key}: not built ({str(e).splitlines()[0]})")
     if hasattr(scene, "oblique_city"):  # the add-on's scene settings (registered by the add-on and make_blend)
         scene.oblique_city.workspace = str(ws.root)
     return messages

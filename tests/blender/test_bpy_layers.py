@@ -98,3 +98,15 @@ def test_large_dsm_is_subsampled(addon, ws, monkeypatch):
     cr = np.round(np.c_[(xyz[:, 0] - X0) / CELL - 0.5, (Y0 - xyz[:, 1]) / CELL - 0.5]).astype(int)
     assert len(xyz) <= 600 and np.all(cr % 2 == 0)
     assert np.abs(dsm[cr[:, 1], cr[:, 0]] - xyz[:, 2]).max() < 1e-3
+
+
+def test_a_broken_layer_does_not_stop_the_others(addon, ws):
+    bpy = addon
+    from oblique_city.addon import builders
+
+    w = ws[0]
+    (w.root / "dense" / "points_display.ply").write_bytes(b"not a ply")
+    messages = builders.build_scene(bpy.context.scene, w)
+    assert messages[1].startswith("dense: not built (") and "points_display.ply" in messages[1]
+    assert messages[2].startswith("surface: DSM 50x40")
+    assert "DSM" in bpy.data.objects and "Dense points" not in bpy.data.objects
