@@ -75,21 +75,32 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
     mid = (s0 + s1) / 2
     half = np.linalg.norm(s1 - s0, axis=1) / 2
     tree = cKDTree(uv_b)
+    ia = np.flatnonzero(ok)
+    lists = tree.query_ball_point(mid[ia], half[ia] + opt.band_px)
+    counts = np.fromiter((len(c) for c in lists), np.int64, len(lists))
+    if counts.sum() == 0:
+        return np.zeros((0, 2), np.int64)
+    a_idx = np.repeat(ia, counts)
+    b_idx = np.fromiter((j for c in lists for j in c), np.int64, int(counts.sum()))
+    inside = segment_distance(uv_b[b_idx], s0[a_idx], s1[a_idx]) <= opt.band_px
+    a_idx, b_idx = a_idx[inside], b_idx[inside]
+    d = np.empty(len(a_idx), np.float32)
+    for k in range(0, len(a_idx), 200000):  # descriptor distances in chunks (memory)
+        sl = slice(k, k + 200000)
+        d[sl] = np.linalg.norm(des_a[a_idx[sl]] - des_b[b_idx[sl]], axis=1)
+    order = np.lexsort((d, a_idx))
+    a_idx, b_idx, d = a_idx[order], b_idx[order], d[order]
+    first = np.r_[True, a_idx[1:] != a_idx[:-1]]
+    pos = np.flatnonzero(first)
+    nxt = pos + 1
+    has_second = np.r_[nxt[:-1] < pos[1:], nxt[-1:] < len(a_idx)]
+    second = np.full(len(pos), np.inf, np.float32)
+    second[has_second] = d[nxt[has_second]]
+    passed = d[pos] <= opt.ratio * second
     best = np.full(len(uv_a), -1, np.int64)
     best_d = np.full(len(uv_a), np.inf)
-    for i in np.flatnonzero(ok):
-        cand = np.array(tree.query_ball_point(mid[i], half[i] + opt.band_px), np.int64)
-        if len(cand) == 0:
-            continue
-        cand = cand[segment_distance(uv_b[cand], np.repeat(s0[i:i + 1], len(cand), 0),
-                                     np.repeat(s1[i:i + 1], len(cand), 0)) <= opt.band_px]
-        if len(cand) == 0:
-            continue
-        d = np.linalg.norm(des_b[cand] - des_a[i], axis=1)
-        order = np.argsort(d)
-        if len(order) > 1 and d[order[0]] > opt.ratio * d[order[1]]:
-            continue
-        best[i], best_d[i] = cand[order[0]], d[order[0]]
+    best[a_idx[pos[passed]]] = b_idx[pos[passed]]
+    best_d[a_idx[pos[passed]]] = d[pos[passed]]
     pairs = np.stack([np.flatnonzero(best >= 0), best[best >= 0]], 1)
     if len(pairs) == 0:
         return pairs
