@@ -52,7 +52,7 @@ def test_targets_project_onto_their_drawn_centres(city, renderer, tilt, azimuth,
         rgb, _ = renderer.render(CAM, pose, "nadir", seed=k)
         c = _disc_centroid(rgb, pose, xyz, uv[0])
         errs.append(np.linalg.norm(c - uv[0]))
-    assert max(errs) < 0.3, errs  # the issue asks for < 0.5 px
+    assert max(errs) < 0.1, errs  # the issue asks for < 0.5 px; analytic edge coverage gives ~0.03 px
 
 
 def test_depth_lies_on_ground_truth_surfaces(city, renderer):
