@@ -158,11 +158,11 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     occ = inside(S).astype(np.float64)
     frac = np.bincount(own, occ, minlength=len(cells)) / np.bincount(own, minlength=len(cells))
     keep = frac > 0.5
-    # facets of kept cells; vertices consolidated by distance
-    facets = [(fid, poly) for ci, cell in enumerate(cells) if keep[ci] for fid, poly in cell]
-    if not facets:
+    # facets of all cells; vertices consolidated by distance
+    facets = [(ci, fid, poly) for ci, cell in enumerate(cells) for fid, poly in cell]
+    if not keep.any():
         return Hull(np.zeros((0, 3)), [], len(cells), 0)
-    allv = np.concatenate([p for _, p in facets])
+    allv = np.concatenate([p for _, _, p in facets])
     tree = cKDTree(allv)
     pairs = tree.query_pairs(merge_tol, output_type="ndarray")
     parent = np.arange(len(allv))
@@ -181,18 +181,41 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     uniq, vid = np.unique(roots, return_inverse=True)
     vertices = allv[uniq]
     rings, k = [], 0
-    for fid, poly in facets:
+    for ci, fid, poly in facets:
         ring = [int(x) for x in vid[k:k + len(poly)]]
         k += len(poly)
         ring = [v for i, v in enumerate(ring) if v != ring[i - 1]]
         if len(set(ring)) >= 3:
-            rings.append((fid, ring))
-    # facets shared by two kept cells are interior
-    count: dict[frozenset, int] = {}
-    for _, ring in rings:
-        key = frozenset(ring)
-        count[key] = count.get(key, 0) + 1
-    boundary = [(fid, ring) for fid, ring in rings if count[frozenset(ring)] == 1]
+            rings.append((ci, fid, ring))
+    volume = np.zeros(len(cells))
+    for ci, _, ring in rings:
+        p = vertices[ring]
+        volume[ci] += sum(np.dot(p[0], np.cross(p[i], p[i + 1])) for i in range(1, len(p) - 1)) / 6.0
+    cells_at_edge: dict[tuple[int, int], set[int]] = {}
+    for ci, _, ring in rings:
+        for a, b in zip(ring, ring[1:] + ring[:1]):
+            cells_at_edge.setdefault((min(a, b), max(a, b)), set()).add(ci)
+    # the boundary between kept and dropped cells; where kept cells touch only along an edge (a checkerboard of
+    # sliver cells) the smallest dropped cell at that edge is added, until the surface is a 2-manifold
+    for _ in range(50):
+        count: dict[frozenset, int] = {}
+        for ci, _, ring in rings:
+            if keep[ci]:
+                key = frozenset(ring)
+                count[key] = count.get(key, 0) + 1
+        boundary = [(fid, ring) for ci, fid, ring in rings if keep[ci] and count[frozenset(ring)] == 1]
+        directed: dict[tuple[int, int], int] = {}
+        for _, ring in boundary:
+            for a, b in zip(ring, ring[1:] + ring[:1]):
+                directed[(a, b)] = directed.get((a, b), 0) + 1
+        bad = [e for e, n in directed.items() if n > 1]
+        if not bad:
+            break
+        a, b = bad[0]
+        dropped = [c for c in cells_at_edge.get((min(a, b), max(a, b)), ()) if not keep[c]]
+        if not dropped:
+            break
+        keep[min(dropped, key=lambda c: abs(volume[c]))] = True
     faces = _merge_coplanar(boundary)
     faces = _drop_straight_vertices(vertices, faces)
     used = sorted({v for _, r in faces for v in r})
