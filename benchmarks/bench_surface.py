@@ -85,17 +85,20 @@ def setup_workspace(sim: Path, root: Path, orientation: str, truth) -> Workspace
 
 def pair_tasks(ws: Workspace, n: int) -> list[PairTask]:
     """The first ``n`` pairs of the dense run, rebuilt from ``dense/selection.json`` (for the speed-up)."""
-    from oblique_city.core.dense.stage import DenseConfig, height_prior
+    from oblique_city.core.dense.stage import DenseConfig, height_prior, master_step
 
     block = ws.load_block()
     cfg = DenseConfig()
     z0, z1 = height_prior(ws, block, cfg)
-    sel = json.loads(ws.path("dense", "selection.json").read_text())["pairs"][:n]
+    doc = json.loads(ws.path("dense", "selection.json").read_text())
+    view = {m["master"]: m["view"] for m in doc["masters"]}
+    sel = doc["pairs"][:n]
     tasks = []
     for p in sel:
         m, s = block.images[p["master"]], block.images[p["slave"]]
         tasks.append(PairTask(m.id, s.id, block.camera_of(m), m.pose, block.camera_of(s), s.pose,
-                              str(resolve_image(block, m.file)), str(resolve_image(block, s.file)), z0, z1, cfg.step,
+                              str(resolve_image(block, m.file)), str(resolve_image(block, s.file)), z0, z1,
+                              master_step(cfg, view[m.id]),
                               cfg.scale, SgmConfig(block_size=cfg.block_size, mode=cfg.sgm_mode)))
     return tasks
 

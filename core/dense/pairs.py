@@ -18,7 +18,7 @@ from ..errors import InputError
 from ..model.camera import CameraModel
 from ..model.pose import Pose
 from .rectify import disparity_range, rectify_pair
-from .sgm import SgmConfig, sgm_disparity
+from .sgm import SgmConfig, coarse_range, sgm_disparity
 
 
 @dataclass(frozen=True, eq=False)
@@ -34,6 +34,8 @@ class PairTask:
     step : sampling step of the master grid of the result (1 = every pixel)
     scale : rectified image scale (1 = full resolution)
     sgm : SGM settings
+    coarse_above : a prior disparity interval wider than this (pixels) is first narrowed on a reduced pair
+    max_size_factor : rectified images are clipped to this multiple of the original size
     """
 
     master: str
@@ -49,6 +51,8 @@ class PairTask:
     step: int = 1
     scale: float = 1.0
     sgm: SgmConfig = SgmConfig()
+    coarse_above: float = 96.0
+    max_size_factor: float = 1.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,6 +66,7 @@ class PairDepth:
     focal_baseline : rectified focal length times baseline, pixel metres (depth sigma = z^2 / fB * sigma_d)
     seconds : wall time of rectification and matching
     megapixels : rectified pixels matched, millions
+    disparities : width of the disparity search at full resolution, pixels
     """
 
     master: str
@@ -70,6 +75,7 @@ class PairDepth:
     focal_baseline: float
     seconds: float
     megapixels: float
+    disparities: float
 
 
 def read_image(path: str) -> np.ndarray:
@@ -94,9 +100,12 @@ def match_pair(task: PairTask) -> PairDepth:
         if img.shape[1] != cam.width or img.shape[0] != cam.height:
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]}, camera says {cam.width}x{cam.height}",
                              path=path, field="size")
-    pair = rectify_pair(task.cam_master, task.pose_master, task.cam_slave, task.pose_slave, scale=task.scale)
+    pair = rectify_pair(task.cam_master, task.pose_master, task.cam_slave, task.pose_slave, scale=task.scale,
+                        max_size_factor=task.max_size_factor)
     d_lo, d_hi = disparity_range(pair, task.z_min, task.z_max, task.cam_slave, task.pose_slave)
     rect_m, rect_s = pair.remap(img_m, img_s)
+    if d_hi - d_lo > task.coarse_above:
+        d_lo, d_hi = coarse_range(rect_m, rect_s, d_lo, d_hi, task.sgm)
     disp = sgm_disparity(rect_m, rect_s, d_lo, d_hi, task.sgm)
     # master grid -> rectified master pixels -> disparity (nearest, so depth edges stay sharp)
     uu, vv = master_grid(task.cam_master, task.step)
@@ -111,4 +120,4 @@ def match_pair(task: PairTask) -> PairDepth:
     depth[ok] = task.pose_master.transform(xyz)[:, 2]
     depth[depth <= 0] = np.nan
     return PairDepth(task.master, task.slave, depth.reshape(uu.shape), pair.f * pair.baseline,
-                     time.perf_counter() - t0, pair.width * pair.height / 1e6)
+                     time.perf_counter() - t0, pair.width * pair.height / 1e6, d_hi - d_lo)

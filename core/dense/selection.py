@@ -4,8 +4,9 @@ Images are grouped by the view they actually look in (``nadir``, ``north``, ...)
 chosen greedily so that their footprints cover the area of interest with a chosen overlap between neighbouring
 masters (each master "owns" its footprint shrunk by ``1 - overlap`` about its centre; the greedy set cover adds
 the image whose owned part covers most uncovered ground). For each master, slaves of the same view are ranked by
-footprint overlap, base-to-height ratio and intersection angle; pairs whose baseline runs along the viewing
-direction (the forward-looking head along its strip) cannot be rectified and are left out.
+footprint overlap, base-to-height ratio, intersection angle and the angle between baseline and viewing
+direction (planar rectification distorts little when they are perpendicular); pairs whose baseline runs nearly
+along the viewing direction cannot be rectified and are left out.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ class SelectionConfig:
     base_height_min: float = 0.05
     base_height_max: float = 0.9
     max_angle_deg: float = 45.0
-    min_baseline_view_angle_deg: float = 30.0
+    min_baseline_view_angle_deg: float = 35.0
     grid_cell: float = 2.0
     views: tuple[str, ...] = ("nadir", "north", "east", "south", "west")
 
@@ -150,7 +151,8 @@ def _rank_slaves(block: ImageBlock, ids: list[str], m: int, full: np.ndarray, z_
             continue
         if along < cfg.min_baseline_view_angle_deg:
             continue
-        score = overlap * np.exp(-0.5 * ((bh - cfg.base_height_ideal) / 0.15) ** 2)
+        # perpendicular baselines rectify with little distortion: prefer them
+        score = overlap * np.exp(-0.5 * ((bh - cfg.base_height_ideal) / 0.15) ** 2) * np.sin(np.radians(along))
         scored.append((score, sid))
     scored.sort(reverse=True)
     return [s for _, s in scored[: cfg.slaves_per_master]]

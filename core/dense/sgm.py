@@ -111,6 +111,27 @@ def sgm_disparity(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float,
     return disp
 
 
+def coarse_range(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float, cfg: SgmConfig = SgmConfig(),
+                 levels: int = 2, margin_px: float = 12.0, quantiles: tuple[float, float] = (0.5, 99.5)
+                 ) -> tuple[float, float]:
+    """Narrow a wide disparity interval by matching a reduced pair first (coarse-to-fine search range).
+
+    The pair is reduced ``levels`` times by 2 (Gaussian pyramid) and matched over the prior interval; the robust
+    extremes (``quantiles`` in percent) of the coarse disparities, scaled back and widened by ``margin_px``,
+    give the full-resolution interval, clipped to the prior. With too few coarse matches the prior is kept.
+    """
+    f = 2 ** levels
+    lo_img, ro_img = left, right
+    for _ in range(levels):
+        lo_img, ro_img = cv2.pyrDown(lo_img), cv2.pyrDown(ro_img)
+    disp = sgm_disparity(lo_img, ro_img, d_lo / f, d_hi / f, cfg)
+    ok = np.isfinite(disp)
+    if ok.sum() < 0.02 * disp.size or ok.sum() < 100:
+        return d_lo, d_hi
+    q0, q1 = np.percentile(disp[ok], quantiles)
+    return max(d_lo, q0 * f - margin_px), min(d_hi, q1 * f + margin_px)
+
+
 def plain_sgbm(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float,
                cfg: SgmConfig = SgmConfig()) -> np.ndarray:
     """OpenCV StereoSGBM with the same settings as :func:`sgm_disparity` but no padding and no left-right check

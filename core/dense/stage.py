@@ -41,7 +41,8 @@ class DenseConfig:
 
     z_min, z_max : height prior (world Z) for the disparity range; NaN = from tie points or ground points
     max_object_height : height above the ground prior allowed for objects when only ground points are known
-    step : points are made on every ``step``-th master pixel
+    step : points are made on every ``step``-th pixel of nadir masters
+    oblique_step : the same for oblique masters (their points serve the facades; roofs and ground come from nadir)
     scale : rectified image scale (1 = full resolution)
     views : views to reconstruct
     master_overlap, slaves_per_master : image selection
@@ -57,6 +58,7 @@ class DenseConfig:
     z_max: float = math.nan
     max_object_height: float = 80.0
     step: int = 1
+    oblique_step: int = 2
     scale: float = 1.0
     views: tuple[str, ...] = ("nadir", "north", "east", "south", "west")
     master_overlap: float = 0.35
@@ -72,6 +74,10 @@ class DenseConfig:
     outlier_neighbours: int = 16
     outlier_std: float = 2.5
     display_points: int = 300_000
+
+
+def master_step(cfg: DenseConfig, view: str) -> int:
+    return cfg.step if view == "nadir" else cfg.oblique_step
 
 
 def height_prior(ws, block: ImageBlock, cfg: DenseConfig) -> tuple[float, float]:
@@ -116,7 +122,7 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
             s = block.images[sid]
             tasks.append(PairTask(m.id, s.id, block.camera_of(m), m.pose, block.camera_of(s), s.pose,
                                   str(resolve_image(block, m.file)), str(resolve_image(block, s.file)),
-                                  z_min, z_max, cfg.step, cfg.scale, sgm))
+                                  z_min, z_max, master_step(cfg, sel.view), cfg.scale, sgm))
     total = len(tasks) + len(selection)
     results = ctx.get_executor().map(match_pair, tasks,
                                      on_done=lambda d, t: ctx.progress(d, total, f"matched {d}/{t} pairs"))
@@ -138,7 +144,8 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
                                    fcfg)
         valid_before = np.isfinite(fused)
         depth = smooth_depth(fused, fcfg)
-        pts = master_points(cam, img.pose, depth, cfg.step, read_image(str(resolve_image(block, img.file))), fcfg)
+        pts = master_points(cam, img.pose, depth, master_step(cfg, sel.view),
+                            read_image(str(resolve_image(block, img.file))), fcfg)
         slave_depths = [np.where(a, r.depth, np.nan)[valid_before] for r, a in zip(res, agree)]
         slave_poses = [block.images[r.slave] for r in res]
         err_used = intersection_errors(pts.uv_px, cam, img.pose, img.pose, [
@@ -149,6 +156,7 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
         else:
             err_approx = err_used
         n = len(pts.xyz)
+        err_used, err_approx = err_used.astype(np.float32), err_approx.astype(np.float32)
         for k, v in (("xyz", pts.xyz), ("rgb", pts.rgb), ("normal", pts.normal),
                      ("view", np.full(n, VIEWS.index(sel.view), np.uint8)), ("master", np.full(n, mi, np.uint16)),
                      ("incidence", pts.incidence), ("mixed", pts.mixed), ("err_used", err_used),
@@ -167,7 +175,7 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
 def _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted) -> StageResult:
     out_dir = ws.stage_dir("dense")
     with atomic_path(out_dir / "points.npz") as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, removed=removed, masters=np.array(masters), **arr)
+        np.savez(f, removed=removed, masters=np.array(masters), **arr)
     kept = removed == KEPT
     cloud = PointCloud(arr["xyz"][kept], arr["rgb"][kept], arr["normal"][kept], arr["view"][kept],
                        arr["master"][kept], masters, block.crs)
@@ -181,7 +189,7 @@ def _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted) 
     write_json(out_dir / "selection.json", {
         "masters": [{"master": s.master, "view": s.view, "slaves": list(s.slaves)} for s in selection],
         "pairs": [{"master": r.master, "slave": r.slave, "seconds": r.seconds, "megapixels": r.megapixels,
-                   "valid": float(np.isfinite(r.depth).mean())} for r in results]})
+                   "disparities": r.disparities, "valid": float(np.isfinite(r.depth).mean())} for r in results]})
     metrics = {
         "masters": len(selection), "pairs": len(results), "points": int(kept.sum()),
         "points_fused": int(len(removed)), "removed_mixed": int((removed == MIXED).sum()),
