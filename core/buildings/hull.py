@@ -16,6 +16,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 EPS = 1e-7
@@ -165,21 +167,11 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     allv = np.concatenate([p for _, _, p in facets])
     tree = cKDTree(allv)
     pairs = tree.query_pairs(merge_tol, output_type="ndarray")
-    parent = np.arange(len(allv))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for a, b in pairs:
-        ra, rb = find(a), find(b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-    roots = np.array([find(i) for i in range(len(allv))])
-    uniq, vid = np.unique(roots, return_inverse=True)
-    vertices = allv[uniq]
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(allv), len(allv)))
+    _, comp = connected_components(graph, directed=False)
+    _, first = np.unique(comp, return_index=True)
+    vid = comp
+    vertices = allv[first]
     rings, k = [], 0
     for ci, fid, poly in facets:
         ring = [int(x) for x in vid[k:k + len(poly)]]
@@ -190,7 +182,7 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     volume = np.zeros(len(cells))
     for ci, _, ring in rings:
         p = vertices[ring]
-        volume[ci] += sum(np.dot(p[0], np.cross(p[i], p[i + 1])) for i in range(1, len(p) - 1)) / 6.0
+        volume[ci] += float(np.einsum("j,ij->", p[0], np.cross(p[1:-1], p[2:]))) / 6.0
     cells_at_edge: dict[tuple[int, int], set[int]] = {}
     for ci, _, ring in rings:
         for a, b in zip(ring, ring[1:] + ring[:1]):
