@@ -18,8 +18,9 @@ Observations and unknowns
 All costs are scaled to pixel units of ``sigma_px`` (covariances divided by ``sigma_px^2``), so the Ceres cost is
 ``sigma_px^2 / 2 * chi^2`` and ``sigma0 = sqrt(chi^2 / redundancy)``.
 
-Blunders: a first solve with a Cauchy loss, then least-squares rounds; after each, every tie track's worst
-observation is rejected when its normalised residual ``w = |v| / (sigma0 sigma_px sqrt(r))`` (r the redundancy
+Blunders: a first solve with a Cauchy loss, after which every observation whose normalised residual exceeds the
+threshold is rejected; then least-squares rounds, after each of which every tie track's worst observation is
+rejected when its normalised residual ``w = |v| / (sigma0 sigma_px sqrt(r))`` (r the redundancy
 number, see :mod:`.precision`; ``w^2`` is chi-square with 2 degrees of freedom) exceeds the threshold.
 Coordinates are solved around a local origin (the mean prior centre) so UTM magnitudes cost no digits.
 """
@@ -158,9 +159,29 @@ class BundleResult:
 
 
 def _quat_xyzw(r: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
+    """Unit quaternion ``(x, y, z, w)`` of a rotation matrix (Shepperd's method)."""
+    t = np.trace(r)
+    if t > 0:
+        s = 2.0 * np.sqrt(1.0 + t)
+        q = np.array([(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4])
+    else:
+        i = int(np.argmax(np.diag(r)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(max(1.0 + r[i, i] - r[j, j] - r[k, k], 1e-300))
+        q = np.zeros(4)
+        q[i] = s / 4
+        q[j] = (r[j, i] + r[i, j]) / s
+        q[k] = (r[k, i] + r[i, k]) / s
+        q[3] = (r[k, j] - r[j, k]) / s
+    return q / np.linalg.norm(q)
 
-    return Rotation.from_matrix(r).as_quat()
+
+def _matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a quaternion ``(x, y, z, w)`` (normalised first)."""
+    x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def _rigid(r: np.ndarray, c_local: np.ndarray):
@@ -391,9 +412,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         # read back (local frame, before the datum shift)
         for k, fp in rd.frame_params.items():
             q, t = fp[:4], fp[4:]
-            from scipy.spatial.transform import Rotation
-
-            r[k] = Rotation.from_quat(q).as_matrix()
+            r[k] = _matrix_from_quat(q)
             c[k] = -r[k].T @ t + ref
         used_pts = np.flatnonzero(rd.point_ids >= 0)
         for p in used_pts:
@@ -425,7 +444,11 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
                    f"sigma0 {sigma0:.3f} ({sigma0 * opt.sigma_px:.3f} px), {int(active.sum())} observations")
         if rnd >= opt.max_rejection_rounds:
             break
-        bad = _worst_per_track(w, prob.obs_point, active, opt.blunder_threshold)
+        if rnd == 0:
+            # the robust solution is not pulled by the blunders: reject every flagged observation at once
+            bad = active & np.isfinite(w) & (w > opt.blunder_threshold)
+        else:
+            bad = _worst_per_track(w, prob.obs_point, active, opt.blunder_threshold)
         bad |= active & ~np.isfinite(w)
         if not bad.any() and rnd > 0:
             break
@@ -479,7 +502,7 @@ def _precision(prob: BundleProblem, opt: BundleOptions, r: np.ndarray, c: np.nda
     if prob.point_prior_xyz is not None:
         has = np.isfinite(prob.point_prior_xyz[:, 0])
         prior_pt = np.zeros((prob.n_points, 3, 3))
-        prior_pt[has] = np.linalg.inv(prob.point_prior_cov[has])
+        prior_pt[has] = np.nan_to_num(precision.safe_inverse(prob.point_prior_cov[has]))
     n_p = precision.point_normals(jp, w_obs, op, prob.n_points, prior_pt)
     prior_im = np.zeros((prob.n_images, 6, 6))
     ok = np.all(np.isfinite(prob.prior_sigma_att), 1) & np.all(np.isfinite(prob.prior_sigma_pos), 1)

@@ -25,6 +25,7 @@ from ..errors import ConfigError
 from ..geometry.views import OBLIQUE_VIEWS
 from ..model import ImageBlock, Pose, TiePoints
 from .bundle import BundleOptions, BundleResult, adjust
+from .precision import safe_inverse
 from .problem import SubProblem, build_problem, intersect_ties, result_poses
 
 CONNECTIONS = ("cba", "2", "3", "5", "10")
@@ -174,7 +175,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     nadir_ok_obs = np.zeros(ties.n_obs, bool)
     nadir_ok_obs[nadir.obs_index[~nadir.obs_rejected]] = True
     nadir_rays = np.bincount(ties.obs_track[nadir_ok_obs], minlength=n)
-    cov_ok = np.all(np.isfinite(cov_nadir.reshape(n, 9)), 1) & (np.linalg.det(np.nan_to_num(cov_nadir)) > 0)
+    cov_ok = np.all(np.isfinite(safe_inverse(np.nan_to_num(cov_nadir)).reshape(n, 9)), 1)
     # (2) oblique sub-blocks tied by connection points
     view_of_image = np.array([block.images[i].view for i in ties.image_ids])
     view_of_obs = view_of_image[ties.obs_image]
@@ -230,7 +231,7 @@ def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], c
     for run in runs:
         ok = np.isfinite(run.xyz[:, 0]) & np.all(np.isfinite(run.xyz_cov.reshape(-1, 9)), 1)
         t = run.track_index[ok]
-        ni = np.linalg.inv(run.xyz_cov[ok])
+        ni = safe_inverse(run.xyz_cov[ok])
         x = run.xyz[ok]
         if run.name == "nadir":
             xyz_nadir[t] = x
@@ -238,11 +239,12 @@ def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], c
             conn = conn_masks.get(run.name, np.zeros(n, bool))[t]
             if conn.any():
                 tc = t[conn]
-                prior_info = np.linalg.inv(cov_nadir[tc] * conn_scale**2)
+                prior_info = safe_inverse(cov_nadir[tc] * conn_scale**2)
                 own = ni[conn] - prior_info
-                # keep the own information positive semi-definite (numerical safety)
-                ev, evec = np.linalg.eigh(own)
-                own = np.einsum("kij,kj,klj->kil", evec, np.clip(ev, 0, None), evec)
+                # an own information that is not positive semi-definite (numerical noise) counts as none
+                dg = np.diagonal(own, axis1=1, axis2=2)
+                minors = dg[:, [0, 0, 1]] * dg[:, [1, 2, 2]] - own[:, [0, 0, 1], [1, 2, 2]] ** 2
+                own[(dg < 0).any(1) | (minors < 0).any(1) | (np.linalg.det(own) < 0)] = 0.0
                 rhs_c = np.einsum("kij,kj->ki", own, x[conn])
                 np.add.at(info, tc, own)
                 np.add.at(rhs, tc, rhs_c)
@@ -251,8 +253,9 @@ def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], c
         np.add.at(rhs, t, np.einsum("kij,kj->ki", ni, x))
     xyz = np.full((n, 3), np.nan)
     cov = np.full((n, 3, 3), np.nan)
-    ok = np.linalg.det(info) > 0
-    cov[ok] = np.linalg.inv(info[ok])
+    inv = safe_inverse(info)
+    ok = np.all(np.isfinite(inv.reshape(n, 9)), 1)
+    cov[ok] = inv[ok]
     xyz[ok] = np.einsum("kij,kj->ki", cov[ok], rhs[ok])
     return xyz, cov
 

@@ -74,13 +74,50 @@ def image_normals(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray, obs
     return n
 
 
+def _inv3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse and determinant of a stack ``(k, 3, 3)`` by the adjugate (no LAPACK call per matrix)."""
+    c = np.empty_like(a)
+    c[:, 0, 0] = a[:, 1, 1] * a[:, 2, 2] - a[:, 1, 2] * a[:, 2, 1]
+    c[:, 0, 1] = a[:, 0, 2] * a[:, 2, 1] - a[:, 0, 1] * a[:, 2, 2]
+    c[:, 0, 2] = a[:, 0, 1] * a[:, 1, 2] - a[:, 0, 2] * a[:, 1, 1]
+    c[:, 1, 0] = a[:, 1, 2] * a[:, 2, 0] - a[:, 1, 0] * a[:, 2, 2]
+    c[:, 1, 1] = a[:, 0, 0] * a[:, 2, 2] - a[:, 0, 2] * a[:, 2, 0]
+    c[:, 1, 2] = a[:, 0, 2] * a[:, 1, 0] - a[:, 0, 0] * a[:, 1, 2]
+    c[:, 2, 0] = a[:, 1, 0] * a[:, 2, 1] - a[:, 1, 1] * a[:, 2, 0]
+    c[:, 2, 1] = a[:, 0, 1] * a[:, 2, 0] - a[:, 0, 0] * a[:, 2, 1]
+    c[:, 2, 2] = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+    det = a[:, 0, 0] * c[:, 0, 0] + a[:, 0, 1] * c[:, 1, 0] + a[:, 0, 2] * c[:, 2, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return c / det[:, None, None], det
+
+
 def safe_inverse(n: np.ndarray) -> np.ndarray:
-    """Inverse of a stack of symmetric matrices ``(k, d, d)``; singular ones give NaN."""
-    out = np.full_like(n, np.nan)
-    ok = np.linalg.cond(n) < 1e14
-    if ok.any():
-        out[ok] = np.linalg.inv(n[ok])
-    return out
+    """Inverse of a stack of symmetric positive (semi-)definite matrices ``(k, d, d)``, d = 3 or 6; singular
+    or badly conditioned ones give NaN. Closed forms (adjugate, Schur complement) keep it vectorised: batched
+    LAPACK calls were the bottleneck on a loaded machine."""
+    n = np.asarray(n, np.float64)
+    d = n.shape[-1]
+    scale = np.sqrt(np.abs(np.diagonal(n, axis1=1, axis2=2))) + 1e-300
+    m = n / scale[:, :, None] / scale[:, None, :]  # unit diagonal: conditioning checks become scale-free
+    if d == 3:
+        inv, det = _inv3(m)
+    elif d == 6:
+        a, b, c, dd = m[:, :3, :3], m[:, :3, 3:], m[:, 3:, :3], m[:, 3:, 3:]
+        ai, det_a = _inv3(a)
+        sch = dd - c @ ai @ b
+        si, det_s = _inv3(sch)
+        inv = np.empty_like(m)
+        inv[:, :3, :3] = ai + ai @ b @ si @ c @ ai
+        inv[:, :3, 3:] = -ai @ b @ si
+        inv[:, 3:, :3] = -si @ c @ ai
+        inv[:, 3:, 3:] = si
+        det = det_a * det_s
+    else:
+        raise ValueError(f"safe_inverse handles 3x3 and 6x6 blocks, got {d}x{d}")
+    bad = ~(det > 1e-12) | ~np.all(np.isfinite(inv.reshape(len(inv), d * d)), axis=1)
+    inv = inv / scale[:, :, None] / scale[:, None, :]
+    inv[bad] = np.nan
+    return inv
 
 
 def redundancy_numbers(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray, q_point: np.ndarray,
