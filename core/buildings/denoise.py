@@ -45,12 +45,6 @@ def guess_voxel_size(xyz: np.ndarray, points_per_voxel: float = 10.0, sample: in
     return float(np.sqrt(points_per_voxel / rho))
 
 
-def _pca_plane(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    c = p.mean(0)
-    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
-    return c, vt[2]
-
-
 def voxel_noise_filter(xyz: np.ndarray, a: float | None = None, min_neighbours: int = 10,
                        sigma: float | None = None) -> NoiseFilterResult:
     """Remove noise points with the voxel / PCA plane / sphere / distance-histogram test.
@@ -74,51 +68,59 @@ def voxel_noise_filter(xyz: np.ndarray, a: float | None = None, min_neighbours: 
     ijk = np.floor((xyz - lo) / a).astype(np.int64)
     keys, inv = np.unique(ijk, axis=0, return_inverse=True)
     inv = inv.ravel()
-    order = np.argsort(inv, kind="stable")
-    starts = np.searchsorted(inv[order], np.arange(len(keys) + 1))
-    index = {tuple(k): i for i, k in enumerate(keys)}
+    nv = len(keys)
+    # neighbour table (nv, 27) by linear keys (np.unique sorts lexicographically, so ``lin`` is increasing)
+    dims = keys.max(0) + 3
+    lin = ((keys[:, 0] + 1) * dims[1] + keys[:, 1] + 1) * dims[2] + keys[:, 2] + 1
     offsets = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
-    r = a / 2 * np.sqrt(3)
-
-    planes: list[tuple[np.ndarray, np.ndarray] | None] = []
-    spheres: list[np.ndarray] = []
-    for key in keys:
-        nb = [index.get(tuple(key + o)) for o in offsets]
-        idx = np.concatenate([order[starts[j]:starts[j + 1]] for j in nb if j is not None])
-        if len(idx) < min_neighbours:
-            planes.append(None)
-            spheres.append(idx)
-            continue
-        p = xyz[idx]
-        planes.append(_pca_plane(p))
-        centre = lo + (key + 0.5) * a
-        in_sphere = idx[np.linalg.norm(p - centre, axis=1) <= r]
-        # a sparse sphere (an outlier's own voxel) cannot hold a meaningful mode: use the neighbourhood
-        spheres.append(in_sphere if len(in_sphere) >= min_neighbours else idx)
+    q = lin[:, None] + ((offsets[:, 0] * dims[1] + offsets[:, 1]) * dims[2] + offsets[:, 2])[None, :]
+    pos = np.clip(np.searchsorted(lin, q), 0, nv - 1)
+    nb = np.where(lin[pos] == q, pos, -1)
+    valid = nb >= 0
+    nbc = np.where(valid, nb, 0)
+    # PCA plane per voxel from the first and second moments of its 3x3x3 neighbourhood
+    rel = xyz - lo
+    cnt = np.bincount(inv, minlength=nv).astype(np.float64)
+    s1 = np.stack([np.bincount(inv, rel[:, d], nv) for d in range(3)], 1)
+    s2 = np.stack([np.bincount(inv, rel[:, d] * rel[:, e], nv) for d in range(3) for e in range(3)], 1)
+    N = (cnt[nbc] * valid).sum(1)
+    S1 = (s1[nbc] * valid[..., None]).sum(1)
+    S2 = (s2[nbc] * valid[..., None]).sum(1)
+    has_plane = N >= min_neighbours
+    Nn = np.maximum(N, 1.0)
+    mean = S1 / Nn[:, None]
+    cov = S2.reshape(nv, 3, 3) / Nn[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    _, vec = np.linalg.eigh(cov)
+    normal = vec[:, :, 0]
+    d_own = np.abs(np.einsum("ij,ij->i", rel - mean[inv], normal[inv]))
 
     if sigma is None:
         # per voxel robust residual scale of its own points; planar voxels are the majority, edges the tail
-        scales = [1.4826 * float(np.median(np.abs((xyz[order[starts[v]:starts[v + 1]]] - pl[0]) @ pl[1])))
-                  for v, pl in enumerate(planes) if pl is not None and starts[v + 1] - starts[v] >= 5]
-        sigma = float(np.percentile(scales, 30)) if scales else a / 10
+        order = np.lexsort((d_own, inv))
+        starts = np.searchsorted(inv[order], np.arange(nv))
+        ok = has_plane & (cnt >= 5)
+        med = d_own[order[starts[ok] + (cnt[ok].astype(np.int64) // 2)]]
+        sigma = float(np.percentile(1.4826 * med, 30)) if ok.any() else a / 10
         sigma = max(sigma, 1e-4)
     width = 3.0 * sigma
 
-    keep = np.ones(n, bool)
-    for vi, pl in enumerate(planes):
-        own = order[starts[vi]:starts[vi + 1]]
-        if pl is None:
-            keep[own] = False
-            continue
-        c, nrm = pl
-        d_sphere = np.abs((xyz[spheres[vi]] - c) @ nrm)
-        nbins = max(int(np.ceil(d_sphere.max() / width)) + 1, 1)
-        hist = np.bincount((d_sphere / width).astype(np.int64), minlength=nbins)
-        mode = int(np.argmax(hist))
-        if hist[mode] >= 0.5 * len(d_sphere):
-            cut = (mode + 1) * width
-        else:
-            empty = np.nonzero(hist[mode:] == 0)[0]
-            cut = (mode + empty[0]) * width if len(empty) else np.inf
-        keep[own] &= np.abs((xyz[own] - c) @ nrm) < cut
+    # sphere test and distance histograms: every point against the voxels whose neighbourhood holds it
+    r = a / 2 * np.sqrt(3)
+    nbins = 64
+    pv = nb[inv]  # (n, 27)
+    pt = np.repeat(np.arange(n), 27)[pv.ravel() >= 0]
+    w = pv.ravel()[pv.ravel() >= 0]
+    d = np.abs(np.einsum("ij,ij->i", rel[pt] - mean[w], normal[w]))
+    in_sphere = np.linalg.norm(rel[pt] - (keys[w] + 0.5) * a, axis=1) <= r
+    b = np.minimum((d / width).astype(np.int64), nbins - 1)
+    h_nb = np.bincount(w * nbins + b, minlength=nv * nbins).reshape(nv, nbins)
+    h_sp = np.bincount(w[in_sphere] * nbins + b[in_sphere], minlength=nv * nbins).reshape(nv, nbins)
+    # a sparse sphere (an outlier's own voxel) cannot hold a meaningful mode: use the neighbourhood
+    hist = np.where((h_sp.sum(1) >= min_neighbours)[:, None], h_sp, h_nb)
+    mode = hist.argmax(1)
+    share = hist[np.arange(nv), mode] / np.maximum(hist.sum(1), 1)
+    empty = (hist == 0) & (np.arange(nbins)[None, :] >= mode[:, None])
+    first_empty = np.where(empty.any(1), empty.argmax(1) * width, np.inf)
+    cut = np.where(share >= 0.5, (mode + 1) * width, first_empty)
+    keep = has_plane[inv] & (d_own < cut[inv])
     return NoiseFilterResult(keep, float(a), float(sigma), float(width))

@@ -201,13 +201,14 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
             for a, b in zip(ring, ring[1:] + ring[:1]):
                 directed[(a, b)] = directed.get((a, b), 0) + 1
         bad = [e for e, n in directed.items() if n > 1]
-        if not bad:
+        flips = set()
+        for a, b in bad:
+            dropped = [c for c in cells_at_edge.get((min(a, b), max(a, b)), ()) if not keep[c]]
+            if dropped:
+                flips.add(min(dropped, key=lambda c: abs(volume[c])))
+        if not flips:
             break
-        a, b = bad[0]
-        dropped = [c for c in cells_at_edge.get((min(a, b), max(a, b)), ()) if not keep[c]]
-        if not dropped:
-            break
-        keep[min(dropped, key=lambda c: abs(volume[c]))] = True
+        keep[list(flips)] = True
     faces = _merge_coplanar(boundary)
     faces = _drop_straight_vertices(vertices, faces)
     used = sorted({v for _, r in faces for v in r})
