@@ -53,6 +53,8 @@ class BundleOptions:
     max_rejection_rounds : least-squares rounds with rejection after the robust solve
     self_calibration : groups of :data:`CALIBRATION_GROUPS` to estimate
     datum_shift : estimate a 3D shift between the GNSS and the control frame
+    rig : constrain the heads of one exposure to their calibrated mounting (boresight ``rig_sigma_deg``,
+        lever arm ``rig_sigma_m``) by relative pose priors
     max_iterations, threads : Ceres settings
     linear_solver : ``auto``, ``sparse_schur`` or ``iterative_schur``
     """
@@ -63,6 +65,9 @@ class BundleOptions:
     max_rejection_rounds: int = 4
     self_calibration: tuple[str, ...] = ()
     datum_shift: bool = True
+    rig: bool = False
+    rig_sigma_deg: float = 0.002
+    rig_sigma_m: float = 0.01
     max_iterations: int = 60
     threads: int = 2
     linear_solver: str = "auto"
@@ -84,6 +89,8 @@ class BundleProblem:
     point_prior_cov : (p, 3, 3) their covariances
     gcp_xyz : (g, 3) control point coordinates; gcp_sigma : (g, 3)
     gcp_obs_point, gcp_obs_image : (k,) int64; gcp_obs_uv : (k, 2); gcp_sigma_px : (g,)
+    rig_pairs : (q, 2) images (i, j) of one exposure with their calibrated relative pose ``i_from_j``:
+        rotation rig_r (q, 3, 3) and translation rig_t (q, 3) (used when ``BundleOptions.rig``)
     """
 
     image_ids: list[str]
@@ -108,6 +115,9 @@ class BundleProblem:
     gcp_obs_image: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     gcp_obs_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     gcp_sigma_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rig_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    rig_r: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    rig_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def n_images(self) -> int:
@@ -308,6 +318,14 @@ class _Round:
             cov[3:, 3:] = rp @ np.diag(s_pos**2) @ rp.T
             cost = cf.AbsolutePosePriorCost(cov / sp**2, _rigid(rp, prob.prior_c[k] - ref))
             problem.add_residual_block(cost, None, [fp])
+        # rig constraints: relative pose priors between the heads of one exposure
+        if opt.rig and len(prob.rig_pairs):
+            cov = np.diag([np.radians(opt.rig_sigma_deg) ** 2] * 3 + [opt.rig_sigma_m**2] * 3) / sp**2
+            for (i, j), rr, tt in zip(prob.rig_pairs, prob.rig_r, prob.rig_t):
+                if int(i) in self.frame_params and int(j) in self.frame_params:
+                    prior = pycolmap.Rigid3d(pycolmap.Rotation3d(_quat_xyzw(rr)), tt)
+                    problem.add_residual_block(cf.RelativePosePriorCost(cov, prior), None,
+                                               [self.frame_params[int(i)], self.frame_params[int(j)]])
         # connection points: ground observations with covariance, identity similarity held constant
         self.sim_const = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0])
         self.point_xyz = {}

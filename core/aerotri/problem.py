@@ -112,6 +112,7 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
     if point_prior_xyz is not None:
         prob.point_prior_xyz = point_prior_xyz[tracks]
         prob.point_prior_cov = point_prior_cov[tracks]
+    _add_rig_pairs(block, image_ids, prob)
     if use_control:
         kidx = {iid: k for k, iid in enumerate(image_ids)}
         names, gxyz, gsig, gsp, op, oi, ouv = [], [], [], [], [], [], []
@@ -139,6 +140,34 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
             prob.gcp_obs_image = np.array(oi, np.int64)
             prob.gcp_obs_uv = np.array(ouv, np.float64)
     return SubProblem(problem=prob, track_index=tracks, obs_index=obs_index)
+
+
+def _add_rig_pairs(block: ImageBlock, image_ids: list[str], prob: BundleProblem) -> None:
+    """Pairs (reference head, other head) of each exposure among ``image_ids`` with their calibrated relative
+    pose from the rig: ``i_from_j = (S_i S_j^T, S_i (l_j - l_i))`` (S sensor_from_rig, l lever arm)."""
+    heads = {}
+    for rig in block.rigs.values():
+        for h in rig.heads:
+            heads[h.name] = (rig.name, rig.heads[0].name, h)
+    by_exp: dict[str, dict[str, int]] = {}
+    for k, iid in enumerate(image_ids):
+        img = block.images[iid]
+        if img.exposure is not None and img.head in heads:
+            by_exp.setdefault(img.exposure, {})[img.head] = k
+    pairs, rots, trans = [], [], []
+    for members in by_exp.values():
+        for name, j in members.items():
+            rig_name, ref_name, hj = heads[name]
+            if name == ref_name or ref_name not in members:
+                continue
+            hi = heads[ref_name][2]
+            pairs.append((members[ref_name], j))
+            rots.append(hi.sensor_from_rig @ hj.sensor_from_rig.T)
+            trans.append(hi.sensor_from_rig @ (hj.lever_arm - hi.lever_arm))
+    if pairs:
+        prob.rig_pairs = np.array(pairs, np.int64)
+        prob.rig_r = np.array(rots)
+        prob.rig_t = np.array(trans)
 
 
 def result_poses(sub: SubProblem, result: BundleResult) -> dict[str, Pose]:

@@ -36,6 +36,8 @@ class AerotriConfig:
     sigma_px : a priori standard deviation of tie measurements, pixels
     self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
     datum_shift : estimate a 3D shift between the GNSS frame and the control frame
+    rig, rig_sigma_deg, rig_sigma_m : constrain the heads of each exposure to the rig's boresight and lever arms
+        (integrated mode; a hierarchical sub-block holds one view, so it has no head pairs)
     blunder_threshold : normalised residual rejection threshold; max_rejection_rounds : rounds after the robust one
     robust_scale : Cauchy loss scale of the first solve in sigmas
     threads : Ceres threads per adjustment
@@ -48,6 +50,9 @@ class AerotriConfig:
     sigma_px: float = 0.5
     self_calibration: tuple[str, ...] = ()
     datum_shift: bool = True
+    rig: bool = False
+    rig_sigma_deg: float = 0.002
+    rig_sigma_m: float = 0.01
     blunder_threshold: float = 4.3
     max_rejection_rounds: int = 4
     robust_scale: float = 3.0
@@ -63,6 +68,7 @@ class AerotriConfig:
                              blunder_threshold=self.blunder_threshold,
                              max_rejection_rounds=self.max_rejection_rounds,
                              self_calibration=tuple(self.self_calibration), datum_shift=self.datum_shift,
+                             rig=self.rig, rig_sigma_deg=self.rig_sigma_deg, rig_sigma_m=self.rig_sigma_m,
                              threads=self.threads)
 
 
