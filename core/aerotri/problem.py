@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import InputError
 from ..geometry.intersection import intersect_tracks
 from ..model import ImageBlock, Pose, TiePoints
 from .bundle import BundleProblem, BundleResult
@@ -98,6 +99,9 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
     for k, iid in enumerate(image_ids):
         img = block.images[iid]
         start = (initial or {}).get(iid) or img.pose_approx
+        if start is None:
+            raise InputError(f"image '{iid}' has no approximate orientation: aerial triangulation needs one "
+                             "(GNSS/IMU or imported exterior orientation)", field="pose")
         r0[k], c0[k] = start.R, start.C
         if img.pose_approx is not None:
             pr[k], pc[k] = img.pose_approx.R, img.pose_approx.C + shift
