@@ -275,7 +275,7 @@ class Renderer:
             big = self.noise.sample(u / 9.0 + 300.0, v / 9.0, f / 9.0)
             mix = np.clip(0.5 + 0.35 * nz2[:, 1:2] + 0.25 * big[:, 0:1], 0, 1)
             col = a * (1 - mix) + b * mix
-            lum = 1.0 + 0.10 * nz[:, 0] + 0.10 * nz2[:, 0] + 0.06 * big[:, 1]
+            lum = 1.0 + 0.16 * nz[:, 0] + 0.14 * nz2[:, 0] + 0.08 * big[:, 1]
             if name == "tiles":
                 row = np.floor(v / 0.33)
                 tile = _hash01(row, np.floor((u + 0.11 * (row % 2)) / 0.22), 7)
@@ -312,14 +312,15 @@ class Renderer:
                 lum *= 1.0 + 0.25 * nz[:, 0] * _fade(0.3, f) + 0.2 * big[:, 0]
                 col = col * (1 - mark[:, None]) + np.array([0.75, 0.75, 0.72]) * mark[:, None]
             elif name == "grass":
-                lum *= 1.0 + 0.2 * nz[:, 1] + 0.18 * big[:, 0]
+                clump = np.clip((nz2[:, 1] - 0.7) * 2.0, 0.0, 1.0)  # darker tufts and bare patches
+                lum *= (1.0 + 0.3 * nz[:, 1] + 0.18 * big[:, 0]) * (1.0 - 0.35 * clump)
             elif name == "field":
                 fid = _hash01(np.floor(p[s, 0] / 60.0), np.floor(p[s, 1] / 45.0), 5)
                 palette = np.array([[0.30, 0.22, 0.12], [0.22, 0.32, 0.10], [0.45, 0.38, 0.16], [0.18, 0.26, 0.09]])
                 col = palette[(fid * 4).astype(int) % 4] * (1.0 + 0.25 * mix - 0.12)
                 ang = fid * np.pi
                 furrow = _lines(p[s, 0] * np.cos(ang) + p[s, 1] * np.sin(ang), 1.5, 0.5, f)
-                lum *= 1.0 - 0.3 * furrow + 0.15 * big[:, 0]
+                lum *= (1.0 - 0.16 * furrow * (1.0 + 0.5 * nz2[:, 1])) * (1.0 + 0.15 * big[:, 0])
             elif name == "wood":
                 lum *= 1.0 - 0.3 * _lines(v, 0.14, 0.02, f)
             elif name == "metal":
