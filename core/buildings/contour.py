@@ -60,21 +60,20 @@ class Contour:
     cell: float
 
 
-def _ransac_line(xy: np.ndarray, tol: float, iterations: int, rng: np.random.Generator):
-    best, best_n = None, 0
+def _ransac_line(xy: np.ndarray, tol: float, iterations: int, rng: np.random.Generator) -> np.ndarray | None:
+    """Inlier mask (n,) of the best of ``iterations`` two-point line hypotheses (all scored at once)."""
     n = len(xy)
-    for _ in range(iterations):
-        i, j = rng.choice(n, 2, replace=False)
-        d = xy[j] - xy[i]
-        norm = np.linalg.norm(d)
-        if norm < 1e-6:
-            continue
-        nrm = np.array([-d[1], d[0]]) / norm
-        inl = np.abs((xy - xy[i]) @ nrm) < tol
-        k = int(inl.sum())
-        if k > best_n:
-            best, best_n = inl, k
-    return best
+    i = rng.integers(0, n, iterations)
+    j = rng.integers(0, n, iterations)
+    d = xy[j] - xy[i]
+    norm = np.linalg.norm(d, axis=1)
+    ok = norm > 1e-6
+    if not ok.any():
+        return None
+    i, d, norm = i[ok], d[ok], norm[ok]
+    nrm = np.stack([-d[:, 1], d[:, 0]], 1) / norm[:, None]
+    inl = np.abs((xy[None, :, :] - xy[i][:, None, :]) @ nrm[:, :, None])[..., 0] < tol
+    return inl[int(inl.sum(1).argmax())]
 
 
 def _tls_line(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

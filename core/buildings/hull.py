@@ -150,7 +150,7 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     # occupancy by majority of samples per cell
     samples, owner = [], []
     for ci, cell in enumerate(cells):
-        v = np.unique(np.concatenate([f for _, f in cell]).round(9), axis=0)
+        v = np.concatenate([f for _, f in cell])  # repeated corners only weight the samples
         c = v.mean(0)
         s = np.vstack([c[None], c + 0.6 * (v - c), c + 0.3 * (v - c)])
         samples.append(s)

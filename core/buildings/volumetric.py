@@ -25,7 +25,7 @@ class VolumetricConfig:
     voxel: float = 0.0
     angle_deg: float = 10.0
     min_points: int = 6
-    min_area: float = 2.0
+    min_area: float = 3.0
 
 
 @dataclass(frozen=True)
