@@ -6,11 +6,14 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from oblique_city.core.aerotri.bundle import BundleOptions, adjust
 from oblique_city.core.aerotri.problem import build_problem
 from oblique_city.core.evaluate.aerotri import blunder_scores, check_point_errors, rms_xy_z
 from oblique_city.core.geometry.rotations import rotation_angle
+
+pytestmark = pytest.mark.xdist_group("aerotri_sim")  # one worker builds the shared simulated block
 
 
 def test_iat_recovers_poses_better_than_navigation(sim, iat):

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from oblique_city.core.aerotri.hierarchical import hierarchical, nadir_propagation, select_connections
 from oblique_city.core.evaluate.aerotri import check_point_errors, rms_xy_z
 from oblique_city.core.geometry.rotations import rotation_angle
 from oblique_city.core.pipeline import Executor
+
+pytestmark = pytest.mark.xdist_group("aerotri_sim")  # one worker builds the shared simulated block
 
 
 def test_hat_cba_agrees_with_iat(sim, xyz0, options, iat):
