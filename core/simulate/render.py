@@ -92,21 +92,23 @@ class _NoiseTexture:
             levels.append(0.25 * (a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]))
         self.n_levels = len(levels)
         self.sizes = np.array([a.shape[0] for a in levels], np.int64)
-        self.offsets = np.concatenate([[0], np.cumsum(self.sizes ** 2)[:-1]]).astype(np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(self.sizes ** 2)[:-1]]).astype(np.int32)
+        self.masks = (self.sizes - 1).astype(np.int32)  # sizes are powers of two: modulo by bitwise and
+        self.shifts = np.log2(self.sizes).astype(np.int32)
         self.flat = np.concatenate([a.reshape(-1, 2) for a in levels])
 
     def sample(self, u: np.ndarray, v: np.ndarray, footprint: np.ndarray) -> np.ndarray:
         """Bilinear lookup at texel coordinates ``(u, v)`` from the mip level matching ``footprint`` (texels);
         returns (n, 2) float32, zero mean, unit-ish variance at level 0."""
-        lev = np.clip(np.log2(np.maximum(footprint, 1e-6)).astype(np.int64), 0, self.n_levels - 1)
-        inv = (0.5 ** lev).astype(np.float32)
+        lev = np.clip(np.log2(np.maximum(footprint, 1e-6)).astype(np.int32), 0, self.n_levels - 1)
+        inv = np.ldexp(np.float32(1.0), -lev)
         x, y = u.astype(np.float32) * inv, v.astype(np.float32) * inv
         x0, y0 = np.floor(x), np.floor(y)
         fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-        size, off = self.sizes[lev], self.offsets[lev]
-        i0, j0 = x0.astype(np.int64) % size, y0.astype(np.int64) % size
-        i1, j1 = (i0 + 1) % size, (j0 + 1) % size
-        r0, r1 = off + j0 * size, off + j1 * size
+        mask, off, sh = self.masks[lev], self.offsets[lev], self.shifts[lev]
+        ix, iy = x0.astype(np.int32), y0.astype(np.int32)
+        i0, i1 = ix & mask, (ix + 1) & mask
+        r0, r1 = off + ((iy & mask) << sh), off + (((iy + 1) & mask) << sh)
         t = self.flat
         return (t[r0 + i0] * (1 - fx) + t[r0 + i1] * fx) * (1 - fy) + (t[r1 + i0] * (1 - fx) + t[r1 + i1] * fx) * fy
 
@@ -228,27 +230,30 @@ class Renderer:
             return out, t
         hi = np.flatnonzero(hit)
         tri = ids[hi]
-        d = r["d_world"][hi]
-        dlen = np.linalg.norm(d, axis=1)
-        p_local = (pose.C - self.city.origin) + d * t[hi, None]
-        n = self.normals[tri].astype(np.float64)
+        d = r["d_world"][hi].astype(np.float32)
+        dlen = np.sqrt(np.einsum("ij,ij->i", d, d))
+        th = t[hi]
+        p_local = (pose.C - self.city.origin).astype(np.float32) + d * th[:, None]
+        n = self.normals[tri]
         cosi = np.einsum("ij,ij->i", n, d) / dlen
         n[cosi > 0] *= -1.0  # back faces (inside of hidden parts, trunk bottoms): shade as facing the camera
-        fp = t[hi] * dlen / camera.fx / np.maximum(np.abs(cosi), 0.25)
+        fp = th * dlen / np.float32(camera.fx) / np.maximum(np.abs(cosi), np.float32(0.25))
         bary = r["bary"][hi]
         uvc = self.city.uv[tri]
         uv = (uvc[:, 0] * (1 - bary[:, 0:1] - bary[:, 1:2]) + uvc[:, 1] * bary[:, 0:1]
-              + uvc[:, 2] * bary[:, 1:2]).astype(np.float64)
+              + uvc[:, 2] * bary[:, 1:2])
         albedo = self._albedo(tri, uv, p_local, fp)
         # lighting
-        sun = cfg.sun_direction()
+        sun = cfg.sun_direction().astype(np.float32)
         ndl = n @ sun
         lit = ndl > 0
         vis = np.ones(len(hi), np.float32)
         if cfg.shadows and lit.any():
             li = np.flatnonzero(lit)
             org = p_local[li] + n[li] * 0.03
-            rays = np.column_stack([org, np.tile(sun, (len(li), 1))]).astype(np.float32)
+            rays = np.empty((len(li), 6), np.float32)
+            rays[:, :3] = org
+            rays[:, 3:] = sun
             occ = self.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1e4).numpy()
             vis[li[occ]] = 0.0
         irr = cfg.sun * np.maximum(ndl, 0.0) * vis + cfg.sky * (0.55 + 0.45 * n[:, 2]) + 0.05
@@ -320,7 +325,7 @@ class Renderer:
                 col = palette[(fid * 4).astype(int) % 4] * (1.0 + 0.25 * mix - 0.12)
                 ang = fid * np.pi
                 furrow = _lines(p[s, 0] * np.cos(ang) + p[s, 1] * np.sin(ang), 1.5, 0.5, f)
-                lum *= (1.0 - 0.16 * furrow * (1.0 + 0.5 * nz2[:, 1])) * (1.0 + 0.15 * big[:, 0])
+                lum *= (1.0 - 0.3 * furrow * (1.0 + 0.4 * nz2[:, 1])) * (1.0 + 0.15 * big[:, 0])
             elif name == "wood":
                 lum *= 1.0 - 0.3 * _lines(v, 0.14, 0.02, f)
             elif name == "metal":
