@@ -51,8 +51,10 @@ SLAB = 0.25
 @dataclass(frozen=True)
 class Material:
     """A procedural material. ``kind`` selects the texture function of :mod:`.render`; colours are linear RGB
-    albedo in [0, 1]; ``scale`` is the pattern size in metres; ``param`` is kind-specific (the centre line
-    coordinate of a street, NaN for none); ``axis`` 0/1 is a street's direction (along x / along y)."""
+    albedo in [0, 1]; ``scale`` is the pattern size in metres (tiles: 0.73 x scale wide in rows of 1.1 x scale;
+    bricks: length; wood: board width; metal: seam spacing; fields: field width; other kinds ignore it);
+    ``seed`` offsets the noise so materials look different; ``param`` is kind-specific (the centre line coordinate
+    of a street, NaN for none); ``axis`` 0/1 is a street's direction (along x / along y)."""
 
     name: str
     kind: str
@@ -982,7 +984,7 @@ def make_city(seed: int = 0, tiles: tuple[int, int] = (1, 1), crs: str = "EPSG:2
                 m_metal = mat(f"b{b.id}_metal", "metal", _lin((0.42, 0.50, 0.46), trng), _lin((0.3, 0.36, 0.33), trng),
                               0.5)
                 m_under = mat(f"b{b.id}_soffit", "wood", _lin((0.62, 0.48, 0.32), trng), _lin((0.45, 0.33, 0.2), trng),
-                              0.12)
+                              0.14)
                 m_fascia = mat(f"b{b.id}_fascia", "plaster", _lin((0.85, 0.85, 0.82), trng),
                                _lin((0.6, 0.6, 0.58), trng), 1.0)
                 m_chim = mat(f"b{b.id}_chimney", "brick", _lin((0.55, 0.27, 0.18), trng), _lin((0.4, 0.2, 0.14), trng),

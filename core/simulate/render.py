@@ -154,6 +154,8 @@ class Renderer:
         self.kind = np.array([KINDS.index(m.kind) for m in mats], np.int8)[city.material]
         self.col1 = np.array([m.color for m in mats], np.float32)
         self.col2 = np.array([m.color2 for m in mats], np.float32)
+        self.mscale = np.array([m.scale for m in mats], np.float32)
+        self.mseed = np.array([m.seed for m in mats], np.float32)
         self.mparam = np.array([m.param for m in mats], np.float64)
         self.maxis = np.array([m.axis for m in mats], np.int8)
         self.noise = _NoiseTexture()
@@ -266,12 +268,13 @@ class Renderer:
         mat = self.city.material[tri]
         kind = self.kind[tri]
         c1, c2 = self.col1[mat], self.col2[mat]
-        seed_off = (mat.astype(np.float64) * 97.31)[:, None]
+        scale = self.mscale[mat]
+        seed_off = (self.mseed[mat] * np.float32(97.31))[:, None]
         out = np.empty((len(tri), 3), np.float32)
         for k in np.unique(kind):
             s = np.flatnonzero(kind == k)
             name = KINDS[k]
-            u, v, f = uv[s, 0], uv[s, 1], fp[s]
+            u, v, f, sc = uv[s, 0], uv[s, 1], fp[s], scale[s]
             a, b = c1[s], c2[s]
             if name == "tree":
                 u, v = p[s, 0] + 0.6 * p[s, 2], p[s, 1] - 0.5 * p[s, 2]
@@ -281,18 +284,20 @@ class Renderer:
             mix = np.clip(0.5 + 0.35 * nz2[:, 1:2] + 0.25 * big[:, 0:1], 0, 1)
             col = a * (1 - mix) + b * mix
             lum = 1.0 + 0.16 * nz[:, 0] + 0.14 * nz2[:, 0] + 0.08 * big[:, 1]
-            if name == "tiles":
-                row = np.floor(v / 0.33)
-                tile = _hash01(row, np.floor((u + 0.11 * (row % 2)) / 0.22), 7)
-                w = _fade(0.22, f)
+            if name == "tiles":  # rows of 1.1 x scale, tiles 0.73 x scale wide, staggered
+                rh, tw = 1.1 * sc, 0.73 * sc
+                row = np.floor(v / rh)
+                tile = _hash01(row, np.floor((u + 0.5 * tw * (row % 2)) / tw), 7)
+                w = _fade(tw, f)
                 lum *= 1.0 + w * 0.25 * (tile - 0.5)
-                lum *= 1.0 - 0.35 * _lines(v, 0.33, 0.06, f)
+                lum *= 1.0 - 0.35 * _lines(v, rh, 0.18 * rh, f)
                 patch = _hash01(np.floor(u / 1.3), np.floor(v / 0.99), 3)  # replaced tiles / moss patches
                 lum *= 1.0 + 0.18 * (patch - 0.5) * _fade(1.0, f)
-            elif name == "brick":
-                row = np.floor(v / 0.075)
-                brick = _hash01(row, np.floor((u + 0.125 * (row % 2)) / 0.25), 11)
-                lum *= (1.0 + 0.3 * (brick - 0.5) * _fade(0.075, f)) * (1.0 - 0.3 * _lines(v, 0.075, 0.012, f))
+            elif name == "brick":  # bricks of length ``scale``, courses of 0.3 x scale
+                ch = 0.3 * sc
+                row = np.floor(v / ch)
+                brick = _hash01(row, np.floor((u + 0.5 * sc * (row % 2)) / sc), 11)
+                lum *= (1.0 + 0.3 * (brick - 0.5) * _fade(ch, f)) * (1.0 - 0.3 * _lines(v, ch, 0.16 * ch, f))
                 lum *= 1.0 + 0.12 * nz2[:, 1]
             elif name == "plaster":
                 lum *= 1.0 + 0.08 * big[:, 0] + 0.05 * nz2[:, 1]
@@ -320,16 +325,16 @@ class Renderer:
                 clump = np.clip((nz2[:, 1] - 0.7) * 2.0, 0.0, 1.0)  # darker tufts and bare patches
                 lum *= (1.0 + 0.3 * nz[:, 1] + 0.18 * big[:, 0]) * (1.0 - 0.35 * clump)
             elif name == "field":
-                fid = _hash01(np.floor(p[s, 0] / 60.0), np.floor(p[s, 1] / 45.0), 5)
+                fid = _hash01(np.floor(p[s, 0] / sc), np.floor(p[s, 1] / (0.75 * sc)), 5)  # fields of scale
                 palette = np.array([[0.30, 0.22, 0.12], [0.22, 0.32, 0.10], [0.45, 0.38, 0.16], [0.18, 0.26, 0.09]])
                 col = palette[(fid * 4).astype(int) % 4] * (1.0 + 0.25 * mix - 0.12)
                 ang = fid * np.pi
                 furrow = _lines(p[s, 0] * np.cos(ang) + p[s, 1] * np.sin(ang), 1.5, 0.5, f)
                 lum *= (1.0 - 0.3 * furrow * (1.0 + 0.4 * nz2[:, 1])) * (1.0 + 0.15 * big[:, 0])
-            elif name == "wood":
-                lum *= 1.0 - 0.3 * _lines(v, 0.14, 0.02, f)
-            elif name == "metal":
-                lum *= 1.0 - 0.35 * _lines(u, 0.5, 0.05, f)
+            elif name == "wood":  # boards of width ``scale``
+                lum *= 1.0 - 0.3 * _lines(v, sc, 0.15 * sc, f)
+            elif name == "metal":  # standing seams every ``scale``
+                lum *= 1.0 - 0.35 * _lines(u, sc, 0.1 * sc, f)
             elif name == "gravel":
                 lum *= 1.0 + 0.2 * nz[:, 0] + 0.1 * big[:, 1]
                 vent = _hash01(np.floor(u / 4.0), np.floor(v / 4.0), 13) > 0.8
