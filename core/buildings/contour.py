@@ -51,13 +51,15 @@ class Fragment:
 @dataclass(frozen=True)
 class Contour:
     """polygon : (m, 2) counter-clockwise wall outline; fragments : the wall lines used; facade_cells : (k, 2)
-    int grid indices (col, row); origin : grid origin (2,); cell : grid size."""
+    int grid indices (col, row); origin : grid origin (2,); cell : grid size; source : facades or the roof
+    outline fallback (with the reason)."""
 
     polygon: np.ndarray
     fragments: tuple[Fragment, ...]
     facade_cells: np.ndarray
     origin: np.ndarray
     cell: float
+    source: str = "facades"
 
 
 def _ransac_line(xy: np.ndarray, tol: float, iterations: int, rng: np.random.Generator) -> np.ndarray | None:
@@ -269,8 +271,41 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
         else:
             corners.append(_intersect(f, g))
     poly = np.asarray(corners)
+    # drop repeated corners (fragments meeting at one point) and check the ring
+    keep = [i for i in range(len(poly)) if np.linalg.norm(poly[i] - poly[i - 1]) > 0.05]
+    poly = poly[keep]
+    if len(poly) < 3 or not np.isfinite(poly).all():
+        raise ValueError("the wall fragments do not close into a ring")
     area = 0.5 * np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1])
+    if abs(area) < 4.0:
+        raise ValueError(f"the closed contour is degenerate ({abs(area):.1f} m2)")
+    if _self_intersecting(poly):
+        raise ValueError("the closed contour intersects itself")
     return poly if area > 0 else poly[::-1]
+
+
+def _self_intersecting(poly: np.ndarray) -> bool:
+    """True when two non-adjacent edges of the ring (m, 2) cross."""
+    m = len(poly)
+    a, b = poly, np.roll(poly, -1, axis=0)
+
+    def orient(p, q, r):
+        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
+                       - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+
+    for i in range(m):
+        j = np.arange(i + 2, m)
+        if i == 0:
+            j = j[j != m - 1]
+        if len(j) == 0:
+            continue
+        o1 = orient(a[i], b[i], a[j])
+        o2 = orient(a[i], b[i], b[j])
+        o3 = orient(a[j], b[j], a[i][None])
+        o4 = orient(a[j], b[j], b[i][None])
+        if np.any((o1 * o2 < 0) & (o3 * o4 < 0)):
+            return True
+    return False
 
 
 def _join(g: Fragment, f: Fragment) -> Fragment:
@@ -285,11 +320,64 @@ def _join(g: Fragment, f: Fragment) -> Fragment:
     return Fragment(p, dd, float(t.min()), float(t.max()), w)
 
 
+def roof_outline_fragments(xyz: np.ndarray, ground_z: float, cfg: ContourConfig,
+                           origin: np.ndarray) -> list[Fragment]:
+    """Fallback wall lines when there are no facade points: the outline of the roof points.
+
+    The outer boundary of the building mask is simplified (Douglas-Peucker, 1.5 cells); for each simplified
+    edge the outermost roof point of every slice along the edge is kept and a regression line fitted to them.
+    The result is the eave line (overhangs included), not the wall.
+    """
+    mask = building_mask(xyz, ground_z, origin, cfg.cell, min_height=2.0)
+    cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    approx = cv2.approxPolyDP(max(cs, key=len), 1.5, True)[:, 0, :].astype(np.float64)
+    poly = origin + (approx + 0.5) * cfg.cell
+    top = xyz[xyz[:, 2] > ground_z + 2.0, :2]
+    frags = []
+    m = len(poly)
+    for i in range(m):
+        a, b = poly[i], poly[(i + 1) % m]
+        length = float(np.linalg.norm(b - a))
+        if length < cfg.min_fragment:
+            continue
+        d = (b - a) / length
+        out = np.array([d[1], -d[0]])
+        if (cv2.contourArea(approx.astype(np.float32), oriented=True)) > 0:
+            out = -out  # image rows run with y: orientation flips
+        t = (top - a) @ d
+        off = (top - a) @ out
+        band = (t > 0.1 * length) & (t < 0.9 * length) & (np.abs(off) < 1.5)
+        if band.sum() < 5:
+            continue
+        tb, ob, pb = t[band], off[band], top[band]
+        sl = np.floor(tb / cfg.cell).astype(np.int64)
+        order = np.lexsort((-ob, sl))
+        first = order[np.r_[True, sl[order][1:] != sl[order][:-1]]]
+        if len(first) < 3:
+            continue
+        p, dd = _tls_line(pb[first])
+        tt = (pb[first] - p) @ dd
+        frags.append(Fragment(p, dd, float(tt.min()), float(tt.max()), len(first)))
+    return frags
+
+
 def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = ContourConfig()) -> Contour:
-    """The wall outline of one building's points ``xyz (n, 3)`` with the ground at ``ground_z``."""
+    """The wall outline of one building's points ``xyz (n, 3)`` with the ground at ``ground_z``.
+
+    Falls back to the roof outline (:func:`roof_outline_fragments`) when the facades give fewer than three
+    wall lines; ``Contour.source`` says which.
+    """
     frags, cells, origin = wall_fragments(xyz, ground_z, cfg)
-    if len(frags) < 3:
-        raise ValueError(f"only {len(frags)} wall fragments found")
+    source = "facades"
     mask = building_mask(xyz, ground_z, origin, cfg.cell)
-    poly = close_contour(frags, mask, origin, cfg.cell, cfg)
-    return Contour(poly, tuple(frags), cells, origin, cfg.cell)
+    try:
+        if len(frags) < 3:
+            raise ValueError(f"only {len(frags)} wall fragments found")
+        poly = close_contour(frags, mask, origin, cfg.cell, cfg)
+    except ValueError as e:
+        frags = roof_outline_fragments(xyz, ground_z, cfg, origin)
+        source = f"roof outline ({e} from the facades)"
+        if len(frags) < 3:
+            raise ValueError(f"{e}; the roof outline gave {len(frags)} lines") from None
+        poly = close_contour(frags, mask, origin, cfg.cell, cfg)
+    return Contour(poly, tuple(frags), cells, origin, cfg.cell, source)

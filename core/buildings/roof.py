@@ -288,6 +288,8 @@ def _boundary_offset(pa: np.ndarray, pb: np.ndarray, xy: np.ndarray) -> float:
 def merge_coplanar(roof: RoofTopology, xyz: np.ndarray, cfg: RoofConfig) -> RoofTopology:
     """Merge labels whose planes coincide (same normal within ``angle_deg``, heights within ``step_tol`` over
     both regions), neighbours first, and refit the merged plane on the points of both."""
+    if not roof.planes:
+        return roof
     L = roof.labels
     cos_t = np.cos(np.radians(cfg.angle_deg))
     while True:
