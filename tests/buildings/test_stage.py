@@ -73,3 +73,27 @@ def test_buildings_stage_writes_models_and_report(scene, tmp_path):
     assert report["failures"] == [] and len(report["buildings"]) == 2
     gable = next(m for m in models if m.path == "2d")
     assert np.allclose(np.sort(gable.overhangs), 0.6, atol=2 * CELL)
+
+
+def test_user_footprints_collect_the_points_and_bad_files_name_the_field(scene, tmp_path):
+    from oblique_city.core.buildings.detect import points_per_footprint, read_footprints
+    from oblique_city.core.errors import InputError
+
+    blds, xyz, _, dtm = scene
+    gj = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "geometry": {"type": "Polygon",
+                                         "coordinates": [b.footprint.tolist() + [b.footprint[0].tolist()]]}}
+        for b in blds]}
+    path = tmp_path / "fp.geojson"
+    path.write_text(json.dumps(gj))
+    rings = read_footprints(path)
+    assert len(rings) == 2 and np.allclose(rings[0], blds[0].footprint)
+    dets = points_per_footprint(xyz, rings, dtm)
+    for b, d in zip(blds, dets):
+        p = xyz[d.indices]
+        assert np.linalg.norm(p[:, :2].mean(0) - b.footprint.mean(0)) < 2.0
+        assert (p[:, 2] > 0.5).sum() > 1000
+    gj["features"][1]["geometry"] = {"type": "LineString", "coordinates": [[0, 0], [1, 1]]}
+    path.write_text(json.dumps(gj))
+    with pytest.raises(InputError, match="fp.geojson.*geometry"):
+        read_footprints(path)
