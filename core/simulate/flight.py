@@ -26,6 +26,7 @@ from ..geometry.rotations import ENU_FROM_NED, rot_x, rot_y, rot_z, rotvec_to_ma
 from ..geometry.views import VIEWS, cardinal_view
 from ..model import GroundPoint, Image, ImageBlock, Pose, Raster, Rig, RigHead
 from .cameras import CameraSystem
+from .geometry2d import clip_halfplane
 
 
 @dataclass(frozen=True)
@@ -92,20 +93,28 @@ def flying_height(system: CameraSystem, gsd: float) -> float:
 
 def plan_flight(system: CameraSystem, area: np.ndarray, ground_z: float, config: FlightConfig = FlightConfig()
                 ) -> list[Exposure]:
-    """Strips over ``area = (xmin, ymin, xmax, ymax)`` (world) at the flying height for ``config.gsd``.
+    """Strips over ``area`` at the flying height for ``config.gsd``.
 
-    Strip spacing is ``(1 - side_overlap)`` times the nadir swath, exposure spacing ``(1 - forward_overlap)``
-    times the nadir along-track footprint (the image's v axis runs along track); strips and exposures are
-    centred on the area and cover it plus the extensions.
+    ``area`` is a bbox ``(xmin, ymin, xmax, ymax)`` or a polygon ``(k, 2)`` (world). Strip spacing is
+    ``(1 - side_overlap)`` times the nadir swath, exposure spacing ``(1 - forward_overlap)`` times the nadir
+    along-track footprint (the image's v axis runs along track). Strips are centred across the area; each strip
+    covers the part of the area under its swath (the whole area's extent for strips outside it) plus
+    ``extend_along`` at both ends.
     """
     cam = system.camera(system.nadir_head)
     h = flying_height(system, config.gsd)
     swath, along_fp = h * cam.width / cam.fx, h * cam.height / cam.fy
     base, spacing = (1 - config.forward_overlap) * along_fp, (1 - config.side_overlap) * swath
     rng = np.random.default_rng(config.seed)
-    xmin, ymin, xmax, ymax = (float(v) for v in area)
-    corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
-    centre = corners.mean(0)
+    area = np.asarray(area, np.float64)
+    if area.shape == (4,):
+        xmin, ymin, xmax, ymax = area
+        corners = np.array([[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax]])
+    elif area.ndim == 2 and area.shape[1] == 2 and len(area) >= 3:
+        corners = area
+    else:
+        raise ConfigError(f"area must be (xmin, ymin, xmax, ymax) or a polygon (k, 2), got shape {area.shape}")
+    centre = 0.5 * (corners.min(0) + corners.max(0))
     out: list[Exposure] = []
     azimuths = [config.direction_deg] + ([config.direction_deg + 90.0] if config.cross_strips else [])
     strip_no = 0
@@ -115,12 +124,14 @@ def plan_flight(system: CameraSystem, area: np.ndarray, ground_z: float, config:
         c = np.array([math.cos(az), -math.sin(az)])  # across track (to the right)
         pa, pc = (corners - centre) @ a, (corners - centre) @ c
         span_c = pc.max() - pc.min() + 2 * config.extend_across
-        span_a = pa.max() - pa.min() + 2 * config.extend_along
         n_s = max(1, math.ceil(max(span_c - swath, 0.0) / spacing) + 1)
-        n_e = max(2, math.ceil(span_a / base) + 1)
         off_c = (np.arange(n_s) - (n_s - 1) / 2) * spacing + 0.5 * (pc.max() + pc.min())
-        off_a = (np.arange(n_e) - (n_e - 1) / 2) * base + 0.5 * (pa.max() + pa.min())
+        local = np.stack([pa, pc], 1)
         for si, oc in enumerate(off_c):
+            band = clip_halfplane(clip_halfplane(local, 0.0, 1.0, -(oc + swath / 2)), 0.0, -1.0, oc - swath / 2)
+            lo, hi = (band[:, 0].min(), band[:, 0].max()) if len(band) >= 3 else (pa.min(), pa.max())
+            n_e = max(2, math.ceil((hi - lo + 2 * config.extend_along) / base) + 1)
+            off_a = (np.arange(n_e) - (n_e - 1) / 2) * base + 0.5 * (lo + hi)
             reverse = config.alternate and si % 2 == 1
             yaw = az + (math.pi if reverse else 0.0)
             seq = off_a[::-1] if reverse else off_a

@@ -146,3 +146,22 @@ def test_navigation_errors_and_ground_points(city):
     res = np.array(res)
     assert len(res) > 50
     assert 0.22 < res.std() < 0.38
+
+
+def test_polygon_area_strips_follow_the_outline():
+    """A triangle: strips over its narrow end are shorter than over its base; a bbox gives equal strips."""
+    system = penta(400, 300)
+    tri = np.array([[500000.0, 5400000.0], [501000.0, 5400000.0], [500000.0, 5400800.0]])
+    ex = plan_flight(system, tri, 100.0, FlightConfig(gsd=0.5, **STILL))
+    per = {}
+    for e in ex:
+        per.setdefault(e.strip, []).append(e.center[0])
+    ys = {s: np.mean([e.center[1] for e in ex if e.strip == s]) for s in per}
+    south, north = min(ys, key=ys.get), max(ys, key=ys.get)
+    assert max(per[south]) - min(per[south]) > 2 * (max(per[north]) - min(per[north]))
+    box = plan_flight(system, np.array([500000.0, 5400000.0, 501000.0, 5400800.0]), 100.0,
+                      FlightConfig(gsd=0.5, **STILL))
+    counts = np.bincount([e.strip for e in box])[1:]
+    assert len(set(counts)) == 1 and len(per) == len(counts)
+    with pytest.raises(Exception, match="area must be"):
+        plan_flight(system, np.zeros(3), 100.0)
