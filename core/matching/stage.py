@@ -31,8 +31,8 @@ class MatchConfig:
 
     min_overlap: float = 0.2
     max_axis_angle_deg: float = 50.0
-    max_neighbours: int = 40
-    max_features: int = 8000
+    max_neighbours: int = 16
+    max_features: int = 6000
     ratio: float = 0.85
     band_px: float = 25.0
     ransac_px: float = 1.5
@@ -40,7 +40,7 @@ class MatchConfig:
     min_rays: int = 2
     max_tracks_per_image: int = 0
     z_ref: float = float("nan")
-    height_range: float = 80.0
+    height_range: float = 60.0
     tie_source: str = "images"
 
 
