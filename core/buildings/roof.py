@@ -385,7 +385,14 @@ def check_topology(roof: RoofTopology, polygon: np.ndarray, cfg: RoofConfig = Ro
         centre = (p + q) / 2
         err = float(np.linalg.norm(centre[:2] - xy))
         node_err[tuple(sorted(labs))] = err
-        if err > cfg.node_tol or np.linalg.norm(p - q) > cfg.segment_tol:
+        tol = cfg.node_tol
+        if wall_i is not None:
+            # an arris is scanned 1.5 cells inside the wall: along the wall it is off by that offset over the
+            # tangent of the angle between the roof edge and the wall
+            u, w = lines[0][1][:2], lines[-1][1][:2]
+            sin = abs(u[0] * w[1] - u[1] * w[0]) / max(np.linalg.norm(u) * np.linalg.norm(w), 1e-12)
+            tol += 1.5 * roof.cell * np.sqrt(max(1.0 - sin * sin, 0.0)) / max(sin, 0.2)
+        if err > tol or np.linalg.norm(p - q) > cfg.segment_tol:
             bad.append((tuple(sorted(labs)), err, float(np.linalg.norm(p - q))))
     if steps:
         return TopologyCheck(False, f"height discontinuity between roof planes {steps}", tuple(steps), node_err)

@@ -39,8 +39,9 @@ class BuildingTruth:
                 continue
             n = np.asarray(rp["normal"], dtype=np.float64)
             n = n if n[2] > 0 else -n
-            poly = np.asarray(rp["polygon"], dtype=np.float64)
-            planes.append((n, _inner_point(poly)))
+            p = _visible_point(b, np.asarray(rp["polygon"], dtype=np.float64), n)
+            if p is not None:  # planes entirely hidden under other parts are not measurable
+                planes.append((n, p))
         edges = [(np.asarray(e["segment"], dtype=np.float64), float(e["width"]))
                  for e in b.overhang_edges() if e["exposed"]]
         return cls(f"{b.id}:{b.name}", [np.asarray(r, dtype=np.float64) for r in b.footprint], planes, edges)
@@ -65,6 +66,37 @@ class BuildingTruth:
         m = len(fp)
         edges = [(np.stack([fp[i], fp[(i + 1) % m]]), float(sb.overhangs[i])) for i in range(m)]
         return cls(sb.name, [fp], planes, edges)
+
+
+def _top_height(b, xy: np.ndarray) -> np.ndarray:
+    """Highest roof surface of any part of a simulator building over world points (n, 2)."""
+    uv = b.to_local(xy)
+    top = np.full(len(xy), -np.inf)
+    for part in b.parts:
+        x0, y0, x1, y1 = part.rect
+        o = part.overhang  # edges x0, x1, y0, y1
+        m = (uv[:, 0] >= x0 - o[0]) & (uv[:, 0] <= x1 + o[1]) & (uv[:, 1] >= y0 - o[2]) & (uv[:, 1] <= y1 + o[3])
+        if m.any():
+            top[m] = np.maximum(top[m], part.z_top(uv[m]))
+    return top
+
+
+def _visible_point(b, poly: np.ndarray, n: np.ndarray, step: float = 0.25) -> np.ndarray | None:
+    """The point of a roof plane polygon (k, 3) where that plane is the top surface that lies deepest inside the
+    visible region (farthest from hidden or outside samples); None when under 1 m^2 of it is visible."""
+    from scipy.spatial import cKDTree
+
+    lo, hi = poly[:, :2].min(0) - step, poly[:, :2].max(0) + step
+    X, Y = np.meshgrid(np.arange(lo[0], hi[0], step), np.arange(lo[1], hi[1], step))
+    xy = np.column_stack([X.ravel(), Y.ravel()])
+    d = n @ poly[0]
+    z = (d - n[0] * xy[:, 0] - n[1] * xy[:, 1]) / n[2]
+    vis = points_in_polygon(xy, poly[:, :2]) & (z >= _top_height(b, xy) - 0.05)
+    if vis.sum() * step * step < 1.0 or vis.all():
+        return None
+    depth, _ = cKDTree(xy[~vis]).query(xy[vis])
+    k = int(np.argmax(depth))
+    return np.array([xy[vis][k, 0], xy[vis][k, 1], z[vis][k]])
 
 
 def _inner_point(poly: np.ndarray) -> np.ndarray:
