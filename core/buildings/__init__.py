@@ -1,0 +1,16 @@
+"""LOD2 buildings with discontinuities and roof overhangs from the oblique point cloud and the DSM.
+
+Pipeline per building (:func:`.reconstruct.reconstruct_building`):
+
+1. :mod:`.detect`: buildings from the nDSM and masks (or user footprints), one point set each, ground from the DTM.
+2. :mod:`.denoise`: voxel noise filter (PCA plane per voxel from its 3x3x3 neighbourhood, sphere r = a/2 sqrt 3,
+   distance histogram, points beyond the modal class removed).
+3. :mod:`.contour`: facade cells, RANSAC line per cell, 8-neighbourhood merging, regression lines, closed contour
+   (roof-outline fallback when there are no facade points).
+4. :mod:`.roof`: cell planes, smoothness, normal groups, region growing, 2x2-window topology (edges, nodes), arrises
+   along the contour, group planes, edges and nodes from plane intersections, and the agreement check.
+5. :mod:`.hull`: the closed body from the plane arrangement (2D path: contour walls + roof planes + ground, occupancy
+   from the label grid); :mod:`.volumetric`: the fallback's planes from 3D voxels when the check fails.
+6. :mod:`.overhang`: eave offsets on the DSM (zero crossing of the second directional derivative), overhang slabs.
+7. :mod:`.model`: the building model and ``buildings/buildings.json``; :mod:`.stage`: the ``buildings`` stage.
+"""
