@@ -71,6 +71,51 @@ class RoofTopology:
         return out
 
 
+def _block_planes(xyz: np.ndarray, pt: np.ndarray, cell: np.ndarray,
+                  ncell: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robust total-least-squares plane per cell from (point, cell) pairs, all cells at once.
+
+    Three fits like :func:`.geometry.fit_plane` with ``robust=True``: after the first and the second, pairs
+    beyond 2.5 robust sigmas of their cell are dropped. Returns planes (ncell, 4) with n_z >= 0, the RMS of the
+    kept residuals (ncell,) and the number of pairs per cell (ncell,).
+    """
+    ref = xyz[pt].mean(0) if len(pt) else np.zeros(3)
+    rel = xyz[pt] - ref
+    keep = np.ones(len(pt), bool)
+    npts = np.bincount(cell, minlength=ncell)
+    planes = np.full((ncell, 4), np.nan)
+    rms = np.full(ncell, np.inf)
+    for it in range(3):
+        w = keep.astype(np.float64)
+        n = np.bincount(cell, w, ncell)
+        s1 = np.stack([np.bincount(cell, w * rel[:, d], ncell) for d in range(3)], 1)
+        s2 = np.stack([np.bincount(cell, w * rel[:, d] * rel[:, e], ncell) for d in range(3) for e in range(3)], 1)
+        nn = np.maximum(n, 1.0)
+        mean = s1 / nn[:, None]
+        cov = s2.reshape(ncell, 3, 3) / nn[:, None, None] - mean[:, :, None] * mean[:, None, :]
+        _, vec = np.linalg.eigh(cov)
+        nrm = vec[:, :, 0]
+        nrm[nrm[:, 2] < 0] *= -1
+        r = np.einsum("ij,ij->i", rel - mean[cell], nrm[cell])
+        if it < 2:
+            a = np.abs(r)
+            a_kept = np.where(keep, a, np.inf)
+            order = np.lexsort((a_kept, cell))
+            st = np.searchsorted(cell[order], np.arange(ncell))
+            k = np.bincount(cell[keep], minlength=ncell)
+            med = np.zeros(ncell)
+            ok = k > 0
+            med[ok] = a_kept[order[st[ok] + k[ok] // 2]]
+            new = a < 2.5 * (1.4826 * med[cell] + 1e-6)
+            enough = np.bincount(cell[new], minlength=ncell) >= 4
+            keep = np.where(enough[cell], new, keep)
+        else:
+            w = keep.astype(np.float64)
+            rms = np.sqrt(np.bincount(cell, w * r * r, ncell) / np.maximum(np.bincount(cell, w, ncell), 1.0))
+            planes = np.column_stack([nrm, -np.einsum("ij,ij->i", nrm, mean + ref)])
+    return planes, rms, npts
+
+
 def plane_z(plane: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Height of a non-vertical plane over points (n, 2)."""
     return -(plane[0] * xy[:, 0] + plane[1] * xy[:, 1] + plane[3]) / plane[2]
@@ -101,45 +146,44 @@ def roof_labels(xyz: np.ndarray, polygon: np.ndarray, noise: float, cfg: RoofCon
     pidx, flat = pidx[order], flat[order]
     starts = np.searchsorted(flat, np.arange(rows * cols + 1))
 
+    # 90th percentile height per cell
+    ncell = rows * cols
+    zf = xyz[pidx, 2]
+    o2 = np.lexsort((zf, flat))
+    cnt = starts[1:] - starts[:-1]
+    top = np.full(ncell, np.nan)
+    has = cnt > 0
+    top[has] = zf[o2[starts[:-1][has] + np.floor(0.9 * (cnt[has] - 1)).astype(np.int64)]]
+    top = top.reshape(rows, cols)
+    # roof points of each cell's 3x3 block (walls below the roof dropped: within 1.5 m of their cell's top)
+    is_top = zf > top.ravel()[flat] - 1.5
+    is_top &= inside.ravel()[flat]
+    tp, tf = pidx[is_top], flat[is_top]
+    tr, tq = tf // cols, tf % cols
+    pair_pt, pair_cell = [], []
+    for i in (-1, 0, 1):
+        for j in (-1, 0, 1):
+            rr, qq = tr + i, tq + j
+            ok2 = (rr >= 0) & (rr < rows) & (qq >= 0) & (qq < cols)
+            pair_pt.append(tp[ok2])
+            pair_cell.append(rr[ok2] * cols + qq[ok2])
+    pair_pt = np.concatenate(pair_pt)
+    pair_cell = np.concatenate(pair_cell)
+    sel = inside.ravel()[pair_cell]
+    pair_pt, pair_cell = pair_pt[sel], pair_cell[sel]
+    cell_plane, rms, npts = _block_planes(xyz, pair_pt, pair_cell, ncell)
+    smooth_tol = cfg.smooth_tol if cfg.smooth_tol > 0 else max(3.0 * noise, 0.05)
+    valid = npts >= 8
+    cell_plane[~valid] = np.nan
+    smooth = valid & (rms < smooth_tol) & (cell_plane[:, 2] > np.cos(np.radians(70)))
+    cell_plane = cell_plane.reshape(rows, cols, 4)
+    normals = cell_plane[..., :3]
+    smooth = smooth.reshape(rows, cols)
+
     def cell_points(r: int, q: int) -> np.ndarray:
         f = r * cols + q
         return pidx[starts[f]:starts[f + 1]]
 
-    top = np.full((rows, cols), np.nan)
-    for r in range(rows):
-        for q in range(cols):
-            idx = cell_points(r, q)
-            if len(idx):
-                top[r, q] = np.percentile(xyz[idx, 2], 90)
-
-    def block_points(r: int, q: int) -> np.ndarray:
-        parts = []
-        for i in (-1, 0, 1):
-            for j in (-1, 0, 1):
-                rr, qq = r + i, q + j
-                if 0 <= rr < rows and 0 <= qq < cols and inside[rr, qq]:
-                    idx = cell_points(rr, qq)
-                    if len(idx):
-                        parts.append(idx[xyz[idx, 2] > top[rr, qq] - 1.5])
-        return np.concatenate(parts) if parts else np.zeros(0, np.int64)
-
-    smooth_tol = cfg.smooth_tol if cfg.smooth_tol > 0 else max(3.0 * noise, 0.05)
-    normals = np.full((rows, cols, 3), np.nan)
-    cell_plane = np.full((rows, cols, 4), np.nan)
-    smooth = np.zeros((rows, cols), bool)
-    for r in range(rows):
-        for q in range(cols):
-            if not inside[r, q]:
-                continue
-            idx = block_points(r, q)
-            if len(idx) < 8:
-                continue
-            pl, rms = fit_plane(xyz[idx], robust=True)
-            if pl[2] < 0:
-                pl = -pl
-            cell_plane[r, q] = pl
-            normals[r, q] = pl[:3]
-            smooth[r, q] = rms < smooth_tol and pl[2] > np.cos(np.radians(70))
     labels = np.where(inside, -1, 0).astype(np.int64)
     cos_t = np.cos(np.radians(cfg.angle_deg))
     next_label = 1
