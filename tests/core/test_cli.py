@@ -1,0 +1,60 @@
+"""The CLI face of the runner: new, import, run (with --set), status, one-line errors with exit code 2."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+from test_pipeline import SquareConfig, Stage, _square_run
+
+from oblique_city.core.cli import main
+from oblique_city.core.io.native import write_block
+from oblique_city.core.pipeline import Workspace, registry
+
+
+@pytest.fixture
+def square():
+    registry.register(Stage("square", _square_run, SquareConfig, requires=("block",)))
+    yield
+    registry.unregister("square")
+
+
+def test_new_import_run_status(utm_block, tmp_path, capsys, square) -> None:
+    ws = tmp_path / "ws"
+    assert main(["new", str(ws), "--crs", "EPSG:32632"]) == 0
+    write_block(utm_block, tmp_path / "b.json")
+    assert main(["import", str(ws), str(tmp_path / "b.json"), "--format", "native"]) == 0
+    assert "imported 3 images" in capsys.readouterr().out
+    assert main(["run", str(ws), "--stages", "square", "--set", "square.factor=0.5"]) == 0
+    assert Workspace.open(ws).project["stages"]["square"]["factor"] == 0.5
+    out = capsys.readouterr().out
+    assert "square" in out and "done" in out
+    assert main(["run", str(ws), "--stages", "square"]) == 0
+    assert "skipped" in capsys.readouterr().out
+    assert main(["status", str(ws)]) == 0
+    out = capsys.readouterr().out
+    assert "3 images" in out and "square" in out and "done" in out
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["run", "{ws}", "--stages", "nope"], "unknown stage 'nope'"),
+    (["run", "{ws}", "--stages", "square", "--set", "square.bogus=1"], "unknown option 'bogus'"),
+    (["run", "{ws}", "--set", "factor=1"], "should name a stage option"),
+    (["status", "{tmp}/missing"], "not a workspace"),
+    (["new", "{tmp}/other", "--crs", "EPSG:0"], "unknown coordinate reference system"),
+])
+def test_user_errors_are_one_line_exit_2(utm_block, tmp_path, capsys, square, argv, message) -> None:
+    ws = Workspace.create(tmp_path / "ws", crs="EPSG:32632")
+    ws.save_block(utm_block)
+    args = [a.format(ws=ws.root, tmp=tmp_path) for a in argv]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and err[0].startswith("oblique-city: error:")
+
+
+def test_module_entry_point_runs() -> None:
+    out = subprocess.run([sys.executable, "-m", "oblique_city", "--help"], capture_output=True, text=True,
+                         check=True).stdout
+    for cmd in ("new", "import", "run", "status", "simulate", "demo"):
+        assert cmd in out
