@@ -134,12 +134,17 @@ def render_images(city: City, jobs: list[tuple], render_cfg: RenderConfig, worke
         return done
     import multiprocessing as mp
 
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                             initargs=(city, render_cfg)) as ex:
+    ex = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                             initargs=(city, render_cfg))
+    try:
         for k, res in enumerate(ex.map(_render_job, jobs, chunksize=1)):
             done.append(res)
-            if progress:
+            if progress:  # may raise Cancelled: pending images are then dropped, not rendered
                 progress(k + 1, len(jobs), res[0])
+    except BaseException:
+        ex.shutdown(wait=True, cancel_futures=True)
+        raise
+    ex.shutdown(wait=True)
     return done
 
 
