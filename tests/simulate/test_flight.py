@@ -165,3 +165,11 @@ def test_polygon_area_strips_follow_the_outline():
     assert len(set(counts)) == 1 and len(per) == len(counts)
     with pytest.raises(Exception, match="area must be"):
         plan_flight(system, np.zeros(3), 100.0)
+
+
+def test_three_head_views():
+    """Three-head system on east-west strips: left/right heads give north/south views, no east/west views."""
+    system = three_head(300, 225)
+    block = true_block(system, plan_flight(system, AREA, 100.0, FlightConfig(gsd=0.5)), CRS)
+    views = {cardinal_view(i.pose_approx.R) for i in block.images.values()}
+    assert views == {"nadir", "north", "south"}
