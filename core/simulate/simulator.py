@@ -4,6 +4,7 @@ Output folder::
 
     images/<exposure>_<head>.jpg     rendered images (true orientation, Brown distortion, radiometry, noise)
     block.xml                        BlocksExchange XML: cameras, approximate poses (GNSS/IMU), control points
+                                     (written last: its presence marks a complete simulation)
     block.json                       the same block in the native format, with rig, exposures and prior sigmas
     gcp.csv, gcp_measurements.csv    ground points (surveyed) and their image measurements (pixel centre origin)
     preview/city_overview.png        an oblique overview of the city; preview/head_<head>.png one image per head
@@ -202,12 +203,7 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
     cpu_render = (c1.user + c1.system + c1.children_user + c1.children_system
                   - c0.user - c0.system - c0.children_user - c0.children_system)
 
-    write_block("bex", approx, out / "block.xml")
-    native.write_block(approx, out / "block.json")
-    write_ground_points(approx, out / "gcp.csv")
-    write_measurements(approx, out / "gcp_measurements.csv")
-
-    # previews: the overview and, per head, the image looking closest to the city centre
+    # previews: the overview and, per head, the image seeing the most buildings
     preview = out / "preview"
     preview.mkdir(exist_ok=True)
     renderer = Renderer(city, cfg.render)
@@ -252,6 +248,10 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
     from ..io.geotiff import write_geotiff
 
     write_geotiff(out / "truth" / "coverage.tif", cov)
+    native.write_block(approx, out / "block.json")
+    write_ground_points(approx, out / "gcp.csv")
+    write_measurements(approx, out / "gcp_measurements.csv")
+    write_block("bex", approx, out / "block.xml")  # last: a folder with block.xml is a complete simulation
     summary["total_seconds"] = time.perf_counter() - t_start
     return summary
 
