@@ -15,6 +15,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from .geometry import polygon_area
+
 
 @dataclass(frozen=True)
 class ContourConfig:
@@ -270,8 +272,11 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
             corners.append(g.p + ((mid - g.p) @ g.d) * g.d)
         else:
             corners.append(_intersect(f, g))
-    poly = np.asarray(corners)
-    # drop repeated corners (fragments meeting at one point) and check the ring
+    return _check_ring(np.asarray(corners))
+
+
+def _check_ring(poly: np.ndarray) -> np.ndarray:
+    """Drop repeated corners, check the ring (closed, not degenerate, simple) and make it counter-clockwise."""
     keep = [i for i in range(len(poly)) if np.linalg.norm(poly[i] - poly[i - 1]) > 0.05]
     poly = poly[keep]
     if len(poly) < 3 or not np.isfinite(poly).all():
@@ -320,52 +325,78 @@ def _join(g: Fragment, f: Fragment) -> Fragment:
     return Fragment(p, dd, float(t.min()), float(t.max()), w)
 
 
-def roof_outline_fragments(xyz: np.ndarray, ground_z: float, cfg: ContourConfig,
-                           origin: np.ndarray) -> list[Fragment]:
-    """Fallback wall lines when there are no facade points: the outline of the roof points.
+def roof_outline_polygon(xyz: np.ndarray, ground_z: float, cfg: ContourConfig, origin: np.ndarray) -> np.ndarray:
+    """Fallback outline when there are no facade points: the outline of the roof points (the eave line,
+    overhangs included, not the wall).
 
-    The outer boundary of the building mask is simplified (Douglas-Peucker, 1.5 cells); for each simplified
-    edge the outermost roof point of every slice along the edge is kept and a regression line fitted to them.
-    The result is the eave line (overhangs included), not the wall.
+    The outer boundary of the building mask is simplified (Douglas-Peucker, 2 cells); each simplified edge is
+    replaced by a regression line through the outermost roof point of every slice along it (the edge itself
+    where too few points); consecutive nearly collinear lines are merged and consecutive lines intersected
+    (a short connecting edge between parallel offset ones). Returns the (m, 2) counter-clockwise ring.
     """
     mask = building_mask(xyz, ground_z, origin, cfg.cell, min_height=2.0)
     cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    approx = cv2.approxPolyDP(max(cs, key=len), 1.5, True)[:, 0, :].astype(np.float64)
+    approx = cv2.approxPolyDP(max(cs, key=len), 2.0, True)[:, 0, :].astype(np.float64)
     poly = origin + (approx + 0.5) * cfg.cell
+    if polygon_area(poly) < 0:  # grid rows run with y, so the image orientation is kept: make it ccw
+        poly = poly[::-1]
     top = xyz[xyz[:, 2] > ground_z + 2.0, :2]
-    frags = []
+    lines: list[tuple[np.ndarray, np.ndarray]] = []
     m = len(poly)
     for i in range(m):
         a, b = poly[i], poly[(i + 1) % m]
         length = float(np.linalg.norm(b - a))
-        if length < cfg.min_fragment:
+        if length < 1e-6:
             continue
         d = (b - a) / length
         out = np.array([d[1], -d[0]])
-        if (cv2.contourArea(approx.astype(np.float32), oriented=True)) > 0:
-            out = -out  # image rows run with y: orientation flips
         t = (top - a) @ d
         off = (top - a) @ out
         band = (t > 0.1 * length) & (t < 0.9 * length) & (np.abs(off) < 1.5)
-        if band.sum() < 5:
-            continue
-        tb, ob, pb = t[band], off[band], top[band]
-        sl = np.floor(tb / cfg.cell).astype(np.int64)
-        order = np.lexsort((-ob, sl))
-        first = order[np.r_[True, sl[order][1:] != sl[order][:-1]]]
-        if len(first) < 3:
-            continue
-        p, dd = _tls_line(pb[first])
-        tt = (pb[first] - p) @ dd
-        frags.append(Fragment(p, dd, float(tt.min()), float(tt.max()), len(first)))
-    return frags
+        line = (a, d)
+        if band.sum() >= 5 and length >= cfg.min_fragment:
+            tb, ob, pb = t[band], off[band], top[band]
+            sl = np.floor(tb / cfg.cell).astype(np.int64)
+            order = np.lexsort((-ob, sl))
+            first = order[np.r_[True, sl[order][1:] != sl[order][:-1]]]
+            if len(first) >= 3:
+                p, dd = _tls_line(pb[first])
+                line = (p, dd if dd @ d > 0 else -dd)
+        lines.append(line)
+    cos_par = np.cos(np.radians(20.0))
+    merged: list[tuple[np.ndarray, np.ndarray]] = []
+    for p, d in lines:
+        if merged:
+            q, e = merged[-1]
+            if abs(d @ e) > cos_par and abs((p - q) @ np.array([-e[1], e[0]])) < 0.5:
+                continue
+        merged.append((p, d))
+    while len(merged) > 3:
+        (p, d), (q, e) = merged[-1], merged[0]
+        if abs(d @ e) > cos_par and abs((q - p) @ np.array([-d[1], d[0]])) < 0.5:
+            merged.pop()
+        else:
+            break
+    corners = []
+    k = len(merged)
+    for i in range(k):
+        (p, d), (q, e) = merged[i], merged[(i + 1) % k]
+        if abs(d @ e) > cos_par:
+            mid = (p + q) / 2
+            corners.append(p + ((mid - p) @ d) * d)
+            corners.append(q + ((mid - q) @ e) * e)
+        else:
+            A = np.column_stack([d, -e])
+            s = np.linalg.solve(A, q - p)
+            corners.append(p + s[0] * d)
+    return _check_ring(np.asarray(corners))
 
 
 def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = ContourConfig()) -> Contour:
     """The wall outline of one building's points ``xyz (n, 3)`` with the ground at ``ground_z``.
 
-    Falls back to the roof outline (:func:`roof_outline_fragments`) when the facades give fewer than three
-    wall lines; ``Contour.source`` says which.
+    Falls back to the roof outline (:func:`roof_outline_polygon`) when the facades give no closed contour;
+    ``Contour.source`` says which.
     """
     frags, cells, origin = wall_fragments(xyz, ground_z, cfg)
     source = "facades"
@@ -375,9 +406,9 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
             raise ValueError(f"only {len(frags)} wall fragments found")
         poly = close_contour(frags, mask, origin, cfg.cell, cfg)
     except ValueError as e:
-        frags = roof_outline_fragments(xyz, ground_z, cfg, origin)
         source = f"roof outline ({e} from the facades)"
-        if len(frags) < 3:
-            raise ValueError(f"{e}; the roof outline gave {len(frags)} lines") from None
-        poly = close_contour(frags, mask, origin, cfg.cell, cfg)
+        try:
+            poly = roof_outline_polygon(xyz, ground_z, cfg, origin)
+        except ValueError as e2:
+            raise ValueError(f"{e}; roof outline: {e2}") from None
     return Contour(poly, tuple(frags), cells, origin, cfg.cell, source)
