@@ -1,8 +1,9 @@
 """Building detection from the nDSM and masks, and one point set per building.
 
-Cells higher than ``min_height`` above the DTM form candidate objects; vegetation is rejected by the vegetation
-mask when the surface stage provides one, else by roughness (the height's deviation from its local median: tree
-crowns are rough, roofs are piecewise planar). Connected components larger than ``min_area`` are buildings;
+Cells higher than ``min_height`` above the DTM form candidate objects; vegetation is rejected by roughness (the
+height's deviation from its local median: tree crowns are rough, roofs are piecewise planar): with the surface
+stage's vegetation mask, its cells are rejected where the surface is rough (a smooth green surface is a green
+roof), without it whole rough components are rejected. Connected components larger than ``min_area`` are buildings;
 each gets the points that fall on its (slightly dilated) cells, and the ground height is the DTM's median over it.
 Optional user footprints (GeoJSON polygons) replace the components: each polygon, enlarged about its centroid
 so that its nearest edge moves out by ``dilate``, collects its points.
@@ -55,12 +56,19 @@ def building_labels(dsm: Raster, dtm: Raster, cfg: DetectConfig = DetectConfig()
     g = np.asarray(dtm.data, dtype=np.float64)
     ndsm = z - g
     high = np.nan_to_num(ndsm, nan=0.0) > cfg.min_height
-    if building_mask is not None:
-        high &= building_mask.astype(bool)
-    if vegetation_mask is not None:
-        high &= ~vegetation_mask.astype(bool)
     filled = np.where(np.isfinite(z), z, np.nanmedian(z))
     rough = np.abs(filled - ndimage.median_filter(filled, size=5)) > cfg.rough_tol
+    veg = None
+    if vegetation_mask is not None:
+        # green but smooth and planar is a (green) roof, not a tree: only rough vegetation cells are rejected
+        near_rough = ndimage.uniform_filter(rough.astype(np.float64), size=7) > 0.15
+        veg = vegetation_mask.astype(bool) & near_rough
+        high &= ~veg
+    if building_mask is not None:
+        bmask = building_mask.astype(bool)
+        if vegetation_mask is not None:  # green roofs the mask gave to vegetation come back
+            bmask |= vegetation_mask.astype(bool) & ~veg
+        high &= bmask
     lab, n = ndimage.label(ndimage.binary_opening(high, np.ones((3, 3))), np.ones((3, 3)))
     out = np.zeros_like(lab, dtype=np.int32)
     stats = {"components": int(n), "too_small": 0, "vegetation": 0}
