@@ -55,15 +55,6 @@ def line_line_closest(l1: tuple[np.ndarray, np.ndarray],
     return p + s * u, q + t * v
 
 
-def three_planes(planes: np.ndarray) -> np.ndarray | None:
-    """Least-squares point of k >= 3 planes (k, 4); None if they do not fix a point."""
-    A = planes[:, :3]
-    if np.linalg.matrix_rank(A, tol=1e-6) < 3:
-        return None
-    x, *_ = np.linalg.lstsq(A, -planes[:, 3], rcond=None)
-    return x
-
-
 def points_in_polygon(xy: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     """Even-odd test of points (n, 2) against a polygon (m, 2) -> (n,) bool."""
     x, y = xy[:, 0], xy[:, 1]

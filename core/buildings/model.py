@@ -72,12 +72,8 @@ class BuildingModel:
     roof_planes: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
 
-    def solid_faces(self) -> list[np.ndarray]:
-        """Rings of the body as (k, 3) coordinate arrays."""
-        return [self.vertices[list(s.ring)] for s in self.surfaces if s.in_solid]
-
     def triangles(self, in_solid_only: bool = False) -> tuple[np.ndarray, np.ndarray, list[str]]:
-        """Fan-free ear-clipped triangulation of every ring.
+        """Ear-clipping triangulation of every ring.
 
         Returns
         -------

@@ -7,7 +7,7 @@ reconstruction steps can be tested against it without the full city simulator.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -220,11 +220,6 @@ class SyntheticBuilding:
         z = z + rng.normal(0, noise, z.shape)
         dtm = Raster(np.full((rows, cols), self.ground), r.x0, r.y0, cell, crs)
         return Raster(z, r.x0, r.y0, cell, crs), dtm
-
-
-@dataclass(frozen=True)
-class SyntheticScene:
-    buildings: tuple[SyntheticBuilding, ...] = field(default_factory=tuple)
 
 
 def _rect(u0, v0, u1, v1):

@@ -99,19 +99,6 @@ def _visible_point(b, poly: np.ndarray, n: np.ndarray, step: float = 0.25) -> np
     return np.array([xy[vis][k, 0], xy[vis][k, 1], z[vis][k]])
 
 
-def _inner_point(poly: np.ndarray) -> np.ndarray:
-    """A point of a planar polygon (k, 3) well inside it (the vertex mean pulled to the nearest interior sample)."""
-    c = poly.mean(0)
-    if points_in_polygon(c[None, :2], poly[:, :2])[0]:
-        return c
-    for t in (0.5, 0.25, 0.1):
-        for v in poly:
-            q = c + (1 - t) * (v - c)
-            if points_in_polygon(q[None, :2], poly[:, :2])[0]:
-                return q
-    return c
-
-
 @dataclass(frozen=True)
 class BuildingScore:
     """Figures of one building (NaN where not measurable)."""

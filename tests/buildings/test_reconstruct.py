@@ -80,3 +80,20 @@ def test_model_file_round_trip_and_errors(models, tmp_path):
     bad.write_text('{"format": "oblique-city-buildings", "buildings": [{"id": "X"}]}')
     with pytest.raises(InputError, match="bad.json"):
         load_buildings(bad)
+
+
+def test_triangulation_covers_every_polygon(models):
+    """The triangles (for Blender and mesh checks) cover each ring exactly: equal areas, no flipped triangle."""
+    m = models["lshape"]
+    V, T, kinds = m.triangles()
+    assert len(T) == len(kinds)
+    tri_area = 0.5 * np.linalg.norm(np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1).sum()
+    ring_area = 0.0
+    for s in m.surfaces:
+        p = m.vertices[list(s.ring)]
+        c = p - p.mean(0)
+        ring_area += 0.5 * np.linalg.norm(np.cross(c, np.roll(c, -1, axis=0)).sum(0))
+    assert tri_area == pytest.approx(ring_area, rel=1e-9)
+    _, Ts, _ = m.triangles(in_solid_only=True)
+    ok, _, why = solid_check(V, [list(t) for t in Ts])
+    assert ok, why
