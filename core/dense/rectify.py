@@ -130,17 +130,14 @@ def rectification_frame(pose_master: Pose, pose_slave: Pose, min_angle_deg: floa
 
 
 def rectify_pair(cam_master: CameraModel, pose_master: Pose, cam_slave: CameraModel, pose_slave: Pose,
-                 scale: float = 1.0, max_size_factor: float = 2.0,
-                 rows_master: tuple[float, float] | None = None) -> RectifiedPair:
+                 scale: float = 1.0, max_size_factor: float = 2.0) -> RectifiedPair:
     """Rectify a master/slave pair.
 
     Parameters
     ----------
     scale : rectified focal length relative to the mean focal length of the two cameras (0.5 halves the size)
     max_size_factor : the rectified width and height are clipped to this multiple of the larger original size
-        (strongly converging oblique pairs would otherwise give huge images)
-    rows_master : optional (v_min, v_max) rows of the rectified master to keep (the overlap), else all rows
-        common to both images
+        (strongly converging oblique pairs would otherwise give huge images); the rows are those common to both
     """
     r = rectification_frame(pose_master, pose_slave)
     f = scale * 0.25 * (cam_master.fx + cam_master.fy + cam_slave.fx + cam_slave.fy)
@@ -150,8 +147,6 @@ def rectify_pair(cam_master: CameraModel, pose_master: Pose, cam_slave: CameraMo
         raise ComputationError("rectification: an image border looks away from the rectified frame")
     limit = max_size_factor * scale * max(cam_master.width, cam_master.height, cam_slave.width, cam_slave.height)
     v0, v1 = max(bm[:, 1].min(), bs[:, 1].min()), min(bm[:, 1].max(), bs[:, 1].max())
-    if rows_master is not None:
-        v0, v1 = max(v0, rows_master[0]), min(v1, rows_master[1])
     if v1 - v0 < 8:
         raise ComputationError("rectification: the two images share no rows")
     mid = 0.5 * (v0 + v1)

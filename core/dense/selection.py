@@ -2,11 +2,12 @@
 
 Images are grouped by the view they actually look in (``nadir``, ``north``, ...). In each view, masters are
 chosen greedily so that their footprints cover the area of interest with a chosen overlap between neighbouring
-masters (each master "owns" its footprint shrunk by ``1 - overlap`` about its centre; the greedy set cover adds
-the image whose owned part covers most uncovered ground). For each master, slaves of the same view are ranked by
-footprint overlap, base-to-height ratio, intersection angle and the angle between baseline and viewing
-direction (planar rectification distorts little when they are perpendicular); pairs whose baseline runs nearly
-along the viewing direction cannot be rectified and are left out.
+masters (each master "owns" the ground seen by the central part of its image, the window shrunk by
+``1 - overlap``; the greedy set cover adds the image whose owned part covers most uncovered ground). For each
+master, slaves of the same view are ranked by footprint overlap, base-to-height ratio, intersection angle and
+the angle between baseline and viewing direction (planar rectification distorts little when they are
+perpendicular); pairs whose baseline runs nearly along the viewing direction cannot be rectified and are left
+out.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..geometry.projection import image_footprint, intersect_with_plane_z
+from ..geometry.projection import intersect_with_plane_z
 from ..model.block import ImageBlock
 
 
@@ -58,18 +59,23 @@ class MasterSelection:
 
 def _footprint_masks(block: ImageBlock, ids: list[str], z_ref: float, aoi: tuple[float, float, float, float],
                      cell: float, shrink: float = 1.0) -> np.ndarray:
-    """(n, rows, cols) bool footprints of images on the plane ``Z = z_ref`` over the AOI grid, optionally shrunk
-    about their centroid."""
+    """(n, rows, cols) bool footprints on the plane ``Z = z_ref`` over the AOI grid of the images' central parts:
+    the image window scaled by ``shrink`` about the principal point (1 = the whole image)."""
     x0, y0, x1, y1 = aoi
     cols, rows = max(1, int(np.ceil((x1 - x0) / cell))), max(1, int(np.ceil((y1 - y0) / cell)))
     out = np.zeros((len(ids), rows, cols), bool)
+    s = np.linspace(0.0, 1.0, 8, endpoint=False)
     for i, iid in enumerate(ids):
         img = block.images[iid]
-        poly = image_footprint(block.camera_of(img), img.pose, z_ref, samples_per_side=8)
+        cam = block.camera_of(img)
+        w, h = cam.width - 1.0, cam.height - 1.0
+        border = np.concatenate([np.stack([s * w, 0 * s], 1), np.stack([w + 0 * s, s * h], 1),
+                                 np.stack([w - s * w, h + 0 * s], 1), np.stack([0 * s, h - s * h], 1)])
+        pp = np.array([cam.cx, cam.cy])
+        xyz = intersect_with_plane_z(cam, img.pose, pp + (border - pp) * shrink, z_ref)
+        poly = xyz[np.isfinite(xyz[:, 0]), :2]
         if len(poly) < 3:
             continue
-        centre = poly.mean(axis=0)
-        poly = centre + (poly - centre) * shrink
         pix = np.stack([(poly[:, 0] - x0) / cell, (y1 - poly[:, 1]) / cell], 1)
         m = np.zeros((rows, cols), np.uint8)
         cv2.fillPoly(m, [np.round(pix * 16).astype(np.int32)], 1, shift=4)

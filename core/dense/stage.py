@@ -80,24 +80,24 @@ def master_step(cfg: DenseConfig, view: str) -> int:
     return cfg.step if view == "nadir" else cfg.oblique_step
 
 
-def height_prior(ws, block: ImageBlock, cfg: DenseConfig) -> tuple[float, float]:
-    """``(z_min, z_max)`` from the config, else the tie points of matching/aerotri, else the ground points."""
+def height_prior(ws, block: ImageBlock, cfg: DenseConfig) -> tuple[float, float, float]:
+    """``(z_min, z_max, z_ground)``: the height interval searched by matching and a typical ground height, from
+    the config, else the tie points of matching/aerotri, else the ground points."""
     if math.isfinite(cfg.z_min) and math.isfinite(cfg.z_max):
-        return cfg.z_min, cfg.z_max
-    zs = []
+        return cfg.z_min, cfg.z_max, cfg.z_min
     for path in sorted(glob.glob(str(ws.path("aerotri", "*.npz"))) + glob.glob(str(ws.path("matching", "*.npz")))):
         try:
             tp = TiePoints.load(path)
         except (KeyError, ValueError, OSError):
             continue
         z = tp.xyz[:, 2]
-        zs = z[np.isfinite(z)]
-        if len(zs) > 20:
-            lo, hi = np.percentile(zs, [0.5, 99.5])
-            return float(lo - 10.0), float(hi + 10.0)
+        z = z[np.isfinite(z)]
+        if len(z) > 20:
+            lo, hi, ground = np.percentile(z, [0.5, 99.5, 10.0])
+            return float(lo - 10.0), float(hi + 10.0), float(ground)
     zs = [p.xyz[2] for p in block.ground_points.values() if p.xyz is not None]
     if zs:
-        return float(min(zs) - 10.0), float(max(zs) + cfg.max_object_height)
+        return float(min(zs) - 10.0), float(max(zs) + cfg.max_object_height), float(np.median(zs))
     raise ConfigError("dense: no height prior (no tie points, no ground points): set [stages.dense] z_min and z_max")
 
 
@@ -106,9 +106,8 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
     for v in cfg.views:
         if v not in VIEWS:
             raise ConfigError(f"project.toml: [stages.dense] views has unknown view '{v}' (known: {', '.join(VIEWS)})")
-    z_min, z_max = height_prior(ws, block, cfg)
-    z_ref = z_min + 10.0 if not math.isfinite(cfg.z_min) else 0.5 * (z_min + z_max)
-    selection = select_pairs(block, z_ref, cfg=SelectionConfig(master_overlap=cfg.master_overlap,
+    z_min, z_max, z_ground = height_prior(ws, block, cfg)
+    selection = select_pairs(block, z_ground, cfg=SelectionConfig(master_overlap=cfg.master_overlap,
                                                                slaves_per_master=cfg.slaves_per_master,
                                                                views=tuple(cfg.views)))
     selection = [s for s in selection if len(s.slaves) >= cfg.min_agree]

@@ -92,6 +92,17 @@ def visibility(scene, origin: np.ndarray, src: OrthoSource, xyz: np.ndarray, tol
     return uv, vis
 
 
+def sample_bilinear(image: np.ndarray, uv_px: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """Bilinear colours ``(n, channels)`` of ``image`` at pixels ``uv_px (n, 2)`` (cv2.remap on a map folded into
+    rows of ``chunk``, since remap maps are limited to 32767 columns)."""
+    n = len(uv_px)
+    rows = max(1, -(-n // chunk))
+    m = np.zeros((rows * chunk, 2), np.float32)
+    m[:n] = uv_px
+    out = cv2.remap(image, m.reshape(rows, chunk, 2), None, cv2.INTER_LINEAR)
+    return out.reshape(rows * chunk, -1)[:n]
+
+
 def preference_cost(src: OrthoSource, xyz: np.ndarray, uv: np.ndarray, centre_weight: float) -> np.ndarray:
     """Cost ``(n,)`` of taking points from ``src``: off-nadir angle / 45 deg + centre_weight * radial distance."""
     d = xyz - src.pose.C
@@ -132,8 +143,7 @@ def true_ortho(dsm: Raster, sources: list[OrthoSource], cfg: OrthoConfig = Ortho
         uv, vis = visibility(scene, origin, src, xyz[idx], cfg.occlusion_tol)
         sel = idx[vis]
         cost[k, sel] = preference_cost(src, xyz[sel], uv[vis], cfg.centre_weight)
-        m = uv[vis].astype(np.float32).reshape(-1, 1, 2)
-        colours[k, sel] = cv2.remap(src.image, m, None, cv2.INTER_LINEAR).reshape(-1, 3)
+        colours[k, sel] = sample_bilinear(src.image, uv[vis])
         if progress is not None:
             progress(k + 1, n + 1, f"ortho: projected {src.id}")
     best = np.argmin(cost, axis=0)
