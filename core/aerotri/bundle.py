@@ -386,9 +386,9 @@ class _Round:
             so.preconditioner_type = pyceres.PreconditionerType.SCHUR_JACOBI
         so.num_threads = opt.threads
         so.max_num_iterations = opt.max_iterations
-        so.function_tolerance = 1e-8
-        so.gradient_tolerance = 1e-12
-        so.parameter_tolerance = 1e-10
+        so.function_tolerance = 1e-6
+        so.gradient_tolerance = 1e-10
+        so.parameter_tolerance = 1e-8
         summary = pyceres.SolverSummary()
         pyceres.solve(so, self.problem, summary)
         if not summary.IsSolutionUsable():

@@ -7,6 +7,7 @@
   with their propagated 3x3 covariance. Selection: every tie point with >= k nadir rays (k = 2, 3, 5, 10), or
   CBA: a grid of ``cell`` metres over the block and in each cell the point with the most rays (nadir + that
   view). The four oblique runs are independent and go through the executor (inline, processes or Dask).
+  The oblique blocks start from the nadir corrections propagated to the other heads of each exposure.
   (3) Combined statistics by error propagation: a point's information is the nadir information plus each
   oblique block's own contribution (its information minus the connection prior it received).
 * Baselines: direct georeferencing (the navigation orientations) and nadir-only AT whose per-exposure
@@ -177,6 +178,11 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     nadir_rays = np.bincount(ties.obs_track[nadir_ok_obs], minlength=n)
     cov_ok = np.all(np.isfinite(safe_inverse(np.nan_to_num(cov_nadir)).reshape(n, 9)), 1)
     # (2) oblique sub-blocks tied by connection points
+    # start values of the oblique blocks: each exposure's nadir correction propagated to its other heads, and
+    # tie points re-intersected from those orientations (fewer iterations than from the navigation data)
+    start_poses = nadir_propagation(block, nadir.poses)
+    xyz_start, _ = intersect_ties(block, ties, start_poses)
+    xyz_start = np.where(np.isfinite(xyz_start[:, :1]), xyz_start, xyz0)
     view_of_image = np.array([block.images[i].view for i in ties.image_ids])
     view_of_obs = view_of_image[ties.obs_image]
     items, conn_counts, conn_masks = [], {}, {}
@@ -189,9 +195,9 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         sel = select_connections(xyz_nadir, (rays_v > 0) & cov_ok, nadir_rays + rays_v, nadir_rays, connection, cell)
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
-        start = np.where(sel[:, None], xyz_nadir, xyz0)
+        start = np.where(sel[:, None], xyz_nadir, xyz_start)
         sub = build_problem(block, ties, ids, start, use_control=False, point_prior_xyz=prior_xyz,
-                            point_prior_cov=prior_cov, prior_shift=res_n.datum_shift)
+                            point_prior_cov=prior_cov, prior_shift=res_n.datum_shift, initial=start_poses)
         conn_counts[v] = int(sel.sum())
         conn_masks[v] = sel
         items.append((v, sub, opt))
