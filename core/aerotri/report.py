@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..evaluate.aerotri import SPLITS, check_point_errors, rms_xy_z, std_xy_z, tie_point_std
 from ..geometry.rotations import matrix_to_rotvec
 from ..model import ImageBlock, Raster, TiePoints
@@ -151,12 +152,28 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
 
 
 def quality_layers(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float,
-                   cell: float) -> dict[str, Raster]:
-    """CBA layers and intersection error maps (see the module docstring)."""
+                   cell: float, views: str = "all") -> dict[str, Raster]:
+    """CBA layers and intersection error maps (see the module docstring).
+
+    ``views``: ``all`` uses the combined adjustment's point covariances and every ray; ``nadir`` or
+    ``oblique`` count only those views' rays and intersect the points from them with the adjusted orientations
+    held fixed."""
     ok = ~at.obs_rejected
     xyz = at.xyz
-    rays = np.bincount(ties.obs_track[ok], minlength=ties.n_tracks).astype(np.float64)
-    std = np.sqrt(np.abs(np.diagonal(at.xyz_cov, axis1=1, axis2=2)))
+    if views == "all":
+        rays = np.bincount(ties.obs_track[ok], minlength=ties.n_tracks).astype(np.float64)
+        std = np.sqrt(np.abs(np.diagonal(at.xyz_cov, axis1=1, axis2=2)))
+    else:
+        if views not in SPLITS:
+            raise ConfigError(f"layer views '{views}' unknown (use {', '.join(SPLITS)})")
+        img_view = np.array([block.images[i].view for i in ties.image_ids], dtype=object)
+        in_split = (img_view == "nadir") if views == "nadir" else (img_view != "nadir")
+        sel = ok & in_split[ties.obs_image]
+        rays = np.bincount(ties.obs_track[sel], minlength=ties.n_tracks).astype(np.float64)
+        chi = sum(r.result.sigma0**2 * r.result.redundancy for r in at.runs)
+        sigma0 = float(np.sqrt(chi / max(sum(r.result.redundancy for r in at.runs), 1)))
+        std = tie_point_std(block, ties, at.poses, xyz, ok, sigma0, sigma_px, views)
+        rays[rays < 2] = np.nan
     fin = np.isfinite(xyz[:, 0])
     # the grid covers the bulk of the points (a few badly determined points far away must not blow it up)
     lo = np.percentile(xyz[fin, :2], 0.5, axis=0) - cell

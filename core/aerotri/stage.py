@@ -42,6 +42,7 @@ class AerotriConfig:
     robust_scale : Cauchy loss scale of the first solve in sigmas
     threads : Ceres threads per adjustment
     layer_cell : cell of the quality layers in metres (0: the CBA cell size)
+    layer_views : rays and intersection precision of the CBA layers from ``all``, ``nadir`` or ``oblique`` views
     """
 
     mode: str = "integrated"
@@ -58,6 +59,7 @@ class AerotriConfig:
     robust_scale: float = 3.0
     threads: int = 2
     layer_cell: float = 0.0
+    layer_views: str = "all"
 
     def bundle_options(self) -> BundleOptions:
         for g in self.self_calibration:
@@ -77,6 +79,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
         raise ConfigError(f"aerotri.mode '{cfg.mode}' unknown (use integrated or hierarchical)")
     if str(cfg.connection) not in CONNECTIONS:
         raise ConfigError(f"aerotri.connection '{cfg.connection}' unknown (use {', '.join(CONNECTIONS)})")
+    if cfg.layer_views not in ("all", "nadir", "oblique"):
+        raise ConfigError(f"aerotri.layer_views '{cfg.layer_views}' unknown (use all, nadir or oblique)")
     block = ws.load_block(adjusted=False)
     ties_path = ws.path(TIES_FILE)
     if not ties_path.exists():
@@ -99,7 +103,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     adj.save(str(out / "ties.npz"))
     ctx.progress(1, 2, "statistics and layers")
     report = block_report(block, ties, at, cfg.sigma_px)
-    layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size)
+    layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size, cfg.layer_views)
     files = write_layers(layers, out / "layers")
     write_json(out / "report.json", report)
     res = np.concatenate([r.obs_residual[~r.obs_rejected] for r in at.runs])

@@ -112,3 +112,17 @@ def test_rig_constraint_keeps_heads_on_their_mounting(sim, xyz0, iat):
     free = rel_errors(lambda k: iat.poses[ids[k]].R)
     assert np.median(with_rig) < 0.002 and np.median(with_rig) < np.median(free)
     assert abs(res.sigma0 - 1.0) < 0.1
+
+
+def test_cba_layers_from_selected_views(sim, iat):
+    from oblique_city.core.aerotri.report import quality_layers
+
+    all_v = quality_layers(sim.block, sim.ties, iat, 0.3, 100.0, "all")
+    nadir = quality_layers(sim.block, sim.ties, iat, 0.3, 100.0, "nadir")
+    assert all_v["cba_rays"].data.shape == nadir["cba_rays"].data.shape
+    # fewer rays and a weaker height from the nadir views alone than from all views
+    assert np.nanmedian(nadir["cba_rays"].data) < np.nanmedian(all_v["cba_rays"].data)
+    assert np.nanmedian(nadir["cba_std_z"].data) > np.nanmedian(all_v["cba_std_z"].data)
+    # the intersection error after adjustment is below the one from the navigation data
+    assert np.nanmedian(all_v["intersection_error_after"].data) < np.nanmedian(
+        all_v["intersection_error_before"].data)
