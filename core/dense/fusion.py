@@ -155,12 +155,18 @@ class MasterPoints:
 def master_points(camera: CameraModel, pose: Pose, depth: np.ndarray, step: int, image_bgr: np.ndarray,
                   cfg: FusionConfig = FusionConfig()) -> MasterPoints:
     """Points with colour and normal from a fused (and smoothed) master depth grid; the mixed-pixel flag marks
-    points with grazing incidence or without a normal (isolated pixels)."""
+    points with grazing incidence (points without any valid neighbour keep a zero normal and are not flagged:
+    the statistical outlier removal judges them)."""
     xyz, uv, rays = depth_to_points(camera, pose, depth, step)
     normals = grid_normals(xyz, rays, cfg.normal_offset)
+    if cfg.normal_offset > 1:  # where a far neighbour is missing, try the nearest ones
+        near = grid_normals(xyz, rays, 1)
+        missing = ~np.isfinite(normals[..., 0])
+        normals[missing] = near[missing]
     inc = incidence_deg(normals, rays)
     valid = np.isfinite(depth)
-    mixed = ~(inc <= cfg.max_incidence_deg)
+    with np.errstate(invalid="ignore"):
+        mixed = inc > cfg.max_incidence_deg
     ui = np.clip(np.rint(uv[..., 0]).astype(int), 0, camera.width - 1)
     vi = np.clip(np.rint(uv[..., 1]).astype(int), 0, camera.height - 1)
     rgb = image_bgr[vi, ui, ::-1]

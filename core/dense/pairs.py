@@ -36,6 +36,7 @@ class PairTask:
     sgm : SGM settings
     coarse_above : a prior disparity interval wider than this (pixels) is first narrowed on a reduced pair
     max_size_factor : rectified images are clipped to this multiple of the original size
+    threads : OpenCV threads of the worker (0 = OpenCV's default; 1 when pairs run in parallel processes)
     """
 
     master: str
@@ -53,6 +54,7 @@ class PairTask:
     sgm: SgmConfig = SgmConfig()
     coarse_above: float = 96.0
     max_size_factor: float = 1.5
+    threads: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,6 +96,8 @@ def master_grid(camera: CameraModel, step: int) -> tuple[np.ndarray, np.ndarray]
 
 def match_pair(task: PairTask) -> PairDepth:
     """Rectify, match (padded SGM with left-right check) and convert to master depth."""
+    if task.threads > 0:
+        cv2.setNumThreads(task.threads)
     t0 = time.perf_counter()
     img_m, img_s = read_image(task.path_master), read_image(task.path_slave)
     for img, cam, path in ((img_m, task.cam_master, task.path_master), (img_s, task.cam_slave, task.path_slave)):

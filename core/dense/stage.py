@@ -39,6 +39,7 @@ KEPT, MIXED, OUTLIER = 0, 1, 2
 class DenseConfig:
     """Options of the ``dense`` stage (``[stages.dense]`` in project.toml).
 
+    aoi : ``[x0, y0, x1, y1]`` area the masters must cover (empty = the ground below the nadir image centres)
     z_min, z_max : height prior (world Z) for the disparity range; NaN = from tie points or ground points
     max_object_height : height above the ground prior allowed for objects when only ground points are known
     step : points are made on every ``step``-th pixel of nadir masters
@@ -54,6 +55,7 @@ class DenseConfig:
     display_points : size of the display subsample
     """
 
+    aoi: tuple[float, ...] = ()
     z_min: float = math.nan
     z_max: float = math.nan
     max_object_height: float = 80.0
@@ -107,13 +109,16 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
         if v not in VIEWS:
             raise ConfigError(f"project.toml: [stages.dense] views has unknown view '{v}' (known: {', '.join(VIEWS)})")
     z_min, z_max, z_ground = height_prior(ws, block, cfg)
-    selection = select_pairs(block, z_ground, cfg=SelectionConfig(master_overlap=cfg.master_overlap,
+    aoi = tuple(float(v) for v in cfg.aoi) if len(cfg.aoi) == 4 else None
+    selection = select_pairs(block, z_ground, aoi, cfg=SelectionConfig(master_overlap=cfg.master_overlap,
                                                                slaves_per_master=cfg.slaves_per_master,
                                                                views=tuple(cfg.views)))
     selection = [s for s in selection if len(s.slaves) >= cfg.min_agree]
     if not selection:
         raise ComputationError("dense: no master has enough slaves (check the overlap and the views)")
     sgm = SgmConfig(block_size=cfg.block_size, mode=cfg.sgm_mode, lr_max_diff=cfg.lr_max_diff)
+    executor = ctx.get_executor()
+    threads = 1 if getattr(executor, "mode", "inline") != "inline" else 0  # one OpenCV thread per process
     tasks = []
     for sel in selection:
         m = block.images[sel.master]
@@ -121,9 +126,9 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
             s = block.images[sid]
             tasks.append(PairTask(m.id, s.id, block.camera_of(m), m.pose, block.camera_of(s), s.pose,
                                   str(resolve_image(block, m.file)), str(resolve_image(block, s.file)),
-                                  z_min, z_max, master_step(cfg, sel.view), cfg.scale, sgm))
+                                  z_min, z_max, master_step(cfg, sel.view), cfg.scale, sgm, threads=threads))
     total = len(tasks) + len(selection)
-    results = ctx.get_executor().map(match_pair, tasks,
+    results = executor.map(match_pair, tasks,
                                      on_done=lambda d, t: ctx.progress(d, total, f"matched {d}/{t} pairs"))
     by_master: dict[str, list] = {}
     for r in results:

@@ -3,8 +3,9 @@
 Per cell the height is the median of the points in the top band of the cell (within ``band`` metres below the
 cell's 90th percentile): on a roof this is the median of the roof points (robust against noise and the odd
 blunder), in a cell crossed by a wall it is the roof, not the middle of the wall, because the DSM is the top
-surface. Holes up to ``max_hole_m2`` (occlusions, poor texture) are filled by inpainting from their border;
-larger holes stay empty (NaN).
+surface. Isolated blunders (cells with almost no neighbour at their height) are removed. Holes up to
+``max_hole_m2`` (occlusions, poor texture) whose surroundings are nearly level are filled by inpainting from
+their border; larger holes, and holes between a roof and the ground, stay empty (NaN).
 """
 
 from __future__ import annotations
@@ -61,14 +62,19 @@ class DsmConfig:
     top_quantile : quantile defining the top of a cell's points
     band : points within this many metres below the top quantile form the cell's top band
     min_points : cells with fewer points are empty
+    spike : cells with fewer than two of their 8 neighbours within this many metres are removed as blunders
     max_hole_m2 : holes up to this area are filled
+    max_hole_step : ... when the heights around them span less than this (metres); a hole between a roof and
+        the ground stays empty rather than get a made-up wall
     """
 
     cell: float = 0.0
     top_quantile: float = 0.9
     band: float = 0.5
     min_points: int = 1
+    spike: float = 1.0
     max_hole_m2: float = 50.0
+    max_hole_step: float = 1.0
 
 
 def _group_quantile(key: np.ndarray, z: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -104,16 +110,38 @@ def grid_points(grid: GridSpec, xyz: np.ndarray, cfg: DsmConfig = DsmConfig()) -
     return height.reshape(grid.rows, grid.cols), top
 
 
-def fill_small_holes(height: np.ndarray, max_cells: int) -> np.ndarray:
-    """Fill NaN regions of at most ``max_cells`` cells (not touching the border) by Navier-Stokes inpainting."""
+def remove_spikes(height: np.ndarray, threshold: float, min_support: int = 2) -> np.ndarray:
+    """Empty the cells (rows, cols) with fewer than ``min_support`` of their 8 neighbours within ``threshold``
+    metres (isolated blunders; a roof corner keeps three neighbours at its height)."""
+    pad = np.pad(height, 1, constant_values=np.nan)
+    rows, cols = height.shape
+    support = np.zeros(height.shape, np.int32)
+    with np.errstate(invalid="ignore"):
+        for dr in (0, 1, 2):
+            for dc in (0, 1, 2):
+                if dr == 1 and dc == 1:
+                    continue
+                support += np.abs(pad[dr:dr + rows, dc:dc + cols] - height) <= threshold
+    out = height.copy()
+    out[np.isfinite(height) & (support < min_support)] = np.nan
+    return out
+
+
+def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.inf) -> np.ndarray:
+    """Fill NaN regions of at most ``max_cells`` cells (not touching the border) whose surrounding cells span less
+    than ``max_step`` metres, by Navier-Stokes inpainting."""
     holes = ~np.isfinite(height)
     if not holes.any() or holes.all():
         return height
     labels, n = ndimage.label(holes)
-    sizes = ndimage.sum(holes, labels, index=np.arange(1, n + 1))
+    idx = np.arange(1, n + 1)
+    sizes = ndimage.sum(holes, labels, index=idx)
+    ring = ndimage.grey_dilation(labels, size=3) * ~holes  # border cells carry the label of the hole they touch
+    ring_lo = ndimage.minimum(height, ring, index=idx)
+    ring_hi = ndimage.maximum(height, ring, index=idx)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     small = np.zeros(n + 1, bool)
-    small[1:] = sizes <= max_cells
+    small[1:] = (sizes <= max_cells) & (np.nan_to_num(ring_hi - ring_lo, nan=np.inf) < max_step)
     small[border] = False
     fill = small[labels]
     if not fill.any():
@@ -143,5 +171,6 @@ def cell_colours(grid: GridSpec, xyz: np.ndarray, rgb: np.ndarray, use: np.ndarr
 def make_dsm(grid: GridSpec, xyz: np.ndarray, crs: str, cfg: DsmConfig = DsmConfig()) -> tuple[Raster, np.ndarray]:
     """The DSM raster (holes filled) and the top-band mask of the points."""
     height, top = grid_points(grid, xyz, cfg)
-    filled = fill_small_holes(height, int(cfg.max_hole_m2 / grid.cell ** 2))
+    height = remove_spikes(height, cfg.spike) if cfg.spike > 0 else height
+    filled = fill_small_holes(height, int(cfg.max_hole_m2 / grid.cell ** 2), cfg.max_hole_step)
     return grid.raster(filled.astype(np.float32), crs), top

@@ -13,14 +13,15 @@ The production method for urban point clouds:
    the current surface get small weights (remaining vegetation and building points), points below keep full
    weight.
 
-The nDSM is DSM - DTM; buildings are nDSM above ``building_min_height`` without greenness; vegetation is nDSM
-above ``vegetation_min_height`` with the excess-green index ``(2G - R - B) / (R + G + B)`` above a threshold.
+The nDSM is DSM - DTM; raised objects are vegetation when green (excess-green index ``(2G - R - B) / (R + G +
+B)``) and rough, else buildings (see :func:`object_masks`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -43,7 +44,8 @@ class DtmConfig:
     interp_sigma : Gaussian radius of the robust interpolation, cells
     iterations : robust interpolation iterations
     building_min_height, vegetation_min_height : nDSM thresholds of the masks, metres
-    greenness_min : excess-green threshold for vegetation
+    greenness_min : excess-green threshold of a vegetation cell
+    roughness_min : least median roughness (metres) of a vegetation object
     min_object_m2 : objects smaller than this are removed from the masks
     """
 
@@ -56,7 +58,8 @@ class DtmConfig:
     iterations: int = 4
     building_min_height: float = 2.5
     vegetation_min_height: float = 1.0
-    greenness_min: float = 0.06
+    greenness_min: float = 0.3
+    roughness_min: float = 0.06
     min_object_m2: float = 10.0
 
 
@@ -90,7 +93,10 @@ def robust_opening(surface: np.ndarray, window: int, rank: float) -> np.ndarray:
 
 def classify_points(opened: Raster, xyz: np.ndarray, threshold: float) -> np.ndarray:
     """(n,) int8 class of each point: ``ABOVE`` (1), ``ON`` (0) or ``BELOW`` (-1) the opened surface."""
-    ref = opened.sample(xyz[:, :2])
+    x1, y1 = opened.x0 + opened.shape[1] * opened.cell, opened.y0 - opened.shape[0] * opened.cell
+    eps = 1e-6 * opened.cell
+    xy = np.column_stack([np.clip(xyz[:, 0], opened.x0 + eps, x1 - eps), np.clip(xyz[:, 1], y1 + eps, opened.y0 - eps)])
+    ref = opened.sample(xy)  # points beyond the grid take the value at its border
     dz = xyz[:, 2] - ref
     out = np.zeros(len(xyz), np.int8)
     out[dz > threshold] = ABOVE
@@ -146,9 +152,12 @@ def make_dtm(xyz: np.ndarray, grid_out: GridSpec, crs: str, cfg: DtmConfig = Dtm
     cell = max(cfg.cell, cfg.se_size / 61.0)
     x1 = grid_out.x0 + grid_out.cols * grid_out.cell
     y1 = grid_out.y0 - grid_out.rows * grid_out.cell
-    # the filter grid covers the points too, so buildings cut by the border of the output grid are seen whole
+    # the filter grid reaches one structuring element beyond the output grid (where there are points), so
+    # buildings cut by the border of the output grid are seen whole
     lo, hi = np.percentile(xyz[:, :2], [0.1, 99.9], axis=0) if len(xyz) else (np.full(2, np.inf), -np.full(2, np.inf))
-    g = GridSpec.around(min(grid_out.x0, lo[0]), min(y1, lo[1]), max(x1, hi[0]), max(grid_out.y0, hi[1]), cell)
+    m = cfg.se_size
+    g = GridSpec.around(max(min(grid_out.x0, lo[0]), grid_out.x0 - m), max(min(y1, lo[1]), y1 - m),
+                        min(max(x1, hi[0]), x1 + m), min(max(grid_out.y0, hi[1]), grid_out.y0 + m), cell)
     low = _fill_nearest(low_quantile_per_cell(g, xyz, cfg.cell_quantile))
     window = max(3, int(round(cfg.se_size / cell)) | 1)
     opened = g.raster(robust_opening(low, window, cfg.erosion_rank), crs)
@@ -169,23 +178,46 @@ def greenness(rgb: np.ndarray) -> np.ndarray:
         return np.where(s > 0, (2 * rgb[..., 1] - rgb[..., 0] - rgb[..., 2]) / s, np.nan)
 
 
+def roughness(ndsm: np.ndarray, window: int = 5) -> np.ndarray:
+    """Mean absolute deviation (metres) of the surface from its ``window`` x ``window`` median, averaged over the
+    same window: near zero on planar roofs (and along their straight edges, which a median keeps), large in tree
+    crowns. (rows, cols)."""
+    z = np.nan_to_num(ndsm).astype(np.float32)
+    return ndimage.uniform_filter(np.abs(z - cv2.medianBlur(z, window)), window)
+
+
 def object_masks(ndsm: np.ndarray, rgb: np.ndarray | None, cell: float, cfg: DtmConfig = DtmConfig()
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Building and vegetation masks ``(rows, cols)`` bool from the nDSM and, when given, cell colours
-    ``rgb (rows, cols, 3)`` (without colour every raised object counts as a building)."""
-    green = greenness(rgb) > cfg.greenness_min if rgb is not None else np.zeros(ndsm.shape, bool)
+    ``rgb (rows, cols, 3)``.
+
+    Raised objects (connected cells above ``vegetation_min_height``) are classified whole: vegetation when most
+    of their cells are green (excess-green index above ``greenness_min``) and their surface is rough (median
+    :func:`roughness` above ``roughness_min``: a green roof is smooth), else their cells above
+    ``building_min_height`` are building. Without colour every raised object counts as a building.
+    """
     with np.errstate(invalid="ignore"):
-        veg = (ndsm > cfg.vegetation_min_height) & green
-        bld = (ndsm > cfg.building_min_height) & ~veg
+        raised = ndsm > cfg.vegetation_min_height
+    raised = ndimage.binary_opening(raised, iterations=1)
+    lab, n = ndimage.label(raised)
+    idx = np.arange(1, n + 1)
+    veg_obj = np.zeros(n + 1, bool)
+    if rgb is not None and n:
+        green = (greenness(rgb) > cfg.greenness_min).astype(np.float64)
+        green_share = ndimage.mean(green, lab, index=idx)
+        rough = ndimage.median(roughness(ndsm), lab, index=idx)
+        veg_obj[1:] = (green_share > 0.5) & (rough > cfg.roughness_min)
+    veg = veg_obj[lab] & raised
+    with np.errstate(invalid="ignore"):
+        bld = raised & ~veg & (ndsm > cfg.building_min_height)
     min_cells = max(1, int(cfg.min_object_m2 / cell ** 2))
     out = []
     for m in (bld, veg):
-        m = ndimage.binary_opening(m, iterations=1)
-        lab, n = ndimage.label(m)
-        if n:
-            sizes = ndimage.sum(m, lab, index=np.arange(1, n + 1))
-            keep = np.zeros(n + 1, bool)
+        lab2, k = ndimage.label(m)
+        if k:
+            sizes = ndimage.sum(m, lab2, index=np.arange(1, k + 1))
+            keep = np.zeros(k + 1, bool)
             keep[1:] = sizes >= min_cells
-            m = keep[lab]
+            m = keep[lab2]
         out.append(m)
     return out[0], out[1]

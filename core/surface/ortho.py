@@ -39,7 +39,7 @@ class OrthoConfig:
     occlusion_tol: float = 0.5
     centre_weight: float = 0.5
     seam_band: int = 12
-    seam_max_cells: int = 250_000
+    seam_max_cells: int = 120_000
 
 
 @dataclass(frozen=True, eq=False)

@@ -49,7 +49,7 @@ class SurfaceConfig:
     threshold: float = 1.5
     building_min_height: float = 2.5
     vegetation_min_height: float = 1.0
-    greenness_min: float = 0.06
+    greenness_min: float = 0.3
     ortho_views: tuple[str, ...] = ("nadir",)
     quality_vmax: float = 0.0
 

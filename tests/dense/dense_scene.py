@@ -43,11 +43,18 @@ class Scene:
         ground = _box(-150.0, -150.0, 150.0, 150.0, GROUND_Z - 1.0, GROUND_Z)
         rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(ground))
         trees = set()
+        rng = np.random.default_rng(3)
         for x0, y0, x1, y1, h, tree in BOXES:
-            gid = rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(_box(x0, y0, x1, y1, GROUND_Z,
-                                                                                GROUND_Z + h)))
-            if tree:
-                trees.add(gid)
+            if not tree:
+                rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(_box(x0, y0, x1, y1, GROUND_Z, GROUND_Z + h)))
+                continue
+            # a crown: 5 x 5 columns of random height, rough as vegetation is
+            xs, ys = np.linspace(x0, x1, 6), np.linspace(y0, y1, 6)
+            for i in range(5):
+                for j in range(5):
+                    top = GROUND_Z + h + rng.uniform(-1.5, 1.5)
+                    box = _box(xs[i], ys[j], xs[i + 1], ys[j + 1], GROUND_Z, top)
+                    trees.add(rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(box)))
         return cls(rc, trees)
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> dict:

@@ -83,12 +83,16 @@ def test_fill_small_holes_only():
 
 
 def test_masks_split_buildings_and_vegetation():
-    ndsm = np.zeros((50, 50))
-    ndsm[5:20, 5:20] = 10.0
-    ndsm[30:40, 30:40] = 6.0
-    rgb = np.full((50, 50, 3), 120.0)
+    rng = np.random.default_rng(4)
+    ndsm = np.zeros((60, 60))
+    ndsm[5:20, 5:20] = 10.0                                  # grey roof
+    ndsm[30:40, 30:40] = 6.0 + rng.uniform(-1.5, 1.5, (10, 10))  # rough green crown
+    ndsm[40:55, 5:20] = 8.0                                  # smooth green roof
+    rgb = np.full((60, 60, 3), 120.0)
     rgb[30:40, 30:40] = (60, 140, 50)
+    rgb[40:55, 5:20] = (60, 140, 50)
     bld, veg = object_masks(ndsm, rgb, 0.5, DtmConfig())
     assert bld[5:20, 5:20].mean() > 0.9 and not bld[30:40, 30:40].any()
-    assert veg[30:40, 30:40].mean() > 0.9 and not veg[5:20, 5:20].any()
+    assert veg[30:40, 30:40].mean() > 0.8 and not veg[5:20, 5:20].any()
+    assert bld[40:55, 5:20].mean() > 0.9 and not veg[40:55, 5:20].any()
     assert greenness(np.array([60, 140, 50])) > 0.3
