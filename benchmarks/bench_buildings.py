@@ -127,23 +127,21 @@ def surface_rasters(ws_path: Path, xyz: np.ndarray, rgb: np.ndarray):
     """DSM, DTM and masks: the surface stage's files, or (when that stage did not finish) the same functions
     run here on the dense points (DSM, DTM by robust opening, object masks; no true orthophoto)."""
     from oblique_city.core.io.geotiff import read_geotiff
-
-    sdir = ws_path / "surface"
-    if all((sdir / n).exists() for n in ("dsm.tif", "dtm.tif", "buildings.tif", "vegetation.tif")):
-        dsm, dtm = read_geotiff(sdir / "dsm.tif"), read_geotiff(sdir / "dtm.tif")
-        state = json.loads((ws_path / "state.json").read_text())
-        gsd = float(state.get("surface", {}).get("metrics", {}).get("cell", dsm.cell))
-        return (dsm, dtm, read_geotiff(sdir / "buildings.tif").data > 0,
-                read_geotiff(sdir / "vegetation.tif").data > 0, gsd, "surface stage files")
     from oblique_city.core.pipeline import Workspace
-    from oblique_city.core.surface.dsm import cell_colours
-    from oblique_city.core.surface.dtm import DtmConfig, make_dtm, object_masks
     from oblique_city.core.surface.stage import nadir_gsd
 
     ws = Workspace.open(ws_path)
     z_ground = float(np.percentile(xyz[:, 2], 5))
-    # the DSM cell follows the dense cloud's sampling: the nadir GSD times the dense stage's pixel step
     gsd = nadir_gsd(ws.load_block(), z_ground)
+    sdir = ws_path / "surface"
+    if all((sdir / n).exists() for n in ("dsm.tif", "dtm.tif", "buildings.tif", "vegetation.tif")):
+        dsm, dtm = read_geotiff(sdir / "dsm.tif"), read_geotiff(sdir / "dtm.tif")
+        return (dsm, dtm, read_geotiff(sdir / "buildings.tif").data > 0,
+                read_geotiff(sdir / "vegetation.tif").data > 0, gsd, "surface stage files")
+    from oblique_city.core.surface.dsm import cell_colours
+    from oblique_city.core.surface.dtm import DtmConfig, make_dtm, object_masks
+
+    # the DSM cell follows the dense cloud's sampling: the nadir GSD times the dense stage's pixel step
     cell = gsd * int(ws.stage_options("dense").get("step", 1))
     lo, hi = np.percentile(xyz[:, :2], [0.5, 99.5], axis=0)
     grid = GridSpec.around(lo[0], lo[1], hi[0], hi[1], cell)
