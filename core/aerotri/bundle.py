@@ -468,6 +468,11 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         else:
             bad = _worst_per_track(w, prob.obs_point, active, opt.blunder_threshold)
         bad |= active & ~np.isfinite(w)
+        if bad.sum() > 0.5 * active.sum():
+            raise ComputationError(
+                f"bundle adjustment did not converge: round {rnd + 1} flags {int(bad.sum())} of "
+                f"{int(active.sum())} observations (sigma0 {sigma0 * opt.sigma_px:.2f} px); check the "
+                "approximate orientations, the tie points and the a priori sigmas")
         if not bad.any() and rnd > 0:
             break
         rejected |= bad

@@ -43,6 +43,9 @@ class AerotriConfig:
     threads : Ceres threads per adjustment
     layer_cell : cell of the quality layers in metres (0: the CBA cell size)
     layer_views : rays and intersection precision of the CBA layers from ``all``, ``nadir`` or ``oblique`` views
+    min_rays : tie tracks with fewer rays are left out (two-ray points are badly constrained and hide blunders)
+    default_sigma_position, default_sigma_attitude_deg : EO prior sigmas (metres, degrees) for images whose
+        import carries none (e.g. BlocksExchange); the same for X, Y, Z and omega, phi, kappa
     """
 
     mode: str = "integrated"
@@ -60,6 +63,9 @@ class AerotriConfig:
     threads: int = 2
     layer_cell: float = 0.0
     layer_views: str = "all"
+    min_rays: int = 3
+    default_sigma_position: float = 0.15
+    default_sigma_attitude_deg: float = 0.05
 
     def bundle_options(self) -> BundleOptions:
         for g in self.self_calibration:
@@ -85,7 +91,11 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     ties_path = ws.path(TIES_FILE)
     if not ties_path.exists():
         raise WorkspaceError(f"{ties_path}: no tie points (run the 'match' stage first)")
-    ties = TiePoints.load(str(ties_path))
+    ties = _multi_ray(TiePoints.load(str(ties_path)), cfg.min_rays)
+    for img in block.images.values():
+        if img.sigma_position is None or img.sigma_attitude is None:
+            img.sigma_position = np.full(3, cfg.default_sigma_position)
+            img.sigma_attitude = np.full(3, np.radians(cfg.default_sigma_attitude_deg))
     opt = cfg.bundle_options()
     ctx.progress(0, 1, "forward intersection")
     if cfg.mode == "integrated":
@@ -118,6 +128,16 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "blunder_percent": report["blunder_percent"], "wall_s": report["wall_s"]},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m")
+
+
+def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
+    """The tracks with at least ``min_rays`` observations, renumbered."""
+    keep = ties.ray_counts() >= min_rays
+    sel = keep[ties.obs_track]
+    new = np.cumsum(keep) - 1
+    return TiePoints(xyz=ties.xyz[keep], obs_track=new[ties.obs_track[sel]], obs_image=ties.obs_image[sel],
+                     obs_uv=ties.obs_uv[sel], image_ids=ties.image_ids, obs_blunder=ties.obs_blunder[sel],
+                     colour=None if ties.colour is None else ties.colour[keep])
 
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
