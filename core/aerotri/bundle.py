@@ -455,7 +455,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         q_point, q_image, red = stats
         vv = np.sum(v**2, axis=1)
         t_unscaled = vv / (opt.sigma_px**2 * red)
-        robust_s0 = float(np.sqrt(np.median(t_unscaled[active]) / (2 * np.log(2)))) if active.any() else 1.0
+        robust_s0 = float(np.sqrt(np.nanmedian(t_unscaled[active]) / (2 * np.log(2)))) if active.any() else 1.0
         w = np.sqrt(t_unscaled) / max(robust_s0 if rnd == 0 else sigma0, 1e-9)
         log.append(f"round {rnd}: {'cauchy' if rnd == 0 else 'least squares'}, "
                    f"{summary.num_successful_steps + summary.num_unsuccessful_steps} iterations, "
