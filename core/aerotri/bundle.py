@@ -139,6 +139,7 @@ class BundleResult:
     cameras : adjusted camera models
     xyz : (p, 3) tie points (NaN for points dropped); xyz_cov : (p, 3, 3) covariance with cameras fixed
     obs_residual : (m, 2) pixels (observed - computed); obs_rejected : (m,) bool; obs_w : (m,) normalised residual
+    obs_used : (m,) bool, observations in the final solution (not rejected, their point determined)
     gcp_xyz : (g, 3) adjusted control points; gcp_residual : (g, 3) adjusted - given
     datum_shift : (3,) control frame - GNSS frame
     sigma0 : a posteriori, unitless (multiply by sigma_px for pixels); redundancy : degrees of freedom
@@ -163,6 +164,7 @@ class BundleResult:
     iterations: int
     rounds: int
     time_s: float
+    obs_used: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     prior_residual_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     prior_residual_att: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     log: list[str] = field(default_factory=list)
@@ -497,7 +499,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
         obs_w=w, gcp_xyz=gcp_out, gcp_residual=gcp_out - prob.gcp_xyz, datum_shift=shift, sigma0=sigma0,
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
-        prior_residual_pos=pos_res, prior_residual_att=att_res, log=log)
+        prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log)
 
 
 def _worst_per_track(w: np.ndarray, obs_point: np.ndarray, active: np.ndarray, threshold: float) -> np.ndarray:

@@ -77,7 +77,7 @@ def grid_layer(xy: np.ndarray, values: np.ndarray, cell: float, crs: str, reduce
 def run_statistics(run: Run, sigma_px: float) -> dict:
     """Figures of one adjustment run (see the module docstring)."""
     res = run.result
-    used = ~run.obs_rejected
+    used = res.obs_used if len(res.obs_used) == len(run.obs_rejected) else ~run.obs_rejected
     v = run.obs_residual[used]
     v = v[np.all(np.isfinite(v), 1)]
     std = np.array(list(run.image_std.values())) if run.image_std else np.zeros((0, 6))

@@ -116,7 +116,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size, cfg.layer_views)
     files = write_layers(layers, out / "layers")
     write_json(out / "report.json", report)
-    res = np.concatenate([r.obs_residual[~r.obs_rejected] for r in at.runs])
+    res = np.concatenate([r.obs_residual[r.result.obs_used] for r in at.runs])
     write_text(out / "report.html", html_report(report, layers, res[np.all(np.isfinite(res), 1)]))
     ctx.progress(2, 2, "done")
     check = report["check_points"]["all"]
