@@ -4,8 +4,8 @@ Per cell the height is the median of the points in the top band of the cell (wit
 cell's 90th percentile): on a roof this is the median of the roof points (robust against noise and the odd
 blunder), in a cell crossed by a wall it is the roof, not the middle of the wall, because the DSM is the top
 surface. Isolated blunders (cells with almost no neighbour at their height) are removed. Holes up to
-``max_hole_m2`` (occlusions, poor texture) whose surroundings are nearly level are filled by inpainting from
-their border; larger holes, and holes between a roof and the ground, stay empty (NaN).
+``max_hole_m2`` (occlusions, poor texture) are filled: by inpainting where their surroundings are nearly
+level, with the low side's height where they lie between a roof and the ground; larger holes stay empty (NaN).
 """
 
 from __future__ import annotations
@@ -64,8 +64,8 @@ class DsmConfig:
     min_points : cells with fewer points are empty
     spike : cells with fewer than two of their 8 neighbours within this many metres are removed as blunders
     max_hole_m2 : holes up to this area are filled
-    max_hole_step : ... when the heights around them span less than this (metres); a hole between a roof and
-        the ground stays empty rather than get a made-up wall
+    max_hole_step : holes whose surroundings span less than this (metres) are inpainted; others (occlusions
+        between a roof and the ground) take the height of their low surroundings
     """
 
     cell: float = 0.0
@@ -128,8 +128,13 @@ def remove_spikes(height: np.ndarray, threshold: float, min_support: int = 2) ->
 
 
 def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.inf) -> np.ndarray:
-    """Fill NaN regions of at most ``max_cells`` cells (not touching the border) whose surrounding cells span less
-    than ``max_step`` metres, by Navier-Stokes inpainting."""
+    """Fill NaN regions of at most ``max_cells`` cells (not touching the border).
+
+    A hole whose surrounding cells span less than ``max_step`` metres is inpainted (Navier-Stokes) from them. A
+    hole between a high and a low surface (an occlusion beside a building, seen from above) takes the median of
+    its low surrounding cells (those within ``max_step`` of the lowest): the ground hidden behind the wall,
+    rather than a made-up slope from the roof down to the ground.
+    """
     holes = ~np.isfinite(height)
     if not holes.any() or holes.all():
         return height
@@ -137,21 +142,31 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
     idx = np.arange(1, n + 1)
     sizes = ndimage.sum(holes, labels, index=idx)
     ring = ndimage.grey_dilation(labels, size=3) * ~holes  # border cells carry the label of the hole they touch
-    ring_lo = ndimage.minimum(height, ring, index=idx)
-    ring_hi = ndimage.maximum(height, ring, index=idx)
+    ring_lo = np.full(n + 1, np.nan)
+    ring_hi = np.full(n + 1, np.nan)
+    ring_lo[1:] = ndimage.minimum(height, ring, index=idx)
+    ring_hi[1:] = ndimage.maximum(height, ring, index=idx)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     small = np.zeros(n + 1, bool)
-    small[1:] = (sizes <= max_cells) & (np.nan_to_num(ring_hi - ring_lo, nan=np.inf) < max_step)
+    small[1:] = sizes <= max_cells
     small[border] = False
-    fill = small[labels]
-    if not fill.any():
-        return height
-    lo = float(np.nanmin(height))
-    span = max(float(np.nanmax(height)) - lo, 1e-6)
-    norm = np.nan_to_num((height - lo) / span, nan=0.0).astype(np.float32)
-    out = cv2.inpaint(norm, fill.astype(np.uint8), 3, cv2.INPAINT_NS).astype(np.float64) * span + lo
+    small &= np.isfinite(ring_lo)
+    level = small & (ring_hi - ring_lo < max_step)
+    step = small & ~level
     result = height.copy()
-    result[fill] = out[fill]
+    fill = level[labels]
+    if fill.any():
+        lo = float(np.nanmin(height))
+        span = max(float(np.nanmax(height)) - lo, 1e-6)
+        norm = np.nan_to_num((height - lo) / span, nan=0.0).astype(np.float32)
+        out = cv2.inpaint(norm, fill.astype(np.uint8), 3, cv2.INPAINT_NS).astype(np.float64) * span + lo
+        result[fill] = out[fill]
+    if step.any():
+        low_ring = np.where((ring > 0) & step[ring] & (height <= ring_lo[ring] + max_step), ring, 0)
+        ground = np.full(n + 1, np.nan)
+        ground[1:] = ndimage.median(height, low_ring, index=idx)
+        sel = step[labels]
+        result[sel] = ground[labels[sel]]
     return result
 
 

@@ -77,9 +77,15 @@ def test_fill_small_holes_only():
     h = z.astype(float)
     h[10:13, 10:13] = np.nan
     h[30:50, 30:50] = np.nan
-    f = fill_small_holes(h, 20)
+    f = fill_small_holes(h, 20, 1.0)
     assert np.abs(f[10:13, 10:13] - z[10:13, 10:13]).max() < 0.15
     assert np.isnan(f[30:50, 30:50]).all()
+    # an occlusion between a roof (10 m up) and the ground takes the ground's height
+    g = np.full((30, 30), 100.0)
+    g[:, 15:] = 110.0
+    g[10:14, 12:15] = np.nan
+    f = fill_small_holes(g, 20, 1.0)
+    assert np.allclose(f[10:14, 12:15], 100.0)
 
 
 def test_masks_split_buildings_and_vegetation():
