@@ -20,7 +20,7 @@ from .contour import ContourConfig, extract_contour
 from .denoise import voxel_noise_filter
 from .geometry import points_in_polygon
 from .hull import Hull, build_hull, dedupe_planes
-from .model import BuildingModel, Surface, ring_normal, triangulate_ring
+from .model import BuildingModel, Surface, ring_normal
 from .overhang import OverhangConfig, overhang_surfaces, overhang_widths
 from .roof import RoofConfig, _wall_plane, check_topology, plane_z, roof_labels, topology
 from .volumetric import VolumetricConfig, height_grid, voxel_planes
@@ -42,11 +42,22 @@ class ReconstructionConfig:
 
 
 def solid_check(vertices: np.ndarray, rings: list[list[int]]) -> tuple[bool, float, str]:
-    """Closed valid solid? (watertight, consistent winding, positive volume) -> (ok, volume, why not)."""
-    tris = [t for r in rings for t in triangulate_ring(vertices, r)]
-    if not tris:
+    """Closed valid solid? (watertight, consistent winding, positive volume) -> (ok, volume, why not).
+
+    Each ring is split into a fan around an added centre vertex: the signed triangles add up to the polygon
+    exactly (even for non-convex rings) and, unlike an ear-clipping diagonal, a spoke is never shared with
+    another face, so trimesh's edge tests see the polygon mesh itself.
+    """
+    if not rings:
         return False, 0.0, "no faces"
-    m = trimesh.Trimesh(vertices, np.asarray(tris), process=False)
+    V = [np.asarray(vertices, dtype=np.float64)]
+    tris = []
+    n = len(vertices)
+    for r in rings:
+        c = n + len(V) - 1
+        V.append(vertices[r].mean(0)[None])
+        tris.extend((c, a, b) for a, b in zip(r, r[1:] + r[:1]))
+    m = trimesh.Trimesh(np.concatenate(V), np.asarray(tris), process=False)
     if not m.is_watertight:
         return False, float(m.volume), "not watertight"
     if not m.is_winding_consistent:
@@ -57,12 +68,14 @@ def solid_check(vertices: np.ndarray, rings: list[list[int]]) -> tuple[bool, flo
 
 
 def _hull_2d(polygon, roof, ground_z, walls, lo, hi) -> Hull:
-    planes = np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray([roof.planes[k] for k in sorted(roof.planes)])])
+    cap = hi[2] - 1.0  # a roof plane extrapolated above the highest point is clipped flat there
+    planes = np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray([roof.planes[k] for k in sorted(roof.planes)]),
+                        [[0.0, 0.0, 1.0, -cap]]])
     labs = sorted(roof.planes)
 
     def inside(P: np.ndarray) -> np.ndarray:
         xy = P[:, :2]
-        ok = points_in_polygon(xy, polygon) & (P[:, 2] > ground_z)
+        ok = points_in_polygon(xy, polygon) & (P[:, 2] > ground_z) & (P[:, 2] < cap)
         lab = roof.label_at(xy)
         zr = np.full(len(P), -np.inf)
         for k in labs:
@@ -87,12 +100,14 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
         elif abs(p[:3] @ [0, 0, 1]) > 0.995 and abs(-p[3] / p[2] - ground_z) < 0.5:
             continue
         found.append(p)
-    planes = dedupe_planes(np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray(found).reshape(-1, 4)]))
+    cap = hi[2] - 1.0  # where no roof plane was found above a region, the hull is closed flat there
+    planes = dedupe_planes(np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray(found).reshape(-1, 4),
+                                      [[0.0, 0.0, 1.0, -cap]]]))
     H = height_grid(xyz, roof.origin, roof.cell, roof.labels.shape)
 
     def inside(P: np.ndarray) -> np.ndarray:
         xy = P[:, :2]
-        ok = points_in_polygon(xy, polygon) & (P[:, 2] > ground_z)
+        ok = points_in_polygon(xy, polygon) & (P[:, 2] > ground_z) & (P[:, 2] < cap)
         cr = np.floor((xy - roof.origin) / roof.cell).astype(np.int64)
         cr[:, 0] = np.clip(cr[:, 0], 0, H.shape[1] - 1)
         cr[:, 1] = np.clip(cr[:, 1], 0, H.shape[0] - 1)
