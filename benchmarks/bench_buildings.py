@@ -32,7 +32,9 @@ if str(ROOT.parent) not in sys.path:
     sys.path.insert(0, str(ROOT.parent))
 
 from oblique_city.core.buildings.detect import DetectConfig, building_labels, points_per_building  # noqa: E402
-from oblique_city.core.buildings.reconstruct import ReconstructionConfig, reconstruct_building  # noqa: E402
+from oblique_city.core.buildings.model import BuildingModel  # noqa: E402
+from oblique_city.core.buildings.reconstruct import ReconstructionConfig  # noqa: E402
+from oblique_city.core.buildings.stage import reconstruct_unit  # noqa: E402
 from oblique_city.core.buildings.synthetic import city_point_cloud  # noqa: E402
 from oblique_city.core.evaluate.buildings import BuildingTruth, match_truth, score_building, summary  # noqa: E402
 from oblique_city.core.simulate.city import make_city  # noqa: E402
@@ -53,12 +55,12 @@ def run_case(name: str, xyz: np.ndarray, dsm, dtm, truths: list[BuildingTruth], 
     scores, failures, matched = [], [], set()
     for d in dets:
         bid = f"B{d.label:04d}"
-        try:
-            m = reconstruct_building(xyz[d.indices], d.ground_z, dsm, bid, ReconstructionConfig())
-        except ValueError as e:
+        _, md, err = reconstruct_unit((bid, xyz[d.indices], d.ground_z, dsm, ReconstructionConfig()))
+        if md is None:
             c = xyz[d.indices, :2].mean(0)
-            failures.append({"id": bid, "at": c.round(1).tolist(), "reason": f"reconstruction failed: {e}"})
+            failures.append({"id": bid, "at": c.round(1).tolist(), "reason": f"reconstruction failed: {err}"})
             continue
+        m = BuildingModel.from_dict(md)
         ti = match_truth(m, truths)
         if ti is None:
             failures.append({"id": bid, "at": m.footprint.mean(0).round(1).tolist(),

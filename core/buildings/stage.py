@@ -9,7 +9,9 @@ their reason).
 
 from __future__ import annotations
 
+import traceback
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -58,8 +60,12 @@ def reconstruct_unit(unit: tuple) -> tuple[str, dict | None, str]:
     bid, xyz, ground_z, dsm, cfg = unit
     try:
         return bid, reconstruct_building(xyz, ground_z, dsm, bid, cfg).to_dict(), ""
-    except ValueError as e:
+    except ValueError as e:  # a step could not do its job on this building: the message says which
         return bid, None, str(e)
+    except (ArithmeticError, IndexError, np.linalg.LinAlgError) as e:
+        # one degenerate building must not stop the city: reported with the failing line, never hidden
+        tb = traceback.extract_tb(e.__traceback__)[-1]
+        return bid, None, f"{type(e).__name__} at {Path(tb.filename).name}:{tb.lineno}: {e}"
 
 
 def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
