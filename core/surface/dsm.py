@@ -133,7 +133,8 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
     A hole whose surrounding cells span less than ``max_step`` metres is inpainted (Navier-Stokes) from them. A
     hole between a high and a low surface (an occlusion beside a building, seen from above) takes the median of
     its low surrounding cells (those within ``max_step`` of the lowest): the ground hidden behind the wall,
-    rather than a made-up slope from the roof down to the ground.
+    rather than a made-up slope from the roof down to the ground ("low" is taken near the lower quartile of
+    the surrounding cells, so a few blunder cells below the ground do not decide it).
     """
     holes = ~np.isfinite(height)
     if not holes.any() or holes.all():
@@ -162,9 +163,14 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
         out = cv2.inpaint(norm, fill.astype(np.uint8), 3, cv2.INPAINT_NS).astype(np.float64) * span + lo
         result[fill] = out[fill]
     if step.any():
-        low_ring = np.where((ring > 0) & step[ring] & (height <= ring_lo[ring] + max_step), ring, 0)
+        # the low side: ring cells near the ring's lower quartile (a few blunder cells in the ring do not count)
+        rk = np.flatnonzero((ring.ravel() > 0) & step[ring.ravel()])
+        uniq, q25, _ = _group_quantile(ring.ravel()[rk], height.ravel()[rk], 0.25)
+        low_ref = np.full(n + 1, np.nan)
+        low_ref[uniq] = q25
+        near = (ring > 0) & step[ring] & (np.abs(height - low_ref[ring]) <= max_step)
         ground = np.full(n + 1, np.nan)
-        ground[1:] = ndimage.median(height, low_ring, index=idx)
+        ground[1:] = ndimage.median(height, np.where(near, ring, 0), index=idx)
         sel = step[labels]
         result[sel] = ground[labels[sel]]
     return result

@@ -20,7 +20,7 @@ from ..io.geotiff import write_geotiff, write_png
 from ..io.validate import resolve_image
 from ..pipeline.stage import Stage, StageResult
 from .dsm import DsmConfig, GridSpec, cell_colours, make_dsm
-from .dtm import ABOVE, ON, DtmConfig, make_dtm, object_masks
+from .dtm import ABOVE, BELOW, ON, DtmConfig, make_dtm, object_masks
 from .ortho import OrthoConfig, OrthoSource, true_ortho
 from .quality import colour_map, mean_per_cell
 
@@ -86,14 +86,17 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     grid = GridSpec.around(*aoi, cell)
     crs = block.crs
     steps = 6
-    ctx.progress(0, steps, "DSM")
-    dsm, top = make_dsm(grid, xyz, crs, DsmConfig(cell=cell, top_quantile=cfg.dsm_top_quantile, band=cfg.dsm_band,
-                                                  max_hole_m2=cfg.max_hole_m2))
-    ctx.progress(1, steps, "DTM")
+    ctx.progress(0, steps, "DTM")
     dcfg = DtmConfig(cell=cfg.dtm_cell, se_size=cfg.se_size, erosion_rank=cfg.erosion_rank, threshold=cfg.threshold,
                      building_min_height=cfg.building_min_height, vegetation_min_height=cfg.vegetation_min_height,
                      greenness_min=cfg.greenness_min)
     dtm, classes, _ = make_dtm(xyz, grid, crs, dcfg)
+    ctx.progress(1, steps, "DSM")
+    # points below the opened ground surface are blunders (nothing is under the terrain): not in the DSM
+    above_ground = classes != BELOW
+    xyz_s, rgb_s = xyz[above_ground], rgb[above_ground]
+    dsm, top = make_dsm(grid, xyz_s, crs, DsmConfig(cell=cell, top_quantile=cfg.dsm_top_quantile, band=cfg.dsm_band,
+                                                    max_hole_m2=cfg.max_hole_m2))
     ndsm = grid.raster((dsm.data - dtm.data).astype(np.float32), crs)
     ctx.progress(2, steps, "true orthophoto")
     by_view = block.images_by_view()
@@ -105,7 +108,7 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     ortho, label = true_ortho(dsm, sources, OrthoConfig(),
                               progress=lambda d, t, m: ctx.progress(2 + d / t, steps, m)) if sources else (None, None)
     ctx.progress(4, steps, "masks and quality maps")
-    colours = cell_colours(grid, xyz, rgb, top)
+    colours = cell_colours(grid, xyz_s, rgb_s, top)
     if ortho is not None:
         seen = ortho.data[..., 3] > 0
         colours[seen] = ortho.data[seen, :3]
@@ -150,7 +153,7 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
         "cell": cell, "rows": grid.rows, "cols": grid.cols, "aoi": list(aoi),
         "dsm_filled_fraction": float(np.isfinite(dsm.data).mean()),
         "points_above": int((classes == ABOVE).sum()), "points_on": int((classes == ON).sum()),
-        "points_below": int((classes < 0).sum()),
+        "points_below": int((classes == BELOW).sum()),
         "building_area_m2": float(bld.sum() * cell ** 2), "vegetation_area_m2": float(veg.sum() * cell ** 2),
         "quality_adjusted_mean_m": mean(q_used), "quality_approx_mean_m": mean(q_approx),
         "quality_vmax_m": vmax,
@@ -160,4 +163,4 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
-              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="2")
+              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="3")
