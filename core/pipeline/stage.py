@@ -56,6 +56,9 @@ class Stage:
                 if isinstance(ref, tuple) and isinstance(v, list):
                     values[k] = tuple(v)
                     continue
+                if isinstance(ref, str) and isinstance(v, (int, float)) and not isinstance(v, bool):
+                    values[k] = str(v)  # e.g. --set aerotri.connection=3 arrives as a number
+                    continue
                 raise ConfigError(f"{source}: [stages.{self.name}] option '{k}' should be "
                                   f"{type(ref).__name__}, got {type(v).__name__} {v!r}")
             if isinstance(ref, float) and isinstance(v, int):

@@ -30,6 +30,7 @@ def test_core_does_not_import_bpy() -> None:
 class SquareConfig:
     factor: float = 2.0
     cancel_at: int = -1
+    label: str = "x"
 
 
 def _square_run(ws: Workspace, cfg: SquareConfig, ctx: RunContext) -> StageResult:
@@ -119,6 +120,9 @@ def test_config_errors(tmp_path, square_stage) -> None:
     with pytest.raises(ConfigError, match="should be float"):
         square_stage.make_config({"factor": "big"})
     assert square_stage.make_config({"factor": 3}).factor == 3.0
+    assert square_stage.make_config({"label": 3}).label == "3"
+    with pytest.raises(ConfigError, match="should be str"):
+        square_stage.make_config({"label": True})
     with pytest.raises(ConfigError, match="unknown stage"):
         registry.get_stage("no-such-stage")
 
