@@ -105,7 +105,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .pipeline import Workspace, run_stages
+    from .pipeline import Workspace
 
     ws = Workspace.open(args.workspace)
     for k, v in _parse_options(args.set).items():
@@ -115,10 +115,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         ws.project.setdefault("stages", {}).setdefault(stage, {})[opt] = v
     if args.set:
         ws.save_project()
+    return run_and_print(ws, [s for s in (args.stages or "").split(",") if s] or None, args, force=args.force)
+
+
+def run_and_print(ws, stages: list[str] | None, args: argparse.Namespace, force: bool = False) -> int:
+    """Run stages with terminal progress and the executor chosen by ``args``; print one line per stage."""
+    from .pipeline import run_stages
+
     ctx, progress, ex = _ctx(args)
-    stages = [s for s in (args.stages or "").split(",") if s] or None
     try:
-        records = run_stages(ws, stages, ctx, force=args.force)
+        records = run_stages(ws, stages, ctx, force=force)
     finally:
         progress.close()
         ex.close()

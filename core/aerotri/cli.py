@@ -13,8 +13,8 @@ from .stage import MODES
 
 
 def cmd_aerotri(args: argparse.Namespace) -> int:
-    from ..cli import _ctx
-    from ..pipeline import Workspace, run_stages
+    from ..cli import run_and_print
+    from ..pipeline import Workspace
 
     ws = Workspace.open(args.workspace)
     opts = ws.project.setdefault("stages", {}).setdefault("aerotri", {})
@@ -25,15 +25,7 @@ def cmd_aerotri(args: argparse.Namespace) -> int:
     if args.self_calibration is not None:
         opts["self_calibration"] = [g for g in args.self_calibration.split(",") if g]
     ws.save_project()
-    ctx, progress, ex = _ctx(args)
-    try:
-        records = run_stages(ws, ["aerotri"], ctx, force=True)
-    finally:
-        progress.close()
-        ex.close()
-    for r in records:
-        print(f"{r.name:10s} {r.status:9s} {r.seconds:8.1f} s  {r.message}")
-    return 0
+    return run_and_print(ws, ["aerotri"], args, force=True)
 
 
 def add_commands(sub) -> None:

@@ -112,15 +112,7 @@ def robust_interpolation(grid: GridSpec, xyz: np.ndarray, sigma: float, iteratio
     Kraus-Pfeifer weights ``w = 1 / (1 + (a (r - g))^4)`` for residuals ``r`` above the shift ``g`` (a chosen so
     a residual of ``g + w_half`` metres has weight 1/2) and ``w = 1`` below it.
     """
-    r, c, inside = grid.cell_index(xyz[:, :2])
-    key = r[inside] * grid.cols + c[inside]
-    z = xyz[inside, 2]
-    order = np.lexsort((z, key))
-    k, zs = key[order], z[order]
-    uniq, start, counts = np.unique(k, return_index=True, return_counts=True)
-    obs = np.full(grid.rows * grid.cols, np.nan)
-    obs[uniq] = zs[start + (counts - 1) // 2]
-    obs = obs.reshape(grid.rows, grid.cols)
+    obs = low_quantile_per_cell(grid, xyz, 0.5)  # the (lower) median per cell
     have = np.isfinite(obs)
     if not have.any():
         return obs
