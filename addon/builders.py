@@ -23,7 +23,7 @@ from ..core.model import ImageBlock
 from ..core.pipeline import Workspace
 from ..core.pipeline.registry import stage_names
 from ..core.pipeline.runner import is_up_to_date
-from . import backgrounds, cameras, georef, layers
+from . import backgrounds, cameras, georef, layers, layers_buildings
 from .scene_tree import child_collection, layer_collection
 
 Builder = Callable[..., str]
@@ -145,6 +145,7 @@ register_builder("block", build_block)
 register_builder("aerotri", build_block)
 register_builder("dense", layers.build_dense_points)
 register_builder("surface", layers.build_surface)
+register_builder("buildings", layers_buildings.build_buildings)
 
 
 # --- the whole scene -------------------------------------------------------------------------------------
