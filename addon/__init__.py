@@ -1,8 +1,8 @@
 """The Blender side of Oblique City: registration, preferences and properties, georeference, builders, jobs.
 
 :func:`register` registers one ordered tuple of classes (properties first, then operators, then panels) and adds
-the File > Import menu entry and a ``load_pre`` handler that cancels a running job; :func:`unregister` undoes it
-in reverse order, cancelling a running job first.
+the File > Import and File > Export menu entries and a ``load_pre`` handler that cancels a running job;
+:func:`unregister` undoes it in reverse order, cancelling a running job first.
 This package and the modules it registers are the only ones that import bpy; ``core`` never does.
 """
 
@@ -29,18 +29,19 @@ def cancel_job_on_load(*_args) -> None:
 
 
 def register() -> None:
-    from ..operators import menu_import
+    from ..operators import menu_export, menu_import
     from . import properties
 
     for cls in classes():
         bpy.utils.register_class(cls)
     properties.attach()
     bpy.types.TOPBAR_MT_file_import.append(menu_import)
+    bpy.types.TOPBAR_MT_file_export.append(menu_export)
     bpy.app.handlers.load_pre.append(cancel_job_on_load)
 
 
 def unregister() -> None:
-    from ..operators import menu_import
+    from ..operators import menu_export, menu_import
     from . import jobs, properties
 
     jobs.cancel_active()
@@ -48,6 +49,7 @@ def unregister() -> None:
     if job is not None:
         jobs.forget_job(job)
     bpy.app.handlers.load_pre.remove(cancel_job_on_load)
+    bpy.types.TOPBAR_MT_file_export.remove(menu_export)
     bpy.types.TOPBAR_MT_file_import.remove(menu_import)
     properties.detach()
     for cls in reversed(classes()):

@@ -157,11 +157,24 @@ def draw_stages(layout, context, names: list[str]) -> None:
             box.label(text=description[:80])
 
 
+def draw_export(layout, context) -> None:
+    """The Export panel's button: the buildings to OBJ / CityGML / CityJSON."""
+    row = layout.row()
+    row.enabled = workspace_root(context) is not None
+    row.operator("city.export_city_model", text="Export City Model", icon="EXPORT")
+
+
+PANEL_EXTRAS = {"Export": draw_export}
+"""Panel label -> a function ``(layout, context)`` drawing that panel's own content under its stages."""
+
+
 def _stage_panel(label: str, names: tuple[str, ...]) -> type:
     ident = "CITY_PT_" + "".join(c if c.isalnum() else "_" for c in label.lower())
 
     def draw(self, context):
         draw_stages(self.layout, context, list(names))
+        if label in PANEL_EXTRAS:
+            PANEL_EXTRAS[label](self.layout, context)
 
     return type(ident, (CityPanel, bpy.types.Panel),
                 {"bl_idname": ident, "bl_label": label, "bl_options": {"DEFAULT_CLOSED"}, "draw": draw})

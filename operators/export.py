@@ -1,0 +1,90 @@
+"""File > Export > City Model: the workspace's buildings as OBJ, CityGML 2.0 LoD2 or CityJSON 2.0.
+
+Calls :func:`core.export.command.export_buildings`, the function behind ``oblique-city export``, on the scene's
+workspace (``buildings/buildings.json``), so the file is the same as the CLI's; CityGML is schema-validated and
+CityJSON structure-checked unless "Validate" is off. A core error is reported as one line.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, StringProperty
+from bpy_extras.io_utils import ExportHelper
+
+from ..core.errors import CityError
+from ..core.export.command import export_buildings
+from .run import scene_workspace
+
+EXTENSIONS = {"citygml": ".gml", "cityjson": ".city.json", "obj": ".obj"}
+FORMAT_ITEMS = [
+    ("citygml", "CityGML 2.0", "CityGML 2.0 LoD2 buildings with typed surfaces (.gml), schema-validated"),
+    ("cityjson", "CityJSON 2.0", "CityJSON 2.0 LoD2 buildings with semantic surfaces (.city.json)"),
+    ("obj", "Wavefront OBJ", "Triangulated meshes with one group per building (.obj)"),
+]
+
+
+def with_extension(path: str, fmt: str) -> str:
+    """``path`` with the format's extension (``.city.json`` counts as one extension)."""
+    ext = EXTENSIONS[fmt]
+    if path.endswith(ext):
+        return path
+    p = Path(path)
+    stem = p.name
+    for e in sorted(EXTENSIONS.values(), key=len, reverse=True):
+        if stem.endswith(e):
+            stem = stem[: -len(e)]
+            break
+    else:
+        stem = p.stem if p.suffix else stem
+    return str(p.with_name(stem + ext))
+
+
+class CITY_OT_export_city_model(bpy.types.Operator, ExportHelper):
+    """Export the workspace's reconstructed buildings (OBJ, CityGML 2.0 LoD2, CityJSON 2.0)"""
+
+    bl_idname = "city.export_city_model"
+    bl_label = "Export City Model"
+
+    filename_ext = ".gml"
+    filter_glob: StringProperty(default="*.gml;*.json;*.obj", options={"HIDDEN"})
+    format: EnumProperty(name="Format", items=FORMAT_ITEMS, default="citygml")
+    validate: BoolProperty(name="Validate", default=True,
+                           description="Check the written file (CityGML 2.0 schema, CityJSON structure)")
+
+    def check(self, context) -> bool:
+        new = with_extension(self.filepath, self.format)
+        changed = new != self.filepath
+        self.filepath = new
+        return changed
+
+    def invoke(self, context, event):
+        if not self.filepath:
+            try:
+                name = Path(scene_workspace(context)).name or "city"
+            except CityError:
+                name = "city"
+            self.filepath = name + EXTENSIONS[self.format]
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        if not self.filepath:
+            self.report({"ERROR"}, "no output file given")
+            return {"CANCELLED"}
+        out = bpy.path.abspath(with_extension(self.filepath, self.format))
+        try:
+            summary = export_buildings(scene_workspace(context), self.format, out, validate=self.validate)
+        except CityError as e:
+            self.report({"ERROR"}, str(e).splitlines()[0])
+            return {"CANCELLED"}
+        self.report({"INFO"}, summary)
+        return {"FINISHED"}
+
+
+def menu_export(self, context) -> None:
+    """File > Export entries, one per format."""
+    for fmt, label, _ in FORMAT_ITEMS:
+        op = self.layout.operator(CITY_OT_export_city_model.bl_idname, text=f"City Model: {label} (Oblique City)")
+        op.format = fmt

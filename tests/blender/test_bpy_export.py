@@ -1,0 +1,75 @@
+"""Export City Model: the operator writes the workspace's buildings through the core export (as the CLI does).
+
+Checked: a CityGML file the core's schema validator accepts with both buildings in it, the format's extension
+added, a CityJSON file that passes the core's structure check, the File > Export entries, the Export panel's
+button, and a core error (no buildings yet) reported as one line.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_bpy_buildings import box_building
+from test_bpy_ui import draw
+
+from oblique_city.core.buildings.model import save_buildings
+from oblique_city.core.pipeline import Workspace
+
+pytestmark = pytest.mark.xdist_group("bpy")
+
+
+@pytest.fixture
+def ws(tmp_path, utm_block):
+    w = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
+    w.save_block(utm_block)
+    models = [box_building("B0001", 0.0, "2d", True), box_building("B0002", 30.0, "volumetric", False)]
+    save_buildings(w.stage_dir("buildings") / "buildings.json", models, utm_block.crs)
+    w.write_state({"buildings": {"status": "done"}})
+    return w, models
+
+
+def test_export_citygml_and_cityjson(addon, ws, tmp_path):
+    bpy = addon
+    from lxml import etree
+
+    from oblique_city.core.export.citygml import validate_citygml
+    from oblique_city.core.export.cityjson import check_cityjson, read_cityjson
+
+    w, models = ws
+    bpy.context.scene.oblique_city.workspace = str(w.root)
+    out = tmp_path / "out" / "city"
+    out.parent.mkdir()
+    assert bpy.ops.city.export_city_model(filepath=str(out), format="citygml") == {"FINISHED"}
+    gml = tmp_path / "out" / "city.gml"
+    assert validate_citygml(gml) == []
+    doc = etree.parse(str(gml), etree.XMLParser(resolve_entities=False, no_network=True))
+    ids = sorted(e.get("{http://www.opengis.net/gml}id") for e in doc.iter("{*}Building"))
+    assert ids == ["B0001", "B0002"]
+    pos = np.array([float(v) for e in doc.iter("{*}posList") for v in e.text.split()]).reshape(-1, 3)
+    assert np.abs(pos.min(0) - np.concatenate([m.vertices for m in models]).min(0)).max() < 1e-3
+
+    assert bpy.ops.city.export_city_model(filepath=str(gml), format="cityjson") == {"FINISHED"}
+    cj = read_cityjson(tmp_path / "out" / "city.city.json")
+    assert check_cityjson(cj) == [] and len(cj["CityObjects"]) >= 2
+
+
+def test_export_reports_core_errors(addon, ws, tmp_path):
+    bpy = addon
+    w = ws[0]
+    (w.root / "buildings" / "buildings.json").unlink()
+    bpy.context.scene.oblique_city.workspace = str(w.root)
+    with pytest.raises(RuntimeError, match="no buildings file"):
+        bpy.ops.city.export_city_model(filepath=str(tmp_path / "a.gml"), format="citygml")
+    assert not (tmp_path / "a.gml").exists()
+
+
+def test_export_menu_and_panel(addon, ws):
+    bpy = addon
+    from oblique_city.operators import menu_export
+    from oblique_city.panels import STAGE_PANEL_CLASSES
+
+    assert menu_export in bpy.types.TOPBAR_MT_file_export._dyn_ui_initialize()
+    bpy.context.scene.oblique_city.workspace = str(ws[0].root)
+    panel = next(c for c in STAGE_PANEL_CLASSES if c.bl_label == "Export")
+    log = draw(panel, bpy.context)
+    assert any(e[0] == "operator" and e[1] == "city.export_city_model" for e in log)
