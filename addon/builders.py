@@ -3,8 +3,9 @@
 A builder is ``builder(scene, ws) -> str``: it (re)creates the objects of one stage's results in that stage's own
 collection under the scene's "Oblique City" collection (:func:`.scene_tree.layer_collection`) and returns a
 one-line summary. :data:`BUILDERS` maps a stage name to its builder; ``block`` is the imported block (cameras and
-ground points, also rebuilt after ``aerotri`` with the adjusted orientations); :mod:`.layers` has the dense
-points and the DSM. Later stages add theirs with :func:`register_builder` (buildings, textures, ...); "Build Scene
+ground points, also rebuilt after ``aerotri`` with the adjusted orientations, together with the adjusted tie
+points of :mod:`.layers_aerotri`); :mod:`.layers` has the dense points and the DSM, :mod:`.layers_buildings` the
+buildings. Later stages add theirs with :func:`register_builder` (buildings, textures, ...); "Build Scene
 from Workspace" and the end of a job run every builder whose stage has finished, so new layers appear without
 touching the operators.
 
@@ -23,7 +24,7 @@ from ..core.model import ImageBlock
 from ..core.pipeline import Workspace
 from ..core.pipeline.registry import stage_names
 from ..core.pipeline.runner import is_up_to_date
-from . import backgrounds, cameras, georef, layers, layers_buildings
+from . import backgrounds, cameras, georef, layers, layers_aerotri, layers_buildings
 from .scene_tree import child_collection, layer_collection
 
 Builder = Callable[..., str]
@@ -141,8 +142,22 @@ def build_block(scene, ws: Workspace) -> str:
     return f"{len(objects)} cameras ({views}), {len(points)} ground points"
 
 
+def build_aerotri(scene, ws: Workspace) -> str:
+    """Builder of ``aerotri``: the block (adjusted when current, see :func:`build_block`) and the adjusted tie
+    points (:func:`.layers_aerotri.build_tie_points`) when the adjustment is current. A tie point file that cannot
+    be read is reported in the summary; the block's errors are raised."""
+    summary = build_block(scene, ws)
+    if not adjusted_is_current(ws):
+        layer_collection(scene, "ties", "Tie points", clear=True)  # tie points of a stale adjustment go
+        return summary
+    try:
+        return f"{summary}; {layers_aerotri.build_tie_points(scene, ws)}"
+    except CityError as e:
+        return f"{summary}; tie points not built ({str(e).splitlines()[0]})"
+
+
 register_builder("block", build_block)
-register_builder("aerotri", build_block)
+register_builder("aerotri", build_aerotri)
 register_builder("dense", layers.build_dense_points)
 register_builder("surface", layers.build_surface)
 register_builder("buildings", layers_buildings.build_buildings)
@@ -158,6 +173,8 @@ def build_scene(scene, ws: Workspace, stages: list[str] | None = None) -> list[s
     """
     state = ws.read_state()
     keys = ["block"] + stage_names() if stages is None else list(stages)
+    if "aerotri" in keys and state.get("aerotri", {}).get("status") == "done":
+        keys = [k for k in keys if k != "block"]  # the aerotri builder builds the block too
     done: set[int] = set()
     messages = []
     for key in keys:
@@ -170,7 +187,7 @@ def build_scene(scene, ws: Workspace, stages: list[str] | None = None) -> list[s
         try:
             messages.append(f"{key}: {fn(scene, ws)}")
         except CityError as e:
-            if key == "block":
+            if key in ("block", "aerotri"):  # the block itself (tie point errors are in the aerotri summary)
                 raise
             messages.append(f"{key}: not built ({str(e).splitlines()[0]})")
     if hasattr(scene, "oblique_city"):  # the add-on's scene settings (registered by the add-on and make_blend)

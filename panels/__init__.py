@@ -13,7 +13,7 @@ from pathlib import Path
 
 import bpy
 
-from ..addon import georef, jobs
+from ..addon import georef, jobs, layers_aerotri
 from ..core.errors import CityError
 from ..core.pipeline.registry import get_stage, stage_names
 from ..core.pipeline.workspace import ADJUSTED_BLOCK_FILE, BLOCK_FILE, STATE_FILE, Workspace
@@ -164,7 +164,40 @@ def draw_export(layout, context) -> None:
     row.operator("city.export_city_model", text="Export City Model", icon="EXPORT")
 
 
-PANEL_EXTRAS = {"Export": draw_export}
+def triangulation_summary(root: Path) -> dict:
+    """The key figures of ``aerotri/report.json`` (:func:`addon.layers_aerotri.report_summary`), re-read only when
+    the report changed."""
+    path = root / layers_aerotri.REPORT_FILE
+    key = ("aerotri_report", str(root), _mtime(path))
+    if key[2] is None:
+        return {"error": "no triangulation report yet"}
+    return _cached(key, lambda: layers_aerotri.report_summary(path))
+
+
+def _metres(v) -> str:
+    return f"{v:.3f} m" if isinstance(v, (int, float)) and v == v else "-"
+
+
+def draw_triangulation(layout, context) -> None:
+    """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders) and Open Report."""
+    root = workspace_root(context)
+    if root is None:
+        return
+    s = triangulation_summary(root)
+    col = layout.column(align=True)
+    if "error" in s:
+        col.label(text=s["error"], icon="INFO")
+        return
+    mode = s["mode"] + (f" ({s['connection']})" if s["connection"] else "")
+    col.label(text=f"Mode: {mode}, {s['images']} images")
+    col.label(text=f"Sigma0: {s['sigma0']:.3f} ({s['sigma0_px']:.3f} px)")
+    col.label(text=f"Check points ({s['check_n']}): RMS XY {_metres(s['check_rms_xy_m'])}, "
+                   f"Z {_metres(s['check_rms_z_m'])}")
+    col.label(text=f"Rejected observations: {s['blunder_percent']:.2f} %")
+    layout.operator("city.open_report", icon="URL")
+
+
+PANEL_EXTRAS = {"Triangulation": draw_triangulation, "Export": draw_export}
 """Panel label -> a function ``(layout, context)`` drawing that panel's own content under its stages."""
 
 

@@ -1,0 +1,154 @@
+"""Results of ``aerotri`` in Blender: the tie point cloud coloured by ray count, the Triangulation panel's figures
+and Open Report.
+
+Tie points are written with the core's own :class:`TiePoints` writer at UTM coordinates: tracks with 2 to 7
+observations, some observations flagged as blunders (not counted as rays), some tracks never intersected (left
+out). Checked: the point count, world positions within 1 mm, the ``rays`` attribute against the counts, the
+colours against the ramp, the subsample, and the panel lines against the report.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_bpy_ui import draw
+
+from oblique_city.core.model import TiePoints
+from oblique_city.core.pipeline import Workspace
+
+pytestmark = pytest.mark.xdist_group("bpy")
+
+N = 400
+
+
+@pytest.fixture
+def ws(tmp_path, utm_block):
+    rng = np.random.default_rng(3)
+    w = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
+    w.save_block(utm_block)
+    xyz = np.c_[rng.uniform(500000, 500300, N), rng.uniform(5400000, 5400200, N), rng.uniform(290, 340, N)]
+    xyz[::37] = np.nan  # never intersected
+    per_track = rng.integers(2, 8, N)
+    obs_track = np.repeat(np.arange(N), per_track)
+    blunder = rng.random(len(obs_track)) < 0.1
+    ties = TiePoints(xyz=xyz, obs_track=obs_track, obs_image=np.zeros(len(obs_track), np.int64),
+                     obs_uv=np.zeros((len(obs_track), 2)), image_ids=["img0"], obs_blunder=blunder)
+    ties.save(str(w.stage_dir("aerotri") / "ties.npz"))
+    rays = np.bincount(obs_track[~blunder], minlength=N)
+    report = {"mode": "hierarchical", "connection": "5", "images": 12, "sigma0": 0.987, "sigma0_px": 0.296,
+              "check_points": {"all": {"n": 4, "rms_xy_m": 0.0312, "rms_z_m": 0.0457}}, "blunder_percent": 1.25}
+    (w.stage_dir("aerotri") / "report.json").write_text(json.dumps(report))
+    (w.stage_dir("aerotri") / "report.html").write_text("<html><body>report</body></html>")
+    w.write_state({"aerotri": {"status": "done"}})
+    return w, xyz, rays
+
+
+def test_tie_points(addon, ws):
+    bpy = addon
+    from oblique_city.addon import georef, layers_aerotri
+
+    w, xyz, rays = ws
+    scene = bpy.context.scene
+    valid = np.all(np.isfinite(xyz), axis=1)
+    summary = layers_aerotri.build_tie_points(scene, w)
+    assert summary.startswith(f"{valid.sum()} tie points shown")
+    obj = bpy.data.objects["Tie points"]
+    assert len(obj.data.vertices) == valid.sum() == N - len(range(0, N, 37))
+    assert np.abs(georef.mesh_vertices_world(scene, obj) - xyz[valid]).max() < 1e-3
+    got = np.empty(len(obj.data.vertices), np.int32)
+    obj.data.attributes["rays"].data.foreach_get("value", got)
+    assert np.array_equal(got, rays[valid])
+    col = np.empty(len(got) * 4, np.float32)
+    obj.data.color_attributes["Col"].data.foreach_get("color_srgb", col)
+    col = col.reshape(-1, 4)[:, :3]
+    assert np.abs(col - layers_aerotri.ray_colours(got)).max() < 1 / 255 + 1e-6
+    assert np.abs(col[got <= 2] - [0.10, 0.25, 0.90]).max() < 1 / 255 + 1e-6  # two rays: blue
+    assert obj.modifiers["Points"].type == "NODES"
+
+
+def test_large_tie_sets_are_subsampled(addon, ws, monkeypatch):
+    bpy = addon
+    from oblique_city.addon import georef, layers_aerotri
+
+    w, xyz, rays = ws
+    monkeypatch.setattr(layers_aerotri, "MAX_TIE_POINTS", 100)
+    assert layers_aerotri.build_tie_points(bpy.context.scene, w).startswith("100 of ")
+    obj = bpy.data.objects["Tie points"]
+    world = georef.mesh_vertices_world(bpy.context.scene, obj)
+    d = np.linalg.norm(world[:, None, :] - np.nan_to_num(xyz, nan=0.0)[None], axis=2)
+    idx = d.argmin(1)  # each shown point is one of the tracks, each at most once, with its own ray count
+    assert len(world) == 100 and d.min(1).max() < 1e-3 and len(set(idx)) == 100
+    got = np.empty(100, np.int32)
+    obj.data.attributes["rays"].data.foreach_get("value", got)
+    assert np.array_equal(got, rays[idx])
+
+
+def test_build_scene_after_aerotri(addon, ws):
+    bpy = addon
+    from oblique_city.addon import builders
+
+    w = ws[0]
+    messages = builders.build_scene(bpy.context.scene, w)
+    # state.json has no fingerprint: the adjustment is not current, the imported block is shown, no tie points
+    assert messages[0].startswith("aerotri: ") and "cameras" in messages[0]
+    assert not any(m.startswith("block:") for m in messages)
+    assert "Tie points" not in bpy.data.objects
+
+
+def test_build_scene_with_a_current_adjustment(addon, ws, utm_block):
+    bpy = addon
+    from dataclasses import dataclass
+
+    from oblique_city.addon import builders
+    from oblique_city.core.pipeline import Stage, StageResult
+    from oblique_city.core.pipeline.registry import register, unregister
+    from oblique_city.core.pipeline.runner import fingerprint
+    from oblique_city.core.pipeline.workspace import ADJUSTED_BLOCK_FILE
+
+    @dataclass(frozen=True)
+    class NoConfig:
+        pass
+
+    w, xyz, _ = ws
+    register(Stage("aerotri", run=lambda ws, cfg, ctx: StageResult(), config=NoConfig))
+    try:
+        w.save_block(utm_block, ADJUSTED_BLOCK_FILE)
+        w.write_state({"aerotri": {"status": "done", "fingerprint": fingerprint(w, "aerotri", {}),
+                                   "outputs": [ADJUSTED_BLOCK_FILE]}})
+        messages = builders.build_scene(bpy.context.scene, w)
+        n = int(np.all(np.isfinite(xyz), axis=1).sum())
+        assert messages[0].startswith("aerotri: ") and f"; {n} tie points shown" in messages[0]
+        assert len(bpy.data.objects["Tie points"].data.vertices) == n
+        (w.root / "aerotri" / "ties.npz").write_bytes(b"broken")
+        messages = builders.build_scene(bpy.context.scene, w)
+        assert "tie points not built (" in messages[0] and "ties.npz" in messages[0]
+    finally:
+        unregister("aerotri")
+
+
+def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
+    bpy = addon
+    import webbrowser
+
+    from oblique_city.panels import STAGE_PANEL_CLASSES
+
+    w = ws[0]
+    bpy.context.scene.oblique_city.workspace = str(w.root)
+    panel = next(c for c in STAGE_PANEL_CLASSES if c.bl_label == "Triangulation")
+    log = draw(panel, bpy.context)
+    labels = [e[1] for e in log if e[0] == "label"]
+    assert "Mode: hierarchical (5), 12 images" in labels
+    assert "Sigma0: 0.987 (0.296 px)" in labels
+    assert "Check points (4): RMS XY 0.031 m, Z 0.046 m" in labels
+    assert "Rejected observations: 1.25 %" in labels
+    assert any(e[0] == "operator" and e[1] == "city.open_report" for e in log)
+
+    opened = []
+    monkeypatch.setattr(webbrowser, "open", lambda url: opened.append(url) or True)
+    assert bpy.ops.city.open_report() == {"FINISHED"}
+    assert opened == [(w.root / "aerotri" / "report.html").resolve().as_uri()]
+    (w.root / "aerotri" / "report.html").unlink()
+    with pytest.raises(RuntimeError, match="no triangulation report"):
+        bpy.ops.city.open_report()
