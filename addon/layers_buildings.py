@@ -72,6 +72,7 @@ def building_mesh(scene, b: BuildingModel, materials: list):
         mesh.materials.append(mat)
     mesh.polygons.foreach_set("material_index",
                               np.array([names.index(KIND_MATERIAL[s.kind]) for s in b.surfaces], np.int32))
+    mesh.polygons.foreach_set("use_smooth", np.zeros(len(rings), bool))  # planar faces: flat shading
     mesh.update()
     return mesh
 

@@ -60,7 +60,7 @@ def test_buildings_layer(addon, ws):
         obj = bpy.data.objects[m.id]
         assert np.abs(georef.mesh_vertices_world(scene, obj) - m.vertices).max() < 1e-3
         mesh = obj.data
-        assert len(mesh.polygons) == len(m.surfaces)
+        assert len(mesh.polygons) == len(m.surfaces) and not any(p.use_smooth for p in mesh.polygons)
         for poly, s in zip(mesh.polygons, m.surfaces):
             assert tuple(poly.vertices) == s.ring
             assert mesh.materials[poly.material_index].name == expected_material[s.kind]
