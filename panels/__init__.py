@@ -197,7 +197,44 @@ def draw_triangulation(layout, context) -> None:
     layout.operator("city.open_report", icon="URL")
 
 
-PANEL_EXTRAS = {"Triangulation": draw_triangulation, "Export": draw_export}
+BUILDING_LINES = 15
+"""At most this many buildings that need attention (open solids, failures) are listed in the Buildings panel."""
+
+
+def buildings_report(root: Path) -> dict:
+    """``buildings/report.json`` as a dict, re-read only when it changed."""
+    path = root / "buildings" / "report.json"
+    key = ("buildings_report", str(root), _mtime(path))
+    if key[2] is None:
+        return {"error": "no buildings report yet"}
+    return _cached(key, lambda: json.loads(path.read_text(encoding="utf-8")))
+
+
+def draw_buildings(layout, context) -> None:
+    """The Buildings panel's per-building status: counts by path, closed solids, and the buildings that need
+    attention (open solids with their problem, failures with their reason)."""
+    root = workspace_root(context)
+    if root is None:
+        return
+    rep = buildings_report(root)
+    col = layout.column(align=True)
+    if "error" in rep:
+        col.label(text=rep["error"], icon="INFO")
+        return
+    done, failed = rep.get("buildings", []), rep.get("failures", [])
+    paths = {p: sum(b.get("path") == p for b in done) for p in ("2d", "volumetric")}
+    closed = sum(bool(b.get("closed")) for b in done)
+    col.label(text=f"{len(done)} buildings (2D {paths['2d']}, volumetric {paths['volumetric']}), "
+                   f"{closed} closed, {len(failed)} failed")
+    attention = [(b["id"], f"open solid: {b.get('solid_problem') or '?'}", "ERROR") for b in done
+                 if not b.get("closed")] + [(f["id"], f"failed: {f.get('reason', '?')}", "CANCEL") for f in failed]
+    for bid, text, icon in attention[:BUILDING_LINES]:
+        col.label(text=f"{bid}  {text}"[:80], icon=icon)
+    if len(attention) > BUILDING_LINES:
+        col.label(text=f"... and {len(attention) - BUILDING_LINES} more (buildings/report.json)")
+
+
+PANEL_EXTRAS = {"Triangulation": draw_triangulation, "Buildings": draw_buildings, "Export": draw_export}
 """Panel label -> a function ``(layout, context)`` drawing that panel's own content under its stages."""
 
 

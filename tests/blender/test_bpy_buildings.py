@@ -75,3 +75,24 @@ def test_buildings_layer(addon, ws):
     # rebuilding replaces the objects
     builders.build_scene(scene, w, stages=["buildings"])
     assert len(coll.objects) == 2 and "B0001.001" not in bpy.data.objects
+
+
+def test_buildings_panel_lists_the_buildings_that_need_attention(addon, ws):
+    bpy = addon
+    import json
+
+    from test_bpy_ui import draw
+
+    from oblique_city.panels import STAGE_PANEL_CLASSES
+
+    w = ws[0]
+    report = {"buildings": [{"id": "B0001", "path": "2d", "closed": True, "solid_problem": ""},
+                            {"id": "B0002", "path": "volumetric", "closed": False, "solid_problem": "2 open edges"}],
+              "failures": [{"id": f"B{i:04d}", "reason": "roof: no roof plane found"} for i in range(10, 30)]}
+    (w.root / "buildings" / "report.json").write_text(json.dumps(report))
+    bpy.context.scene.oblique_city.workspace = str(w.root)
+    panel = next(c for c in STAGE_PANEL_CLASSES if c.bl_label == "Buildings")
+    labels = [e[1] for e in draw(panel, bpy.context) if e[0] == "label"]
+    assert "2 buildings (2D 1, volumetric 1), 1 closed, 20 failed" in labels
+    assert "B0002  open solid: 2 open edges" in labels and "B0010  failed: roof: no roof plane found" in labels
+    assert "... and 6 more (buildings/report.json)" in labels and not any(lb.startswith("B0001") for lb in labels)
