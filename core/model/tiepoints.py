@@ -57,7 +57,7 @@ class TiePoints:
 
         arrays = {
             "xyz": self.xyz, "obs_track": self.obs_track, "obs_image": self.obs_image, "obs_uv": self.obs_uv,
-            "obs_blunder": self.obs_blunder, "image_ids": np.array(self.image_ids, dtype=object),
+            "obs_blunder": self.obs_blunder, "image_ids": np.array(self.image_ids, dtype=np.str_),
         }
         if self.colour is not None:
             arrays["colour"] = self.colour
@@ -68,10 +68,17 @@ class TiePoints:
 
     @classmethod
     def load(cls, path: str) -> TiePoints:
-        with np.load(path, allow_pickle=True) as z:
-            extra = {k[6:]: z[k] for k in z.files if k.startswith("extra_")}
-            return cls(
-                xyz=z["xyz"], obs_track=z["obs_track"], obs_image=z["obs_image"], obs_uv=z["obs_uv"],
-                image_ids=[str(s) for s in z["image_ids"]], obs_blunder=z["obs_blunder"],
-                colour=z["colour"] if "colour" in z.files else None, extra=extra,
-            )
+        """Read a file written by :meth:`save`; pickled content is refused (never unpickle workspace files)."""
+        from ..errors import WorkspaceError
+
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                extra = {k[6:]: z[k] for k in z.files if k.startswith("extra_")}
+                return cls(
+                    xyz=z["xyz"], obs_track=z["obs_track"], obs_image=z["obs_image"], obs_uv=z["obs_uv"],
+                    image_ids=[str(s) for s in z["image_ids"]], obs_blunder=z["obs_blunder"],
+                    colour=z["colour"] if "colour" in z.files else None, extra=extra,
+                )
+        except (OSError, ValueError, KeyError) as e:
+            raise WorkspaceError(f"{path}: not a tie point file of this version ({e}); rerun the stage "
+                                 "that wrote it") from None

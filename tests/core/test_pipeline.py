@@ -163,3 +163,16 @@ def test_executor_local(mode: str) -> None:
 def test_executor_dask_local_cluster() -> None:
     with Executor("dask", workers=2) as ex:
         assert ex.map(_double, range(5)) == [0, 2, 4, 6, 8]
+
+
+def test_tiepoints_round_trip_and_no_unpickling(tmp_path) -> None:
+    from oblique_city.core.model import TiePoints
+
+    t = TiePoints(xyz=np.arange(6.0).reshape(2, 3), obs_track=[0, 0, 1, 1], obs_image=[0, 1, 0, 1],
+                  obs_uv=np.ones((4, 2)), image_ids=["a", "b"], extra={"std": np.ones(2)})
+    t.save(str(tmp_path / "t.npz"))
+    u = TiePoints.load(str(tmp_path / "t.npz"))
+    assert u.image_ids == ["a", "b"] and np.array_equal(u.xyz, t.xyz) and np.array_equal(u.extra["std"], [1, 1])
+    np.savez(tmp_path / "evil.npz", xyz=np.zeros((1, 3)), image_ids=np.array([object()], dtype=object))
+    with pytest.raises(WorkspaceError, match="not a tie point file"):
+        TiePoints.load(str(tmp_path / "evil.npz"))
