@@ -32,6 +32,7 @@ from .validate import (
     read_text_lines,
     sniff_delimiter,
     split_row,
+    table_columns,
 )
 from .validate import delimiter as parse_delimiter
 
@@ -72,6 +73,17 @@ class MeasurementRow:
     line: int
 
 
+def _numbers_missing(first: list[str], cols: list[str] | None) -> bool:
+    """A first row whose coordinate fields (x, y or u, v) are not numbers is a header."""
+    idx = [2, 3] if cols is None else [i for i, c in enumerate(cols) if c in ("x", "y", "u", "v")]
+    for i in idx:
+        try:
+            float(first[i])
+        except (ValueError, IndexError):
+            return True
+    return False
+
+
 def _table(path: Path, columns: Any, aliases: dict[str, str], required: tuple[str, ...], default: str,
            delimiter: Any, header: Any, comment: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
     """Columns and split data rows of a text table (header detection as in the OPK reader)."""
@@ -83,27 +95,8 @@ def _table(path: Path, columns: Any, aliases: dict[str, str], required: tuple[st
     if delimiter is None:
         sep = sniff_delimiter([t for _, t in rows[1:] or rows])
     cols = None if columns is None else parse_columns(columns, aliases, required, path)
-    first_line, first_text = rows[0]
-    first = split_row(first_text, sep)
-    if str(header).lower() == "auto":
-        numeric_idx = [2, 3] if cols is None else [i for i, c in enumerate(cols) if c in ("x", "y", "u", "v")]
-        is_header = False
-        for i in numeric_idx:
-            try:
-                float(first[i])
-            except (ValueError, IndexError):
-                is_header = True
-    else:
-        is_header = parse_bool(header, path, None, "header")
-    if is_header:
-        rows = rows[1:]
-        if cols is None:
-            try:
-                cols = parse_columns(first, aliases, required, path, option="header")
-            except InputError as e:
-                raise InputError(e.reason, path=path, line=first_line, field=e.field) from None
-    if cols is None:
-        cols = parse_columns(default, aliases, required, path)
+    is_header = None if str(header).lower() == "auto" else parse_bool(header, path, None, "header")
+    cols, rows = table_columns(rows, sep, cols, is_header, _numbers_missing, aliases, required, default, path)
     out = []
     for line, text in rows:
         fields = split_row(text, sep)

@@ -42,6 +42,7 @@ from .validate import (
     reject_unknown,
     sniff_delimiter,
     split_row,
+    table_columns,
 )
 from .validate import delimiter as parse_delimiter
 
@@ -160,18 +161,8 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
         sep = sniff_delimiter([t for _, t in rows[1:] or rows])
 
     columns = None if col_opt is None else parse_columns(col_opt, COLUMN_ALIASES, REQUIRED, path)
-    first_line, first_text = rows[0]
-    first = split_row(first_text, sep)
-    has_header = _is_header(first, columns) if header is None else header
-    if has_header:
-        rows = rows[1:]
-        if columns is None:
-            try:
-                columns = parse_columns(first, COLUMN_ALIASES, REQUIRED, path, option="header")
-            except InputError as e:
-                raise InputError(e.reason, path=path, line=first_line, field=e.field) from None
-    if columns is None:
-        columns = parse_columns(DEFAULT_COLUMNS, COLUMN_ALIASES, REQUIRED, path)
+    columns, rows = table_columns(rows, sep, columns, header, _is_header, COLUMN_ALIASES, REQUIRED, DEFAULT_COLUMNS,
+                                  path)
     for group in (("sx", "sy", "sz"), ("somega", "sphi", "skappa")):
         given = [c for c in group if c in columns]
         if given and len(given) != 3:

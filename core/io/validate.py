@@ -11,7 +11,7 @@ import json
 import math
 import re
 import struct
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -158,6 +158,30 @@ def parse_columns(spec: Any, known: dict[str, str], required: Iterable[str], pat
     if missing:
         raise InputError(f"missing column(s): {', '.join(missing)}", path=path, field=option)
     return out
+
+
+
+def table_columns(rows: list[tuple[int, str]], sep: str | None, columns: list[str] | None, header: bool | None,
+                  looks_like_header: Callable[[list[str], list[str] | None], bool], known: dict[str, str],
+                  required: Iterable[str], default: str, path: str | Path) -> tuple[list[str], list[tuple[int, str]]]:
+    """The columns of a text table and its data rows (the header row removed when there is one).
+
+    ``rows`` are ``(line number, text)``; ``columns`` come from an option (or None); ``header`` True/False, or None
+    to decide with ``looks_like_header(first_row_fields, columns)``. Without columns the header names them, else
+    ``default`` does. A bad header name raises InputError naming the header's line.
+    """
+    first_line, first_text = rows[0]
+    first = split_row(first_text, sep)
+    if looks_like_header(first, columns) if header is None else header:
+        rows = rows[1:]
+        if columns is None:
+            try:
+                columns = parse_columns(first, known, required, path, option="header")
+            except InputError as e:
+                raise InputError(e.reason, path=path, line=first_line, field=e.field) from None
+    if columns is None:
+        columns = parse_columns(default, known, required, path)
+    return columns, rows
 
 
 # ----------------------------------------------------------------------------------------------- XML
