@@ -1,110 +1,57 @@
-"""Observation-only simulator for aerial triangulation: image measurements without rendering.
+"""Observation-only simulator for aerial triangulation: tie-point image measurements without rendering.
 
-It produces what a bundle adjustment sees from a block of thousands of images in seconds: true and
-navigation-grade (noisy) exterior orientations of a penta (Maltese-cross) camera flown in strips, tie points
-on the surfaces of a city, their image measurements with Gaussian noise and a labelled fraction of blunders,
-and ground control / check points with image measurements.
+It produces what a bundle adjustment sees from a block of thousands of images: the real synthetic city of
+:func:`.city.make_city` (tiled to cover the block), a camera system of :mod:`.cameras` (the penta preset by
+default) flown by :func:`.flight.plan_flight`, true and navigation-grade orientations from
+:func:`.flight.true_block` / :func:`.flight.approximate_block`, tie points on the city surfaces with their image
+measurements (Gaussian noise and a labelled fraction of blunders), and signalised control / check points measured
+by :func:`.flight.ground_points`.
 
-Surface model (stated simplification)
--------------------------------------
-The city is a 2.5D height field evaluated analytically, so a block of any size costs no memory: a gently
-undulating terrain with flat-roofed rectangular buildings, one per city block cell of ``block_size`` metres
-(some cells are empty squares). Its parameters come from an integer hash of the cell index, so every call sees
-the same city. Tie points lie on the terrain, on roofs and on facades (facade points carry their wall normal).
+Tie points
+----------
+Points are drawn uniformly by 3-D area on the triangles of the sampled surface classes (by default ground,
+street, roof, wall, roof installation and roof edge; trees, glass and overhang undersides are left out as a
+matcher would). ``tie_density`` is given per ground pixel (``gsd**2``), so a block has the same number of tie
+points per image at any GSD: 0.0008 puts about 860 points under a 1200 x 900 px nadir image.
 
-Visibility (stated approximation instead of full ray casting)
-------------------------------------------------------------
-A point is observed in an image when it projects inside the frame, faces the camera (facade points), and the
-straight segment from the point towards the projection centre stays above the height field at samples every
-``occlusion_step`` metres up to the highest roof. A detection probability ``p_detect`` thins the observations
-as a feature matcher would. At 80/60 overlap a terrain point gets about 12 nadir rays.
+Visibility (exact ray casting)
+------------------------------
+A point is measured in an image when (1) it projects inside the frame (``border_px`` from its edge), (2) its
+surface faces the camera at an incidence below ``max_incidence_deg`` (features are not matched at grazing
+angles), (3) the Open3D ray cast from the projection centre towards it hits the city mesh no earlier than
+``visibility_tolerance`` before the point (the first surface hit is the point's own; the city is cast in local
+float32 coordinates, good to 0.1 mm here), and (4) a matcher detects it (probability ``p_detect``). Candidate
+points of an image come from a grid index of the points queried with the bounding box of the image's footprint
+between the lowest and highest city surface; rays are cast in chunks of ``ray_chunk``.
+
+At 80/60 overlap a point sees 1 / (0.2 * 0.4) = 12.5 nadir images before occlusion, fewer the higher it lies
+(the footprint shrinks as ``(H - dz)**2``): a 15 m roof about 9.4 at the default GSD.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
-from ..model import CameraModel, GroundPoint, Image, ImageBlock, Pose, Rig, RigHead, TiePoints
-
-
-@dataclass(frozen=True)
-class CityModel:
-    """The analytic city surface (see the module docstring). Units: metres."""
-
-    ground_z: float = 100.0
-    terrain_amplitude: float = 3.0
-    block_size: float = 80.0
-    street_width: float = 16.0
-    min_height: float = 6.0
-    max_height: float = 40.0
-    empty_share: float = 0.2
-    seed: int = 1
-
-    def _cell_random(self, i: np.ndarray, j: np.ndarray, k: int) -> np.ndarray:
-        """Uniform [0, 1) numbers from cell indices (deterministic hash), same shape as ``i``."""
-        h = (i.astype(np.int64) * 73856093) ^ (j.astype(np.int64) * 19349663) ^ (self.seed * 83492791 + k * 2654435761)
-        h = h & 0xFFFFFFFF
-        h = (h ^ (h >> 16)) * 0x45D9F3B & 0xFFFFFFFF
-        h = (h ^ (h >> 16)) * 0x45D9F3B & 0xFFFFFFFF
-        h = h ^ (h >> 16)
-        return (h & 0xFFFFFF) / float(0x1000000)
-
-    def terrain(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Bare-earth height at ``x, y`` (same shapes)."""
-        return self.ground_z + self.terrain_amplitude * np.sin(x / 700.0) * np.cos(y / 530.0)
-
-    def buildings(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Per cell ``(i, j)``: building ``x0, x1, y0, y1, roof_z`` (roof NaN for an empty cell)."""
-        b, s = self.block_size, self.street_width / 2.0
-        u = [self._cell_random(i, j, k) for k in range(5)]
-        inner = b - 2 * s
-        wx = inner * (0.45 + 0.55 * u[0])
-        wy = inner * (0.45 + 0.55 * u[1])
-        x0 = i * b + s + (inner - wx) * u[2]
-        y0 = j * b + s + (inner - wy) * u[3]
-        h = self.min_height + (self.max_height - self.min_height) * u[4] ** 1.5
-        base = self.terrain((i + 0.5) * b, (j + 0.5) * b)
-        roof = np.where(self._cell_random(i, j, 7) < self.empty_share, np.nan, base + h)
-        return x0, x0 + wx, y0, y0 + wy, roof
-
-    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Surface height (roof or terrain) at ``x, y`` (same shapes)."""
-        i = np.floor(x / self.block_size)
-        j = np.floor(y / self.block_size)
-        x0, x1, y0, y1, roof = self.buildings(i, j)
-        inside = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1) & np.isfinite(roof)
-        return np.where(inside, roof, self.terrain(x, y))
-
-    @property
-    def z_max(self) -> float:
-        return self.ground_z + self.terrain_amplitude + self.max_height + 1.0
-
-    def sample_points(self, rng: np.random.Generator, xmin: float, xmax: float, ymin: float, ymax: float,
-                      density: float, facade_share: float) -> tuple[np.ndarray, np.ndarray]:
-        """Random surface points: ``xyz (n, 3)`` and outward ``normal (n, 3)`` (zero for horizontal surfaces)."""
-        area = (xmax - xmin) * (ymax - ymin)
-        n_top = rng.poisson(density * area * (1.0 - facade_share))
-        x = rng.uniform(xmin, xmax, n_top)
-        y = rng.uniform(ymin, ymax, n_top)
-        top = np.stack([x, y, self.height(x, y)], 1)
-        n_fac = rng.poisson(density * area * facade_share)
-        i = np.floor(rng.uniform(xmin, xmax, n_fac) / self.block_size)
-        j = np.floor(rng.uniform(ymin, ymax, n_fac) / self.block_size)
-        x0, x1, y0, y1, roof = self.buildings(i, j)
-        ok = np.isfinite(roof)
-        i, j, x0, x1, y0, y1, roof = (a[ok] for a in (i, j, x0, x1, y0, y1, roof))
-        side = rng.integers(0, 4, len(i))
-        t = rng.uniform(0.02, 0.98, len(i))
-        fx = np.choose(side, [x0 + t * (x1 - x0), x1, x0 + t * (x1 - x0), x0])
-        fy = np.choose(side, [y0, y0 + t * (y1 - y0), y1, y0 + t * (y1 - y0)])
-        nrm = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])[side]
-        zb = self.terrain(fx, fy)
-        fz = zb + rng.uniform(0.05, 0.95, len(i)) * (roof - zb)
-        xyz = np.concatenate([top, np.stack([fx, fy, fz], 1)])
-        normal = np.concatenate([np.zeros_like(top), nrm])
-        return xyz, normal
+from ..geometry.projection import project
+from ..geometry.views import VIEWS
+from ..model import ImageBlock, Pose, TiePoints
+from .cameras import CameraSystem, penta
+from .city import SEMANTIC, TILE_SIZE, City, make_city
+from .flight import (
+    FlightConfig,
+    NavErrors,
+    approximate_block,
+    flying_height,
+    ground_points,
+    perturbed_rig,
+    plan_flight,
+    true_block,
+)
 
 
 def look_rotation(axis_world: np.ndarray, down_world: np.ndarray) -> np.ndarray:
@@ -119,87 +66,61 @@ def look_rotation(axis_world: np.ndarray, down_world: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class PentaCamera:
-    """A Maltese-cross camera: one nadir head and four heads tilted ``tilt_deg`` forward, backward, left and
-    right. The rig (body) frame is the nadir camera's frame; image tops point forward."""
-
-    width: int = 6000
-    height: int = 4000
-    f_nadir_px: float = 10000.0
-    f_oblique_px: float = 14000.0
-    tilt_deg: float = 45.0
-    k1: float = -0.02
-    k2: float = 0.005
-
-    def cameras(self) -> list[CameraModel]:
-        cx, cy = (self.width - 1) / 2.0, (self.height - 1) / 2.0
-        out = [CameraModel(id="nadir", width=self.width, height=self.height, fx=self.f_nadir_px,
-                           fy=self.f_nadir_px, cx=cx, cy=cy, k1=self.k1, k2=self.k2, name="penta nadir")]
-        for h in ("forward", "backward", "left", "right"):
-            out.append(CameraModel(id=h, width=self.width, height=self.height, fx=self.f_oblique_px,
-                                   fy=self.f_oblique_px, cx=cx + 3.0, cy=cy - 2.0, k1=self.k1, k2=self.k2,
-                                   name=f"penta {h}"))
-        return out
-
-    def rig(self) -> Rig:
-        """Heads with ``sensor_from_rig`` built for a flight heading grid north (any heading gives the same)."""
-        fwd, up = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])
-        right = np.cross(fwd, up)
-        r_nadir = look_rotation(-up, -fwd)
-        t = np.radians(self.tilt_deg)
-        axes = {"nadir": -up, "forward": -up * np.cos(t) + fwd * np.sin(t),
-                "backward": -up * np.cos(t) - fwd * np.sin(t), "left": -up * np.cos(t) - right * np.sin(t),
-                "right": -up * np.cos(t) + right * np.sin(t)}
-        heads = []
-        for name, axis in axes.items():
-            down = -up if name in ("forward", "backward") else -fwd
-            if name == "nadir":
-                down = -fwd
-            r = look_rotation(axis, down)
-            heads.append(RigHead(name=name, camera_id=name, sensor_from_rig=r @ r_nadir.T))
-        return Rig(name="penta", heads=tuple(heads))
-
-
-@dataclass(frozen=True)
 class SimulationConfig:
     """What to simulate.
 
     Attributes
     ----------
-    n_images : approximate total image count (5 per exposure)
+    n_images : approximate total image count (one image per head and exposure)
     strips : number of flight strips (0: as many as make the block about square)
-    flying_height : above the mean terrain, metres
+    gsd : nadir ground sampling distance, metres (sets the flying height of the camera system)
     forward_overlap, side_overlap : of the nadir images
-    tie_density : tie points per square metre of ground
-    facade_share : share of tie points sampled on facades
+    tie_density : tie points per ground pixel (``gsd**2``) of city surface (3-D area)
+    surfaces : semantic classes of :data:`.city.SEMANTIC` that carry tie points
     p_detect : probability that a visible point is measured in an image
+    max_incidence_deg : largest angle between the surface normal and the ray to the camera of a measurement
+    border_px : measurements keep this distance from the image border
+    visibility_tolerance : metres; a ray is unobstructed when its first hit is at most this much before the point
     noise_px : standard deviation of image measurements (tie and ground points)
-    blunder_fraction : share of tie observations replaced by gross errors of ``blunder_px`` (min, max) pixels
+    blunder_fraction : share of tie observations moved by gross errors of ``blunder_px`` (min, max) pixels
     gnss_sigma : (3,) GNSS centre noise, metres; gnss_bias : (3,) constant datum offset of the GNSS frame
-    imu_sigma_deg : (3,) attitude noise about world X, Y, Z, degrees
-    n_ground_points : control + check points, alternating (about half each)
+    imu_sigma_deg : (3,) attitude noise (roll, pitch, yaw), degrees
+    boresight_sigma_deg, lever_arm_sigma : per-head mounting errors of the true rig against the calibrated one
+        (0: the heads are exactly at their calibrated mounting)
+    attitude_jitter_deg, position_jitter : true deviations of the aircraft from the plan (1 sigma)
+    n_ground_points : signalised control + check points (every third a check point)
+    ground_cell : terrain grid cell of the city, metres
+    ray_chunk : rays cast per Open3D call (bounds the memory of the visibility test)
+    seed : city, flight, errors, sampling and noise all follow from it
+    system : the camera system (default: the penta preset)
     """
 
     n_images: int = 500
     strips: int = 0
-    flying_height: float = 1000.0
+    gsd: float = 0.10
     forward_overlap: float = 0.8
     side_overlap: float = 0.6
-    tie_density: float = 0.0015
-    facade_share: float = 0.15
+    tie_density: float = 0.0008
+    surfaces: tuple[str, ...] = ("ground", "street", "roof", "wall", "roof_installation", "roof_edge")
     p_detect: float = 0.9
+    max_incidence_deg: float = 75.0
+    border_px: float = 2.0
+    visibility_tolerance: float = 0.02
     noise_px: float = 0.3
     blunder_fraction: float = 0.03
     blunder_px: tuple[float, float] = (4.0, 40.0)
     gnss_sigma: tuple[float, float, float] = (0.05, 0.05, 0.08)
     gnss_bias: tuple[float, float, float] = (0.06, -0.04, 0.10)
     imu_sigma_deg: tuple[float, float, float] = (0.004, 0.004, 0.006)
-    attitude_jitter_deg: float = 1.0
+    boresight_sigma_deg: float = 0.0
+    lever_arm_sigma: float = 0.0
+    attitude_jitter_deg: float = 0.5
+    position_jitter: float = 1.0
     n_ground_points: int = 50
-    occlusion_step: float = 2.0
+    ground_cell: float = 8.0
+    ray_chunk: int = 2_000_000
     seed: int = 7
-    camera: PentaCamera = field(default_factory=PentaCamera)
-    city: CityModel = field(default_factory=CityModel)
+    system: CameraSystem = field(default_factory=penta)
 
 
 @dataclass(eq=False)
@@ -208,151 +129,253 @@ class SimulatedBlock:
 
     Attributes
     ----------
-    block : cameras, rig, images with ``pose_approx`` (navigation) and prior sigmas, ground points
+    block : cameras, nominal rig, images with ``pose_approx`` (navigation) and prior sigmas, ground points
     ties : tie observations (``obs_blunder`` = planted blunders, ``xyz`` NaN: not yet intersected)
     true_poses : image id -> true pose
     true_xyz : (n, 3) float64 true tie point coordinates
+    true_normal : (n, 3) float64 unit normals of the surfaces the tie points lie on
+    true_semantic : (n,) uint8 semantic class (:data:`.city.SEMANTIC`) of those surfaces
     gsd : nadir ground sample distance, metres
+    city : the city the block was flown over
+    area : (4,) world bbox (xmin, ymin, xmax, ymax) given to the flight planner
     """
 
     block: ImageBlock
     ties: TiePoints
     true_poses: dict[str, Pose]
     true_xyz: np.ndarray
+    true_normal: np.ndarray
+    true_semantic: np.ndarray
     gsd: float
+    city: City
+    area: np.ndarray
     config: SimulationConfig
 
 
-def _flight_plan(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Exposure centres ``(e, 3)`` and headings ``(e,)`` (radians, clockwise from north) of an about square
-    block with strips along Y flown alternately north and south."""
-    cam = cfg.camera
-    gsd = cfg.flying_height / cam.f_nadir_px
-    base = (1.0 - cfg.forward_overlap) * cam.height * gsd
-    spacing = (1.0 - cfg.side_overlap) * cam.width * gsd
-    n_exp = max(4, int(round(cfg.n_images / 5)))
-    n_strips = cfg.strips or max(2, int(round(np.sqrt(n_exp * base / spacing))))
-    per_strip = max(2, int(round(n_exp / n_strips)))
-    z = cfg.city.ground_z + cfg.flying_height
-    centres, headings = [], []
-    for s in range(n_strips):
-        ys = np.arange(per_strip) * base
-        heading = 0.0
-        if s % 2:
-            ys = ys[::-1]
-            heading = np.pi
-        for y in ys:
-            centres.append((s * spacing, y, z))
-            headings.append(heading)
-    return np.array(centres), np.array(headings)
+@lru_cache(maxsize=1)
+def _city(seed: int, tiles: tuple[int, int], ground_cell: float) -> City:
+    """The tiled city (cached: tests and benchmarks simulate several blocks over one city)."""
+    return make_city(seed, tiles=tiles, ground_cell=ground_cell)
 
 
-def _rig_from_world(heading: float, jitter: np.ndarray) -> np.ndarray:
-    """Nadir-camera (rig) rotation for a heading plus small attitude angles ``jitter (3,)`` radians."""
-    from ..geometry.rotations import rotvec_to_matrix
-
-    fwd = np.array([np.sin(heading), np.cos(heading), 0.0])
-    r = look_rotation(np.array([0.0, 0.0, -1.0]), -fwd)
-    return r @ rotvec_to_matrix(jitter).T
-
-
-def _visible(city: CityModel, pose: Pose, xyz: np.ndarray, normal: np.ndarray, step: float) -> np.ndarray:
-    """Occlusion test of points ``xyz (n, 3)`` seen from ``pose`` against the height field (see module doc)."""
-    d = pose.C - xyz
-    facing = (np.einsum("ij,ij->i", d, normal) > 0) | (np.abs(normal).sum(1) == 0)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    start = xyz + 0.3 * normal + 0.05 * d
-    s_max = np.maximum(city.z_max - start[:, 2], 0.0) / np.maximum(d[:, 2], 1e-6)
-    horiz = s_max * np.hypot(d[:, 0], d[:, 1])
-    k = int(np.clip(np.ceil(horiz.max(initial=0.0) / step), 1, 60))
-    ok = facing.copy()
-    for m in range(1, k + 1):
-        s = s_max * (m / k)
-        p = start + d * s[:, None]
-        ok &= p[:, 2] > city.height(p[:, 0], p[:, 1]) - 1e-3
-    return ok
+def flight_layout(cfg: SimulationConfig) -> tuple[float, float, tuple[int, int]]:
+    """Along-track (x, the strips fly east-west) and across-track extents of the planned area in metres, and the
+    city tiles that cover the nadir images of a block of about ``cfg.n_images`` images."""
+    cam = cfg.system.camera(cfg.system.nadir_head)
+    h = flying_height(cfg.system, cfg.gsd)
+    swath, along_fp = h * cam.width / cam.fx, h * cam.height / cam.fy
+    base, spacing = (1 - cfg.forward_overlap) * along_fp, (1 - cfg.side_overlap) * swath
+    n_exp = max(4, round(cfg.n_images / len(cfg.system.heads)))
+    strips = cfg.strips or max(1, round(math.sqrt(n_exp * base / spacing)))
+    per_strip = max(2, round(n_exp / strips))
+    # just below whole multiples, so plan_flight's ceil() gives exactly ``strips`` x ``per_strip`` exposures
+    along = (per_strip - 1) * base - 1e-6
+    across = (strips - 1) * spacing + swath - 1e-6
+    tiles = (max(1, math.ceil((along + along_fp) / TILE_SIZE[0])), max(1, math.ceil(across / TILE_SIZE[1])))
+    return along, across, tiles
 
 
-def simulate_block(cfg: SimulationConfig = SimulationConfig()) -> SimulatedBlock:
-    """Simulate a penta-camera block with tie points, blunders, GNSS/IMU priors and ground points."""
-    from ..geometry.projection import image_footprint, project
-    from ..geometry.rotations import rotvec_to_matrix
+def sample_surface_points(city: City, bbox: np.ndarray, density_m2: float, surfaces: tuple[str, ...],
+                          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points uniform by area on the city triangles of classes ``surfaces`` whose centroid lies in ``bbox``
+    (world xmin, ymin, xmax, ymax), ``density_m2`` per square metre (Poisson count).
 
-    rng = np.random.default_rng(cfg.seed)
-    cams = {c.id: c for c in cfg.camera.cameras()}
-    rig = cfg.camera.rig()
-    block = ImageBlock(crs="EPSG:32632")
-    for c in cams.values():
-        block.add_camera(c)
-    block.rigs[rig.name] = rig
-    offset = np.array([500000.0, 5400000.0, 0.0])
-    centres, headings = _flight_plan(cfg)
-    centres = centres + offset
-    gsd = cfg.flying_height / cfg.camera.f_nadir_px
-    sig_pos = np.asarray(cfg.gnss_sigma, np.float64)
-    sig_att = np.radians(np.asarray(cfg.imu_sigma_deg, np.float64))
-    true_poses: dict[str, Pose] = {}
-    for e, (c, hd) in enumerate(zip(centres, headings)):
-        jitter = np.radians(cfg.attitude_jitter_deg) * rng.standard_normal(3) * np.array([1.0, 1.0, 2.0])
-        r_rig = _rig_from_world(hd, jitter)
-        c_true = c + rng.normal(0.0, 2.0, 3)
-        err_c = rng.normal(0.0, sig_pos) + np.asarray(cfg.gnss_bias)
-        err_r = rotvec_to_matrix(rng.normal(0.0, sig_att))
-        for h in rig.heads:
-            r_true = h.sensor_from_rig @ r_rig
-            iid = f"e{e:05d}_{h.name}"
-            true_poses[iid] = Pose(r_true, c_true)
-            block.add_image(Image(id=iid, camera_id=h.camera_id, head=h.name, exposure=f"e{e:05d}",
-                                  pose_approx=Pose(h.sensor_from_rig @ r_rig @ err_r.T, c_true + err_c),
-                                  sigma_position=sig_pos.copy(), sigma_attitude=sig_att.copy()))
-    ids = list(block.images)
+    Returns ``xyz (n, 3)`` world, ``normal (n, 3)`` unit face normals and ``triangle (n,)`` indices.
+    """
+    codes = [SEMANTIC[s] for s in surfaces]
+    v = city.vertices - city.origin
+    sel = np.flatnonzero(np.isin(city.semantic, codes))
+    t = city.triangles[sel]
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    cen = (a + b + c)[:, :2] / 3.0 + city.origin[:2]
+    inside = (cen[:, 0] >= bbox[0]) & (cen[:, 0] <= bbox[2]) & (cen[:, 1] >= bbox[1]) & (cen[:, 1] <= bbox[3])
+    sel, a, b, c = sel[inside], a[inside], b[inside], c[inside]
+    cross = np.cross(b - a, c - a)
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    n = rng.poisson(density_m2 * area.sum())
+    pick = rng.choice(len(sel), size=n, p=area / area.sum())
+    s, r = np.sqrt(rng.random(n))[:, None], rng.random(n)[:, None]
+    xyz = (1 - s) * a[pick] + s * (1 - r) * b[pick] + s * r * c[pick] + city.origin
+    normal = cross[pick] / (2.0 * area[pick, None])
+    return xyz, normal, sel[pick]
 
-    # tie points bucketed in a grid for per-image look-up
-    z_ref = cfg.city.ground_z
-    # the city extends beyond the flight area as far as the oblique image centres reach
-    reach = cfg.flying_height * np.tan(np.radians(cfg.camera.tilt_deg))
-    lo = centres[:, :2].min(0) - max(reach, 0.5 * cfg.camera.width * gsd)
-    hi = centres[:, :2].max(0) + max(reach, 0.5 * cfg.camera.width * gsd)
-    xyz, normal = cfg.city.sample_points(rng, lo[0], hi[0], lo[1], hi[1], cfg.tie_density, cfg.facade_share)
-    bucket = 100.0
-    bij = np.floor((xyz[:, :2] - lo) / bucket).astype(np.int64)
-    nbx = int(bij[:, 0].max(initial=0)) + 1
-    key = bij[:, 1] * nbx + bij[:, 0]
+
+def _ground_sites(city: City, bbox: np.ndarray, n: int, rng: np.random.Generator) -> tuple[list[str], np.ndarray]:
+    """Names and world ``(n, 3)`` centres of ``n`` signalised points spread over ``bbox``: the city's targets
+    inside it first, then marks on open ground (a vertical ray first hits the terrain), chosen by farthest-point
+    sampling."""
+    import open3d as o3d
+
+    t_in = np.flatnonzero((city.targets[:, 0] > bbox[0]) & (city.targets[:, 0] < bbox[2])
+                          & (city.targets[:, 1] > bbox[1]) & (city.targets[:, 1] < bbox[3]))
+    names = [city.target_names[i] for i in t_in]
+    xyz = city.targets[t_in]
+    if len(names) < n:
+        m = 8 * n
+        xy = np.column_stack([rng.uniform(bbox[0], bbox[2], m), rng.uniform(bbox[1], bbox[3], m)])
+        z = city.terrain_z(xy)
+        rays = np.zeros((m, 6), np.float32)
+        rays[:, :2] = xy - city.origin[:2]
+        rays[:, 2], rays[:, 5] = z + 1000.0, -1.0
+        hit = city.scene().cast_rays(o3d.core.Tensor(rays))
+        prim = hit["primitive_ids"].numpy().astype(np.int64)
+        t_hit = hit["t_hit"].numpy()
+        open_ground = np.isfinite(t_hit) & (np.abs(t_hit - 1000.0) < 0.01)
+        open_ground &= np.isin(city.semantic[np.clip(prim, 0, len(city.semantic) - 1)],
+                               [SEMANTIC["ground"], SEMANTIC["street"]])
+        extra = np.column_stack([xy, z])[open_ground]
+        names += [f"G{i + 1:03d}" for i in range(len(extra))]
+        xyz = np.concatenate([xyz, extra])
+    n_t = len(t_in)
+    if n_t >= n:  # enough targets: spread a subset, starting at the one nearest the centre
+        chosen = [int(np.argmin(np.linalg.norm(xyz[:n_t, :2] - 0.5 * (bbox[:2] + bbox[2:]), axis=1)))]
+        pool = np.arange(n_t)
+    else:  # all targets, then open-ground marks farthest from the points chosen so far
+        chosen, pool = list(range(n_t)), np.arange(n_t, len(xyz))
+    dist = np.full(len(pool), np.inf)
+    for k in chosen:
+        dist = np.minimum(dist, np.linalg.norm(xyz[pool, :2] - xyz[k, :2], axis=1))
+    while len(chosen) < min(n, len(xyz)) and len(pool):
+        k = int(pool[np.argmax(dist)])
+        chosen.append(k)
+        dist = np.minimum(dist, np.linalg.norm(xyz[pool, :2] - xyz[k, :2], axis=1))
+    chosen.sort()
+    return [names[i] for i in chosen], xyz[chosen]
+
+
+def _border_rays(camera) -> np.ndarray:
+    """Undistorted camera-frame directions ``(k, 3)`` through the image border (32 samples), for footprints."""
+    w, h = camera.width - 1.0, camera.height - 1.0
+    s = np.linspace(0.0, 1.0, 8, endpoint=False)
+    border = np.concatenate([np.stack([s * w, 0 * s], 1), np.stack([w + 0 * s, s * h], 1),
+                             np.stack([w - s * w, h + 0 * s], 1), np.stack([0 * s, h - s * h], 1)])
+    return np.column_stack([camera.pixel_to_normalized(border), np.ones(len(border))])
+
+
+def footprint_bbox(border_rays: np.ndarray, pose: Pose, z_lo: float, z_hi: float) -> np.ndarray | None:
+    """World bbox ``(xmin, ymin, xmax, ymax)`` of the part of the frame between the planes ``Z = z_lo`` and
+    ``Z = z_hi`` (rays of :func:`_border_rays`), None when no border ray reaches them."""
+    d = border_rays @ pose.R
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = np.concatenate([pose.C[:2] + d[:, :2] * ((z - pose.C[2]) / d[:, 2])[:, None] for z in (z_lo, z_hi)])
+        s = np.concatenate([(z - pose.C[2]) / d[:, 2] for z in (z_lo, z_hi)])
+    xy = xy[np.isfinite(s) & (s > 0)]
+    return np.r_[xy.min(0), xy.max(0)] if len(xy) else None
+
+
+def visible_observations(city: City, block: ImageBlock, image_ids: list[str], xyz: np.ndarray, normal: np.ndarray,
+                         cfg: SimulationConfig, rng: np.random.Generator,
+                         progress: Callable[[int, int, str], None] | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Noise-free measurements of points ``xyz (n, 3)`` with normals ``normal (n, 3)`` in the images of ``block``
+    (orientation in ``pose_approx``), visible as described in the module docstring.
+
+    Returns ``point (m,)`` int64, ``image (m,)`` int64 index into ``image_ids`` and ``uv (m, 2)`` float64.
+    """
+    import open3d as o3d
+
+    scene = city.scene()
+    cell = 32.0
+    lo = xyz[:, :2].min(0) if len(xyz) else np.zeros(2)
+    ij = np.floor((xyz[:, :2] - lo) / cell).astype(np.int64)
+    nx, ny = (ij.max(0) + 1) if len(xyz) else (1, 1)
+    key = ij[:, 1] * nx + ij[:, 0]
     order = np.argsort(key, kind="stable")
-    starts = np.searchsorted(key[order], np.arange(nbx * (int(bij[:, 1].max(initial=0)) + 2)))
+    starts = np.searchsorted(key[order], np.arange(nx * ny + 1))
+    z_lo, z_hi = (float(xyz[:, 2].min()), float(xyz[:, 2].max())) if len(xyz) else (0.0, 0.0)
+    cos_max = math.cos(math.radians(cfg.max_incidence_deg))
+    pending: list[tuple[np.ndarray, ...]] = []
+    n_pending = 0
+    out: list[tuple[np.ndarray, ...]] = []
 
-    obs_track, obs_image, obs_uv = [], [], []
-    for k, iid in enumerate(ids):
-        pose, cam = true_poses[iid], cams[block.images[iid].camera_id]
-        fp = image_footprint(cam, pose, z_ref)
-        fp = np.concatenate([fp, image_footprint(cam, pose, cfg.city.z_max)])
-        b0 = np.clip(np.floor((fp.min(0) - lo) / bucket).astype(int), 0, None)
-        b1 = np.floor((fp.max(0) - lo) / bucket).astype(int)
-        cand = []
-        for by in range(b0[1], min(b1[1], int(bij[:, 1].max(initial=0))) + 1):
-            a = by * nbx + b0[0]
-            b = by * nbx + min(b1[0], nbx - 1) + 1
-            cand.append(order[starts[a]:starts[b]])
-        cand = np.concatenate(cand) if cand else np.zeros(0, np.int64)
+    def flush() -> None:
+        if not pending:
+            return
+        p, k, uv, c, d, dist = (np.concatenate(x) for x in zip(*pending, strict=True))
+        pending.clear()
+        rays = np.column_stack([c - city.origin, d]).astype(np.float32)
+        t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        keep = (t_hit >= dist - cfg.visibility_tolerance) & (rng.random(len(p)) < cfg.p_detect)
+        out.append((p[keep], k[keep], uv[keep]))
+
+    border = {cid: _border_rays(cam) for cid, cam in block.cameras.items()}
+    for k, iid in enumerate(image_ids):
+        img = block.images[iid]
+        cam, pose = block.camera_of(img), img.pose_approx
+        fp = footprint_bbox(border[cam.id], pose, z_lo, z_hi)
+        if fp is None or len(xyz) == 0:
+            continue
+        i0, j0 = np.clip(np.floor((fp[:2] - lo) / cell).astype(np.int64), 0, [nx - 1, ny - 1])
+        i1, j1 = np.clip(np.floor((fp[2:] - lo) / cell).astype(np.int64), 0, [nx - 1, ny - 1])
+        cand = np.concatenate([order[starts[j * nx + i0]:starts[j * nx + i1 + 1]] for j in range(j0, j1 + 1)])
+        to_cam = pose.C - xyz[cand]
+        dist = np.linalg.norm(to_cam, axis=1)
+        facing = np.einsum("ij,ij->i", normal[cand], to_cam) > cos_max * dist
+        cand, to_cam, dist = cand[facing], to_cam[facing], dist[facing]
         uv, depth = project(cam, pose, xyz[cand])
-        inside = (depth > 0) & cam.contains(uv, margin=2.0)
-        cand, uv = cand[inside], uv[inside]
-        vis = _visible(cfg.city, pose, xyz[cand], normal[cand], cfg.occlusion_step)
-        keep = vis & (rng.random(len(cand)) < cfg.p_detect)
-        obs_track.append(cand[keep])
-        obs_image.append(np.full(keep.sum(), k, np.int64))
-        obs_uv.append(uv[keep])
-    track = np.concatenate(obs_track)
-    image = np.concatenate(obs_image)
-    uv = np.concatenate(obs_uv)
-    # keep multi-ray points only, renumber
-    counts = np.bincount(track, minlength=len(xyz))
+        inside = (depth > 0) & cam.contains(np.nan_to_num(uv, nan=-1e9), margin=cfg.border_px)
+        if not inside.any():
+            continue
+        cand, dist = cand[inside], dist[inside]
+        pending.append((cand, np.full(len(cand), k, np.int64), uv[inside], np.broadcast_to(pose.C, (len(cand), 3)),
+                        -to_cam[inside] / dist[:, None], dist))
+        n_pending += len(cand)
+        if n_pending >= cfg.ray_chunk:
+            flush()
+            n_pending = 0
+        if progress is not None and k % 500 == 0:
+            progress(k, len(image_ids), "ray casting tie point visibility")
+    flush()
+    if not out:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+    p, k, uv = (np.concatenate(x) for x in zip(*out, strict=True))
+    return p, k, uv
+
+
+def simulate_block(cfg: SimulationConfig = SimulationConfig(), city: City | None = None,
+                   progress: Callable[[int, int, str], None] | None = None) -> SimulatedBlock:
+    """Simulate a block with tie points, blunders, GNSS/IMU priors and ground points over the synthetic city.
+
+    ``city`` defaults to ``make_city(cfg.seed)`` tiled to cover the nadir images (see :func:`flight_layout`); a
+    given city must cover the planned area around its core's centre.
+    """
+    along, across, tiles = flight_layout(cfg)
+    if city is None:
+        city = _city(cfg.seed, tiles, cfg.ground_cell)
+    centre = 0.5 * (city.core[:2] + city.core[2:])
+    area = np.array([centre[0] - along / 2, centre[1] - across / 2, centre[0] + along / 2, centre[1] + across / 2])
+    system = cfg.system
+    fcfg = FlightConfig(gsd=cfg.gsd, forward_overlap=cfg.forward_overlap, side_overlap=cfg.side_overlap,
+                        direction_deg=90.0, attitude_jitter_deg=cfg.attitude_jitter_deg,
+                        position_jitter=cfg.position_jitter, seed=cfg.seed)
+    exposures = plan_flight(system, area, float(np.nanmean(city.terrain.zg)), fcfg)
+    nav = NavErrors(gnss_sigma=cfg.gnss_sigma, datum_bias_sigma=0.0, imu_sigma_deg=cfg.imu_sigma_deg,
+                    boresight_sigma_deg=cfg.boresight_sigma_deg, lever_arm_sigma=cfg.lever_arm_sigma, seed=cfg.seed)
+    nominal = system.rig()
+    truth = true_block(system, exposures, city.crs, rig=perturbed_rig(nominal, nav))
+    block = approximate_block(truth, exposures, nominal, nav)
+    bias = np.asarray(cfg.gnss_bias, np.float64)
+    for img in block.images.values():  # the datum offset of the GNSS frame, the same for every exposure
+        img.pose_approx = Pose(img.pose_approx.R, img.pose_approx.C + bias)
+    true_poses = {iid: img.pose_approx for iid, img in truth.images.items()}
+    ids = list(truth.images)
+
+    # tie points on the surfaces the images can see
+    z_lo = float(np.nanmin(city.terrain.zg))
+    border = {cid: _border_rays(cam) for cid, cam in truth.cameras.items()}
+    fps = np.array([footprint_bbox(border[truth.images[i].camera_id], true_poses[i], z_lo, z_lo) for i in ids])
+    ext = city.extent
+    bbox = np.r_[np.maximum(fps[:, :2].min(0), ext[:2]), np.minimum(fps[:, 2:].max(0), ext[2:])]
+    rng = np.random.default_rng([cfg.seed, 101])
+    xyz, normal, tri = sample_surface_points(city, bbox, cfg.tie_density / cfg.gsd**2, cfg.surfaces, rng)
+    point, image, uv = visible_observations(city, truth, ids, xyz, normal, cfg, rng, progress)
+
+    # multi-ray points only, renumbered, observations ordered by track then image
+    counts = np.bincount(point, minlength=len(xyz))
     used = counts >= 2
-    sel = used[track]
-    track, image, uv = track[sel], image[sel], uv[sel]
-    new_index = np.cumsum(used) - 1
-    track = new_index[track]
-    true_xyz = xyz[used]
+    sel = used[point]
+    point, image, uv = point[sel], image[sel], uv[sel]
+    track = (np.cumsum(used) - 1)[point]
     order = np.lexsort((image, track))
     track, image, uv = track[order], image[order], uv[order]
     uv = uv + rng.normal(0.0, cfg.noise_px, uv.shape)
@@ -360,30 +383,30 @@ def simulate_block(cfg: SimulationConfig = SimulationConfig()) -> SimulatedBlock
     ang = rng.uniform(0, 2 * np.pi, blunder.sum())
     mag = rng.uniform(cfg.blunder_px[0], cfg.blunder_px[1], blunder.sum())
     uv[blunder] += np.stack([np.cos(ang), np.sin(ang)], 1) * mag[:, None]
-    ties = TiePoints(xyz=np.full((len(true_xyz), 3), np.nan), obs_track=track, obs_image=image, obs_uv=uv,
+    ties = TiePoints(xyz=np.full((int(used.sum()), 3), np.nan), obs_track=track, obs_image=image, obs_uv=uv,
                      image_ids=ids, obs_blunder=blunder)
 
-    # ground control and check points on open terrain, on a jittered grid
-    n_gp = cfg.n_ground_points
-    if n_gp > 0:
-        inner_lo, inner_hi = centres[:, :2].min(0), centres[:, :2].max(0)
-        g = int(np.ceil(np.sqrt(n_gp)))
-        gx, gy = np.meshgrid(np.linspace(0.05, 0.95, g), np.linspace(0.05, 0.95, g))
-        pts = inner_lo + np.stack([gx.ravel(), gy.ravel()], 1)[:n_gp] * (inner_hi - inner_lo)
-        for p, (x, y) in enumerate(pts):
-            for _ in range(50):  # move off roofs onto the terrain
-                if abs(cfg.city.height(np.array([x]), np.array([y]))[0] - cfg.city.terrain(x, y)) < 1e-6:
-                    break
-                x, y = x + rng.uniform(-15, 15), y + rng.uniform(-15, 15)
-            gp_xyz = np.array([x, y, cfg.city.terrain(x, y) + 0.1])
-            obs = {}
-            for iid in ids:
-                pose, cam = true_poses[iid], cams[block.images[iid].camera_id]
-                uvp, depth = project(cam, pose, gp_xyz[None])
-                if depth[0] > 0 and cam.contains(uvp, margin=5.0)[0] and _visible(
-                        cfg.city, pose, gp_xyz[None], np.zeros((1, 3)), cfg.occlusion_step)[0]:
-                    obs[iid] = uvp[0] + rng.normal(0.0, cfg.noise_px, 2)
-            block.add_ground_point(GroundPoint(name=f"GP{p:03d}", xyz=gp_xyz, sigma=np.array([0.02, 0.02, 0.03]),
-                                               kind="control" if p % 2 == 0 else "check", observations=obs,
-                                               sigma_px=cfg.noise_px))
-    return SimulatedBlock(block=block, ties=ties, true_poses=true_poses, true_xyz=true_xyz, gsd=gsd, config=cfg)
+    # signalised control and check points over the nadir-covered area
+    if cfg.n_ground_points > 0:
+        names, gp_xyz = _ground_sites(city, area, cfg.n_ground_points, np.random.default_rng([cfg.seed, 202]))
+        for gp in ground_points(truth, names, gp_xyz, city.scene(), city.origin, sigma_px=cfg.noise_px,
+                                seed=cfg.seed):
+            block.add_ground_point(gp)
+    return SimulatedBlock(block=block, ties=ties, true_poses=true_poses, true_xyz=xyz[used], true_normal=normal[used],
+                          true_semantic=city.semantic[tri[used]], gsd=cfg.gsd, city=city, area=area, config=cfg)
+
+
+def ray_statistics(sim: SimulatedBlock) -> dict:
+    """Rays per tie point by view: for every view of :data:`..geometry.views.VIEWS` the points it sees, their
+    mean and median rays in that view and the view's share of all observations; overall mean and median rays."""
+    t = sim.ties
+    views = np.array([sim.block.images[i].view for i in t.image_ids])[t.obs_image]
+    out: dict = {"points": t.n_tracks, "observations": t.n_obs, "mean_rays": float(t.ray_counts().mean()),
+                 "median_rays": float(np.median(t.ray_counts())), "views": {}}
+    for v in VIEWS:
+        n = np.bincount(t.obs_track[views == v], minlength=t.n_tracks)
+        seen = n > 0
+        out["views"][v] = {"points": int(seen.sum()), "mean_rays": float(n[seen].mean()) if seen.any() else 0.0,
+                           "median_rays": float(np.median(n[seen])) if seen.any() else 0.0,
+                           "share": float((views == v).mean()) if t.n_obs else 0.0}
+    return out
