@@ -39,7 +39,7 @@ import numpy as np
 
 from ..geometry.projection import project
 from ..geometry.views import VIEWS
-from ..model import ImageBlock, Pose, TiePoints
+from ..model import CameraModel, ImageBlock, Pose, TiePoints
 from .cameras import CameraSystem, penta
 from .city import SEMANTIC, TILE_SIZE, City, make_city
 from .flight import (
@@ -88,7 +88,7 @@ class SimulationConfig:
     boresight_sigma_deg, lever_arm_sigma : per-head mounting errors of the true rig against the calibrated one
         (0: the heads are exactly at their calibrated mounting)
     attitude_jitter_deg, position_jitter : true deviations of the aircraft from the plan (1 sigma)
-    n_ground_points : signalised control + check points (every third a check point)
+    n_ground_points : signalised control + check points, alternating (half of them check points)
     ground_cell : terrain grid cell of the city, metres
     ray_chunk : rays cast per Open3D call (bounds the memory of the visibility test)
     seed : city, flight, errors, sampling and noise all follow from it
@@ -243,7 +243,7 @@ def _ground_sites(city: City, bbox: np.ndarray, n: int, rng: np.random.Generator
     return [names[i] for i in chosen], xyz[chosen]
 
 
-def _border_rays(camera) -> np.ndarray:
+def _border_rays(camera: CameraModel) -> np.ndarray:
     """Undistorted camera-frame directions ``(k, 3)`` through the image border (32 samples), for footprints."""
     w, h = camera.width - 1.0, camera.height - 1.0
     s = np.linspace(0.0, 1.0, 8, endpoint=False)
@@ -382,7 +382,10 @@ def simulate_block(cfg: SimulationConfig = SimulationConfig(), city: City | None
     blunder = rng.random(len(track)) < cfg.blunder_fraction
     ang = rng.uniform(0, 2 * np.pi, blunder.sum())
     mag = rng.uniform(cfg.blunder_px[0], cfg.blunder_px[1], blunder.sum())
-    uv[blunder] += np.stack([np.cos(ang), np.sin(ang)], 1) * mag[:, None]
+    offset = np.stack([np.cos(ang), np.sin(ang)], 1) * mag[:, None]
+    size = np.array([[truth.camera_of(i).width, truth.camera_of(i).height] for i in ids], np.float64)[image[blunder]]
+    outside = (uv[blunder] + offset < -0.5) | (uv[blunder] + offset > size - 0.5)
+    uv[blunder] += np.where(outside, -offset, offset)  # mirrored where needed: a wrong match lies in the image too
     ties = TiePoints(xyz=np.full((int(used.sum()), 3), np.nan), obs_track=track, obs_image=image, obs_uv=uv,
                      image_ids=ids, obs_blunder=blunder)
 
@@ -390,7 +393,7 @@ def simulate_block(cfg: SimulationConfig = SimulationConfig(), city: City | None
     if cfg.n_ground_points > 0:
         names, gp_xyz = _ground_sites(city, area, cfg.n_ground_points, np.random.default_rng([cfg.seed, 202]))
         for gp in ground_points(truth, names, gp_xyz, city.scene(), city.origin, sigma_px=cfg.noise_px,
-                                seed=cfg.seed):
+                                check_every=2, seed=cfg.seed):
             block.add_ground_point(gp)
     return SimulatedBlock(block=block, ties=ties, true_poses=true_poses, true_xyz=xyz[used], true_normal=normal[used],
                           true_semantic=city.semantic[tri[used]], gsd=cfg.gsd, city=city, area=area, config=cfg)
