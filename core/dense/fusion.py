@@ -2,7 +2,7 @@
 
 * Consistency: each slave's depth has the uncertainty of its pair, ``sigma_z = z^2 / (f B) * sigma_d``; a master
   pixel is kept when at least ``min_agree`` slaves lie within ``tol_px`` disparity-equivalents of the median
-  depth, and its depth is the mean of those slaves.
+  depth, and its depth is the inverse-variance weighted mean of those slaves (weights ``(f B)^2``).
 * Smoothing: a bilateral filter on the fused depth (range sigma in metres), holes filled by their nearest
   neighbour for the filter and emptied again afterwards, so edges and holes stay where they are.
 * Points: back-projection of the master grid with colour, a normal from the local depth-map surface (oriented
@@ -70,7 +70,8 @@ def fuse_depths(depths: np.ndarray, focal_baselines: np.ndarray, cfg: FusionConf
         tol = cfg.tol_px * ref[None] ** 2 / np.asarray(focal_baselines, np.float64)[:, None, None]
         agree = np.abs(depths - ref[None]) <= tol
     count = agree.sum(axis=0)
-    fused = np.where(agree, depths, 0).sum(axis=0) / np.maximum(count, 1)
+    w = np.where(agree, (np.asarray(focal_baselines, np.float64) ** 2)[:, None, None], 0.0)
+    fused = (w * np.where(agree, depths, 0)).sum(axis=0) / np.maximum(w.sum(axis=0), 1e-12)
     fused = np.where(count >= cfg.min_agree, fused, np.nan).astype(np.float32)
     agree &= (count >= cfg.min_agree)[None]
     return fused, agree

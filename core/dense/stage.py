@@ -47,7 +47,7 @@ class DenseConfig:
     scale : rectified image scale (1 = full resolution)
     views : views to reconstruct
     master_overlap, slaves_per_master : image selection
-    block_size, sgm_mode, lr_max_diff : SGM settings
+    block_size, sgm_mode, p1, p2, uniqueness, lr_max_diff : SGM settings (:class:`.sgm.SgmConfig`)
     min_agree, tol_px : multi-slave consistency
     bilateral, bilateral_sigma_m : depth smoothing
     max_incidence_deg : mixed-pixel filter (90 disables it)
@@ -67,6 +67,9 @@ class DenseConfig:
     slaves_per_master: int = 3
     block_size: int = 5
     sgm_mode: str = "sgbm_3way"
+    p1: int = 8
+    p2: int = 32
+    uniqueness: int = 10
     lr_max_diff: float = 1.0
     min_agree: int = 2
     tol_px: float = 1.0
@@ -116,7 +119,8 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
     selection = [s for s in selection if len(s.slaves) >= cfg.min_agree]
     if not selection:
         raise ComputationError("dense: no master has enough slaves (check the overlap and the views)")
-    sgm = SgmConfig(block_size=cfg.block_size, mode=cfg.sgm_mode, lr_max_diff=cfg.lr_max_diff)
+    sgm = SgmConfig(block_size=cfg.block_size, p1=cfg.p1, p2=cfg.p2, uniqueness=cfg.uniqueness, mode=cfg.sgm_mode,
+                    lr_max_diff=cfg.lr_max_diff)
     executor = ctx.get_executor()
     threads = 1 if getattr(executor, "mode", "inline") != "inline" else 0  # one OpenCV thread per process
     tasks = []

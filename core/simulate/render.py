@@ -126,6 +126,13 @@ def _fade(period: float | np.ndarray, fp: np.ndarray) -> np.ndarray:
     return np.clip(period / (2.0 * fp) - 1.0, 0.0, 1.0)
 
 
+def _cell_contrast(width: float | np.ndarray, height: float | np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """Standard-deviation factor of an independent random value per cell of ``width x height`` metres averaged
+    over a pixel footprint of ``fp`` metres: 1 while a cell covers the footprint, ``sqrt(cell area) / fp`` when
+    the footprint averages several cells (a random field keeps contrast under averaging, unlike a periodic one)."""
+    return np.minimum(1.0, np.sqrt(width * height) / np.maximum(fp, 1e-6))
+
+
 def _lines(x: np.ndarray, period: float, width: float, fp: np.ndarray) -> np.ndarray:
     """Coverage in [0, 1] of lines of ``width`` repeating every ``period`` along ``x``, band-limited: fades to the
     mean coverage ``width / period`` when the footprint grows."""
@@ -288,8 +295,7 @@ class Renderer:
                 rh, tw = 1.1 * sc, 0.73 * sc
                 row = np.floor(v / rh)
                 tile = _hash01(row, np.floor((u + 0.5 * tw * (row % 2)) / tw), 7)
-                w = _fade(tw, f)
-                lum *= 1.0 + w * 0.25 * (tile - 0.5)
+                lum *= 1.0 + _cell_contrast(tw, rh, f) * 0.25 * (tile - 0.5)
                 lum *= 1.0 - 0.35 * _lines(v, rh, 0.18 * rh, f)
                 patch = _hash01(np.floor(u / 1.3), np.floor(v / 0.99), 3)  # replaced tiles / moss patches
                 lum *= 1.0 + 0.18 * (patch - 0.5) * _fade(1.0, f)
@@ -297,7 +303,8 @@ class Renderer:
                 ch = 0.3 * sc
                 row = np.floor(v / ch)
                 brick = _hash01(row, np.floor((u + 0.5 * sc * (row % 2)) / sc), 11)
-                lum *= (1.0 + 0.3 * (brick - 0.5) * _fade(ch, f)) * (1.0 - 0.3 * _lines(v, ch, 0.16 * ch, f))
+                lum *= 1.0 + 0.3 * (brick - 0.5) * _cell_contrast(sc, ch, f)
+                lum *= 1.0 - 0.3 * _lines(v, ch, 0.16 * ch, f)
                 lum *= 1.0 + 0.12 * nz2[:, 1]
             elif name == "plaster":
                 lum *= 1.0 + 0.08 * big[:, 0] + 0.05 * nz2[:, 1]

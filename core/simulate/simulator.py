@@ -10,13 +10,16 @@ Output folder::
     preview/city_overview.png        an oblique overview of the city; preview/head_<head>.png one image per head
     truth/                           ground truth (see :mod:`.truth`)
 
-The default (``SimulationConfig()``): penta camera 1400 x 1050 px, nadir GSD 0.155 m (flying height ~200 m), 80/60
-overlap, one east-west strip and one north-south cross strip extended by 0.3 x the flying height: 100 images.
-Nadir covers the whole area 10+ times. Each oblique view sees only part of the city: a head looking east from the
-east-west strip sees the eastern part (the strips would have to reach ~0.8 flying heights beyond the area for
-45-degree heads to see all of it), so >= 2 images per cell are reached on ~55 % of the area for the east/west views
-and ~30 % for north/south. ``extend_along_h=0.8`` (CLI ``--extend 0.8``) gives 165 images and >= 2 images in every
-view on 98-100 % of the area, >= 3 on 85-91 %.
+The default (``SimulationConfig()``): penta camera 1400 x 1050 px, nadir GSD 0.155 m (flying height ~200 m), one
+east-west strip and one north-south cross strip, 67 % forward / 60 % side overlap, each strip extended by 0.85 x the
+flying height beyond the area: 105 images. The extension is what the 45-degree heads need: a head looking east
+sees the ground from ~0.4 to ~2.4 flying heights ahead, so the strips must start ~0.85 flying heights before the
+area for the forward heads to see its western facades (and end as far beyond it for the backward heads). Measured
+on wall points of the default city (ray cast, incidence < 75 deg): 53 % of the wall area is seen by >= 2 images
+and 41 % has >= 2 stereo pairs (baseline > 35 deg off the viewing direction, intersection angle 6-45 deg), against
+25 % / 7 % for the same strips at 80 % forward overlap extended by 0.3 flying heights (100 images), and 57 % /
+56 % for a 575-image block of parallel strips in both directions (the rest is hidden by neighbours, trees and
+overhangs). Nadir sees every roof 15 times on average.
 """
 
 from __future__ import annotations
@@ -72,11 +75,11 @@ class SimulationConfig:
     height: int = 1050
     seed: int = 0
     gsd: float = 0.155
-    forward_overlap: float = 0.8
+    forward_overlap: float = 0.67
     side_overlap: float = 0.6
     direction_deg: float = 90.0
     cross_strips: bool = True
-    extend_along_h: float = 0.3
+    extend_along_h: float = 0.85
     extend_across_h: float = 0.0
     area_inset: float = 20.0
     depth_maps: bool = False

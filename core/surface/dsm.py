@@ -59,22 +59,27 @@ class DsmConfig:
     """Attributes
     ----------
     cell : cell size in metres (0 = the nadir GSD of the block)
-    top_quantile : quantile defining the top of a cell's points
-    band : points within this many metres below the top quantile form the cell's top band
+    min_support : the top of a cell is its highest point with at least this many points (itself included) within
+        ``band`` below it: an isolated high blunder is passed over, and a roof seen by a few points wins over
+        more numerous mismatched points at ground level under it (nothing can be seen below a roof from above)
+    band : points within this many metres below the top form the cell's top band
     min_points : cells with fewer points are empty
     spike : cells with fewer than two of their 8 neighbours within this many metres are removed as blunders
     max_hole_m2 : holes up to this area are filled
     max_hole_step : holes whose surroundings span less than this (metres) are inpainted; others (occlusions
-        between a roof and the ground) take the height of their low surroundings
+        between a roof and the ground) take the height of their low surroundings, unless their surroundings lie on
+        one plane within ``hole_plane_tol`` (a hole in a sloped roof), which then fills them
+    hole_plane_tol : RMS distance (metres) of a hole's surrounding cells to their plane for a planar fill
     """
 
     cell: float = 0.0
-    top_quantile: float = 0.9
+    min_support: int = 2
     band: float = 0.5
     min_points: int = 1
     spike: float = 1.0
     max_hole_m2: float = 50.0
     max_hole_step: float = 1.0
+    hole_plane_tol: float = 0.2
 
 
 def _group_quantile(key: np.ndarray, z: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -97,11 +102,25 @@ def grid_points(grid: GridSpec, xyz: np.ndarray, cfg: DsmConfig = DsmConfig()) -
     key = np.where(inside, r * grid.cols + c, -1)
     z = xyz[:, 2]
     idx = np.flatnonzero(inside)
-    uniq, ztop, _ = _group_quantile(key[idx], z[idx], cfg.top_quantile)
     top_of = np.full(grid.rows * grid.cols, np.nan)
-    top_of[uniq] = ztop
+    if len(idx):
+        k, zz = key[idx], z[idx]
+        order = np.lexsort((zz, k))
+        k, zz = k[order], zz[order]
+        # support of each point: points of its cell within ``band`` below it (cells are spaced apart in sort_val
+        # by more than the band, so the search never reaches into the previous cell)
+        sort_val = k * (np.ptp(zz) + 2.0 * cfg.band + 1.0) + (zz - zz.min())
+        pos = np.arange(len(zz))
+        support = pos - np.searchsorted(sort_val, sort_val - cfg.band, side="left") + 1
+        within = pos - np.searchsorted(k, k, side="left")
+        # per cell: the highest point with enough support, else the best-supported point (the highest of those)
+        rank = np.where(support >= cfg.min_support, 1e12 + within, support * 1e6 + within)
+        best = np.full(grid.rows * grid.cols, -1.0)
+        np.maximum.at(best, k, rank)
+        pick = rank == best[k]
+        top_of[k[pick]] = zz[pick]
     top = np.zeros(len(xyz), bool)
-    top[idx] = z[idx] >= top_of[key[idx]] - cfg.band
+    top[idx] = (z[idx] >= top_of[key[idx]] - cfg.band) & (z[idx] <= top_of[key[idx]])
     sel = np.flatnonzero(top)
     uniq2, zmed, counts = _group_quantile(key[sel], z[sel], 0.5)
     height = np.full(grid.rows * grid.cols, np.nan)
@@ -127,12 +146,51 @@ def remove_spikes(height: np.ndarray, threshold: float, min_support: int = 2) ->
     return out
 
 
-def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.inf) -> np.ndarray:
+def ring_planes(height: np.ndarray, ring: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane ``z = a*col + b*row + c`` of the cells labelled ``1..n`` in ``ring (rows, cols)``.
+
+    Returns
+    -------
+    coef : (n + 1, 3) float64 ``(a, b, c)`` per label (row 0 and degenerate labels NaN)
+    rms : (n + 1,) float64 RMS distance in height of each label's cells to its plane
+    """
+    rr, cc = np.nonzero(ring > 0)
+    lab = ring[rr, cc]
+    z = height[rr, cc]
+    ok = np.isfinite(z)
+    rr, cc, lab, z = rr[ok].astype(np.float64), cc[ok].astype(np.float64), lab[ok], z[ok]
+    # centred per label for conditioning
+    cnt = np.bincount(lab, minlength=n + 1).astype(np.float64)
+    safe = np.maximum(cnt, 1)
+    mr, mc = np.bincount(lab, rr, n + 1) / safe, np.bincount(lab, cc, n + 1) / safe
+    mz = np.bincount(lab, z, n + 1) / safe
+    dr, dc, dz = rr - mr[lab], cc - mc[lab], z - mz[lab]
+    a = np.zeros((n + 1, 2, 2))
+    a[:, 0, 0] = np.bincount(lab, dc * dc, n + 1)
+    a[:, 0, 1] = a[:, 1, 0] = np.bincount(lab, dc * dr, n + 1)
+    a[:, 1, 1] = np.bincount(lab, dr * dr, n + 1)
+    rhs = np.stack([np.bincount(lab, dc * dz, n + 1), np.bincount(lab, dr * dz, n + 1)], 1)
+    det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] ** 2
+    good = (cnt >= 6) & (det > 1e-9 * np.maximum(a[:, 0, 0] + a[:, 1, 1], 1e-12) ** 2)
+    coef = np.full((n + 1, 3), np.nan)
+    sol = np.linalg.solve(a[good], rhs[good][:, :, None])[:, :, 0]
+    coef[good, 0], coef[good, 1] = sol[:, 0], sol[:, 1]
+    coef[good, 2] = mz[good] - coef[good, 0] * mc[good] - coef[good, 1] * mr[good]
+    res = z - (coef[lab, 0] * cc + coef[lab, 1] * rr + coef[lab, 2])
+    rms = np.sqrt(np.bincount(lab, np.nan_to_num(res, nan=0.0) ** 2, n + 1) / safe)
+    rms[~good] = np.inf
+    return coef, rms
+
+
+def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.inf,
+                     plane_tol: float = 0.0) -> np.ndarray:
     """Fill NaN regions of at most ``max_cells`` cells (not touching the border).
 
     A hole whose surrounding cells span less than ``max_step`` metres is inpainted (Navier-Stokes) from them. A
-    hole between a high and a low surface (an occlusion beside a building, seen from above) takes the median of
-    its low surrounding cells (those within ``max_step`` of the lowest): the ground hidden behind the wall,
+    hole whose surroundings span more but lie on one plane (RMS <= ``plane_tol`` metres: a hole in a sloped
+    roof) takes the plane's heights. A hole between a high and a low surface (an occlusion beside a building,
+    seen from above) takes the median of its low surrounding cells (those within ``max_step`` of the lowest): the
+    ground hidden behind the wall,
     rather than a made-up slope from the roof down to the ground ("low" is taken near the lower quartile of
     the surrounding cells, so a few blunder cells below the ground do not decide it).
     """
@@ -153,8 +211,17 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
     small[border] = False
     small &= np.isfinite(ring_lo)
     level = small & (ring_hi - ring_lo < max_step)
-    step = small & ~level
+    planar = np.zeros(n + 1, bool)
     result = height.copy()
+    if plane_tol > 0 and (small & ~level).any():
+        coef, rms = ring_planes(height, np.where((small & ~level)[ring], ring, 0), n)
+        planar = small & ~level & (rms <= plane_tol)
+        sel = planar[labels]
+        if sel.any():
+            rr, cc = np.nonzero(sel)
+            lab = labels[rr, cc]
+            result[rr, cc] = coef[lab, 0] * cc + coef[lab, 1] * rr + coef[lab, 2]
+    step = small & ~level & ~planar
     fill = level[labels]
     if fill.any():
         lo = float(np.nanmin(height))
@@ -193,5 +260,5 @@ def make_dsm(grid: GridSpec, xyz: np.ndarray, crs: str, cfg: DsmConfig = DsmConf
     """The DSM raster (holes filled) and the top-band mask of the points."""
     height, top = grid_points(grid, xyz, cfg)
     height = remove_spikes(height, cfg.spike) if cfg.spike > 0 else height
-    filled = fill_small_holes(height, int(cfg.max_hole_m2 / grid.cell ** 2), cfg.max_hole_step)
+    filled = fill_small_holes(height, int(cfg.max_hole_m2 / grid.cell ** 2), cfg.max_hole_step, cfg.hole_plane_tol)
     return grid.raster(filled.astype(np.float32), crs), top

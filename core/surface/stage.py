@@ -31,7 +31,7 @@ class SurfaceConfig:
 
     cell : DSM/ortho cell in metres (0 = the nadir GSD)
     aoi : ``[x0, y0, x1, y1]`` area of interest (empty = the ground the nadir images see, cut to the points)
-    dsm_top_quantile, dsm_band, max_hole_m2 : DSM gridding and hole filling
+    dsm_min_support, dsm_band, max_hole_m2 : DSM gridding and hole filling (:class:`.dsm.DsmConfig`)
     dtm_cell, se_size, erosion_rank, threshold : DTM by robust morphological opening
     building_min_height, vegetation_min_height, greenness_min : object masks
     ortho_views : views used for the true orthophoto
@@ -40,7 +40,7 @@ class SurfaceConfig:
 
     cell: float = 0.0
     aoi: tuple[float, ...] = ()
-    dsm_top_quantile: float = 0.9
+    dsm_min_support: int = 2
     dsm_band: float = 0.5
     max_hole_m2: float = 50.0
     dtm_cell: float = 1.0
@@ -95,7 +95,7 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     # points below the opened ground surface are blunders (nothing is under the terrain): not in the DSM
     above_ground = classes != BELOW
     xyz_s, rgb_s = xyz[above_ground], rgb[above_ground]
-    dsm, top = make_dsm(grid, xyz_s, crs, DsmConfig(cell=cell, top_quantile=cfg.dsm_top_quantile, band=cfg.dsm_band,
+    dsm, top = make_dsm(grid, xyz_s, crs, DsmConfig(cell=cell, min_support=cfg.dsm_min_support, band=cfg.dsm_band,
                                                     max_hole_m2=cfg.max_hole_m2))
     ndsm = grid.raster((dsm.data - dtm.data).astype(np.float32), crs)
     ctx.progress(2, steps, "true orthophoto")

@@ -86,6 +86,20 @@ def test_fill_small_holes_only():
     g[10:14, 12:15] = np.nan
     f = fill_small_holes(g, 20, 1.0)
     assert np.allclose(f[10:14, 12:15], 100.0)
+    assert np.allclose(fill_small_holes(g, 20, 1.0, plane_tol=0.2)[10:14, 12:15], 100.0)  # a step is no plane
+
+
+def test_fill_hole_in_sloped_roof_by_its_plane():
+    """A hole on a 40-degree roof (ring spanning ~2 m) takes the roof plane, not the low side of the ring."""
+    y, x = np.mgrid[0:40, 0:40]
+    cell = 0.155
+    z = 120.0 + np.tan(np.radians(40)) * cell * y + 0.01 * np.sin(x)   # rises 0.13 m per row
+    h = z.copy()
+    h[15:27, 10:22] = np.nan   # 12 x 12 cells: the ring spans ~1.7 m
+    plane = fill_small_holes(h, 200, 1.0, plane_tol=0.2)
+    assert np.abs(plane[15:27, 10:22] - z[15:27, 10:22]).max() < 0.03
+    low = fill_small_holes(h, 200, 1.0)
+    assert np.abs(low[15:27, 10:22] - z[15:27, 10:22]).max() > 0.5   # the old behaviour the plane fill replaces
 
 
 def test_masks_split_buildings_and_vegetation():
@@ -102,3 +116,15 @@ def test_masks_split_buildings_and_vegetation():
     assert veg[30:40, 30:40].mean() > 0.8 and not veg[5:20, 5:20].any()
     assert bld[40:55, 5:20].mean() > 0.9 and not veg[40:55, 5:20].any()
     assert greenness(np.array([60, 140, 50])) > 0.3
+
+
+def test_cell_top_is_the_highest_supported_point():
+    """Per cell: two roof points beat six mismatched ground points under them; a lone high blunder is passed
+    over; a cell with a single point keeps it."""
+    g = GridSpec(0.0, 3.0, 1.0, 1, 3)
+    pts = [(0.5, 2.5, z) for z in (20.0, 20.1)] + [(0.5, 2.5, 10.0 + 0.05 * i) for i in range(6)]
+    pts += [(1.5, 2.5, 30.0)] + [(1.5, 2.5, 10.0 + 0.1 * i) for i in range(3)]
+    pts += [(2.5, 2.5, 7.0)]
+    h, top = grid_points(g, np.array(pts), DsmConfig(cell=1.0, min_support=2, band=0.5))
+    assert abs(h[0, 0] - 20.05) < 0.06 and abs(h[0, 1] - 10.1) < 1e-9 and h[0, 2] == 7.0
+    assert top[:2].all() and not top[2:8].any() and not top[8] and top[9:12].all()
