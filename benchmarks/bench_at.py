@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT.parent) not in sys.path:
     sys.path.insert(0, str(ROOT.parent))
 
-from oblique_city.core.aerotri.bundle import BundleOptions, _Round  # noqa: E402
+from oblique_city.core.aerotri.bundle import BundleOptions, _Model  # noqa: E402
 from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
     direct_georeferencing,
     hierarchical,
@@ -94,9 +94,7 @@ def stock_colmap_time(block, ties, xyz0, opt: BundleOptions) -> float:
     sub = build_problem(block, ties, list(block.images), xyz0, use_control=False)
     p = sub.problem
     ref = np.round(p.c_world.mean(0), 0)
-    cams = np.array([[c.fx, c.fy, c.cx + 0.5, c.cy + 0.5, c.k1, c.k2, c.p1, c.p2, c.k3, 0, 0, 0] for c in p.cameras])
-    rd = _Round(p, opt, ref, p.r_cam_from_world, p.c_world, p.xyz, cams, np.zeros((0, 3)), np.zeros(3),
-                np.ones(len(p.obs_point), bool), robust=True)
+    rec = _Model(p, ref, np.isfinite(p.xyz[p.obs_point, 0])).rec
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_focal_length = False
     options.refine_principal_point = False
@@ -107,7 +105,7 @@ def stock_colmap_time(block, ties, xyz0, opt: BundleOptions) -> float:
     options.ceres.solver_options.num_threads = opt.threads
     options.ceres.solver_options.max_num_iterations = opt.max_iterations
     t0 = time.perf_counter()
-    pycolmap.bundle_adjustment(rd.rec, options)
+    pycolmap.bundle_adjustment(rec, options)
     return time.perf_counter() - t0
 
 

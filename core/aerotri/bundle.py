@@ -56,6 +56,8 @@ class BundleOptions:
     rig : constrain the heads of one exposure to their calibrated mounting (boresight ``rig_sigma_deg``,
         lever arm ``rig_sigma_m``) by relative pose priors
     max_iterations, threads : Ceres settings
+    function_tolerance : Ceres' relative cost change that ends the least-squares rounds
+    robust_function_tolerance : the same for the robust (Cauchy) round, which only has to separate the blunders
     linear_solver : ``auto``, ``sparse_schur`` or ``iterative_schur``
     """
 
@@ -69,6 +71,8 @@ class BundleOptions:
     rig_sigma_deg: float = 0.002
     rig_sigma_m: float = 0.01
     max_iterations: int = 60
+    function_tolerance: float = 1e-6
+    robust_function_tolerance: float = 1e-4
     threads: int = 2
     linear_solver: str = "auto"
 
@@ -229,56 +233,105 @@ def project_obs(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     return out
 
 
-class _Round:
-    """One Ceres problem built from the current estimates (rebuilt after each rejection round)."""
+class _Model:
+    """The tie points as a pycolmap reconstruction, built once per adjustment and kept across the rejection
+    rounds: its poses, points and cameras hold the current estimates (Ceres solves them in place) and the
+    observations that leave the solution are deleted from it, so a round only rebuilds the Ceres problem (in
+    C++) and the small extra costs, never the per-observation Python objects.
 
-    def __init__(self, prob: BundleProblem, opt: BundleOptions, ref: np.ndarray, r: np.ndarray, c: np.ndarray,
-                 xyz: np.ndarray, cam_params: np.ndarray, gcp_xyz: np.ndarray, shift: np.ndarray,
-                 active: np.ndarray, robust: bool) -> None:
+    Tracks with at least two active observations are pycolmap points; ``in_rec (m,)`` marks the observations
+    they hold and ``point_ids (p,)`` their ids (-1 for points not in the reconstruction)."""
+
+    def __init__(self, prob: BundleProblem, ref: np.ndarray, active: np.ndarray) -> None:
+        import pycolmap
+
+        self.prob = prob
+        self.rec = rec = pycolmap.Reconstruction()
+        for ci, cam in enumerate(prob.cameras):
+            pc = pycolmap.Camera.create_from_model_name(ci + 1, "FULL_OPENCV", cam.fx, cam.width, cam.height)
+            pc.params = _colmap_params(cam)
+            rec.add_camera_with_trivial_rig(pc)
+        counts = np.bincount(prob.obs_point[active], minlength=prob.n_points)
+        self.in_rec = active & (counts >= 2)[prob.obs_point]
+        idx = np.flatnonzero(self.in_rec)
+        oi = prob.obs_image[idx]
+        order = np.argsort(oi, kind="stable")
+        starts = np.searchsorted(oi[order], np.arange(prob.n_images + 1))
+        self.p2d = np.full(len(prob.obs_point), -1, np.int64)
+        for k in range(prob.n_images):
+            sl = idx[order[starts[k]:starts[k + 1]]]
+            self.p2d[sl] = np.arange(len(sl))
+            im = pycolmap.Image(name=prob.image_ids[k], keypoints=prob.obs_uv[sl] + 0.5,
+                                camera_id=int(prob.image_camera[k]) + 1, image_id=k + 1)
+            rec.add_image_with_trivial_frame(im, _rigid(prob.r_cam_from_world[k], prob.c_world[k] - ref))
+        # observations of every point (all of them, in or out of the reconstruction)
+        self.obs_order = np.argsort(prob.obs_point, kind="stable")
+        self.obs_starts = np.searchsorted(prob.obs_point[self.obs_order], np.arange(prob.n_points + 1))
+        self.track_len = np.where(counts >= 2, counts, 0)
+        self.point_ids = np.full(prob.n_points, -1, np.int64)
+        for p in np.flatnonzero(counts >= 2):
+            sl = self.obs_order[self.obs_starts[p]:self.obs_starts[p + 1]]
+            sl = sl[self.in_rec[sl]]
+            tr = pycolmap.Track()
+            tr.add_elements([pycolmap.TrackElement(int(prob.obs_image[s]) + 1, int(self.p2d[s])) for s in sl])
+            self.point_ids[p] = rec.add_point3D(prob.xyz[p] - ref, tr)
+        self.frame_params = [rec.frame(rec.image(k + 1).frame_id).rig_from_world.params
+                             for k in range(prob.n_images)]
+        self.cam_params = {ci: rec.camera(ci + 1).params for ci in range(len(prob.cameras))}
+
+    def keep_only(self, active: np.ndarray) -> None:
+        """Delete the observations not in ``active (m,)`` from the reconstruction; a point left with fewer than
+        two observations is deleted."""
+        prob, rec = self.prob, self.rec
+        for s in np.flatnonzero(self.in_rec & ~active):
+            if not self.in_rec[s]:
+                continue
+            p = int(prob.obs_point[s])
+            if self.track_len[p] > 2:
+                rec.delete_observation(int(prob.obs_image[s]) + 1, int(self.p2d[s]))
+                self.track_len[p] -= 1
+                self.in_rec[s] = False
+            else:
+                rec.delete_point3D(int(self.point_ids[p]))
+                self.point_ids[p] = -1
+                self.track_len[p] = 0
+                self.in_rec[self.obs_order[self.obs_starts[p]:self.obs_starts[p + 1]]] = False
+
+    def read(self, ref: np.ndarray, r: np.ndarray, c: np.ndarray, xyz: np.ndarray, cam_params: np.ndarray) -> None:
+        """Copy the current estimates into ``r (n, 3, 3)``, ``c (n, 3)``, ``xyz (p, 3)`` (points in the
+        reconstruction only) and ``cam_params (k, 12)``, world frame (``ref`` added back)."""
+        for k, fp in enumerate(self.frame_params):
+            r[k] = _matrix_from_quat(fp[:4])
+            c[k] = -r[k].T @ fp[4:] + ref
+        rec = self.rec
+        for p in np.flatnonzero(self.point_ids >= 0):
+            xyz[p] = rec.point3D(int(self.point_ids[p])).xyz + ref
+        for ci, p in self.cam_params.items():
+            cam_params[ci] = p
+
+
+class _Round:
+    """One Ceres problem over the model's current state: pycolmap's reprojection costs (Cauchy loss in the
+    robust round) plus the priors, connection points, single-ray connection points and control points."""
+
+    def __init__(self, model: _Model, opt: BundleOptions, ref: np.ndarray, xyz: np.ndarray, gcp_xyz: np.ndarray,
+                 shift: np.ndarray, active: np.ndarray, robust: bool) -> None:
         import pyceres
         import pycolmap
         import pycolmap.cost_functions as cf
 
-        self.rec = rec = pycolmap.Reconstruction()
+        prob, rec = model.prob, model.rec
         sp = opt.sigma_px
-        for ci, cam in enumerate(prob.cameras):
-            pc = pycolmap.Camera.create_from_model_name(ci + 1, "FULL_OPENCV", cam.fx, cam.width, cam.height)
-            pc.params = cam_params[ci]
-            rec.add_camera_with_trivial_rig(pc)
-        op, oi, ouv = prob.obs_point[active], prob.obs_image[active], prob.obs_uv[active]
         has_prior_pt = np.zeros(prob.n_points, bool)
         if prob.point_prior_xyz is not None:
             has_prior_pt = np.isfinite(prob.point_prior_xyz[:, 0])
-        counts = np.bincount(op, minlength=prob.n_points)
-        point_used = counts >= 2
+        counts = np.bincount(prob.obs_point[active], minlength=prob.n_points)
         # single-ray points with a ground observation (connection points) are added beside pycolmap's tracks
         single = has_prior_pt & (counts == 1)
-        single_obs = np.flatnonzero(single[op])
-        s_op, s_oi, s_uv = op[single_obs], oi[single_obs], ouv[single_obs]
-        keep = point_used[op]
-        op, oi, ouv = op[keep], oi[keep], ouv[keep]
-        order = np.argsort(oi, kind="stable")
-        starts = np.searchsorted(oi[order], np.arange(prob.n_images + 1))
-        p2d_idx = np.empty(len(oi), np.int64)
-        image_has_obs = np.diff(starts) > 0
-        self.image_ids = {}
-        for k in range(prob.n_images):
-            sl = order[starts[k]:starts[k + 1]]
-            p2d_idx[sl] = np.arange(len(sl))
-            im = pycolmap.Image(name=prob.image_ids[k], camera_id=int(prob.image_camera[k]) + 1, image_id=k + 1)
-            im.points2D = pycolmap.Point2DList([pycolmap.Point2D(u) for u in ouv[sl] + 0.5])
-            rec.add_image_with_trivial_frame(im, _rigid(r[k], c[k] - ref))
-            self.image_ids[k] = k + 1
-        porder = np.argsort(op, kind="stable")
-        pstarts = np.searchsorted(op[porder], np.arange(prob.n_points + 1))
-        self.point_ids = np.full(prob.n_points, -1, np.int64)
-        for p in np.flatnonzero(point_used):
-            sl = porder[pstarts[p]:pstarts[p + 1]]
-            tr = pycolmap.Track()
-            tr.add_elements([pycolmap.TrackElement(int(oi[s]) + 1, int(p2d_idx[s])) for s in sl])
-            self.point_ids[p] = rec.add_point3D(xyz[p] - ref, tr)
-        self.used_obs = np.flatnonzero(active)[keep]
-        self.point_used = point_used | single
+        single_obs = np.flatnonzero(single[prob.obs_point] & active)
+        s_op, s_oi, s_uv = prob.obs_point[single_obs], prob.obs_image[single_obs], prob.obs_uv[single_obs]
+        self.point_used = (model.point_ids >= 0) | single
+        image_has_obs = np.bincount(prob.obs_image[model.in_rec], minlength=prob.n_images) > 0
 
         options = pycolmap.BundleAdjustmentOptions()
         options.refine_focal_length = False
@@ -290,22 +343,21 @@ class _Round:
             options.ceres.loss_function_scale = opt.robust_scale * sp
         config = pycolmap.BundleAdjustmentConfig()
         for k in np.flatnonzero(image_has_obs):
-            config.add_image(k + 1)
+            config.add_image(int(k) + 1)
         self.ba = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
         problem = self.problem = self.ba.problem
         self.frame_params = {}
         self.adjusted = np.zeros(prob.n_images, bool)
-        for k in range(prob.n_images):
-            fp = rec.frame(rec.image(k + 1).frame_id).rig_from_world.params
+        for k, fp in enumerate(model.frame_params):
             if problem.has_parameter_block(fp):
                 self.frame_params[k] = fp
                 self.adjusted[k] = True
         # self-calibration on the camera blocks
-        self.cam_params = {ci: rec.camera(ci + 1).params for ci in range(len(prob.cameras))}
+        cam_params = model.cam_params
         free = sorted({i for g in opt.self_calibration for i in CALIBRATION_GROUPS[g]})
         if free:
             const = [i for i in range(12) if i not in free]
-            for p in self.cam_params.values():
+            for p in cam_params.values():
                 if problem.has_parameter_block(p):
                     problem.set_parameter_block_variable(p)
                     problem.set_manifold(p, pyceres.SubsetManifold(12, const))
@@ -330,25 +382,26 @@ class _Round:
                                                [self.frame_params[int(i)], self.frame_params[int(j)]])
         # connection points: ground observations with covariance, identity similarity held constant
         self.sim_const = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0])
-        self.point_xyz = {}
-        for p in np.flatnonzero(has_prior_pt & point_used):
-            xv = rec.point3D(int(self.point_ids[p])).xyz
-            self.point_xyz[p] = xv
+        conn_in_rec = np.flatnonzero(has_prior_pt & (model.point_ids >= 0))
+        self.point_views = []  # the parameter blocks Ceres holds pointers to (views into the reconstruction)
+        for p in conn_in_rec:
+            xv = rec.point3D(int(model.point_ids[p])).xyz
+            self.point_views.append(xv)
             cost = cf.Point3DAlignmentCost(prob.point_prior_cov[p] / sp**2, prob.point_prior_xyz[p] - ref)
             problem.add_residual_block(cost, None, [xv, self.sim_const])
-        model = pycolmap.CameraModelId.FULL_OPENCV
+        cam_model = pycolmap.CameraModelId.FULL_OPENCV
         self.single_points = s_op
         self.single_x = np.array(xyz[s_op] - ref, dtype=np.float64).reshape(-1, 3)
         for j in range(len(s_op)):
             p, k = int(s_op[j]), int(s_oi[j])
             if k not in self.frame_params:
                 continue
-            cost = cf.ReprojErrorCost(model, s_uv[j] + 0.5)
+            cost = cf.ReprojErrorCost(cam_model, s_uv[j] + 0.5)
             problem.add_residual_block(cost, None, [self.single_x[j], self.frame_params[k],
-                                                    self.cam_params[int(prob.image_camera[k])]])
+                                                    cam_params[int(prob.image_camera[k])]])
             cost = cf.Point3DAlignmentCost(prob.point_prior_cov[p] / sp**2, prob.point_prior_xyz[p] - ref)
             problem.add_residual_block(cost, None, [self.single_x[j], self.sim_const])
-        if self.point_xyz or len(single_obs):
+        if len(conn_in_rec) or len(single_obs):
             problem.set_parameter_block_constant(self.sim_const)
         # control points: reprojection + ground observation through the datum-shift similarity
         self.sim_datum = np.array([0.0, 0.0, 0.0, 1.0, *shift, 0.0])
@@ -359,9 +412,9 @@ class _Round:
             if k not in self.frame_params:
                 continue
             s = prob.gcp_sigma_px[g] / sp
-            cost = cf.ReprojErrorCost(model, np.eye(2) * s**2, prob.gcp_obs_uv[k_obs] + 0.5)
+            cost = cf.ReprojErrorCost(cam_model, np.eye(2) * s**2, prob.gcp_obs_uv[k_obs] + 0.5)
             problem.add_residual_block(cost, None, [gcp_x[g], self.frame_params[k],
-                                                    self.cam_params[int(prob.image_camera[k])]])
+                                                    cam_params[int(prob.image_camera[k])]])
             gcp_seen[g] = True
         for g in np.flatnonzero(gcp_seen):
             cov = np.diag(prob.gcp_sigma[g] ** 2) / sp**2
@@ -374,13 +427,13 @@ class _Round:
                 problem.set_parameter_block_constant(self.sim_datum)
         self.gcp_seen = gcp_seen
 
-    def solve(self, opt: BundleOptions, n_images: int):
+    def solve(self, opt: BundleOptions, n_images: int, robust: bool):
         import pyceres
 
         so = pyceres.SolverOptions()
         kind = opt.linear_solver
         if kind == "auto":
-            kind = "sparse_schur" if n_images <= 1500 else "iterative_schur"
+            kind = "sparse_schur" if n_images <= 500 else "iterative_schur"
         if kind == "sparse_schur":
             so.linear_solver_type = pyceres.LinearSolverType.SPARSE_SCHUR
         else:
@@ -388,7 +441,7 @@ class _Round:
             so.preconditioner_type = pyceres.PreconditionerType.SCHUR_JACOBI
         so.num_threads = opt.threads
         so.max_num_iterations = opt.max_iterations
-        so.function_tolerance = 1e-6
+        so.function_tolerance = opt.robust_function_tolerance if robust else opt.function_tolerance
         so.gradient_tolerance = 1e-10
         so.parameter_tolerance = 1e-8
         summary = pyceres.SolverSummary()
@@ -422,24 +475,18 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     iterations = 0
     log: list[str] = []
     total_rounds = opt.max_rejection_rounds + 1
+    model = _Model(prob, ref, active)
     rnd = 0
     while True:
         if progress is not None:
             progress(rnd, total_rounds, f"bundle adjustment round {rnd + 1}")
-        rd = _Round(prob, opt, ref, r, c, xyz, cam_params, gcp_xyz, shift, active, robust=(rnd == 0))
-        summary = rd.solve(opt, prob.n_images)
+        model.keep_only(active)
+        rd = _Round(model, opt, ref, xyz, gcp_xyz, shift, active, robust=(rnd == 0))
+        summary = rd.solve(opt, prob.n_images, robust=(rnd == 0))
         iterations += summary.num_successful_steps + summary.num_unsuccessful_steps
         # read back (local frame, before the datum shift)
-        for k, fp in rd.frame_params.items():
-            q, t = fp[:4], fp[4:]
-            r[k] = _matrix_from_quat(q)
-            c[k] = -r[k].T @ t + ref
-        used_pts = np.flatnonzero(rd.point_ids >= 0)
-        for p in used_pts:
-            xyz[p] = rd.rec.point3D(int(rd.point_ids[p])).xyz + ref
+        model.read(ref, r, c, xyz, cam_params)
         xyz[rd.single_points] = rd.single_x + ref
-        for ci, p in rd.cam_params.items():
-            cam_params[ci] = p
         gcp_xyz = np.where(rd.gcp_seen[:, None], rd.gcp_x + ref, gcp_xyz)
         shift = rd.sim_datum[4:7].copy()
         point_used = rd.point_used

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -201,10 +201,17 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         conn_counts[v] = int(sel.sum())
         conn_masks[v] = sel
         items.append((v, sub, opt))
+    # parallel units share the cores: each gets its part of the threads (the largest blocks start first)
+    parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
+    if parallel and len(items) > 1:
+        per_unit = max(1, opt.threads // min(len(items), max(1, int(getattr(executor, "workers", 1)))))
+        items = [(v, sub, replace(o, threads=per_unit)) for v, sub, o in items]
     done_cb = None if progress is None else (lambda d, t: progress(t + d, 2 * t, f"oblique blocks {d}/{t}"))
     t2 = time.perf_counter()
-    outputs = (executor.map(_adjust_unit, items, done_cb) if executor is not None
-               else [_adjust_unit(it) for it in items])
+    big_first = sorted(range(len(items)), key=lambda i: -len(items[i][1].obs_index))
+    todo = [items[i] for i in big_first]
+    done = executor.map(_adjust_unit, todo, done_cb) if executor is not None else [_adjust_unit(it) for it in todo]
+    outputs = [done[big_first.index(i)] for i in range(len(items))]
     oblique_wall = time.perf_counter() - t2
     runs = [nadir]
     for (v, sub, _), (_, res, wall) in zip(items, outputs):
@@ -274,8 +281,9 @@ def direct_georeferencing(block: ImageBlock) -> dict[str, Pose]:
 def nadir_propagation(block: ImageBlock, nadir_poses: dict[str, Pose]) -> dict[str, Pose]:
     """Baseline: every image gets the correction its exposure's nadir image received in a nadir-only AT.
 
-    ``R_adj = R_approx R_nadir_approx^T R_nadir_adj`` (the head's mounting is kept) and
-    ``C_adj = C_approx + (C_nadir_adj - C_nadir_approx)``. Images without an adjusted nadir partner keep their
+    The exposure moves as one rigid body: ``R_adj = R_approx R_nadir_approx^T R_nadir_adj`` (the head's mounting
+    is kept) and ``C_adj = C_nadir_adj + R_nadir_adj^T R_nadir_approx (C_approx - C_nadir_approx)`` (the lever
+    arm between the heads turns with the exposure). Images without an adjusted nadir partner keep their
     navigation orientation."""
     nadir_of_exposure = {}
     for iid, p in nadir_poses.items():
@@ -293,5 +301,5 @@ def nadir_propagation(block: ImageBlock, nadir_poses: dict[str, Pose]) -> dict[s
                 out[iid] = img.pose_approx
             continue
         a, b = pair
-        out[iid] = Pose(img.pose_approx.R @ a.R.T @ b.R, img.pose_approx.C + (b.C - a.C))
+        out[iid] = Pose(img.pose_approx.R @ a.R.T @ b.R, b.C + b.R.T @ (a.R @ (img.pose_approx.C - a.C)))
     return out

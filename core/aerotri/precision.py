@@ -49,6 +49,13 @@ def collinearity_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx
     return j_point, j_rot
 
 
+def _sum_blocks(blocks: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
+    """Sums of the blocks ``(m, d, d)`` per ``index (m,)`` into ``(n, d, d)`` (one bincount over all entries)."""
+    d2 = blocks.shape[1] * blocks.shape[2]
+    flat = (index[:, None] * d2 + np.arange(d2)).ravel()
+    return np.bincount(flat, weights=blocks.reshape(-1), minlength=n * d2).reshape(n, *blocks.shape[1:])
+
+
 def point_normals(j_point: np.ndarray, w_obs: np.ndarray, obs_point: np.ndarray, n_points: int,
                   prior_info: np.ndarray | None = None) -> np.ndarray:
     """Normal blocks of points with the cameras fixed.
@@ -56,8 +63,7 @@ def point_normals(j_point: np.ndarray, w_obs: np.ndarray, obs_point: np.ndarray,
     ``j_point (m, 2, 3)``, ``w_obs (m,)`` weights (1/sigma^2), ``obs_point (m,)``; ``prior_info (n, 3, 3)``
     inverse covariances of ground observations of the points (zeros when none). Returns ``(n, 3, 3)``.
     """
-    n = np.zeros((n_points, 3, 3))
-    np.add.at(n, obs_point, np.einsum("mki,mkj->mij", j_point, j_point) * w_obs[:, None, None])
+    n = _sum_blocks((j_point.transpose(0, 2, 1) * w_obs[:, None, None]) @ j_point, obs_point, n_points)
     if prior_info is not None:
         n += prior_info
     return n
@@ -67,8 +73,7 @@ def image_normals(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray, obs
                   n_images: int, prior_info: np.ndarray | None = None) -> np.ndarray:
     """Normal blocks ``(n, 6, 6)`` of images (rotation about world axes, centre) with the points fixed."""
     j = np.concatenate([j_rot, -j_point], axis=2)
-    n = np.zeros((n_images, 6, 6))
-    np.add.at(n, obs_image, np.einsum("mki,mkj->mij", j, j) * w_obs[:, None, None])
+    n = _sum_blocks((j.transpose(0, 2, 1) * w_obs[:, None, None]) @ j, obs_image, n_images)
     if prior_info is not None:
         n += prior_info
     return n
@@ -128,6 +133,6 @@ def redundancy_numbers(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray
     ``q_point (n, 3, 3)`` and ``q_image (k, 6, 6)``; the coupling between them is neglected.
     """
     jc = np.concatenate([j_rot, -j_point], axis=2)
-    hp = np.einsum("mki,mij,mkj->m", j_point, np.nan_to_num(q_point[obs_point]), j_point)
-    hc = np.einsum("mki,mij,mkj->m", jc, np.nan_to_num(q_image[obs_image]), jc)
+    hp = ((j_point @ np.nan_to_num(q_point)[obs_point]) * j_point).sum(axis=(1, 2))
+    hc = ((jc @ np.nan_to_num(q_image)[obs_image]) * jc).sum(axis=(1, 2))
     return np.clip(1.0 - (hp + hc) * w_obs / 2.0, 0.02, 1.0)

@@ -14,21 +14,28 @@ from .bundle import BundleProblem, BundleResult
 
 def observation_rays(block: ImageBlock, image_ids: list[str], poses: dict[str, Pose], obs_image: np.ndarray,
                      obs_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ray origins and unit directions ``(m, 3)`` of observations (``obs_image`` indexes ``image_ids``)."""
-    origins = np.full((len(obs_image), 3), np.nan)
-    dirs = np.full((len(obs_image), 3), np.nan)
-    order = np.argsort(obs_image, kind="stable")
-    starts = np.searchsorted(obs_image[order], np.arange(len(image_ids) + 1))
+    """Ray origins and unit directions ``(m, 3)`` of observations (``obs_image`` indexes ``image_ids``; NaN for
+    images without a pose). Undistortion runs once per camera over all its observations."""
+    n = len(image_ids)
+    r = np.full((n, 3, 3), np.nan)
+    c = np.full((n, 3), np.nan)
+    cam_of_image = np.full(n, -1, np.int64)
+    cam_ids = list(block.cameras)
     for k, iid in enumerate(image_ids):
-        sl = order[starts[k]:starts[k + 1]]
-        if len(sl) == 0 or poses.get(iid) is None:
+        pose = poses.get(iid)
+        if pose is None:
             continue
-        pose, cam = poses[iid], block.camera_of(iid)
-        xy = cam.pixel_to_normalized(obs_uv[sl])
-        d = np.concatenate([xy, np.ones((len(sl), 1))], 1) @ pose.R
-        dirs[sl] = d / np.linalg.norm(d, axis=1, keepdims=True)
-        origins[sl] = pose.C
-    return origins, dirs
+        r[k], c[k] = pose.R, pose.C
+        cam_of_image[k] = cam_ids.index(block.images[iid].camera_id)
+    xy = np.full((len(obs_image), 2), np.nan)
+    cam_of_obs = cam_of_image[obs_image]
+    for ci, cid in enumerate(cam_ids):
+        sel = cam_of_obs == ci
+        if sel.any():
+            xy[sel] = block.cameras[cid].pixel_to_normalized(obs_uv[sel])
+    d = np.einsum("mji,mj->mi", r[obs_image], np.concatenate([xy, np.ones((len(xy), 1))], 1))
+    dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return c[obs_image], dirs
 
 
 def intersect_ties(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose],

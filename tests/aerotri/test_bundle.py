@@ -25,8 +25,11 @@ def test_iat_recovers_poses_better_than_navigation(sim, iat):
     assert np.sqrt(np.mean(err_adj**2)) < 0.6 * np.sqrt(np.mean(err_nav**2))
     ang_adj = np.degrees([rotation_angle(iat.poses[i].R, sim.true_poses[i].R) for i in ids])
     ang_nav = np.degrees([rotation_angle(sim.block.images[i].pose_approx.R, sim.true_poses[i].R) for i in ids])
-    assert np.median(ang_adj) < np.median(ang_nav)
-    assert np.median(ang_adj) < 0.004
+    assert np.median(ang_adj) < 0.7 * np.median(ang_nav)
+    # the attitude errors agree with the reported precision: |rotation error| against the norm of the three
+    # per-axis standard deviations (its RMS), the median ratio of a 3-D normal being about 0.9
+    std = np.degrees([np.linalg.norm(iat.image_std[i][:3]) for i in ids])
+    assert 0.6 < np.median(ang_adj / std) < 1.4
 
 
 def test_sigma0_matches_simulated_noise(iat):
@@ -71,23 +74,21 @@ def test_datum_shift_and_precision(sim, iat):
 
 
 def test_self_calibration_recovers_focal_length(sim, xyz0):
-    """The nadir camera's focal length is given 0.3 % too long; with focal self-calibration on the nadir images
-    the adjustment returns it within 0.05 %."""
+    """Every head's focal length is given 0.3 % too long; with focal self-calibration on the whole penta block
+    (the obliques make focal length and flying height separable) the adjustment returns each within 0.02 %."""
     block = sim.block
-    true_f = block.cameras["nadir"].fx
-    wrong = replace(block.cameras["nadir"], fx=true_f * 1.003, fy=true_f * 1.003)
-    saved = block.cameras["nadir"]
-    block.cameras["nadir"] = wrong
+    saved = dict(block.cameras)
+    for cid, cam in saved.items():
+        block.cameras[cid] = replace(cam, fx=cam.fx * 1.003, fy=cam.fy * 1.003)
     try:
-        nadir = [i for i, im in block.images.items() if im.view == "nadir"]
-        sub = build_problem(block, sim.ties, nadir, xyz0, obs_mask=~sim.ties.obs_blunder)
+        sub = build_problem(block, sim.ties, list(block.images), xyz0, obs_mask=~sim.ties.obs_blunder)
         res = adjust(sub.problem, BundleOptions(sigma_px=0.3, self_calibration=("focal",),
                                                 max_rejection_rounds=1))
     finally:
-        block.cameras["nadir"] = saved
-    cam = res.cameras[sub.problem.cameras.index(wrong)]
-    assert abs(cam.fx / true_f - 1.0) < 5e-4
-    assert abs(res.sigma0 - 1.0) < 0.15
+        block.cameras.update(saved)
+    for cam in res.cameras:
+        assert abs(cam.fx / saved[cam.id].fx - 1.0) < 2e-4, cam.id
+    assert abs(res.sigma0 - 1.0) < 0.1
 
 
 def test_rig_constraint_keeps_heads_on_their_mounting(sim, xyz0, iat):
