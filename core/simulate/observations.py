@@ -12,7 +12,8 @@ Tie points
 Points are drawn uniformly by 3-D area on the triangles of the sampled surface classes (by default ground,
 street, roof, wall, roof installation and roof edge; trees, glass and overhang undersides are left out as a
 matcher would). ``tie_density`` is given per ground pixel (``gsd**2``), so a block has the same number of tie
-points per image at any GSD: 0.0008 puts about 860 points under a 1200 x 900 px nadir image.
+points per image at any GSD: at 0.0008 a 3,000-image penta block (1200 x 900 px, GSD 0.1 m, flying height 112 m)
+has about 870 measurements per image (97 k points, 2.6 M observations).
 
 Visibility (exact ray casting)
 ------------------------------
@@ -24,8 +25,19 @@ float32 coordinates, good to 0.1 mm here), and (4) a matcher detects it (probabi
 points of an image come from a grid index of the points queried with the bounding box of the image's footprint
 between the lowest and highest city surface; rays are cast in chunks of ``ray_chunk``.
 
-At 80/60 overlap a point sees 1 / (0.2 * 0.4) = 12.5 nadir images before occlusion, fewer the higher it lies
-(the footprint shrinks as ``(H - dz)**2``): a 15 m roof about 9.4 at the default GSD.
+Ray counts
+----------
+At 80/60 overlap a point lies in 1 / (0.2 * 0.4) = 12.5 nadir frames, fewer the higher it lies (the footprint
+shrinks as ``(H - dz)**2``: a 15 m roof about 9.4 at the default 112 m flying height). Measured on the 3,000-image
+block away from its border (``p_detect`` 0.9): nadir rays per point 11.3 on streets, 10.3 on other ground, 9.3 on
+roofs, 1.6 on walls; each oblique view adds 8-9 on average (3-3.5 on walls); 44 rays per point in all, 20 % of them
+nadir.
+
+Scale
+-----
+Building the tiled city dominates (about 1.1-1.3 s per 192 m x 144 m tile): 3,000 images need 30 tiles, 33 s for
+the city plus 4 s for the simulation, 1.0 GB; 33,000 images need 234 tiles (9.4 M triangles), 294 s plus 82 s,
+4.8 GB peak for 28.7 M observations (2 cores).
 """
 
 from __future__ import annotations
