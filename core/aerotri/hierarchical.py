@@ -208,6 +208,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         items = [(v, sub, replace(o, threads=per_unit)) for v, sub, o in items]
     done_cb = None if progress is None else (lambda d, t: progress(t + d, 2 * t, f"oblique blocks {d}/{t}"))
     t2 = time.perf_counter()
+    setup_wall = t2 - t1 - nadir.wall_s
     big_first = sorted(range(len(items)), key=lambda i: -len(items[i][1].obs_index))
     todo = [items[i] for i in big_first]
     done = executor.map(_adjust_unit, todo, done_cb) if executor is not None else [_adjust_unit(it) for it in todo]
@@ -219,6 +220,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         run.connection_count = conn_counts[v]
         runs.append(run)
     # (3) combination by error propagation
+    t3 = time.perf_counter()
     poses, std = {}, {}
     for run in runs:
         poses.update(run.poses)
@@ -229,7 +231,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         rej[run.obs_index] |= run.obs_rejected
     return ATResult(mode="hierarchical", poses=poses, image_std=std, xyz=xyz, xyz_cov=cov, obs_rejected=rej,
                     runs=runs, connection=connection, wall_s=time.perf_counter() - t0,
-                    extra={"oblique_wall_s": oblique_wall, "cell": cell})
+                    extra={"nadir_wall_s": nadir.wall_s, "setup_wall_s": setup_wall, "oblique_wall_s": oblique_wall,
+                           "combine_wall_s": time.perf_counter() - t3, "cell": cell})
 
 
 def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], cov_nadir: np.ndarray,
