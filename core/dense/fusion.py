@@ -3,6 +3,10 @@
 * Consistency: each slave's depth has the uncertainty of its pair, ``sigma_z = z^2 / (f B) * sigma_d``; a master
   pixel is kept when at least ``min_agree`` slaves lie within ``tol_px`` disparity-equivalents of the median
   depth, and its depth is the inverse-variance weighted mean of those slaves (weights ``(f B)^2``).
+* Depth edges: a pixel whose depth lies behind a neighbour within ``edge_radius_px`` by more than
+  ``max(edge_jump_m, edge_jump_rel * depth)`` is dropped (far-side erosion): matching fattens the background into
+  the foreground at occlusion edges, which puts ground-level points inside roof outlines; other masters see
+  that ground from elsewhere.
 * Smoothing: a bilateral filter on the fused depth (range sigma in metres), holes filled by their nearest
   neighbour for the filter and emptied again afterwards, so edges and holes stay where they are.
 * Points: back-projection of the master grid with colour, a normal from the local depth-map surface (oriented
@@ -37,6 +41,8 @@ class FusionConfig:
     bilateral_sigma_m : range sigma in metres (depth differences above a few sigmas are edges, kept sharp)
     max_incidence_deg : mixed-pixel filter threshold on the ray/normal angle (90 disables it)
     normal_offset : grid offset of the neighbours used for normals
+    edge_radius_px : far-side erosion radius in image pixels (0 disables it)
+    edge_jump_m, edge_jump_rel : depth step (metres, and relative to the depth) that makes a depth edge
     """
 
     min_agree: int = 2
@@ -47,6 +53,9 @@ class FusionConfig:
     bilateral_sigma_m: float = 0.3
     max_incidence_deg: float = 82.0
     normal_offset: int = 2
+    edge_radius_px: float = 2.0
+    edge_jump_m: float = 1.0
+    edge_jump_rel: float = 0.01
 
 
 def fuse_depths(depths: np.ndarray, focal_baselines: np.ndarray, cfg: FusionConfig = FusionConfig()
@@ -75,6 +84,19 @@ def fuse_depths(depths: np.ndarray, focal_baselines: np.ndarray, cfg: FusionConf
     fused = np.where(count >= cfg.min_agree, fused, np.nan).astype(np.float32)
     agree &= (count >= cfg.min_agree)[None]
     return fused, agree
+
+
+def erode_far_edges(depth: np.ndarray, step: int, cfg: FusionConfig = FusionConfig()) -> np.ndarray:
+    """``depth (rows, cols)`` on a master grid sampled every ``step`` pixels, with the far side of depth edges
+    emptied: pixels with a neighbour (within ``cfg.edge_radius_px`` image pixels) nearer by more than
+    ``max(edge_jump_m, edge_jump_rel * depth)``."""
+    radius = int(round(cfg.edge_radius_px / step))
+    if radius <= 0 or not np.isfinite(depth).any():
+        return depth
+    near = cv2.erode(np.nan_to_num(depth, nan=np.inf).astype(np.float32), np.ones((2 * radius + 1,) * 2, np.uint8))
+    with np.errstate(invalid="ignore"):
+        far = depth - near > np.maximum(cfg.edge_jump_m, cfg.edge_jump_rel * depth)
+    return np.where(far, np.nan, depth).astype(depth.dtype)
 
 
 def smooth_depth(depth: np.ndarray, cfg: FusionConfig = FusionConfig()) -> np.ndarray:

@@ -27,7 +27,15 @@ from ..model.block import ImageBlock
 from ..model.tiepoints import TiePoints
 from ..pipeline.atomic import atomic_path, write_json
 from ..pipeline.stage import Stage, StageResult
-from .fusion import FusionConfig, fuse_depths, intersection_errors, master_points, smooth_depth, statistical_outliers
+from .fusion import (
+    FusionConfig,
+    erode_far_edges,
+    fuse_depths,
+    intersection_errors,
+    master_points,
+    smooth_depth,
+    statistical_outliers,
+)
 from .pairs import PairTask, match_pair, read_image
 from .selection import SelectionConfig, select_pairs
 from .sgm import SgmConfig
@@ -51,6 +59,7 @@ class DenseConfig:
     min_agree, tol_px : multi-slave consistency
     bilateral, bilateral_sigma_m : depth smoothing
     max_incidence_deg : mixed-pixel filter (90 disables it)
+    edge_radius_px : far-side erosion at depth edges, image pixels (0 disables it)
     outlier_neighbours, outlier_std : statistical outlier removal (0 neighbours disables it)
     display_points : size of the display subsample
     """
@@ -76,6 +85,7 @@ class DenseConfig:
     bilateral: bool = True
     bilateral_sigma_m: float = 0.3
     max_incidence_deg: float = 82.0
+    edge_radius_px: float = 2.0
     outlier_neighbours: int = 16
     outlier_std: float = 2.5
     display_points: int = 300_000
@@ -139,7 +149,8 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
         by_master.setdefault(r.master, []).append(r)
 
     fcfg = FusionConfig(min_agree=cfg.min_agree, tol_px=cfg.tol_px, bilateral=cfg.bilateral,
-                        bilateral_sigma_m=cfg.bilateral_sigma_m, max_incidence_deg=cfg.max_incidence_deg)
+                        bilateral_sigma_m=cfg.bilateral_sigma_m, max_incidence_deg=cfg.max_incidence_deg,
+                        edge_radius_px=cfg.edge_radius_px)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("xyz", "rgb", "normal", "view", "master", "incidence",
                                                           "mixed", "err_used", "err_approx")}
     masters = [s.master for s in selection]
@@ -150,6 +161,7 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
         res = by_master[sel.master]
         fused, agree = fuse_depths(np.stack([r.depth for r in res]), np.array([r.focal_baseline for r in res]),
                                    fcfg)
+        fused = erode_far_edges(fused, master_step(cfg, sel.view), fcfg)
         valid_before = np.isfinite(fused)
         depth = smooth_depth(fused, fcfg)
         pts = master_points(cam, img.pose, depth, master_step(cfg, sel.view),

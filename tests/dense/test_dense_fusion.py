@@ -8,6 +8,7 @@ import numpy as np
 from oblique_city.core.dense.fusion import (
     FusionConfig,
     depth_to_points,
+    erode_far_edges,
     fuse_depths,
     grid_normals,
     incidence_deg,
@@ -55,7 +56,26 @@ def test_fusion_keeps_agreeing_slaves():
     fused, agree = fuse_depths(d, fb, FusionConfig(min_agree=2, tol_px=1.0))
     assert np.allclose(fused[0], 100.025) and not agree[2, 0].any()
     assert np.isnan(fused[1]).all() and np.isnan(fused[2]).all()
-    assert np.allclose(fused[3], (100.0 + 100.05 + 100.0) / 3, atol=1e-4)
+    assert np.allclose(fused[3], (100.0 + 100.05 + 100.0) / 3, atol=1e-4)   # equal baselines: plain mean
+
+
+def test_fusion_weights_long_baselines():
+    d = np.stack([np.full((2, 2), 100.0), np.full((2, 2), 100.2)]).astype(np.float32)
+    fb = np.array([1000.0, 3000.0])   # the second pair has 3x the baseline: 9x the weight
+    fused, _ = fuse_depths(d, fb, FusionConfig(min_agree=2, tol_px=10.0))
+    assert np.allclose(fused, (100.0 + 9 * 100.2) / 10, atol=1e-4)
+
+
+def test_far_side_of_depth_edges_is_eroded():
+    """A roof (depth 190 m) beside ground (200 m) seen from above: ground pixels within the radius of the
+    roof go, the roof stays; a smooth slanted surface (oblique ground, 0.3 m per pixel) loses nothing."""
+    d = np.full((20, 20), 200.0, np.float32)
+    d[:, :10] = 190.0
+    out = erode_far_edges(d, 1, FusionConfig(edge_radius_px=2.0, edge_jump_m=1.0, edge_jump_rel=0.01))
+    assert np.isfinite(out[:, :10]).all() and np.isnan(out[:, 10:12]).all() and np.isfinite(out[:, 12:]).all()
+    ramp = (300.0 + 0.3 * np.arange(20, dtype=np.float32))[:, None].repeat(20, 1)
+    assert np.isfinite(erode_far_edges(ramp, 1, FusionConfig())).all()
+    assert np.isnan(erode_far_edges(d, 2, FusionConfig(edge_radius_px=2.0))[:, 10]).all()
 
 
 def test_bilateral_keeps_edges_and_holes():
