@@ -5,6 +5,12 @@
   (observations per track not rejected as blunders) and a ``Col`` colour attribute from that count
   (:data:`RAY_RAMP`: 2 rays blue ... 12 and more red), drawn as points like the dense cloud. Tracks without an
   intersected position are left out; above :data:`MAX_TIE_POINTS` a fixed random subset is shown.
+* :func:`build_quality_layer`: one quality layer of ``aerotri/layers`` (CBA ray count, tie point standard deviation
+  XY or Z, intersection error before/after) as a georeferenced image plane: a single quad whose corners are the
+  outer corners of the GeoTIFF grid (``x0``, ``y0`` and ``cell`` of the PixelIsArea transform), at the median
+  height of the adjusted tie points, textured with the layer's coloured PNG (nearest-cell sampling, emission so
+  the colours read as they are). Objects are named "<layer> layer" in the "Quality layers" collection; building
+  a layer again replaces its plane.
 * :func:`report_summary`: the key figures of ``aerotri/report.json`` for the Triangulation panel.
 """
 
@@ -17,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import InputError
-from ..core.model import TiePoints
+from ..core.io.geotiff import read_geotiff
+from ..core.model import Raster, TiePoints
 from ..core.pipeline import Workspace
 from . import georef
 from .layers import mesh_from_arrays, point_display
@@ -26,6 +33,9 @@ from .scene_tree import layer_collection
 TIES_FILE = "aerotri/ties.npz"
 REPORT_FILE = "aerotri/report.json"
 REPORT_HTML = "aerotri/report.html"
+LAYERS_DIR = "aerotri/layers"
+QUALITY_LAYERS = ("cba_rays", "cba_std_xy", "cba_std_z", "intersection_error_before", "intersection_error_after")
+"""Layer names written by the aerotri stage (``<name>.tif`` with the values, ``<name>.png`` coloured)."""
 MAX_TIE_POINTS = 300_000
 
 RAY_RAMP = ((2, (0.10, 0.25, 0.90)), (3, (0.00, 0.75, 0.90)), (5, (0.10, 0.80, 0.20)), (8, (0.95, 0.85, 0.10)),
@@ -78,6 +88,66 @@ def build_tie_points(scene, ws: Workspace) -> str:
     shown = f"{len(keep)} of {n_valid}" if len(keep) < n_valid else f"{n_valid}"
     median = int(np.median(rays[keep])) if len(keep) else 0
     return f"{shown} tie points shown (median {median} rays)"
+
+
+def raster_corners(raster: Raster, z: float) -> np.ndarray:
+    """World corners ``(4, 3)`` of a raster's whole grid at height ``z``: south-west, south-east, north-east,
+    north-west (counter-clockwise seen from above)."""
+    rows, cols = raster.shape
+    x1, y1 = raster.x0 + cols * raster.cell, raster.y0 - rows * raster.cell
+    return np.array([[raster.x0, y1, z], [x1, y1, z], [x1, raster.y0, z], [raster.x0, raster.y0, z]])
+
+
+def build_quality_layer(scene, ws: Workspace, name: str = "cba_rays", z: float | None = None) -> str:
+    """The quality layer ``name`` (one of :data:`QUALITY_LAYERS`) as a textured plane; ``z`` defaults to the median
+    height of the adjusted tie points. Returns a one-line summary; a missing or unreadable layer raises
+    :class:`InputError` naming the file."""
+    import bpy
+
+    if name not in QUALITY_LAYERS:
+        raise InputError(f"unknown quality layer '{name}' (use one of {', '.join(QUALITY_LAYERS)})", field="name")
+    tif, png = ws.path(f"{LAYERS_DIR}/{name}.tif"), ws.path(f"{LAYERS_DIR}/{name}.png")
+    for f in (tif, png):
+        if not f.is_file():
+            raise InputError("no quality layer (run the 'aerotri' stage first)", f)
+    raster = read_geotiff(tif)
+    rows, cols = raster.shape
+    if z is None:
+        ties = load_ties(ws.path(TIES_FILE))
+        heights = ties.xyz[np.isfinite(ties.xyz[:, 2]), 2]
+        z = float(np.median(heights)) if len(heights) else 0.0
+    corners = raster_corners(raster, z)
+    georef.ensure_georef(scene, ws.crs, corners)
+    image = bpy.data.images.load(str(png), check_existing=True)
+    if tuple(image.size) != (cols, rows):
+        raise InputError(f"picture {tuple(image.size)} does not match the layer's grid {(cols, rows)}", png)
+    coll = layer_collection(scene, "quality_layers", "Quality layers", clear=False)
+    for old in [o for o in coll.objects if o.get("oc_layer") == name]:  # rebuilding replaces the plane
+        data = old.data
+        bpy.data.objects.remove(old)
+        if data is not None and data.users == 0:
+            bpy.data.meshes.remove(data)
+    label = f"{name} layer"
+    mesh = mesh_from_arrays(label, georef.world_to_local(scene, corners), np.array([[0, 1, 2, 3]]))
+    uv = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], np.float32)
+    mesh.uv_layers.new(name="layer").data.foreach_set("uv", uv.ravel())
+    mat = bpy.data.materials.get(label) or bpy.data.materials.new(label)
+    if mat.node_tree is None:  # Blender 4.x; from 5.0 every material has its node tree
+        mat.use_nodes = True
+    nodes = mat.node_tree.nodes
+    nodes.clear()
+    tex = nodes.new("ShaderNodeTexImage")
+    tex.name, tex.image, tex.interpolation = "Layer", image, "Closest"
+    emit = nodes.new("ShaderNodeEmission")
+    out = nodes.new("ShaderNodeOutputMaterial")
+    mat.node_tree.links.new(tex.outputs["Color"], emit.inputs["Color"])
+    mat.node_tree.links.new(emit.outputs["Emission"], out.inputs["Surface"])
+    mesh.materials.append(mat)
+    obj = bpy.data.objects.new(label, mesh)
+    obj["oc_layer"] = name
+    obj["oc_cell_m"] = float(raster.cell)
+    coll.objects.link(obj)
+    return f"{name}: {cols}x{rows} cells of {raster.cell:g} m at {z:.1f} m"
 
 
 def report_summary(path: Path) -> dict:
