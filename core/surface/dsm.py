@@ -60,8 +60,9 @@ class DsmConfig:
     ----------
     cell : cell size in metres (0 = the nadir GSD of the block)
     min_support : the top of a cell is its highest point with at least this many points (itself included) within
-        ``band`` below it: an isolated high blunder is passed over, and a roof seen by a few points wins over
-        more numerous mismatched points at ground level under it (nothing can be seen below a roof from above)
+        ``band`` of its height in the cell and its 8 neighbours: an isolated high blunder is passed over, and a
+        roof seen by a few points wins over more numerous mismatched points at ground level under it (nothing can
+        be seen below a roof from above)
     band : points within this many metres below the top form the cell's top band
     min_points : cells with fewer points are empty
     spike : cells with fewer than two of their 8 neighbours within this many metres are removed as blunders
@@ -107,11 +108,19 @@ def grid_points(grid: GridSpec, xyz: np.ndarray, cfg: DsmConfig = DsmConfig()) -
         k, zz = key[idx], z[idx]
         order = np.lexsort((zz, k))
         k, zz = k[order], zz[order]
-        # support of each point: points of its cell within ``band`` below it (cells are spaced apart in sort_val
-        # by more than the band, so the search never reaches into the previous cell)
-        sort_val = k * (np.ptp(zz) + 2.0 * cfg.band + 1.0) + (zz - zz.min())
+        # support of each point: points within ``band`` of its height in its cell and the 8 around it (cells are
+        # spaced apart in sort_val by more than twice the band, so a search never reaches into another cell)
+        span = np.ptp(zz) + 4.0 * cfg.band + 1.0
+        sort_val = k * span + (zz - zz.min())
         pos = np.arange(len(zz))
-        support = pos - np.searchsorted(sort_val, sort_val - cfg.band, side="left") + 1
+        support = np.zeros(len(zz), np.int64)
+        rr, cc = k // grid.cols, k % grid.cols
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                ok = (rr + dr >= 0) & (rr + dr < grid.rows) & (cc + dc >= 0) & (cc + dc < grid.cols)
+                nk = (k + dr * grid.cols + dc) * span + (zz - zz.min())
+                n = np.searchsorted(sort_val, nk + cfg.band, side="right") - np.searchsorted(sort_val, nk - cfg.band)
+                support += np.where(ok, n, 0)
         within = pos - np.searchsorted(k, k, side="left")
         # per cell: the highest point with enough support, else the best-supported point (the highest of those)
         rank = np.where(support >= cfg.min_support, 1e12 + within, support * 1e6 + within)

@@ -128,3 +128,19 @@ def test_cell_top_is_the_highest_supported_point():
     h, top = grid_points(g, np.array(pts), DsmConfig(cell=1.0, min_support=2, band=0.5))
     assert abs(h[0, 0] - 20.05) < 0.06 and abs(h[0, 1] - 10.1) < 1e-9 and h[0, 2] == 7.0
     assert top[:2].all() and not top[2:8].any() and not top[8] and top[9:12].all()
+
+
+def test_sparse_roof_wins_through_its_neighbours():
+    """One roof point per cell (a dark roof, poorly matched) over three ground-level mismatches per cell: the
+    roof points support each other across the 3 x 3 neighbourhood, so the roof is the top of every cell."""
+    g = GridSpec(0.0, 4.0, 1.0, 4, 4)
+    rng = np.random.default_rng(2)
+    pts = []
+    for r in range(4):
+        for c in range(4):
+            x, y = c + 0.5, 4 - r - 0.5
+            pts.append((x, y, 15.0 + 0.1 * x + rng.normal(0, 0.05)))               # the sloped roof
+            pts += [(x, y, 6.0 + rng.normal(0, 0.1)) for _ in range(3)]             # ground-level blunders
+    h, _ = grid_points(g, np.array(pts), DsmConfig(cell=1.0, min_support=2, band=0.5))
+    truth = 15.0 + 0.1 * (np.arange(4) + 0.5)[None, :]
+    assert np.abs(h - truth).max() < 0.2
