@@ -13,6 +13,7 @@ skips finished stages. ``make demo`` then writes ``OUT/city.blend`` with the add
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -45,6 +46,24 @@ def _import_block(ws: Workspace, sim: Path) -> bool:
     return True
 
 
+def _set_area_of_interest(ws: Workspace, sim: Path) -> None:
+    """Dense matching and surfaces cover the simulated city (the planned flight area plus its inset), not the whole
+    ground under the extended strips; an AOI the user already set in ``project.toml`` is kept."""
+    doc = json.loads((sim / "truth" / "simulation.json").read_text())
+    x0, y0, x1, y1 = doc["summary"]["area"]
+    m = float(doc["config"]["area_inset"])
+    aoi = [x0 - m, y0 - m, x1 + m, y1 + m]
+    stages = ws.project.setdefault("stages", {})
+    changed = False
+    for name in ("dense", "surface"):
+        opts = stages.setdefault(name, {})
+        if not opts.get("aoi"):
+            opts["aoi"] = aoi
+            changed = True
+    if changed:
+        ws.save_project()
+
+
 def run_demo(out: str | Path, ctx: RunContext | None = None,
              stages: list[str] | None = None) -> dict:
     """Run the main job into folder ``out`` and return its summary (also written to ``out/summary.json``)."""
@@ -67,6 +86,7 @@ def run_demo(out: str | Path, ctx: RunContext | None = None,
     ws = Workspace.open(root) if (root / "project.toml").exists() else Workspace.create(root, crs=crs,
                                                                                         name="oblique-city-demo")
     imported = _import_block(ws, out / SIMULATION)
+    _set_area_of_interest(ws, out / SIMULATION)
     records = run_stages(ws, stages, ctx)
     state = ws.read_state()
     summary = {
