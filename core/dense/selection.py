@@ -37,7 +37,7 @@ class SelectionConfig:
     """
 
     master_overlap: float = 0.35
-    slaves_per_master: int = 3
+    slaves_per_master: int = 4
     min_overlap: float = 0.3
     base_height_ideal: float = 0.3
     base_height_min: float = 0.05

@@ -73,7 +73,7 @@ class DenseConfig:
     scale: float = 1.0
     views: tuple[str, ...] = ("nadir", "north", "east", "south", "west")
     master_overlap: float = 0.35
-    slaves_per_master: int = 3
+    slaves_per_master: int = 4
     block_size: int = 5
     sgm_mode: str = "sgbm_3way"
     p1: int = 8
