@@ -6,8 +6,10 @@
   points plus *connection points*: tie points adjusted in the nadir block and introduced as ground observations
   with their propagated 3x3 covariance. Selection: every tie point with >= k nadir rays (k = 2, 3, 5, 10), or
   CBA: a grid of ``cell`` metres over the block and in each cell the point with the most rays (nadir + that
-  view). The four oblique runs are independent and go through the executor (inline, processes or Dask).
-  The oblique blocks start from the nadir corrections propagated to the other heads of each exposure.
+  view). Control points measured in the view are observations there too (their datum shift is the nadir run's,
+  held fixed). The four oblique runs are independent and go through the executor (inline, processes or Dask),
+  each with its share of the threads. The oblique blocks start from the nadir corrections propagated to the
+  other heads of each exposure.
   (3) Combined statistics by error propagation: a point's information is the nadir information plus each
   oblique block's own contribution (its information minus the connection prior it received).
 * Baselines: direct georeferencing (the navigation orientations) and nadir-only AT whose per-exposure
@@ -152,9 +154,12 @@ def _adjust_unit(item: tuple[str, SubProblem, BundleOptions]) -> tuple[str, Bund
 
 def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connection: str = "cba",
                  cell: float = 50.0, executor=None, progress: Callable[[int, int, str], None] | None = None,
-                 xyz0: np.ndarray | None = None, connection_sigma_scale: float = 1.0) -> ATResult:
+                 xyz0: np.ndarray | None = None, connection_sigma_scale: float = 1.0,
+                 oblique_control: bool = True) -> ATResult:
     """HAT as in the module docstring. ``executor`` has ``map(fn, items, on_done)`` (see pipeline.executor);
-    ``connection_sigma_scale`` multiplies the propagated connection standard deviations."""
+    ``connection_sigma_scale`` multiplies the propagated connection standard deviations; with
+    ``oblique_control`` the control points measured in an oblique view are observations of its run too (with
+    the datum shift of the nadir run held fixed), as they are in IAT."""
     t0 = time.perf_counter()
     if connection not in CONNECTIONS:
         raise ConfigError(f"unknown connection selection '{connection}' (use one of {', '.join(CONNECTIONS)})")
@@ -196,11 +201,11 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
         start = np.where(sel[:, None], xyz_nadir, xyz_start)
-        sub = build_problem(block, ties, ids, start, use_control=False, point_prior_xyz=prior_xyz,
+        sub = build_problem(block, ties, ids, start, use_control=oblique_control, point_prior_xyz=prior_xyz,
                             point_prior_cov=prior_cov, prior_shift=res_n.datum_shift, initial=start_poses)
         conn_counts[v] = int(sel.sum())
         conn_masks[v] = sel
-        items.append((v, sub, opt))
+        items.append((v, sub, replace(opt, datum_shift=False) if oblique_control else opt))
     # parallel units share the cores: each gets its part of the threads (the largest blocks start first)
     parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
     if parallel and len(items) > 1:

@@ -33,6 +33,8 @@ class AerotriConfig:
     mode : ``integrated`` (IAT) or ``hierarchical`` (HAT)
     connection : HAT connection points: ``cba`` or a minimum nadir ray count ``2``, ``3``, ``5``, ``10``
     cell_size : CBA grid cell, metres
+    oblique_control : HAT: control points measured in oblique images also enter the oblique runs (datum from
+        the nadir run)
     sigma_px : a priori standard deviation of tie measurements, pixels
     self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
     datum_shift : estimate a 3D shift between the GNSS frame and the control frame
@@ -51,6 +53,7 @@ class AerotriConfig:
     mode: str = "integrated"
     connection: str = "cba"
     cell_size: float = 50.0
+    oblique_control: bool = True
     sigma_px: float = 0.5
     self_calibration: tuple[str, ...] = ()
     datum_shift: bool = True
@@ -102,7 +105,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
         at = integrated(block, ties, opt, progress=ctx.progress)
     else:
         at = hierarchical(block, ties, opt, connection=str(cfg.connection), cell=cfg.cell_size,
-                          executor=ctx.get_executor(), progress=ctx.progress)
+                          executor=ctx.get_executor(), progress=ctx.progress, oblique_control=cfg.oblique_control)
     for iid, pose in at.poses.items():
         block.images[iid].pose_adjusted = pose
     out = ws.stage_dir("aerotri")
@@ -142,4 +145,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="2")
+              version="3")
