@@ -1,6 +1,7 @@
 """Benchmark of the dense and surface stages on the default simulated block against its ground truth.
 
     python benchmarks/bench_surface.py [--sim DIR] [--out DIR] [--orientation true|approx|aerotri]
+    python benchmarks/bench_surface.py --sim demo/simulation --workspace demo/workspace   # an existing run
 
 Prints a table and writes ``<out>/bench_surface.json``:
 
@@ -15,8 +16,9 @@ Prints a table and writes ``<out>/bench_surface.json``:
 
 The orientation used for matching is, by default, the simulator's true orientation (as the result of a perfect
 aerial triangulation); ``--orientation aerotri`` runs the project's ``aerotri`` stage first, ``approx`` uses the
-GNSS/IMU orientation. Timings come from a shared 2-core machine with other jobs running: the load average is
-printed with them.
+GNSS/IMU orientation; ``--workspace`` evaluates a workspace where the stages already ran on the simulated block
+(e.g. the demo's, with the project's own aerial triangulation). Timings come from a shared 2-core machine with
+other jobs running: the load average is printed with them.
 """
 
 from __future__ import annotations
@@ -169,6 +171,7 @@ def main() -> None:
     ap.add_argument("--orientation", choices=("true", "approx", "aerotri"), default="true")
     ap.add_argument("--speedup-pairs", type=int, default=4)
     ap.add_argument("--force", action="store_true", help="rerun stages that are up to date")
+    ap.add_argument("--workspace", help="evaluate this workspace (dense and surface done) instead of running one")
     ap.add_argument("--sample", type=int, default=300_000, help="points compared with the true mesh")
     args = ap.parse_args()
     sim, out = Path(args.sim), Path(args.out)
@@ -185,12 +188,17 @@ def main() -> None:
     from oblique_city.core.simulate.truth import load_truth
 
     truth = load_truth(sim)
-    ws = setup_workspace(sim, out / "ws", args.orientation, truth)
-    ctx = RunContext(executor=Executor("processes", workers=2))
     stages = ["aerotri", "dense", "surface"] if args.orientation == "aerotri" else ["dense", "surface"]
     t0 = time.perf_counter()
-    run_stages(ws, stages, ctx, force=args.force)
-    ctx.executor.close()
+    if args.workspace:
+        ws = Workspace.open(args.workspace)
+        results["orientation"] = "workspace " + args.workspace
+        stages = [s for s in stages if s in ws.read_state()]
+    else:
+        ws = setup_workspace(sim, out / "ws", args.orientation, truth)
+        ctx = RunContext(executor=Executor("processes", workers=2))
+        run_stages(ws, stages, ctx, force=args.force)
+        ctx.executor.close()
     state = ws.read_state()
     results["stage_seconds"] = {name: state[name]["seconds"] for name in stages}
     dm, sm = state["dense"]["metrics"], state["surface"]["metrics"]
