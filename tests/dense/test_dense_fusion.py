@@ -17,7 +17,7 @@ from oblique_city.core.dense.fusion import (
     statistical_outliers,
 )
 from oblique_city.core.dense.pairs import PairTask, match_pair
-from oblique_city.core.dense.selection import select_pairs
+from oblique_city.core.dense.selection import SelectionConfig, select_pairs
 from oblique_city.core.model import Pose
 
 
@@ -131,7 +131,7 @@ def test_selection_covers_and_pairs_are_rectifiable(nadir_oblique_block):
     views = {s.view for s in sel}
     assert views == {"nadir", "north"}
     for s in sel:
-        assert 1 <= len(s.slaves) <= 3
+        assert 1 <= len(s.slaves) <= SelectionConfig().slaves_per_master
         assert all(block.images[x].view == s.view for x in s.slaves)
     nadir_masters = [s.master for s in sel if s.view == "nadir"]
     assert 2 <= len(nadir_masters) <= 4
