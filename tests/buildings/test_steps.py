@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oblique_city.core.buildings.contour import extract_contour
+from oblique_city.core.buildings.contour import extract_contour, walls_under_roof_outline
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
 from oblique_city.core.buildings.hull import build_hull
 from oblique_city.core.buildings.overhang import overhang_widths
@@ -112,3 +112,26 @@ def test_hull_of_a_gabled_box_is_exact():
     ok, vol, why = solid_check(h.vertices, [r for _, r in h.faces])
     assert ok, why
     assert vol == pytest.approx(10 * 6 * 4 + 10 * 6 * 2 / 2, abs=1e-6)
+
+
+def test_roof_outline_moves_onto_sparse_facades():
+    """A 10 m x 8 m house with a 0.6 m overhang: the roof outline (what nadir points show) moves onto the walls
+    where about one facade point per square metre shows them; corners within 0.1 m of the true footprint."""
+    rng = np.random.default_rng(5)
+    gx, gy = np.meshgrid(np.arange(-0.6, 10.6, 0.15), np.arange(-0.6, 8.6, 0.15))
+    roof = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 106.0)])
+    walls = []
+    for (x0, y0), (x1, y1) in (((0, 0), (10, 0)), ((10, 0), (10, 8)), ((10, 8), (0, 8)), ((0, 8), (0, 0))):
+        n = int(np.hypot(x1 - x0, y1 - y0) * 5.0)      # about 1 point per m2 over 5 m of wall height
+        s = rng.uniform(0, 1, n)
+        walls.append(np.column_stack([x0 + s * (x1 - x0), y0 + s * (y1 - y0), rng.uniform(100.3, 105.3, n)]))
+    xyz = np.concatenate([roof] + walls)
+    xyz[:, :2] += rng.normal(0, 0.05, (len(xyz), 2))
+    outline = np.array([[-0.6, -0.6], [10.6, -0.6], [10.6, 8.6], [-0.6, 8.6]])
+    ring, moved = walls_under_roof_outline(outline, xyz, 100.0)
+    assert moved == 4
+    truth = np.array([[0, 0], [10, 0], [10, 8], [0, 8]], float)
+    assert np.max(np.min(np.linalg.norm(ring[:, None] - truth[None], axis=2), axis=1)) < 0.1
+    # without facade points the outline stays where the roof is
+    same, none = walls_under_roof_outline(outline, roof, 100.0)
+    assert none == 0 and np.allclose(np.sort(same, axis=0), np.sort(outline, axis=0))
