@@ -1,0 +1,117 @@
+"""Window detection scores against ground truth: precision, recall and corner accuracy of facade rectangles.
+
+A window, true or detected, is a planar 3D rectangle ``corners : (4, 3)`` in the facade (the simulator writes the
+truth as ``truth/windows.json``). A detection matches a true window when both lie on the same facade plane
+(normals within ``max_angle_deg``, the detection's centre within ``max_plane_dist`` metres of the true plane; the
+recess of a window may put a detection on the glass or on the wall) and their overlap in that plane has an
+intersection over union of at least ``min_iou``. Matching is one-to-one and greedy by decreasing IoU, as in the
+usual object detection scores: a true window matched twice counts once, the other detection is a false positive.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class WindowScores:
+    """Scores of a set of detections.
+
+    true_windows, detections, matched : counts; precision = matched / detections; recall = matched / true_windows;
+    f1 : harmonic mean; iou_mean : mean IoU of the matches; corner_rmse_m : RMS distance of matched corners (each
+    true corner to the nearest detected corner), metres
+    """
+
+    true_windows: int
+    detections: int
+    matched: int
+    precision: float
+    recall: float
+    f1: float
+    iou_mean: float
+    corner_rmse_m: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _frame(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Origin ``(3,)``, unit normal ``(3,)`` and in-plane axes ``(2, 3)`` (horizontal, up) of a facade rectangle."""
+    c = corners.mean(0)
+    n = np.cross(corners[1] - corners[0], corners[2] - corners[1])
+    n /= np.linalg.norm(n)
+    u = np.cross([0.0, 0.0, 1.0], n)
+    if np.linalg.norm(u) < 1e-9:  # a horizontal rectangle (roof window): any in-plane pair
+        u = corners[1] - corners[0]
+    u /= np.linalg.norm(u)
+    return c, n, np.stack([u, np.cross(n, u)])
+
+
+def _box(corners: np.ndarray, origin: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """Axis-aligned 2D box ``(umin, vmin, umax, vmax)`` of corners ``(4, 3)`` in a facade frame."""
+    uv = (corners - origin) @ axes.T
+    return np.concatenate([uv.min(0), uv.max(0)])
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    if w <= 0 or h <= 0:
+        return 0.0
+    inter = w * h
+    return float(inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter))
+
+
+def window_scores(detected: list[np.ndarray], truth: list[np.ndarray], min_iou: float = 0.5,
+                  max_angle_deg: float = 15.0, max_plane_dist: float = 0.5) -> WindowScores:
+    """Precision, recall and accuracy of detected windows.
+
+    Parameters
+    ----------
+    detected : list of (4, 3) float64 corner arrays (a planar rectangle each, any starting corner)
+    truth : list of (4, 3) float64 true window rectangles (``truth/windows.json`` ``corners``)
+    min_iou : least intersection over union in the facade plane for a match
+    max_angle_deg, max_plane_dist : same-facade test (normal angle, distance of the detection to the true plane)
+    """
+    det = [np.asarray(d, dtype=np.float64).reshape(4, 3) for d in detected]
+    tru = [np.asarray(t, dtype=np.float64).reshape(4, 3) for t in truth]
+    cos_max = np.cos(np.radians(max_angle_deg))
+    frames = [_frame(t) for t in tru]
+    det_frames = [_frame(d) for d in det]
+    det_centres = np.array([d.mean(0) for d in det]).reshape(-1, 3)
+    pairs = []
+    for j, (origin, n, axes) in enumerate(frames):
+        if not len(det):
+            break
+        near = np.flatnonzero(np.abs((det_centres - origin) @ n) <= max_plane_dist)
+        tb = _box(tru[j], origin, axes)
+        for i in near:
+            if abs(det_frames[i][1] @ n) < cos_max:
+                continue
+            iou = _iou(_box(det[i], origin, axes), tb)
+            if iou >= min_iou:
+                pairs.append((iou, i, j))
+    pairs.sort(key=lambda p: -p[0])
+    used_d, used_t, ious, d2 = set(), set(), [], []
+    for iou, i, j in pairs:
+        if i in used_d or j in used_t:
+            continue
+        used_d.add(i)
+        used_t.add(j)
+        ious.append(iou)
+        dist = np.linalg.norm(tru[j][:, None, :] - det[i][None, :, :], axis=2)
+        d2.extend(dist.min(1) ** 2)
+    m = len(ious)
+    precision = m / len(det) if det else float("nan")
+    recall = m / len(tru) if tru else float("nan")
+    f1 = 2 * precision * recall / (precision + recall) if m else 0.0
+    return WindowScores(len(tru), len(det), m, precision, recall, f1,
+                        float(np.mean(ious)) if m else float("nan"),
+                        float(np.sqrt(np.mean(d2))) if m else float("nan"))
+
+
+def truth_windows(doc: dict) -> list[np.ndarray]:
+    """The true window rectangles ``(4, 3)`` of a ``truth/windows.json`` document."""
+    return [np.asarray(w["corners"], dtype=np.float64) for w in doc.get("windows", [])]
