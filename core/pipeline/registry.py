@@ -13,6 +13,7 @@ STAGE_MODULES: dict[str, str] = {
     "dense": ".dense.stage",
     "surface": ".surface.stage",
     "buildings": ".buildings.stage",
+    "texture": ".texture.stage",
 }
 """Stage name -> module (relative to the ``core`` package) that defines ``STAGE``, in pipeline order."""
 
