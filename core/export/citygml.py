@@ -6,6 +6,11 @@ whose exterior references the polygons of the body by ``xlink:href``) and ``bldg
 holding a ``lod2MultiSurface``. The overhang's roof and fascia are Roof and Wall surfaces outside the solid.
 ``srsName`` is the project CRS (EPSG codes as OGC URNs).
 
+With textures (the ``texture`` stage's atlas), the rings of textured polygons get a ``gml:id`` and the model ends
+with an ``app:appearanceMember``: one ``app:Appearance`` (theme ``texture``) with a ``ParameterizedTexture`` per
+atlas page, whose ``target``s name the polygons and hold a ``TexCoordList`` (one u v pair per ring position,
+closed like the ring).
+
 :func:`validate_citygml` checks a file against the official CityGML 2.0 XSDs without network access, using the
 copies shipped in the PyPI package ``citysmith`` and an lxml resolver that maps the schema URLs to them.
 """
@@ -19,6 +24,7 @@ from lxml import etree
 
 from ..errors import ComputationError, InputError
 from ..pipeline.atomic import write_bytes
+from .textures import copy_pages, textured
 
 NS = {
     "core": "http://www.opengis.net/citygml/2.0",
@@ -27,6 +33,8 @@ NS = {
     "xlink": "http://www.w3.org/1999/xlink",
     "xsi": "http://www.w3.org/2001/XMLSchema-instance",
 }
+APP_NS = "http://www.opengis.net/citygml/appearance/2.0"
+APP_SCHEMA = f"{APP_NS} http://schemas.opengis.net/citygml/appearance/2.0/appearance.xsd"
 SCHEMA_LOCATION = ("http://www.opengis.net/citygml/2.0 http://schemas.opengis.net/citygml/2.0/cityGMLBase.xsd "
                    "http://www.opengis.net/citygml/building/2.0 "
                    "http://schemas.opengis.net/citygml/building/2.0/building.xsd")
@@ -43,7 +51,7 @@ def srs_name(crs: str) -> str:
 
 
 def _q(prefix: str, name: str) -> str:
-    return f"{{{NS[prefix]}}}{name}"
+    return f"{{{APP_NS if prefix == 'app' else NS[prefix]}}}{name}"
 
 
 def _pos_list(xyz: np.ndarray) -> str:
@@ -51,10 +59,12 @@ def _pos_list(xyz: np.ndarray) -> str:
     return " ".join(f"{v:.4f}" for v in ring.ravel())
 
 
-def citygml_tree(buildings, crs: str) -> etree._ElementTree:
-    """The CityGML document of ``buildings`` (list of :class:`~..buildings.model.BuildingModel`)."""
-    root = etree.Element(_q("core", "CityModel"), nsmap=NS)
-    root.set(_q("xsi", "schemaLocation"), SCHEMA_LOCATION)
+def citygml_tree(buildings, crs: str, textures=None, page_names: list[str] | None = None) -> etree._ElementTree:
+    """The CityGML document of ``buildings`` (list of :class:`~..buildings.model.BuildingModel`); with
+    ``textures`` (a :class:`~..texture.atlas.TextureSet`) and the page file names, its appearance too."""
+    tex = [s for b in buildings for s in b.surfaces if textured(textures, s)]
+    root = etree.Element(_q("core", "CityModel"), nsmap={**NS, "app": APP_NS} if tex else NS)
+    root.set(_q("xsi", "schemaLocation"), SCHEMA_LOCATION + (" " + APP_SCHEMA if tex else ""))
     allv = np.concatenate([b.vertices for b in buildings]) if buildings else np.zeros((1, 3))
     env = etree.SubElement(etree.SubElement(root, _q("gml", "boundedBy")), _q("gml", "Envelope"),
                            srsName=srs_name(crs), srsDimension="3")
@@ -83,14 +93,41 @@ def citygml_tree(buildings, crs: str) -> etree._ElementTree:
             poly = etree.SubElement(etree.SubElement(ms, _q("gml", "surfaceMember")), _q("gml", "Polygon"))
             poly.set(_q("gml", "id"), f"{s.id}_poly")
             ring = etree.SubElement(etree.SubElement(poly, _q("gml", "exterior")), _q("gml", "LinearRing"))
+            if textured(textures, s):
+                ring.set(_q("gml", "id"), f"{s.id}_ring")
             pl = etree.SubElement(ring, _q("gml", "posList"), srsDimension="3")
             pl.text = _pos_list(b.vertices[list(s.ring)])
+    if tex:
+        _appearance(root, tex, textures, page_names or [])
     return etree.ElementTree(root)
 
 
-def write_citygml(path: str | Path, buildings, crs: str) -> None:
-    """Write a CityGML 2.0 LoD2 file atomically."""
-    data = etree.tostring(citygml_tree(buildings, crs), xml_declaration=True, encoding="UTF-8", pretty_print=True)
+def _appearance(root: etree._Element, surfaces: list, textures, page_names: list[str]) -> None:
+    """Append the ``app:appearanceMember`` of the textured ``surfaces`` to the CityModel ``root``."""
+    app = etree.SubElement(etree.SubElement(root, _q("app", "appearanceMember")), _q("app", "Appearance"))
+    etree.SubElement(app, _q("app", "theme")).text = "texture"
+    by_page: dict[int, list] = {}
+    for s in surfaces:
+        by_page.setdefault(textures.surfaces[s.id].page, []).append(s)
+    for page, members in sorted(by_page.items()):
+        pt = etree.SubElement(etree.SubElement(app, _q("app", "surfaceDataMember")), _q("app", "ParameterizedTexture"))
+        etree.SubElement(pt, _q("app", "imageURI")).text = page_names[page]
+        etree.SubElement(pt, _q("app", "mimeType")).text = "image/png"
+        etree.SubElement(pt, _q("app", "wrapMode")).text = "none"
+        for s in members:
+            target = etree.SubElement(pt, _q("app", "target"), uri=f"#{s.id}_poly")
+            tcl = etree.SubElement(target, _q("app", "TexCoordList"))
+            uv = textures.surfaces[s.id].uv
+            tc = etree.SubElement(tcl, _q("app", "textureCoordinates"), ring=f"#{s.id}_ring")
+            tc.text = " ".join(f"{v:.8f}" for v in np.vstack([uv, uv[:1]]).ravel())
+
+
+def write_citygml(path: str | Path, buildings, crs: str, textures=None) -> None:
+    """Write a CityGML 2.0 LoD2 file atomically; ``textures`` (optional) adds the appearance and copies the
+    atlas pages beside the file."""
+    names = copy_pages(textures, path) if textures is not None else None
+    data = etree.tostring(citygml_tree(buildings, crs, textures, names), xml_declaration=True, encoding="UTF-8",
+                          pretty_print=True)
     write_bytes(path, data)
 
 
@@ -128,7 +165,7 @@ _SCHEMA: etree.XMLSchema | None = None
 
 
 def citygml_schema() -> etree.XMLSchema:
-    """The compiled CityGML 2.0 building schema (with core and GML), built once."""
+    """The compiled CityGML 2.0 building and appearance schemas (with core and GML), built once."""
     global _SCHEMA
     if _SCHEMA is None:
         root = schema_dir()
@@ -138,7 +175,9 @@ def citygml_schema() -> etree.XMLSchema:
                   b'<xs:import namespace="http://www.opengis.net/citygml/building/2.0" '
                   b'schemaLocation="http://schemas.opengis.net/citygml/building/2.0/building.xsd"/>'
                   b'<xs:import namespace="http://www.opengis.net/citygml/2.0" '
-                  b'schemaLocation="http://schemas.opengis.net/citygml/2.0/cityGMLBase.xsd"/></xs:schema>')
+                  b'schemaLocation="http://schemas.opengis.net/citygml/2.0/cityGMLBase.xsd"/>'
+                  b'<xs:import namespace="http://www.opengis.net/citygml/appearance/2.0" '
+                  b'schemaLocation="http://schemas.opengis.net/citygml/appearance/2.0/appearance.xsd"/></xs:schema>')
         doc = etree.fromstring(driver, parser, base_url=str(root / "driver.xsd"))
         _SCHEMA = etree.XMLSchema(doc)
     return _SCHEMA

@@ -4,7 +4,12 @@ Vertices are quantised integers with ``transform`` (scale 1 mm, translate = the 
 validator (cjval) is not installable from the registries here, so :func:`check_cityjson` checks the structure
 the specification prescribes for what we write: top-level members, object types, geometry types and LoDs,
 the nesting depth of ``boundaries``, vertex indices in range, closed rings of at least three distinct vertices,
-and ``semantics.values`` mirroring the boundaries.
+and ``semantics.values`` mirroring the boundaries; with textures, ``texture.values`` mirroring the boundaries
+with one texture index and one ``vertices-texture`` index per ring vertex.
+
+With textures (the ``texture`` stage's atlas), the document gets an ``appearance`` (one PNG texture per atlas page,
+copied beside the file, and ``vertices-texture`` holding the UVs) and every geometry with a textured surface a
+``texture`` member under the theme ``texture``; untextured surfaces there are ``[[null]]``.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..pipeline.atomic import write_text
+from .textures import copy_pages, textured
 
 SEMANTIC_TYPES = {"roof": "RoofSurface", "wall": "WallSurface", "ground": "GroundSurface",
                   "overhang_roof": "RoofSurface", "overhang_fascia": "WallSurface",
@@ -29,12 +35,24 @@ def _reference_system(crs: str) -> str:
     return crs
 
 
-def cityjson_document(buildings, crs: str, scale: float = 0.001) -> dict[str, Any]:
-    """The CityJSON 2.0 document of ``buildings`` (list of :class:`~..buildings.model.BuildingModel`)."""
+def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
+                      page_names: list[str] | None = None) -> dict[str, Any]:
+    """The CityJSON 2.0 document of ``buildings`` (list of :class:`~..buildings.model.BuildingModel`); with
+    ``textures`` (a :class:`~..texture.atlas.TextureSet`) and the page file names, its appearance too."""
     allv = np.concatenate([b.vertices for b in buildings]) if buildings else np.zeros((1, 3))
     translate = np.floor(allv.min(0))
     vertices: list[list[int]] = []
     objects: dict[str, Any] = {}
+    uvs: list[list[float]] = []
+
+    def tex_ring(s) -> list:
+        if not textured(textures, s):
+            return [None]
+        st = textures.surfaces[s.id]
+        first = len(uvs)
+        uvs.extend(np.round(st.uv, 7).tolist())
+        return [st.page, *range(first, first + len(s.ring))]
+
     for b in buildings:
         base = len(vertices)
         q = np.round((b.vertices - translate) / scale).astype(np.int64)
@@ -53,21 +71,54 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001) -> dict[str, An
                               "semantics": {"surfaces": sem["surfaces"], "values": [sem["values"]]}})
             else:
                 geoms.append({"type": "MultiSurface", "lod": "2.2", "boundaries": faces, "semantics": sem})
+            if any(textured(textures, s) for s in surfaces):
+                values = [[tex_ring(s)] for s in surfaces]
+                geoms[-1]["texture"] = {"texture": {"values": [values] if in_solid else values}}
         ground = [s for s in b.surfaces if s.kind == "ground"]
         z0 = float(b.vertices[list(ground[0].ring), 2].min()) if ground else float(b.vertices[:, 2].min())
         objects[b.id] = {"type": "Building", "geometry": geoms,
                          "attributes": {"measuredHeight": round(float(b.vertices[:, 2].max()) - z0, 3),
                                         "reconstruction_path": b.path, "closed_solid": bool(b.info.get("closed"))}}
-    return {"type": "CityJSON", "version": "2.0",
-            "transform": {"scale": [scale] * 3, "translate": translate.tolist()},
-            "metadata": {"referenceSystem": _reference_system(crs),
-                         "geographicalExtent": [*allv.min(0).tolist(), *allv.max(0).tolist()]},
-            "CityObjects": objects, "vertices": vertices}
+    doc = {"type": "CityJSON", "version": "2.0",
+           "transform": {"scale": [scale] * 3, "translate": translate.tolist()},
+           "metadata": {"referenceSystem": _reference_system(crs),
+                        "geographicalExtent": [*allv.min(0).tolist(), *allv.max(0).tolist()]},
+           "CityObjects": objects, "vertices": vertices}
+    if uvs:
+        doc["appearance"] = {"textures": [{"type": "PNG", "image": name, "wrapMode": "none"}
+                                          for name in page_names or []], "vertices-texture": uvs}
+    return doc
 
 
-def write_cityjson(path: str | Path, buildings, crs: str) -> None:
-    """Write a CityJSON 2.0 file atomically."""
-    write_text(path, json.dumps(cityjson_document(buildings, crs), separators=(",", ":")))
+def write_cityjson(path: str | Path, buildings, crs: str, textures=None) -> None:
+    """Write a CityJSON 2.0 file atomically; ``textures`` (optional) adds the appearance and copies the atlas
+    pages beside the file."""
+    names = copy_pages(textures, path) if textures is not None else None
+    write_text(path, json.dumps(cityjson_document(buildings, crs, textures=textures, page_names=names),
+                                separators=(",", ":")))
+
+
+def _check_texture(g: dict[str, Any], n_tex: int, n_uv: int, where: str, errors: list[str]) -> None:
+    """Texture values of a geometry: mirror its boundaries, [texture, uv...] per ring or [null]."""
+    b = g.get("boundaries") or []
+    surfaces = [(f"[{si}][{fi}]", srf) for si, shell in enumerate(b) for fi, srf in enumerate(shell)] \
+        if g.get("type") == "Solid" else [(f"[{fi}]", srf) for fi, srf in enumerate(b)]
+    for theme, tex in g["texture"].items():
+        vals = tex.get("values")
+        flat = [v for shell in vals for v in shell] if g.get("type") == "Solid" and isinstance(vals, list) else vals
+        if not isinstance(flat, list) or len(flat) != len(surfaces):
+            errors.append(f"{where}.texture.{theme}: values do not mirror the boundaries")
+            continue
+        for (pos, srf), tv in zip(surfaces, flat, strict=True):
+            if not isinstance(tv, list) or len(tv) != len(srf):
+                errors.append(f"{where}.texture.{theme}{pos}: one entry per ring expected")
+                continue
+            for ring, tr in zip(srf, tv, strict=True):
+                if tr == [None]:
+                    continue
+                if (not isinstance(tr, list) or len(tr) != len(ring) + 1 or not all(isinstance(i, int) for i in tr)
+                        or not 0 <= tr[0] < n_tex or any(i < 0 or i >= n_uv for i in tr[1:])):
+                    errors.append(f"{where}.texture.{theme}{pos}: needs [texture, one uv per vertex] in range")
 
 
 def _check_surface(surface: Any, nv: int, where: str, errors: list[str]) -> None:
@@ -125,6 +176,9 @@ def check_cityjson(doc: dict[str, Any]) -> list[str]:
                     errors.append(f"{where}: semantics.values does not mirror the surfaces")
             else:
                 errors.append(f"{where}: unexpected geometry type {g.get('type')!r}")
+            if "texture" in g:
+                app = doc.get("appearance", {})
+                _check_texture(g, len(app.get("textures", [])), len(app.get("vertices-texture", [])), where, errors)
             if sem is not None:
                 n_sem = len(sem.get("surfaces", []))
                 flat = [v for v in (sem.get("values") or []) for v in (v if isinstance(v, list) else [v])]

@@ -1,4 +1,8 @@
-"""``oblique-city export WS --format obj|citygml|cityjson --out PATH``: the buildings of a workspace to a file."""
+"""``oblique-city export WS --format obj|citygml|cityjson --out PATH``: the buildings of a workspace to a file.
+
+When the ``texture`` stage has run (``texture/textures.json``), the export carries its atlases (pages copied
+beside the output) unless ``--no-textures``; without it the export is untextured.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +16,10 @@ from ..errors import ComputationError, ConfigError
 FORMATS = ("obj", "citygml", "cityjson")
 
 
-def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate: bool = True) -> str:
-    """Write the workspace's ``buildings/buildings.json`` as ``fmt``; returns a one-line summary."""
+def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate: bool = True,
+                     with_textures: bool = True) -> str:
+    """Write the workspace's ``buildings/buildings.json`` as ``fmt`` (textured when the texture stage's output
+    exists and ``with_textures``); returns a one-line summary."""
     from ..buildings.model import load_buildings
     from ..pipeline import Workspace
 
@@ -21,36 +27,44 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
     buildings, crs = load_buildings(ws.path("buildings", "buildings.json"))
     crs = crs or ws.crs
     out = Path(out)
+    textures = None
+    if with_textures and ws.path("texture", "textures.json").exists():
+        from ..texture.atlas import load_textures
+
+        textures = load_textures(ws.path("texture", "textures.json"))
+    note = (f", {len(textures.surfaces)} textured surfaces on {len(textures.pages)} atlas pages"
+            if textures is not None else "")
     if fmt == "obj":
         from .obj import write_obj
 
         origin = np.floor(np.concatenate([b.vertices for b in buildings]).min(0)) if buildings else None
-        write_obj(out, buildings, origin)
-        return f"{len(buildings)} buildings written to {out} (origin {origin})"
+        write_obj(out, buildings, origin, textures)
+        return f"{len(buildings)} buildings written to {out} (origin {origin}{note})"
     if fmt == "citygml":
         from .citygml import validate_citygml, write_citygml
 
-        write_citygml(out, buildings, crs)
+        write_citygml(out, buildings, crs, textures)
         if validate:
             errors = validate_citygml(out)
             if errors:
                 raise ComputationError(f"{out}: CityGML 2.0 schema validation failed: {errors[0]} "
                                        f"({len(errors)} errors)")
-        return f"{len(buildings)} buildings written to {out}" + (" (valid CityGML 2.0)" if validate else "")
+        return f"{len(buildings)} buildings written to {out}" + (" (valid CityGML 2.0)" if validate else "") + note
     if fmt == "cityjson":
         from .cityjson import check_cityjson, read_cityjson, write_cityjson
 
-        write_cityjson(out, buildings, crs)
+        write_cityjson(out, buildings, crs, textures)
         if validate:
             errors = check_cityjson(read_cityjson(out))
             if errors:
                 raise ComputationError(f"{out}: CityJSON structure check failed: {errors[0]}")
-        return f"{len(buildings)} buildings written to {out}" + (" (structure checked)" if validate else "")
+        return f"{len(buildings)} buildings written to {out}" + (" (structure checked)" if validate else "") + note
     raise ConfigError(f"unknown export format '{fmt}' (known: {', '.join(FORMATS)})")
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    print(export_buildings(args.workspace, args.format, args.out, validate=not args.no_validate))
+    print(export_buildings(args.workspace, args.format, args.out, validate=not args.no_validate,
+                           with_textures=not args.no_textures))
     return 0
 
 
@@ -60,4 +74,5 @@ def add_commands(sub) -> None:
     s.add_argument("--format", required=True, choices=FORMATS)
     s.add_argument("--out", required=True, help="output file")
     s.add_argument("--no-validate", action="store_true", help="skip the schema / structure check")
+    s.add_argument("--no-textures", action="store_true", help="leave out the texture stage's atlases")
     s.set_defaults(func=cmd_export)

@@ -5,23 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oblique_city.core.buildings.model import load_buildings, save_buildings
+from oblique_city.core.buildings.model import load_buildings
 from oblique_city.core.errors import Cancelled, WorkspaceError
 from oblique_city.core.pipeline import Workspace
 from oblique_city.core.pipeline.context import RunContext
 from oblique_city.core.pipeline.registry import get_stage, stage_names
 from oblique_city.core.texture.atlas import load_textures
-
-from .scene import buildings, make_block
-
-
-@pytest.fixture(scope="module")
-def workspace(tmp_path_factory):
-    root = tmp_path_factory.mktemp("ws")
-    ws = Workspace.create(root / "ws", crs="EPSG:25832")
-    ws.save_block(make_block(root / "images"))
-    save_buildings(ws.path("buildings", "buildings.json"), buildings(), ws.crs)
-    return ws
 
 
 def test_stage_is_registered_after_buildings():

@@ -1,0 +1,100 @@
+"""Textured exports: OBJ + MTL + atlas round trip, CityGML 2.0 appearance against the official XSDs (offline),
+CityJSON appearance structure; untextured when asked."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from oblique_city.core.buildings.model import load_buildings
+from oblique_city.core.export.citygml import validate_citygml
+from oblique_city.core.export.cityjson import check_cityjson, read_cityjson
+from oblique_city.core.export.command import export_buildings
+from oblique_city.core.export.obj import read_obj, read_obj_texcoords
+from oblique_city.core.pipeline.context import RunContext
+from oblique_city.core.pipeline.registry import get_stage
+from oblique_city.core.texture.atlas import load_textures
+
+
+@pytest.fixture(scope="module")
+def textured_ws(workspace):
+    stage = get_stage("texture")
+    stage.run(workspace, stage.make_config({"texel": 0.05, "page_size": 1024}), RunContext())
+    return workspace
+
+
+def test_obj_with_atlas_round_trip(textured_ws, tmp_path):
+    out = tmp_path / "city.obj"
+    assert "textured surfaces" in export_buildings(textured_ws.root, "obj", out)
+    tex = load_textures(textured_ws.path("texture", "textures.json"))
+    models, _ = load_buildings(textured_ws.path("buildings", "buildings.json"))
+    verts, groups, _ = read_obj(out)
+    vts, vt_groups, maps = read_obj_texcoords(out)
+    assert maps == {"atlas_000": "city_atlas_000.png"} and (tmp_path / "city_atlas_000.png").exists()
+    assert (tmp_path / "city_atlas_000.png").read_bytes() == tex.pages[0][0].read_bytes()
+    n_tex = 0
+    for m in models:
+        for kind in {s.kind for s in m.surfaces}:
+            surfaces = [s for s in m.surfaces if s.kind == kind]
+            for s, vt_idx in zip(surfaces, vt_groups[f"{m.id}_{kind}"], strict=True):
+                if s.id in tex.surfaces:
+                    assert np.allclose(vts[vt_idx], tex.surfaces[s.id].uv, atol=1e-8)
+                    n_tex += 1
+                else:
+                    assert vt_idx == []
+    assert n_tex == len(tex.surfaces) and len(verts) == sum(len(m.vertices) for m in models)
+    assert "usemtl atlas_000" in out.read_text() and "usemtl ground" in out.read_text()
+
+
+def test_citygml_appearance_validates(textured_ws, tmp_path):
+    out = tmp_path / "city.gml"
+    export_buildings(textured_ws.root, "citygml", out)  # validates, raises on schema errors
+    assert validate_citygml(out) == []
+    text = out.read_text()
+    tex = load_textures(textured_ws.path("texture", "textures.json"))
+    assert text.count("<app:target ") == len(tex.surfaces)
+    assert "<app:imageURI>city_atlas_000.png</app:imageURI>" in text
+    from lxml import etree
+
+    doc = etree.parse(str(out))
+    ns = {"app": "http://www.opengis.net/citygml/appearance/2.0", "gml": "http://www.opengis.net/gml"}
+    for sid, st in tex.surfaces.items():
+        tc = doc.find(f".//app:target[@uri='#{sid}_poly']/app:TexCoordList/app:textureCoordinates", ns)
+        assert tc.get("ring") == f"#{sid}_ring"
+        uv = np.array(tc.text.split(), float).reshape(-1, 2)
+        assert np.allclose(uv[:-1], st.uv) and np.allclose(uv[-1], uv[0])
+        ring = doc.find(f".//gml:LinearRing[@gml:id='{sid}_ring']/gml:posList", ns)
+        assert len(ring.text.split()) == 3 * len(uv)  # one texture coordinate per ring position
+
+
+def test_cityjson_appearance(textured_ws, tmp_path):
+    out = tmp_path / "city.city.json"
+    export_buildings(textured_ws.root, "cityjson", out)
+    doc = read_cityjson(out)
+    assert check_cityjson(doc) == []
+    app = doc["appearance"]
+    assert app["textures"] == [{"type": "PNG", "image": "city_atlas_000.png", "wrapMode": "none"}]
+    tex = load_textures(textured_ws.path("texture", "textures.json"))
+    models, _ = load_buildings(textured_ws.path("buildings", "buildings.json"))
+    solid = doc["CityObjects"]["B0001"]["geometry"][0]
+    values = solid["texture"]["texture"]["values"][0]
+    body = [s for s in models[0].surfaces if s.in_solid]
+    for s, v in zip(body, values, strict=True):
+        if s.id in tex.surfaces:
+            assert np.allclose([app["vertices-texture"][i] for i in v[0][1:]], tex.surfaces[s.id].uv, atol=1e-7)
+        else:
+            assert v == [[None]]
+    broken = json.loads(json.dumps(doc))
+    broken["CityObjects"]["B0001"]["geometry"][0]["texture"]["texture"]["values"][0][1][0][1] = 10 ** 6
+    assert any("in range" in e for e in check_cityjson(broken))
+
+
+def test_untextured_on_request(textured_ws, tmp_path):
+    out = tmp_path / "plain.obj"
+    export_buildings(textured_ws.root, "obj", out, with_textures=False)
+    assert "vt " not in out.read_text() and not list(tmp_path.glob("*.png"))
+    out = tmp_path / "plain.city.json"
+    export_buildings(textured_ws.root, "cityjson", out, with_textures=False)
+    assert "appearance" not in read_cityjson(out)
