@@ -24,7 +24,7 @@ from ..core.model import ImageBlock
 from ..core.pipeline import Workspace
 from ..core.pipeline.registry import stage_names
 from ..core.pipeline.runner import is_up_to_date
-from . import backgrounds, cameras, georef, layers, layers_aerotri, layers_buildings
+from . import backgrounds, cameras, georef, layers, layers_aerotri, layers_buildings, layers_texture
 from .scene_tree import child_collection, layer_collection
 
 Builder = Callable[..., str]
@@ -161,6 +161,7 @@ register_builder("aerotri", build_aerotri)
 register_builder("dense", layers.build_dense_points)
 register_builder("surface", layers.build_surface)
 register_builder("buildings", layers_buildings.build_buildings)
+register_builder("texture", layers_texture.build_texture)
 
 
 # --- the whole scene -------------------------------------------------------------------------------------
