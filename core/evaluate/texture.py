@@ -53,11 +53,13 @@ def patch_texels(ring_xyz: np.ndarray, record: dict) -> tuple[np.ndarray, np.nda
 
 
 def truth_colours(renderer, xyz: np.ndarray, normal: np.ndarray, texel: float, offset: float = 1.0,
-                  max_depth: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+                  max_depth: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Clean colours of the true city (see the module docstring) at world points ``(n, 3)`` of a plane with
     outward unit ``normal (3,)``.
 
-    Returns colours ``(n, 3)`` float32 (0-255, display tone curve) and ``valid (n,)`` bool.
+    Returns colours ``(n, 3)`` float32 (0-255, display tone curve), ``valid (n,)`` bool and the distance
+    ``(n,)`` float32 from each point to the true surface along the inward normal (negative: the truth is in
+    front of the plane).
     """
     import open3d as o3d
 
@@ -70,8 +72,9 @@ def truth_colours(renderer, xyz: np.ndarray, normal: np.ndarray, texel: float, o
     t = r["t_hit"].numpy()
     valid = np.isfinite(t) & (t < offset + max_depth)
     out = np.zeros((len(xyz), 3), np.float32)
+    depth = (t - offset).astype(np.float32)
     if not valid.any():
-        return out, valid
+        return out, valid, depth
     hi = np.flatnonzero(valid)
     tri = r["primitive_ids"].numpy().astype(np.int64)[hi]
     bary = r["primitive_uvs"].numpy()[hi]
@@ -93,7 +96,7 @@ def truth_colours(renderer, xyz: np.ndarray, normal: np.ndarray, texel: float, o
     irr = cfg.sun * np.maximum(ndl, 0.0) * vis + cfg.sky * (0.55 + 0.45 * n[:, 2]) + 0.05
     lin = albedo * irr[:, None] * cfg.exposure
     out[hi] = np.clip(lin, 0, 1.5) ** (1 / 2.2) * 255.0
-    return out, valid
+    return out, valid, depth
 
 
 def _lum(rgb: np.ndarray) -> np.ndarray:
@@ -130,7 +133,9 @@ def registration_shift(got: np.ndarray, want: np.ndarray, mask: np.ndarray) -> t
 @dataclass(frozen=True)
 class SurfaceAccuracy:
     """Per-surface comparison with the truth: texels compared, registration shift (texels and metres) with its
-    correlation peak (NaN when the patch is too small), luminance NCC, and the sums for the colour RMSE."""
+    correlation peak (NaN when the patch is too small), luminance NCC, the median distance between the
+    reconstructed plane and the true surface (the geometric error the texture inherits), and the compared
+    colours (n, 3) for the colour RMSE."""
 
     surface_id: str
     kind: str
@@ -139,6 +144,7 @@ class SurfaceAccuracy:
     shift_m: float
     peak: float
     ncc: float
+    plane_offset_m: float
     got: np.ndarray
     want: np.ndarray
 
@@ -148,7 +154,7 @@ def surface_accuracy(surface_id: str, kind: str, page: np.ndarray, record: dict,
     """Compare one surface's atlas patch with the clean truth rendering; None when fewer than 50 texels can
     be compared. ``page`` is the atlas page (h, w, 3) uint8, ``record`` its ``textures.json`` entry."""
     rows, cols, xyz, normal = patch_texels(ring_xyz, record)
-    want, valid = truth_colours(renderer, xyz, normal, record["texel"])
+    want, valid, depth = truth_colours(renderer, xyz, normal, record["texel"])
     if valid.sum() < 50:
         return None
     x0, y0 = record["rect"][0], record["rect"][1]
@@ -165,8 +171,8 @@ def surface_accuracy(surface_id: str, kind: str, page: np.ndarray, record: dict,
         m[rows[valid], cols[valid]] = True
         shift, peak = registration_shift(g_img, w_img, m)
     s = float(np.hypot(*shift))
-    return SurfaceAccuracy(surface_id, kind, int(valid.sum()), s, s * record["texel"], peak, ncc, got[valid],
-                           want[valid])
+    return SurfaceAccuracy(surface_id, kind, int(valid.sum()), s, s * record["texel"], peak, ncc,
+                           float(np.median(np.abs(depth[valid]))), got[valid], want[valid])
 
 
 def colour_rmse(results: list[SurfaceAccuracy]) -> tuple[float, np.ndarray]:
