@@ -15,14 +15,20 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from ..model.raster import Raster
 from .geometry import polygon_area
+from .overhang import edge_offsets
 
 
 @dataclass(frozen=True)
 class ContourConfig:
     """cell : grid size (m); min_wall_height : z range of a facade cell (m); z_bin : histogram class (m);
     fill_share : share of filled z classes of a facade cell; line_tol : RANSAC inlier distance (m);
-    angle_deg : merging threshold between neighbouring cell lines; min_fragment : shortest wall kept (m)."""
+    angle_deg : merging threshold between neighbouring cell lines; min_fragment : shortest wall kept (m);
+    roof-outline fallback: outline_tol : Douglas-Peucker tolerance (m); min_edge : shorter simplified edges
+    are dropped (steps and cut corners are rebuilt by the ring closure) (m); square_deg : snapping of directions to
+    the dominant one or its perpendicular (deg, 0 = off); merge_offset : consecutive parallel lines closer than
+    this are one (m); snap_range : search range of the DSM eave on either side of an outline edge (m)."""
 
     cell: float = 0.5
     min_wall_height: float = 1.5
@@ -32,6 +38,11 @@ class ContourConfig:
     angle_deg: float = 12.0
     min_fragment: float = 1.0
     ransac_iterations: int = 60
+    outline_tol: float = 0.35
+    min_edge: float = 2.0
+    square_deg: float = 10.0
+    merge_offset: float = 0.25
+    snap_range: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -325,70 +336,145 @@ def _join(g: Fragment, f: Fragment) -> Fragment:
     return Fragment(p, dd, float(t.min()), float(t.max()), w)
 
 
-def roof_outline_polygon(xyz: np.ndarray, ground_z: float, cfg: ContourConfig, origin: np.ndarray) -> np.ndarray:
-    """Fallback outline when there are no facade points: the outline of the roof points (the eave line,
+def roof_outline_polygon(xyz: np.ndarray, ground_z: float, cfg: ContourConfig, origin: np.ndarray,
+                         dsm: Raster | None = None) -> np.ndarray:
+    """Fallback outline when the facades give no closed contour: the outline of the roof points (the eave line,
     overhangs included, not the wall).
 
-    The outer boundary of the building mask is simplified (Douglas-Peucker, 2 cells); each simplified edge is
-    replaced by a regression line through the outermost roof point of every slice along it (the edge itself
-    where too few points); consecutive nearly collinear lines are merged and consecutive lines intersected
-    (a short connecting edge between parallel offset ones). Returns the (m, 2) counter-clockwise ring.
+    The outer boundary of the building mask is simplified (Douglas-Peucker, ``cfg.outline_tol``, fine enough to
+    keep the offsets where two parts of a building meet); each simplified edge of at least ``cfg.min_edge``
+    is replaced by a regression line through the outermost roof point of every slice along it, shorter edges
+    (steps between offset walls, corners cut by the grid) are dropped and rebuilt by the ring closure.
+    Robustness added to the seed's method: directions within ``cfg.square_deg`` of the building's dominant
+    direction or its perpendicular are snapped to it (buildings are mostly rectangular; a noisy short edge
+    otherwise tilts its corners); consecutive lines closer than ``cfg.merge_offset`` are merged; with a DSM each
+    line is moved onto the DSM's eave (the sub-pixel zero crossing of the second derivative along the gradient,
+    :func:`.overhang.edge_offsets`, within ``cfg.snap_range``), which is sharper than the outermost points
+    (noise and the matching's fattening push those outward). Returns the (m, 2) counter-clockwise ring.
     """
     mask = building_mask(xyz, ground_z, origin, cfg.cell, min_height=2.0)
     cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    approx = cv2.approxPolyDP(max(cs, key=len), 2.0, True)[:, 0, :].astype(np.float64)
+    approx = cv2.approxPolyDP(max(cs, key=len), cfg.outline_tol / cfg.cell, True)[:, 0, :].astype(np.float64)
     poly = origin + (approx + 0.5) * cfg.cell
     if polygon_area(poly) < 0:  # grid rows run with y, so the image orientation is kept: make it ccw
         poly = poly[::-1]
     top = xyz[xyz[:, 2] > ground_z + 2.0, :2]
-    lines: list[tuple[np.ndarray, np.ndarray]] = []
+    lines: list[tuple[np.ndarray, np.ndarray, float]] = []
     m = len(poly)
     for i in range(m):
         a, b = poly[i], poly[(i + 1) % m]
         length = float(np.linalg.norm(b - a))
-        if length < 1e-6:
+        if length < cfg.min_edge:
             continue
         d = (b - a) / length
         out = np.array([d[1], -d[0]])
         t = (top - a) @ d
         off = (top - a) @ out
-        band = (t > 0.1 * length) & (t < 0.9 * length) & (np.abs(off) < 1.5)
-        line = (a, d)
-        if band.sum() >= 5 and length >= cfg.min_fragment:
+        band = (t > 0.1 * length) & (t < 0.9 * length) & (np.abs(off) < 1.0)
+        line = (a, d, length)
+        if band.sum() >= 5:
             tb, ob, pb = t[band], off[band], top[band]
             sl = np.floor(tb / cfg.cell).astype(np.int64)
             order = np.lexsort((-ob, sl))
             first = order[np.r_[True, sl[order][1:] != sl[order][:-1]]]
             if len(first) >= 3:
                 p, dd = _tls_line(pb[first])
-                line = (p, dd if dd @ d > 0 else -dd)
+                dd = dd if dd @ d > 0 else -dd
+                if dd @ d > np.cos(np.radians(20.0)):  # else the fit caught the neighbouring edges: keep the edge
+                    s0, s1 = (a - p) @ dd, (b - p) @ dd
+                    line = (p + s0 * dd, dd, float(s1 - s0))
         lines.append(line)
+    if len(lines) < 3:
+        raise ValueError(f"only {len(lines)} outline edges of at least {cfg.min_edge} m")
+    lines = _square_lines(lines, cfg.square_deg)
+    if len(lines) < 3:
+        raise ValueError(f"only {len(lines)} outline edges left after squaring")
     cos_par = np.cos(np.radians(20.0))
-    merged: list[tuple[np.ndarray, np.ndarray]] = []
-    for p, d in lines:
-        if merged:
-            q, e = merged[-1]
-            if abs(d @ e) > cos_par and abs((p - q) @ np.array([-e[1], e[0]])) < 0.5:
-                continue
-        merged.append((p, d))
-    while len(merged) > 3:
-        (p, d), (q, e) = merged[-1], merged[0]
-        if abs(d @ e) > cos_par and abs((q - p) @ np.array([-d[1], d[0]])) < 0.5:
-            merged.pop()
-        else:
-            break
-    return _ring_from_lines(merged, cos_par)
+    merged = _merge_lines(lines, cos_par, cfg.merge_offset)
+    ring = _ring_from_lines(merged, cos_par)
+    if dsm is None:
+        return ring
+    # snap each line onto the DSM's eave (edges of the ring that are lines of ``merged``, matched by direction)
+    off = edge_offsets(ring, dsm, -cfg.snap_range, cfg.snap_range)
+    moved = []
+    for p, d, w in merged:
+        best, best_k = np.inf, -1
+        for k in range(len(ring)):
+            e = ring[(k + 1) % len(ring)] - ring[k]
+            e = e / max(np.linalg.norm(e), 1e-12)
+            dist = abs((ring[k] - p) @ np.array([-d[1], d[0]]))
+            if e @ d > cos_par and dist < best:
+                best, best_k = dist, k
+        o = off[best_k] if best_k >= 0 and best < 1e-6 else np.nan
+        if np.isfinite(o) and abs(o) < cfg.snap_range:
+            p = p + o * np.array([d[1], -d[0]])
+        moved.append((p, d, w))
+    return _ring_from_lines(_merge_lines(moved, cos_par, cfg.merge_offset), cos_par)
 
 
-def _ring_from_lines(lines: list[tuple[np.ndarray, np.ndarray]], cos_par: float) -> np.ndarray:
-    """The ring of consecutive lines ``(point (2,), unit direction (2,))``: neighbours intersected, a short
-    connecting edge between nearly parallel ones."""
+def _square_lines(lines: list[tuple[np.ndarray, np.ndarray, float]], tol_deg: float,
+                  min_side: float = 2.0) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Snap line directions within ``tol_deg`` of the dominant direction (length-weighted, modulo 90 degrees)
+    or its perpendicular onto it, each turned about its middle (lines are ``(start (2,), unit direction (2,),
+    length)``); other lines shorter than ``2 * min_side`` are dropped (corners cut by the mask)."""
+    if tol_deg <= 0:
+        return lines
+    ang = np.array([np.arctan2(d[1], d[0]) for _, d, _ in lines])
+    w = np.array([length for _, _, length in lines])
+    z = np.sum(w * np.exp(4j * ang))  # directions modulo 90 degrees
+    dom = np.angle(z) / 4
+    out = []
+    for (p, d, length), a in zip(lines, ang):
+        k = np.round((a - dom) / (np.pi / 2))
+        snapped = dom + k * np.pi / 2
+        if abs(a - snapped) < np.radians(tol_deg):
+            c = p + 0.5 * length * d  # turned about its middle
+            d = np.array([np.cos(snapped), np.sin(snapped)])
+            p = c - 0.5 * length * d
+        elif length < 2 * min_side:
+            continue  # a short oblique edge is a corner the mask rounded off: the neighbours' intersection
+        out.append((p, d, length))
+    return out
+
+
+def _merge_lines(lines: list[tuple[np.ndarray, np.ndarray, float]], cos_par: float, offset: float,
+                 short: float = 4.0) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Merge consecutive (cyclic) nearly parallel lines ``(start (2,), unit direction (2,), length)`` closer
+    than ``offset`` (twice that when one is shorter than ``short``: the offset of a short piece's line is less
+    certain, so a step needs more to be believed): the longer one's line, spanning both."""
+    def join(f: tuple, g: tuple) -> tuple:
+        (p, d, lp), (q, e, lq) = (f, g) if f[2] >= g[2] else (g, f)
+        ends = np.array([p, p + lp * d, q, q + lq * e])
+        t = (ends - p) @ d
+        return p + t.min() * d, d, float(t.max() - t.min())
+
+    def same(f: tuple, g: tuple) -> bool:
+        (p, d, lp), (q, e, lq) = f, g
+        tol = offset if min(lp, lq) >= short else 2 * offset
+        return abs(d @ e) > cos_par and abs((q - p) @ np.array([-d[1], d[0]])) < tol
+
+    merged: list[tuple[np.ndarray, np.ndarray, float]] = []
+    for line in lines:
+        if merged and same(merged[-1], line):
+            merged[-1] = join(merged[-1], line)
+            continue
+        merged.append(line)
+    while len(merged) > 3 and same(merged[-1], merged[0]):
+        merged[0] = join(merged.pop(), merged[0])
+    return merged
+
+
+def _ring_from_lines(lines: list[tuple], cos_par: float) -> np.ndarray:
+    """The ring of consecutive lines ``(point (2,), unit direction (2,))`` or ``(start (2,), unit direction
+    (2,), length)``: neighbours intersected, a short connecting edge between nearly parallel ones (halfway
+    between the end of one and the start of the next when their extents are known, else between their
+    points)."""
     corners = []
     k = len(lines)
     for i in range(k):
-        (p, d), (q, e) = lines[i], lines[(i + 1) % k]
+        (p, d), (q, e) = lines[i][:2], lines[(i + 1) % k][:2]
         if abs(d @ e) > cos_par:
-            mid = (p + q) / 2
+            mid = (p + lines[i][2] * d + q) / 2 if len(lines[i]) > 2 else (p + q) / 2
             corners.append(p + ((mid - p) @ d) * d)
             corners.append(q + ((mid - q) @ e) * e)
         else:
@@ -399,7 +485,7 @@ def _ring_from_lines(lines: list[tuple[np.ndarray, np.ndarray]], cos_par: float)
 
 
 def walls_under_roof_outline(ring: np.ndarray, xyz: np.ndarray, ground_z: float, min_points: int = 8,
-                             max_offset: float = 2.0) -> tuple[np.ndarray, int]:
+                             max_offset: float = 2.0) -> tuple[np.ndarray, int, int]:
     """Move each edge of a roof outline ``ring (m, 2)`` (ccw) onto the wall below it, where facade points show it.
 
     Facade points of an edge: inside the outline by at most ``max_offset`` metres, along its middle 80 %, and
@@ -408,11 +494,16 @@ def walls_under_roof_outline(ring: np.ndarray, xyz: np.ndarray, ground_z: float,
     included; the edge moves inward by it and the corners are intersected again. Sparse facades (too few points
     for the facade-cell contour) still give this one number per edge.
 
-    Returns the ring and the number of edges moved.
+    Edges whose facade no view of the dense cloud shows (e.g. walls facing along the flight strips when only
+    the nadir and the along-strip obliques were matched) are moved by the median overhang of the building's
+    observed edges: an assumption (one overhang width per building), not a measurement; the count of such
+    edges is returned so that the model says how many of its walls are inferred.
+
+    Returns the ring, the number of edges moved onto facade points and the number moved by the inferred width.
     """
     h = xyz[:, 2] - ground_z
-    lines, moved = [], 0
     m = len(ring)
+    width = np.full(m, np.nan)
     for i in range(m):
         a, b = ring[i], ring[(i + 1) % m]
         length = float(np.linalg.norm(b - a))
@@ -426,19 +517,31 @@ def walls_under_roof_outline(ring: np.ndarray, xyz: np.ndarray, ground_z: float,
             wall = along & (off > -max_offset) & (off < 0.3) & (h > 1.0) & (h < eave - 0.5)
             if wall.sum() >= min_points:
                 w = -float(np.median(off[wall]))
-                if 0.05 < w < max_offset:
-                    a = a - w * out
-                    moved += 1
-        lines.append((a, d))
-    return _ring_from_lines(lines, np.cos(np.radians(20.0))), moved
+                width[i] = w if 0.05 < w < max_offset else 0.0
+    seen = np.isfinite(width)
+    moved = int((seen & (width > 0)).sum())
+    inferred = 0
+    if seen.any():
+        w_inf = float(np.median(width[seen]))
+        if w_inf > 0:
+            inferred = int((~seen).sum())
+        width[~seen] = w_inf
+    width = np.nan_to_num(width)
+    lines = []
+    for i in range(m):
+        a, b = ring[i], ring[(i + 1) % m]
+        d = (b - a) / max(float(np.linalg.norm(b - a)), 1e-9)
+        lines.append((a - width[i] * np.array([d[1], -d[0]]), d))
+    return _ring_from_lines(lines, np.cos(np.radians(20.0))), moved, inferred
 
 
-def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = ContourConfig()) -> Contour:
+def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = ContourConfig(),
+                    dsm: Raster | None = None) -> Contour:
     """The wall outline of one building's points ``xyz (n, 3)`` with the ground at ``ground_z``.
 
-    Falls back to the roof outline (:func:`roof_outline_polygon`) when the facades give no closed contour, its
-    edges moved onto the walls where sparse facade points show them (:func:`walls_under_roof_outline`);
-    ``Contour.source`` says which.
+    Falls back to the roof outline (:func:`roof_outline_polygon`, snapped onto the eave of ``dsm`` when given,
+    in the points' frame) when the facades give no closed contour, its edges moved onto the walls where sparse
+    facade points show them (:func:`walls_under_roof_outline`); ``Contour.source`` says which.
     """
     frags, cells, origin = wall_fragments(xyz, ground_z, cfg)
     source = "facades"
@@ -449,9 +552,10 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
         poly = close_contour(frags, mask, origin, cfg.cell, cfg)
     except ValueError as e:
         try:
-            poly = roof_outline_polygon(xyz, ground_z, cfg, origin)
+            poly = roof_outline_polygon(xyz, ground_z, cfg, origin, dsm)
         except ValueError as e2:
             raise ValueError(f"{e}; roof outline: {e2}") from None
-        poly, moved = walls_under_roof_outline(poly, xyz, ground_z)
-        source = f"roof outline ({e} from the facades; {moved} of {len(poly)} edges moved onto facade points)"
+        poly, moved, inferred = walls_under_roof_outline(poly, xyz, ground_z)
+        source = (f"roof outline ({e} from the facades; {moved} of {len(poly)} edges moved onto facade points, "
+                  f"{inferred} by the building's median overhang where no facade point shows the wall)")
     return Contour(poly, tuple(frags), cells, origin, cfg.cell, source)

@@ -44,28 +44,35 @@ def _derivatives(z: np.ndarray, cell: float, sigma: float) -> tuple[np.ndarray, 
     return np.sqrt(g2), np.nan_to_num(d2)
 
 
-def overhang_widths(polygon: np.ndarray, dsm: Raster, cfg: OverhangConfig = OverhangConfig()) -> np.ndarray:
-    """Overhang width (m) of each outline edge (edge i from corner i to i+1 of the counter-clockwise
-    ``polygon (m, 2)``); NaN where no eave was found."""
-    lo = polygon.min(0) - cfg.max_width - 5 * dsm.cell
-    hi = polygon.max(0) + cfg.max_width + 5 * dsm.cell
+def edge_offsets(polygon: np.ndarray, dsm: Raster, start: float, stop: float,
+                 smooth_px: float = 1.0) -> np.ndarray:
+    """Signed offset (m, outward positive) of the DSM's eave from each edge of a counter-clockwise
+    ``polygon (m, 2)``: on profiles across the edge (every DSM cell along its middle 70 %, sampled from ``start``
+    to ``stop`` metres outward), the sub-pixel zero crossing of the second derivative along the gradient next to
+    the steepest drop, reduced by the median over the profiles. NaN where no profile finds one."""
+    lo = polygon.min(0) - max(abs(start), abs(stop)) - 5 * dsm.cell
+    hi = polygon.max(0) + max(abs(start), abs(stop)) + 5 * dsm.cell
     c0, r0 = np.floor(dsm.world_to_cell(np.array([[lo[0], hi[1]]]))[0]).astype(int)
     c1, r1 = np.ceil(dsm.world_to_cell(np.array([[hi[0], lo[1]]]))[0]).astype(int)
     rows, cols = dsm.shape
     c0, r0 = max(c0, 0), max(r0, 0)
     c1, r1 = min(c1, cols - 1), min(r1, rows - 1)
+    m = len(polygon)
+    out = np.full(m, np.nan)
+    if c1 - c0 < 3 or r1 - r0 < 3:
+        return out
     sub = np.asarray(dsm.data[r0:r1 + 1, c0:c1 + 1], dtype=np.float64)
+    if np.isnan(sub).all():
+        return out
     if np.isnan(sub).any():
         _, (ri, ci) = ndimage.distance_transform_edt(np.isnan(sub), return_indices=True)
         sub = sub[ri, ci]
     win = Raster(sub, dsm.x0 + c0 * dsm.cell, dsm.y0 - r0 * dsm.cell, dsm.cell, dsm.crs)
-    G, D2 = _derivatives(sub, dsm.cell, cfg.smooth_px)
+    G, D2 = _derivatives(sub, dsm.cell, smooth_px)
     gw = Raster(G, win.x0, win.y0, win.cell, win.crs)
     dw = Raster(D2, win.x0, win.y0, win.cell, win.crs)
-    m = len(polygon)
-    out = np.full(m, np.nan)
     step = dsm.cell / 4
-    s = np.arange(-2 * dsm.cell, cfg.max_width + 2 * dsm.cell, step)
+    s = np.arange(start, stop, step)
     for i in range(m):
         p0, p1 = polygon[i], polygon[(i + 1) % m]
         d = p1 - p0
@@ -73,26 +80,34 @@ def overhang_widths(polygon: np.ndarray, dsm: Raster, cfg: OverhangConfig = Over
         d /= length
         nrm = np.array([d[1], -d[0]])  # outward for a counter-clockwise outline
         ts = np.arange(0.15 * length, 0.85 * length + 1e-9, dsm.cell)
+        if len(ts) == 0:
+            continue
+        pts = p0 + ts[:, None, None] * d + s[None, :, None] * nrm  # (profiles, samples, 2)
+        g = gw.sample(pts.reshape(-1, 2)).reshape(len(ts), len(s))
+        dd = dw.sample(pts.reshape(-1, 2)).reshape(len(ts), len(s))
         found = []
-        for t in ts:
-            pts = p0 + t * d + s[:, None] * nrm
-            g = gw.sample(pts)
-            dd = dw.sample(pts)
-            if np.isnan(g).all():
+        for gp, dp in zip(g, dd):
+            if np.isnan(gp).all():
                 continue
-            k = int(np.nanargmax(g))
+            k = int(np.nanargmax(gp))
             # zero crossing of D2 next to the gradient maximum
-            cand = []
-            for j in range(max(k - 8, 0), min(k + 8, len(s) - 1)):
-                if dd[j] == 0 or dd[j] * dd[j + 1] < 0:
-                    frac = dd[j] / (dd[j] - dd[j + 1]) if dd[j] != dd[j + 1] else 0.0
-                    cand.append(s[j] + frac * step)
-            if cand:
-                found.append(min(cand, key=lambda x: abs(x - s[k])))
+            j = np.arange(max(k - 8, 0), min(k + 8, len(s) - 1))
+            hit = j[(dp[j] == 0) | (dp[j] * dp[j + 1] < 0)]
+            if len(hit):
+                den = dp[hit] - dp[hit + 1]
+                frac = np.where(den != 0, dp[hit] / np.where(den != 0, den, 1.0), 0.0)
+                cand = s[hit] + frac * step
+                found.append(cand[np.argmin(np.abs(cand - s[k]))])
         if found:
-            w = float(np.median(found))
-            out[i] = 0.0 if w < cfg.min_width else min(w, cfg.max_width)
+            out[i] = float(np.median(found))
     return out
+
+
+def overhang_widths(polygon: np.ndarray, dsm: Raster, cfg: OverhangConfig = OverhangConfig()) -> np.ndarray:
+    """Overhang width (m) of each outline edge (edge i from corner i to i+1 of the counter-clockwise
+    ``polygon (m, 2)``); NaN where no eave was found."""
+    w = edge_offsets(polygon, dsm, -2 * dsm.cell, cfg.max_width + 2 * dsm.cell, cfg.smooth_px)
+    return np.where(np.isnan(w), np.nan, np.where(w < cfg.min_width, 0.0, np.minimum(w, cfg.max_width)))
 
 
 def _offset_corners(polygon: np.ndarray, widths: np.ndarray) -> np.ndarray:

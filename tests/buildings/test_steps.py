@@ -128,10 +128,28 @@ def test_roof_outline_moves_onto_sparse_facades():
     xyz = np.concatenate([roof] + walls)
     xyz[:, :2] += rng.normal(0, 0.05, (len(xyz), 2))
     outline = np.array([[-0.6, -0.6], [10.6, -0.6], [10.6, 8.6], [-0.6, 8.6]])
-    ring, moved = walls_under_roof_outline(outline, xyz, 100.0)
-    assert moved == 4
+    ring, moved, inferred = walls_under_roof_outline(outline, xyz, 100.0)
+    assert moved == 4 and inferred == 0
     truth = np.array([[0, 0], [10, 0], [10, 8], [0, 8]], float)
     assert np.max(np.min(np.linalg.norm(ring[:, None] - truth[None], axis=2), axis=1)) < 0.1
     # without facade points the outline stays where the roof is
-    same, none = walls_under_roof_outline(outline, roof, 100.0)
-    assert none == 0 and np.allclose(np.sort(same, axis=0), np.sort(outline, axis=0))
+    same, none, inferred = walls_under_roof_outline(outline, roof, 100.0)
+    assert none == 0 and inferred == 0 and np.allclose(np.sort(same, axis=0), np.sort(outline, axis=0))
+
+
+def test_walls_without_facade_points_take_the_building_overhang():
+    """Facade points on the east and west walls only (the along-strip obliques): those two edges move onto their
+    walls, the north and south edges move by the median of the measured overhangs and are counted as inferred."""
+    rng = np.random.default_rng(6)
+    gx, gy = np.meshgrid(np.arange(-0.6, 10.6, 0.15), np.arange(-0.6, 8.6, 0.15))
+    roof = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 106.0)])
+    walls = []
+    for x in (0.0, 10.0):
+        y = rng.uniform(0, 8, 40)
+        walls.append(np.column_stack([np.full(40, x), y, rng.uniform(100.3, 105.3, 40)]))
+    xyz = np.concatenate([roof] + walls)
+    outline = np.array([[-0.6, -0.6], [10.6, -0.6], [10.6, 8.6], [-0.6, 8.6]])
+    ring, moved, inferred = walls_under_roof_outline(outline, xyz, 100.0)
+    assert moved == 2 and inferred == 2
+    truth = np.array([[0, 0], [10, 0], [10, 8], [0, 8]], float)
+    assert np.max(np.min(np.linalg.norm(ring[:, None] - truth[None], axis=2), axis=1)) < 0.05
