@@ -15,9 +15,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from ..model.raster import Raster
 from .geometry import polygon_area
-from .overhang import edge_offsets
 
 
 @dataclass(frozen=True)
@@ -28,7 +26,7 @@ class ContourConfig:
     roof-outline fallback: outline_tol : Douglas-Peucker tolerance (m); min_edge : shorter simplified edges
     are dropped (steps and cut corners are rebuilt by the ring closure) (m); square_deg : snapping of directions to
     the dominant one or its perpendicular (deg, 0 = off); merge_offset : consecutive parallel lines closer than
-    this are one (m); snap_range : search range of the DSM eave on either side of an outline edge (m)."""
+    this are one (m)."""
 
     cell: float = 0.5
     min_wall_height: float = 1.5
@@ -42,7 +40,6 @@ class ContourConfig:
     min_edge: float = 2.0
     square_deg: float = 10.0
     merge_offset: float = 0.25
-    snap_range: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -336,8 +333,7 @@ def _join(g: Fragment, f: Fragment) -> Fragment:
     return Fragment(p, dd, float(t.min()), float(t.max()), w)
 
 
-def roof_outline_polygon(xyz: np.ndarray, ground_z: float, cfg: ContourConfig, origin: np.ndarray,
-                         dsm: Raster | None = None) -> np.ndarray:
+def roof_outline_polygon(xyz: np.ndarray, ground_z: float, cfg: ContourConfig, origin: np.ndarray) -> np.ndarray:
     """Fallback outline when the facades give no closed contour: the outline of the roof points (the eave line,
     overhangs included, not the wall).
 
@@ -347,10 +343,10 @@ def roof_outline_polygon(xyz: np.ndarray, ground_z: float, cfg: ContourConfig, o
     (steps between offset walls, corners cut by the grid) are dropped and rebuilt by the ring closure.
     Robustness added to the seed's method: directions within ``cfg.square_deg`` of the building's dominant
     direction or its perpendicular are snapped to it (buildings are mostly rectangular; a noisy short edge
-    otherwise tilts its corners); consecutive lines closer than ``cfg.merge_offset`` are merged; with a DSM each
-    line is moved onto the DSM's eave (the sub-pixel zero crossing of the second derivative along the gradient,
-    :func:`.overhang.edge_offsets`, within ``cfg.snap_range``), which is sharper than the outermost points
-    (noise and the matching's fattening push those outward). Returns the (m, 2) counter-clockwise ring.
+    otherwise tilts its corners); consecutive lines closer than ``cfg.merge_offset`` are merged. (Moving each
+    line onto the dense DSM's eave, the zero crossing of the second derivative, was measured worse on the
+    own-AT demo: 0.21 m median eave error against 0.15 m for the outermost points, the DSM being fattened
+    outward.) Returns the (m, 2) counter-clockwise ring.
     """
     mask = building_mask(xyz, ground_z, origin, cfg.cell, min_height=2.0)
     cs, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
@@ -391,25 +387,7 @@ def roof_outline_polygon(xyz: np.ndarray, ground_z: float, cfg: ContourConfig, o
         raise ValueError(f"only {len(lines)} outline edges left after squaring")
     cos_par = np.cos(np.radians(20.0))
     merged = _merge_lines(lines, cos_par, cfg.merge_offset)
-    ring = _ring_from_lines(merged, cos_par)
-    if dsm is None:
-        return ring
-    # snap each line onto the DSM's eave (edges of the ring that are lines of ``merged``, matched by direction)
-    off = edge_offsets(ring, dsm, -cfg.snap_range, cfg.snap_range)
-    moved = []
-    for p, d, w in merged:
-        best, best_k = np.inf, -1
-        for k in range(len(ring)):
-            e = ring[(k + 1) % len(ring)] - ring[k]
-            e = e / max(np.linalg.norm(e), 1e-12)
-            dist = abs((ring[k] - p) @ np.array([-d[1], d[0]]))
-            if e @ d > cos_par and dist < best:
-                best, best_k = dist, k
-        o = off[best_k] if best_k >= 0 and best < 1e-6 else np.nan
-        if np.isfinite(o) and abs(o) < cfg.snap_range:
-            p = p + o * np.array([d[1], -d[0]])
-        moved.append((p, d, w))
-    return _ring_from_lines(_merge_lines(moved, cos_par, cfg.merge_offset), cos_par)
+    return _ring_from_lines(merged, cos_par)
 
 
 def _square_lines(lines: list[tuple[np.ndarray, np.ndarray, float]], tol_deg: float,
@@ -535,13 +513,12 @@ def walls_under_roof_outline(ring: np.ndarray, xyz: np.ndarray, ground_z: float,
     return _ring_from_lines(lines, np.cos(np.radians(20.0))), moved, inferred
 
 
-def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = ContourConfig(),
-                    dsm: Raster | None = None) -> Contour:
+def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = ContourConfig()) -> Contour:
     """The wall outline of one building's points ``xyz (n, 3)`` with the ground at ``ground_z``.
 
-    Falls back to the roof outline (:func:`roof_outline_polygon`, snapped onto the eave of ``dsm`` when given,
-    in the points' frame) when the facades give no closed contour, its edges moved onto the walls where sparse
-    facade points show them (:func:`walls_under_roof_outline`); ``Contour.source`` says which.
+    Falls back to the roof outline (:func:`roof_outline_polygon`) when the facades give no closed contour, its
+    edges moved onto the walls where sparse facade points show them (:func:`walls_under_roof_outline`);
+    ``Contour.source`` says which.
     """
     frags, cells, origin = wall_fragments(xyz, ground_z, cfg)
     source = "facades"
@@ -552,7 +529,7 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
         poly = close_contour(frags, mask, origin, cfg.cell, cfg)
     except ValueError as e:
         try:
-            poly = roof_outline_polygon(xyz, ground_z, cfg, origin, dsm)
+            poly = roof_outline_polygon(xyz, ground_z, cfg, origin)
         except ValueError as e2:
             raise ValueError(f"{e}; roof outline: {e2}") from None
         poly, moved, inferred = walls_under_roof_outline(poly, xyz, ground_z)

@@ -142,9 +142,8 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
         info.update(noise_removed=int((~nf.keep).sum()), voxel=voxel, noise=noise)
     else:
         voxel, noise = (cfg.voxel or 0.6), 0.05
-    dsm_local = None if dsm is None else Raster(dsm.data, dsm.x0 - offset[0], dsm.y0 - offset[1], dsm.cell, dsm.crs)
     try:
-        contour = extract_contour(xl, ground_z, cfg.contour, dsm_local)
+        contour = extract_contour(xl, ground_z, cfg.contour)
     except ValueError as e:
         raise ValueError(f"contour: {e}") from None
     polygon = contour.polygon
