@@ -153,3 +153,25 @@ def test_walls_without_facade_points_take_the_building_overhang():
     assert moved == 2 and inferred == 2
     truth = np.array([[0, 0], [10, 0], [10, 8], [0, 8]], float)
     assert np.max(np.min(np.linalg.norm(ring[:, None] - truth[None], axis=2), axis=1)) < 0.05
+
+
+def test_green_crowns_rejected_green_roof_kept():
+    """Both objects are green in the vegetation mask and below the roughness test's 0.35 m: the crown, whose
+    normals scatter (0.2 m foliage noise on a dome), is rejected, the flat green roof (5 cm noise) is kept."""
+    from oblique_city.core.buildings.detect import DetectConfig, building_labels
+    from oblique_city.core.model.raster import Raster
+
+    rng = np.random.default_rng(0)
+    cell = 0.2
+    y, x = np.mgrid[0:150, 0:300] * cell
+    z = np.zeros_like(x)
+    roof = (x > 5) & (x < 20) & (y > 8) & (y < 22)
+    z[roof] = 8.0 + rng.normal(0, 0.05, roof.sum())
+    r = np.hypot(x - 45.0, y - 15.0)
+    crown = r < 6.0
+    z[crown] = 3.0 + np.sqrt(36.0 - r[crown] ** 2) + rng.normal(0, 0.2, crown.sum())
+    dsm = Raster(z, 0.0, 30.0, cell, "EPSG:25832")
+    dtm = Raster(np.zeros_like(z), 0.0, 30.0, cell, "EPSG:25832")
+    lab, n, stats = building_labels(dsm, dtm, DetectConfig(max_green_curvature=0.01), vegetation_mask=roof | crown)
+    assert n == 1 and stats["vegetation"] == 1
+    assert lab[roof].mean() > 0.9 and not lab[crown].any()
