@@ -467,10 +467,13 @@ def walls_under_roof_outline(ring: np.ndarray, xyz: np.ndarray, ground_z: float,
     """Move each edge of a roof outline ``ring (m, 2)`` (ccw) onto the wall below it, where facade points show it.
 
     Facade points of an edge: inside the outline by at most ``max_offset`` metres, along its middle 80 %, and
-    between 1 m above the ground and 0.5 m below the eave (the lowest roof points at the edge). Their median
-    distance from the edge, when at least ``min_points`` of them give one, is the overhang the roof outline
-    included; the edge moves inward by it and the corners are intersected again. Sparse facades (too few points
-    for the facade-cell contour) still give this one number per edge.
+    between 1 m above the ground and 0.5 m below the eave (the lowest roof points at the edge). Their distance
+    from the edge, when at least ``min_points`` of them give one, is the overhang the roof outline included; the
+    edge moves inward by it and the corners are intersected again. The distance is the upper quartile of the
+    points' outward offsets, not their median: the wall is the outermost surface of the facade, window recesses
+    lie behind it (on the own-AT demo, whose windows are recessed 0.12 m, the median put the walls 0.12 m inside,
+    the upper quartile 0.00 m; median absolute error 0.13 -> 0.09 m over 33 observed walls). Sparse facades (too
+    few points for the facade-cell contour) still give this one number per edge.
 
     Edges whose facade no view of the dense cloud shows (e.g. walls facing along the flight strips when only
     the nadir and the along-strip obliques were matched) are moved by the median overhang of the building's
@@ -494,7 +497,7 @@ def walls_under_roof_outline(ring: np.ndarray, xyz: np.ndarray, ground_z: float,
             eave = float(np.percentile(h[roof], 10))
             wall = along & (off > -max_offset) & (off < 0.3) & (h > 1.0) & (h < eave - 0.5)
             if wall.sum() >= min_points:
-                w = -float(np.median(off[wall]))
+                w = -float(np.percentile(off[wall], 75))
                 width[i] = w if 0.05 < w < max_offset else 0.0
     seen = np.isfinite(width)
     moved = int((seen & (width > 0)).sum())
