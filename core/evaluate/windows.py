@@ -115,3 +115,38 @@ def window_scores(detected: list[np.ndarray], truth: list[np.ndarray], min_iou: 
 def truth_windows(doc: dict) -> list[np.ndarray]:
     """The true window rectangles ``(4, 3)`` of a ``truth/windows.json`` document."""
     return [np.asarray(w["corners"], dtype=np.float64) for w in doc.get("windows", [])]
+
+
+def true_walls(city) -> list[tuple[int, np.ndarray]]:
+    """The wall rectangles of every body or tower part of a simulated city (a :class:`~..simulate.city.City`):
+    ``(building id, ring (4, 3) float64 world)``, counter-clockwise seen from outside, from the part's base to the
+    underside of its roof slab (the planes the true windows lie in)."""
+    out = []
+    for b in city.buildings:
+        for p in b.parts:
+            if p.kind not in ("body", "tower"):
+                continue
+            x0, y0, x1, y1 = p.rect
+            fp = b.to_world(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], np.float64))
+            z0, z1 = p.base, p.eave - p.thickness
+            for k in range(4):
+                a, c = fp[k], fp[(k + 1) % 4]
+                out.append((b.id, np.array([[*a, z0], [*c, z0], [*c, z1], [*a, z1]], np.float64)))
+    return out
+
+
+def building_of(xy: np.ndarray, footprints: dict) -> int | None:
+    """The true building (``truth/footprints.json`` id) whose footprint contains the point ``xy (2,)``, else the
+    one with the nearest footprint vertex within 5 m, else None."""
+    import cv2
+
+    best, best_d = None, 5.0
+    for b in footprints.get("buildings", []):
+        for ring in b["footprint"]:
+            r = np.asarray(ring, np.float64)
+            d = cv2.pointPolygonTest((r - xy).astype(np.float32), (0.0, 0.0), True)
+            if d >= 0:
+                return int(b["id"])
+            if -d < best_d:
+                best, best_d = int(b["id"]), -d
+    return best

@@ -14,6 +14,7 @@ STAGE_MODULES: dict[str, str] = {
     "surface": ".surface.stage",
     "buildings": ".buildings.stage",
     "texture": ".texture.stage",
+    "windows": ".windows.stage",
 }
 """Stage name -> module (relative to the ``core`` package) that defines ``STAGE``, in pipeline order."""
 
