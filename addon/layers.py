@@ -6,7 +6,8 @@
   material that shows ``Col``.
 * ``surface``: ``surface/dsm.tif`` as a grid mesh through the cell centres (subsampled to at most
   :data:`MAX_DSM_VERTICES`; cells without height leave holes), textured with ``surface/ortho.png`` when that image
-  covers the same grid (as the surface stage writes it).
+  covers the same grid (as the surface stage writes it); ``surface/dtm.tif`` the same way as a second mesh,
+  hidden in the view layer until the user shows it.
 
 Positions go through :mod:`.georef` like everything else: the float64 world coordinates are offset by the scene
 origin before Blender stores them in float32.
@@ -26,6 +27,7 @@ from .scene_tree import layer_collection
 
 DENSE_DISPLAY_FILE = "dense/points_display.ply"
 DSM_FILE = "surface/dsm.tif"
+DTM_FILE = "surface/dtm.tif"
 ORTHO_FILE = "surface/ortho.png"
 MAX_DSM_VERTICES = 1_000_000
 
@@ -112,32 +114,42 @@ def grid_quads(valid: np.ndarray) -> np.ndarray:
     return np.stack([bl[ok], br[ok], tr[ok], tl[ok]], axis=1)
 
 
-def build_surface(scene, ws: Workspace) -> str:
-    """Builder of the ``surface`` stage: the DSM as a mesh, textured with the true orthophoto."""
-    import bpy
-
-    dsm = read_geotiff(ws.path(DSM_FILE))
-    rows, cols = dsm.shape
+def _grid_mesh(scene, name: str, raster) -> tuple[object, np.ndarray, int, int]:
+    """A grid mesh through the cell centres of a height raster (subsampled to at most :data:`MAX_DSM_VERTICES`;
+    cells without height leave holes). Returns the mesh, the quads ``(m, 4)`` on the subsampled grid, the grid
+    width and the step."""
+    rows, cols = raster.shape
     step = max(1, math.ceil(math.sqrt(rows * cols / MAX_DSM_VERTICES)))
-    z = np.asarray(dsm.data, np.float64)[::step, ::step]
-    if dsm.nodata is not None:
-        z[z == dsm.nodata] = np.nan
-    xs, ys = dsm.cell_centers()
+    z = np.asarray(raster.data, np.float64)[::step, ::step]
+    if raster.nodata is not None:
+        z[z == raster.nodata] = np.nan
+    xs, ys = raster.cell_centers()
     gx, gy = np.meshgrid(xs[::step], ys[::step])
     xyz = np.stack([gx, gy, z], axis=-1).reshape(-1, 3)
     quads = grid_quads(np.isfinite(z))
     used = np.zeros(len(xyz), bool)
     used[quads.ravel()] = True
     new_index = np.cumsum(used) - 1
-    georef.ensure_georef(scene, ws.crs, xyz[used])
+    georef.ensure_georef(scene, raster.crs, xyz[used])
+    mesh = mesh_from_arrays(name, georef.world_to_local(scene, xyz[used]), new_index[quads])
+    return mesh, quads, z.shape[1], step
+
+
+def build_surface(scene, ws: Workspace) -> str:
+    """Builder of the ``surface`` stage: the DSM as a mesh, textured with the true orthophoto, and the DTM as a
+    second mesh (hidden at first: the bare ground under the DSM)."""
+    import bpy
+
+    dsm = read_geotiff(ws.path(DSM_FILE))
+    rows, cols = dsm.shape
     coll = layer_collection(scene, "surface", "Surface")
-    mesh = mesh_from_arrays("DSM", georef.world_to_local(scene, xyz[used]), new_index[quads])
-    summary = f"DSM {cols}x{rows} at {dsm.cell:g} m as {used.sum()} vertices"
+    mesh, quads, width, step = _grid_mesh(scene, "DSM", dsm)
+    summary = f"DSM {cols}x{rows} at {dsm.cell:g} m as {len(mesh.vertices)} vertices"
     ortho_path = ws.path(ORTHO_FILE)
     if ortho_path.is_file():
         image = bpy.data.images.load(str(ortho_path), check_existing=True)
         if tuple(image.size) == (cols, rows):
-            r, c = np.divmod(quads.ravel(), z.shape[1])  # grid row and column of every loop's vertex
+            r, c = np.divmod(quads.ravel(), width)  # grid row and column of every loop's vertex
             uv = np.stack([(c * step + 0.5) / cols, 1.0 - (r * step + 0.5) / rows], axis=1)
             mesh.uv_layers.new(name="ortho").data.foreach_set("uv", uv.astype(np.float32).ravel())
             mat, bsdf = _material("Oblique City ortho")
@@ -150,4 +162,16 @@ def build_surface(scene, ws: Workspace) -> str:
             summary += f", ortho {tuple(image.size)} does not match the DSM grid: not textured"
     obj = bpy.data.objects.new("DSM", mesh)
     coll.objects.link(obj)
+    dtm_path = ws.path(DTM_FILE)
+    if dtm_path.is_file():
+        dtm_mesh, _, _, _ = _grid_mesh(scene, "DTM", read_geotiff(dtm_path))
+        dtm_mesh.materials.append(_material("Oblique City DTM")[0])
+        dtm = bpy.data.objects.new("DTM", dtm_mesh)
+        coll.objects.link(dtm)
+        dtm.hide_render = True
+        for layer in scene.view_layers:
+            layer.update()  # the new object enters the view layer's object list
+            if dtm.name in layer.objects:
+                dtm.hide_set(True, view_layer=layer)
+        summary += f", DTM as {len(dtm_mesh.vertices)} vertices (hidden)"
     return summary

@@ -35,6 +35,8 @@ def ws(tmp_path, utm_block):
     dsm = 300.0 + rng.uniform(0, 20, (ROWS, COLS)).astype(np.float32)
     dsm[10:14, 20:25] = np.nan  # a hole (no height)
     write_geotiff(w.stage_dir("surface") / "dsm.tif", Raster(dsm, X0, Y0, CELL, utm_block.crs))
+    dtm = (298.0 + 0.01 * np.add.outer(np.arange(ROWS), np.arange(COLS))).astype(np.float32)  # a gentle slope
+    write_geotiff(w.stage_dir("surface") / "dtm.tif", Raster(dtm, X0, Y0, CELL, utm_block.crs))
     r, c = np.mgrid[0:ROWS, 0:COLS]
     ortho = np.stack([r * 5, c * 5, np.full_like(r, 128)], axis=-1).astype(np.uint8)  # colour encodes the cell
     write_png(w.path("surface", "ortho.png"), ortho)
@@ -85,6 +87,15 @@ def test_dense_and_surface_layers(addon, ws):
     row_px = np.round((1.0 - uv[:, 1]) * ROWS - 0.5).astype(int)
     assert np.array_equal(np.c_[col_px, row_px], cr[vi])
     assert np.abs(px[row_px, col_px, :3] * 255 - ortho[cr[vi, 1], cr[vi, 0]]).max() < 0.51
+
+    # the DTM: a full grid mesh at the DTM's heights, hidden in the view layer and in renders
+    dtm = bpy.data.objects["DTM"]
+    assert len(dtm.data.polygons) == (ROWS - 1) * (COLS - 1)
+    xyz = georef.mesh_vertices_world(scene, dtm)
+    cr = np.round(np.c_[(xyz[:, 0] - X0) / CELL - 0.5, (Y0 - xyz[:, 1]) / CELL - 0.5]).astype(int)
+    assert np.abs(298.0 + 0.01 * (cr[:, 0] + cr[:, 1]) - xyz[:, 2]).max() < 1e-3
+    assert dtm.hide_get() and dtm.hide_render and not obj.hide_get()
+    assert "DTM as 2000 vertices (hidden)" in messages[2]
 
 
 def test_large_dsm_is_subsampled(addon, ws, monkeypatch):
