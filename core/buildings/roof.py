@@ -26,13 +26,15 @@ class RoofConfig:
     grouping threshold; step_tol : height jump that separates groups / marks a discontinuity (m);
     min_group_area : smallest roof plane (m^2); node_tol : allowed distance between a topology node and the
     plane-intersection node (m); segment_tol : longest shortest-segment between edge lines at a node (m);
-    edge_tol : largest median distance (m) of a labelled boundary from its plane intersection line (else step)."""
+    edge_tol : largest median distance (m) of a labelled boundary from its plane intersection line (else step);
+    absorb_angle_deg : largest normal difference of a small patch absorbed by its neighbour's plane."""
 
     cell: float = 0.5
     smooth_tol: float = 0.0
     angle_deg: float = 8.0
     step_tol: float = 0.35
     min_group_area: float = 3.0
+    absorb_angle_deg: float = 20.0
     node_tol: float = 1.5
     segment_tol: float = 0.5
     edge_tol: float = 1.0
@@ -331,11 +333,19 @@ def _boundary_offset(pa: np.ndarray, pb: np.ndarray, xy: np.ndarray) -> float:
 
 def merge_coplanar(roof: RoofTopology, xyz: np.ndarray, cfg: RoofConfig) -> RoofTopology:
     """Merge labels whose planes coincide (same normal within ``angle_deg``, heights within ``step_tol`` over
-    both regions), neighbours first, and refit the merged plane on the points of both."""
+    both regions), neighbours first, and refit the merged plane on the points of both.
+
+    Added robustness for dense clouds from matching: a group at most half the size of a neighbour it touches,
+    with a normal within ``absorb_angle_deg`` of the neighbour's, is absorbed when the neighbour's plane runs
+    within ``step_tol`` (median) of its own plane over its cells: a patch of one roof face whose normal the
+    matching noise tilted (on the own-AT demo such a patch split a gable's slope into two labels and sent the
+    building to the volumetric fallback). The two faces of a gable are not merged: comparable in size, and their
+    normals differ by twice the pitch."""
     if not roof.planes:
         return roof
     L = roof.labels
     cos_t = np.cos(np.radians(cfg.angle_deg))
+    cos_absorb = np.cos(np.radians(cfg.absorb_angle_deg))
     while True:
         pairs = {}
         for a_, b_ in ((L[:, :-1], L[:, 1:]), (L[:-1, :], L[1:, :])):
@@ -348,15 +358,27 @@ def merge_coplanar(roof: RoofTopology, xyz: np.ndarray, cfg: RoofConfig) -> Roof
             for b in labs:
                 if a < b and (a, b) not in pairs:
                     pairs[(a, b)] = 0
-        for (a, b), _ in sorted(pairs.items(), key=lambda kv: -kv[1]):
+        for (a, b), touch in sorted(pairs.items(), key=lambda kv: -kv[1]):
             pa, pb = roof.planes[a], roof.planes[b]
-            if pa[:3] @ pb[:3] < cos_t:
+            if pa[:3] @ pb[:3] < cos_absorb:
                 continue
-            rr, qq = np.nonzero((L == a) | (L == b))
-            xy = roof.origin + (np.column_stack([qq, rr]) + 0.5) * roof.cell
-            if np.median(np.abs(plane_z(pa, xy) - plane_z(pb, xy))) < cfg.step_tol:
-                best = (a, b)
-                break
+            if pa[:3] @ pb[:3] >= cos_t:
+                rr, qq = np.nonzero((L == a) | (L == b))
+                xy = roof.origin + (np.column_stack([qq, rr]) + 0.5) * roof.cell
+                if np.median(np.abs(plane_z(pa, xy) - plane_z(pb, xy))) < cfg.step_tol:
+                    best = (a, b)
+                    break
+            if touch:
+                # a small patch whose normal the matching noise tilted: the neighbour's plane explains it
+                na, nb = int((L == a).sum()), int((L == b).sum())
+                big, small = (a, b) if na >= nb else (b, a)
+                if min(na, nb) <= 0.5 * max(na, nb):
+                    rr, qq = np.nonzero(L == small)
+                    xy = roof.origin + (np.column_stack([qq, rr]) + 0.5) * roof.cell
+                    dz = plane_z(roof.planes[big], xy) - plane_z(roof.planes[small], xy)
+                    if np.median(np.abs(dz)) < cfg.step_tol:
+                        best = (big, small)
+                        break
         if best is None:
             break
         a, b = best

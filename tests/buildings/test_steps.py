@@ -175,3 +175,30 @@ def test_green_crowns_rejected_green_roof_kept():
     lab, n, stats = building_labels(dsm, dtm, DetectConfig(max_green_curvature=0.01), vegetation_mask=roof | crown)
     assert n == 1 and stats["vegetation"] == 1
     assert lab[roof].mean() > 0.9 and not lab[crown].any()
+
+
+def test_tilted_patch_absorbed_by_its_roof_face():
+    """A 2 m x 2 m patch of a 30-degree roof face whose fitted normal is tilted by 10 degrees (matching noise)
+    is absorbed by the face; a second face of the same size (the other half of a gable) stays apart."""
+    from oblique_city.core.buildings.roof import RoofConfig, RoofTopology, merge_coplanar
+
+    c = 0.5
+    rows, cols = 20, 20
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    labels = np.ones((rows, cols), np.int64)
+    labels[8:12, 8:12] = 2
+    labels[:, 14:] = 3
+    t = np.tan(np.radians(30))
+    face = np.array([-t, 0.0, 1.0, 0.0]) / np.hypot(t, 1.0)                  # z = t x
+    other = np.array([t, 0.0, 1.0, -2 * t * 7.0]) / np.hypot(t, 1.0)         # z = t (14 - x)
+    n = np.array([-np.tan(np.radians(40)), 0.0, 1.0]) / np.hypot(np.tan(np.radians(40)), 1.0)
+    centre = np.array([5.0, 5.0, 5.0 * t])
+    patch = np.append(n, -n @ centre)                                        # crosses the face at the centre
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 10, (4000, 2))
+    z = np.where(xy[:, 0] < 7.0, t * xy[:, 0], t * (14 - xy[:, 0]))
+    roof = RoofTopology(labels, np.zeros(2), c, {1: face, 2: patch, 3: other})
+    out = merge_coplanar(roof, np.column_stack([xy, z]), RoofConfig())
+    assert len(out.planes) == 2
+    assert np.unique(out.labels[8:12, 8:12]).tolist() == [int(out.labels[0, 0])]
+    assert out.labels[0, 0] != out.labels[0, 19]
