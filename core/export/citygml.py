@@ -6,6 +6,10 @@ whose exterior references the polygons of the body by ``xlink:href``) and ``bldg
 holding a ``lod2MultiSurface``. The overhang's roof and fascia are Roof and Wall surfaces outside the solid.
 ``srsName`` is the project CRS (EPSG codes as OGC URNs).
 
+Detected windows (the ``windows`` stage) are ``bldg:opening/bldg:Window`` members of the WallSurface they were
+found on, each with a ``lod3MultiSurface`` rectangle: openings are an LoD3 concept in CityGML 2.0, written here on
+the LoD2 walls (the schema allows any LoD's geometry on a boundary surface; LoD2 readers ignore them).
+
 With textures (the ``texture`` stage's atlas), the rings of textured polygons get a ``gml:id`` and the model ends
 with an ``app:appearanceMember``: one ``app:Appearance`` (theme ``texture``) with a ``ParameterizedTexture`` per
 atlas page, whose ``target``s name the polygons and hold a ``TexCoordList`` (one u v pair per ring position,
@@ -59,9 +63,11 @@ def _pos_list(xyz: np.ndarray) -> str:
     return " ".join(f"{v:.4f}" for v in ring.ravel())
 
 
-def citygml_tree(buildings, crs: str, textures=None, page_names: list[str] | None = None) -> etree._ElementTree:
+def citygml_tree(buildings, crs: str, textures=None, page_names: list[str] | None = None,
+                 windows: dict | None = None) -> etree._ElementTree:
     """The CityGML document of ``buildings`` (list of :class:`~..buildings.model.BuildingModel`); with
-    ``textures`` (a :class:`~..texture.atlas.TextureSet`) and the page file names, its appearance too."""
+    ``textures`` (a :class:`~..texture.atlas.TextureSet`) and the page file names, its appearance too; with
+    ``windows`` (``{surface id: [Window]}``) the openings of the walls."""
     tex = [s for b in buildings for s in b.surfaces if textured(textures, s)]
     root = etree.Element(_q("core", "CityModel"), nsmap={**NS, "app": APP_NS} if tex else NS)
     root.set(_q("xsi", "schemaLocation"), SCHEMA_LOCATION + (" " + APP_SCHEMA if tex else ""))
@@ -97,6 +103,13 @@ def citygml_tree(buildings, crs: str, textures=None, page_names: list[str] | Non
                 ring.set(_q("gml", "id"), f"{s.id}_ring")
             pl = etree.SubElement(ring, _q("gml", "posList"), srsDimension="3")
             pl.text = _pos_list(b.vertices[list(s.ring)])
+            for w in (windows or {}).get(s.id, []) if s.kind == "wall" else []:
+                win = etree.SubElement(etree.SubElement(th, _q("bldg", "opening")), _q("bldg", "Window"))
+                win.set(_q("gml", "id"), w.id)
+                wms = etree.SubElement(etree.SubElement(win, _q("bldg", "lod3MultiSurface")), _q("gml", "MultiSurface"))
+                wp = etree.SubElement(etree.SubElement(wms, _q("gml", "surfaceMember")), _q("gml", "Polygon"))
+                wr = etree.SubElement(etree.SubElement(wp, _q("gml", "exterior")), _q("gml", "LinearRing"))
+                etree.SubElement(wr, _q("gml", "posList"), srsDimension="3").text = _pos_list(w.corners)
     if tex:
         _appearance(root, tex, textures, page_names or [])
     return etree.ElementTree(root)
@@ -122,12 +135,12 @@ def _appearance(root: etree._Element, surfaces: list, textures, page_names: list
             tc.text = " ".join(f"{v:.8f}" for v in np.vstack([uv, uv[:1]]).ravel())
 
 
-def write_citygml(path: str | Path, buildings, crs: str, textures=None) -> None:
+def write_citygml(path: str | Path, buildings, crs: str, textures=None, windows: dict | None = None) -> None:
     """Write a CityGML 2.0 LoD2 file atomically; ``textures`` (optional) adds the appearance and copies the
-    atlas pages beside the file."""
+    atlas pages beside the file, ``windows`` (``{surface id: [Window]}``, optional) the wall openings."""
     names = copy_pages(textures, path) if textures is not None else None
-    data = etree.tostring(citygml_tree(buildings, crs, textures, names), xml_declaration=True, encoding="UTF-8",
-                          pretty_print=True)
+    data = etree.tostring(citygml_tree(buildings, crs, textures, names, windows), xml_declaration=True,
+                          encoding="UTF-8", pretty_print=True)
     write_bytes(path, data)
 
 

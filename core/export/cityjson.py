@@ -7,6 +7,10 @@ the nesting depth of ``boundaries``, vertex indices in range, closed rings of at
 and ``semantics.values`` mirroring the boundaries; with textures, ``texture.values`` mirroring the boundaries
 with one texture index and one ``vertices-texture`` index per ring vertex.
 
+Detected windows (the ``windows`` stage) of a building form one child CityObject ``<building>-windows`` of type
+``BuildingInstallation`` (``parents``/``children`` linked), an LoD3 ``MultiSurface`` whose surfaces carry the
+``Window`` semantic type with the wall surface id (``oc_wall``), window id and score.
+
 With textures (the ``texture`` stage's atlas), the document gets an ``appearance`` (one PNG texture per atlas page,
 copied beside the file, and ``vertices-texture`` holding the UVs) and every geometry with a textured surface a
 ``texture`` member under the theme ``texture``; untextured surfaces there are ``[[null]]``.
@@ -36,9 +40,10 @@ def _reference_system(crs: str) -> str:
 
 
 def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
-                      page_names: list[str] | None = None) -> dict[str, Any]:
+                      page_names: list[str] | None = None, windows: dict | None = None) -> dict[str, Any]:
     """The CityJSON 2.0 document of ``buildings`` (list of :class:`~..buildings.model.BuildingModel`); with
-    ``textures`` (a :class:`~..texture.atlas.TextureSet`) and the page file names, its appearance too."""
+    ``textures`` (a :class:`~..texture.atlas.TextureSet`) and the page file names, its appearance too; with
+    ``windows`` (``{surface id: [Window]}``) a window installation per building."""
     allv = np.concatenate([b.vertices for b in buildings]) if buildings else np.zeros((1, 3))
     translate = np.floor(allv.min(0))
     vertices: list[list[int]] = []
@@ -79,6 +84,19 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
         objects[b.id] = {"type": "Building", "geometry": geoms,
                          "attributes": {"measuredHeight": round(float(b.vertices[:, 2].max()) - z0, 3),
                                         "reconstruction_path": b.path, "closed_solid": bool(b.info.get("closed"))}}
+        wins = [w for s in b.surfaces if s.kind == "wall" for w in (windows or {}).get(s.id, [])]
+        if wins:
+            first = len(vertices)
+            vertices.extend(np.round((np.concatenate([w.corners for w in wins]) - translate) / scale
+                                     ).astype(np.int64).tolist())
+            wid = f"{b.id}-windows"
+            objects[b.id]["children"] = [wid]
+            objects[wid] = {"type": "BuildingInstallation", "parents": [b.id], "geometry": [{
+                "type": "MultiSurface", "lod": "3",
+                "boundaries": [[list(range(first + 4 * k, first + 4 * k + 4))] for k in range(len(wins))],
+                "semantics": {"surfaces": [{"type": "Window", "oc_wall": w.surface_id, "oc_id": w.id,
+                                            "oc_score": round(w.score, 4)} for w in wins],
+                              "values": list(range(len(wins)))}}]}
     doc = {"type": "CityJSON", "version": "2.0",
            "transform": {"scale": [scale] * 3, "translate": translate.tolist()},
            "metadata": {"referenceSystem": _reference_system(crs),
@@ -90,12 +108,12 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
     return doc
 
 
-def write_cityjson(path: str | Path, buildings, crs: str, textures=None) -> None:
+def write_cityjson(path: str | Path, buildings, crs: str, textures=None, windows: dict | None = None) -> None:
     """Write a CityJSON 2.0 file atomically; ``textures`` (optional) adds the appearance and copies the atlas
-    pages beside the file."""
+    pages beside the file, ``windows`` (``{surface id: [Window]}``, optional) the window installations."""
     names = copy_pages(textures, path) if textures is not None else None
-    write_text(path, json.dumps(cityjson_document(buildings, crs, textures=textures, page_names=names),
-                                separators=(",", ":")))
+    write_text(path, json.dumps(cityjson_document(buildings, crs, textures=textures, page_names=names,
+                                                  windows=windows), separators=(",", ":")))
 
 
 def _check_texture(g: dict[str, Any], n_tex: int, n_uv: int, where: str, errors: list[str]) -> None:
@@ -152,11 +170,17 @@ def check_cityjson(doc: dict[str, Any]) -> list[str]:
         return errors
     nv = len(verts)
     for oid, obj in doc.get("CityObjects", {}).items():
-        if obj.get("type") not in ("Building", "BuildingPart"):
+        if obj.get("type") not in ("Building", "BuildingPart", "BuildingInstallation"):
             errors.append(f"{oid}: unexpected type {obj.get('type')!r}")
+        objs = doc.get("CityObjects", {})
+        for rel, back in (("parents", "children"), ("children", "parents")):
+            for other in obj.get(rel, []):
+                if oid not in objs.get(other, {}).get(back, []):
+                    errors.append(f"{oid}: {rel} {other!r} does not list it among its {back}")
+        lods = ("2", "2.0", "2.1", "2.2", "2.3") + (("3", "3.0") if obj.get("type") == "BuildingInstallation" else ())
         for gi, g in enumerate(obj.get("geometry", [])):
             where = f"{oid}.geometry[{gi}]"
-            if g.get("lod") not in ("2", "2.0", "2.1", "2.2", "2.3"):
+            if g.get("lod") not in lods:
                 errors.append(f"{where}: lod {g.get('lod')!r} is not an LoD2 value")
             b = g.get("boundaries")
             sem = g.get("semantics")

@@ -1,7 +1,10 @@
 """``oblique-city export WS --format obj|citygml|cityjson --out PATH``: the buildings of a workspace to a file.
 
 When the ``texture`` stage has run (``texture/textures.json``), the export carries its atlases (pages copied
-beside the output) unless ``--no-textures``; without it the export is untextured.
+beside the output) unless ``--no-textures``; without it the export is untextured. When the ``windows`` stage has
+run (``windows/windows.json``), the detected windows go along unless ``--no-windows``: an OBJ group
+``<building>_windows``, CityGML ``bldg:opening/bldg:Window`` (LoD3 openings of the LoD2 wall surfaces), CityJSON
+``BuildingInstallation`` children with ``Window`` semantic surfaces.
 """
 
 from __future__ import annotations
@@ -17,9 +20,10 @@ FORMATS = ("obj", "citygml", "cityjson")
 
 
 def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate: bool = True,
-                     with_textures: bool = True) -> str:
+                     with_textures: bool = True, with_windows: bool = True) -> str:
     """Write the workspace's ``buildings/buildings.json`` as ``fmt`` (textured when the texture stage's output
-    exists and ``with_textures``); returns a one-line summary."""
+    exists and ``with_textures``, with the detected windows when the windows stage's output exists and
+    ``with_windows``); returns a one-line summary."""
     from ..buildings.model import load_buildings
     from ..pipeline import Workspace
 
@@ -34,16 +38,22 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
         textures = load_textures(ws.path("texture", "textures.json"))
     note = (f", {len(textures.surfaces)} textured surfaces on {len(textures.pages)} atlas pages"
             if textures is not None else "")
+    windows = None
+    if with_windows and ws.path("windows", "windows.json").exists():
+        from ..windows.store import load_windows, windows_by_surface
+
+        windows = windows_by_surface(load_windows(ws.path("windows", "windows.json")))
+        note += f", {sum(len(v) for v in windows.values())} windows"
     if fmt == "obj":
         from .obj import write_obj
 
         origin = np.floor(np.concatenate([b.vertices for b in buildings]).min(0)) if buildings else None
-        write_obj(out, buildings, origin, textures)
+        write_obj(out, buildings, origin, textures, windows)
         return f"{len(buildings)} buildings written to {out} (origin {origin}{note})"
     if fmt == "citygml":
         from .citygml import validate_citygml, write_citygml
 
-        write_citygml(out, buildings, crs, textures)
+        write_citygml(out, buildings, crs, textures, windows)
         if validate:
             errors = validate_citygml(out)
             if errors:
@@ -53,7 +63,7 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
     if fmt == "cityjson":
         from .cityjson import check_cityjson, read_cityjson, write_cityjson
 
-        write_cityjson(out, buildings, crs, textures)
+        write_cityjson(out, buildings, crs, textures, windows)
         if validate:
             errors = check_cityjson(read_cityjson(out))
             if errors:
@@ -64,7 +74,7 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
 
 def cmd_export(args: argparse.Namespace) -> int:
     print(export_buildings(args.workspace, args.format, args.out, validate=not args.no_validate,
-                           with_textures=not args.no_textures))
+                           with_textures=not args.no_textures, with_windows=not args.no_windows))
     return 0
 
 
@@ -75,4 +85,5 @@ def add_commands(sub) -> None:
     s.add_argument("--out", required=True, help="output file")
     s.add_argument("--no-validate", action="store_true", help="skip the schema / structure check")
     s.add_argument("--no-textures", action="store_true", help="leave out the texture stage's atlases")
+    s.add_argument("--no-windows", action="store_true", help="leave out the windows stage's windows")
     s.set_defaults(func=cmd_export)

@@ -4,8 +4,9 @@ Polygons are written as n-gons over shared vertices (full float64 precision, wor
 ``origin`` noted in a comment so Blender's float32 keeps millimetres); a ``.mtl`` beside the file gives one
 material per surface type. With textures (the ``texture`` stage's atlas), every textured surface gets one ``vt``
 per ring vertex and the material of its atlas page (``map_Kd``, pages copied beside the file); the rest keep
-their surface-type material. The atlases are orthographic rectifications of the planar surfaces, so plain
-``vt u v`` coordinates map them exactly (no projective ``w`` needed).
+their surface-type material. Detected windows (the ``windows`` stage) form one more group per building,
+``<building>_windows``, with the material ``window``. The atlases are orthographic rectifications of the planar
+surfaces, so plain ``vt u v`` coordinates map them exactly (no projective ``w`` needed).
 """
 
 from __future__ import annotations
@@ -21,11 +22,14 @@ from .textures import copy_pages, textured
 KIND_COLOURS = {"ground": (0.35, 0.3, 0.25), "wall": (0.85, 0.82, 0.75), "roof": (0.7, 0.2, 0.15),
                 "overhang_roof": (0.6, 0.18, 0.12), "overhang_fascia": (0.5, 0.45, 0.4),
                 "overhang_underside": (0.45, 0.4, 0.35)}
+WINDOW_COLOUR = {"window": (0.15, 0.2, 0.28)}
 
 
-def write_obj(path: str | Path, buildings, origin: np.ndarray | None = None, textures=None) -> None:
+def write_obj(path: str | Path, buildings, origin: np.ndarray | None = None, textures=None,
+              windows: dict | None = None) -> None:
     """Write ``buildings`` (list of :class:`~..buildings.model.BuildingModel`) to ``path`` and ``path.mtl``;
-    ``textures`` (a :class:`~..texture.atlas.TextureSet`, optional) adds UVs and atlas materials."""
+    ``textures`` (a :class:`~..texture.atlas.TextureSet`, optional) adds UVs and atlas materials, ``windows``
+    (``{surface id: [Window]}``, :func:`..windows.store.windows_by_surface`) a window group per building."""
     path = Path(path)
     origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
     mtl = path.with_suffix(".mtl")
@@ -60,9 +64,17 @@ def write_obj(path: str | Path, buildings, origin: np.ndarray | None = None, tex
                 else:
                     lines.append("f " + " ".join(str(base + i) for i in s.ring))
         base += len(b.vertices)
+        wins = [w for s in b.surfaces for w in (windows or {}).get(s.id, [])]
+        if wins:
+            lines.append(f"g {b.id}_windows")
+            lines.append("usemtl window")
+            for w in wins:
+                lines.extend(f"v {v[0]:.6f} {v[1]:.6f} {v[2]:.6f}" for v in w.corners - origin)
+                lines.append("f " + " ".join(str(base + k) for k in range(4)))
+                base += 4
     with atomic_path(path) as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n", encoding="utf-8")
-    mats = "".join(f"newmtl {k}\nKd {c[0]} {c[1]} {c[2]}\n\n" for k, c in KIND_COLOURS.items())
+    mats = "".join(f"newmtl {k}\nKd {c[0]} {c[1]} {c[2]}\n\n" for k, c in {**KIND_COLOURS, **WINDOW_COLOUR}.items())
     mats += "".join(f"newmtl atlas_{i:03d}\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {name}\n\n"
                     for i, name in enumerate(pages))
     write_text(mtl, mats)
