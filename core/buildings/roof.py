@@ -252,7 +252,41 @@ def roof_labels(xyz: np.ndarray, polygon: np.ndarray, noise: float, cfg: RoofCon
         labels = new
         if not changed:
             break
+    if planes:
+        labels = _relabel_by_planes(labels, planes, xyz[tp], tf)
     return merge_coplanar(RoofTopology(labels, origin, c, planes), xyz, cfg)
+
+
+def _relabel_by_planes(labels: np.ndarray, planes: dict[int, np.ndarray], pts: np.ndarray, cell: np.ndarray,
+                       rounds: int = 3) -> np.ndarray:
+    """Each labelled cell takes the label, among those in its 3x3 neighbourhood, whose plane fits its roof
+    points best (mean distance, clipped at 1 m), a few rounds.
+
+    Added robustness for noisy dense clouds: region growing stops where the cell normals get noisy, so the label
+    boundaries wander (a ridge end or a valley drawn metres off); after this step two faces meet where their
+    planes cross, which is what the topology check compares them with, while a step between roofs stays a step
+    (the lower plane fits nothing above it). The planes stay those fitted on the grown groups (a cell on a ridge
+    holds points of both faces). ``labels (rows, cols)``; ``pts (n, 3)`` roof points with their flat cell index
+    ``cell (n,)``.
+    """
+    from scipy import ndimage
+
+    rows, cols = labels.shape
+    ncell = rows * cols
+    labs = sorted(planes)
+    cnt = np.bincount(cell, minlength=ncell)
+    cost = np.stack([np.bincount(cell, np.minimum(np.abs(pts @ planes[k][:3] + planes[k][3]), 1.0), ncell)
+                     for k in labs]) / np.maximum(cnt, 1)
+    L = labels.copy()
+    for _ in range(rounds):
+        near = np.stack([ndimage.binary_dilation(L == k, np.ones((3, 3), bool)).ravel() for k in labs])
+        c = np.where(near, cost, np.inf)
+        best = np.asarray(labs)[np.argmin(c, axis=0)].reshape(rows, cols)
+        new = np.where((L > 0) & (cnt.reshape(rows, cols) > 0), best, L)
+        if np.array_equal(new, L):
+            break
+        L = new
+    return L
 
 
 def topology(roof: RoofTopology, polygon: np.ndarray) -> RoofTopology:

@@ -202,3 +202,23 @@ def test_tilted_patch_absorbed_by_its_roof_face():
     assert len(out.planes) == 2
     assert np.unique(out.labels[8:12, 8:12]).tolist() == [int(out.labels[0, 0])]
     assert out.labels[0, 0] != out.labels[0, 19]
+
+
+def test_wandering_ridge_boundary_moves_onto_the_plane_intersection():
+    """Region growing left two cells of one gable face with the other face's label over six rows; relabelling
+    by the best-fitting neighbouring plane puts the boundary back on the ridge."""
+    from oblique_city.core.buildings.roof import _relabel_by_planes
+
+    c, rows, cols = 0.5, 20, 20
+    t = np.tan(np.radians(35))
+    a = np.array([-t, 0.0, 1.0, 0.0]) / np.hypot(t, 1.0)          # z = t x, west face up to the ridge at x = 5
+    b = np.array([t, 0.0, 1.0, -10 * t]) / np.hypot(t, 1.0)       # z = t (10 - x)
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0, 10, (8000, 2))
+    pts = np.column_stack([xy, np.minimum(t * xy[:, 0], t * (10 - xy[:, 0])) + rng.normal(0, 0.03, len(xy))])
+    cell = (np.floor(xy[:, 1] / c) * cols + np.floor(xy[:, 0] / c)).astype(np.int64)
+    truth = np.where(np.arange(cols)[None, :] < 10, 1, 2).repeat(rows, 0)
+    labels = truth.copy()
+    labels[:6, 8:10] = 2
+    out = _relabel_by_planes(labels, {1: a, 2: b}, pts, cell)
+    assert np.array_equal(out, truth)
