@@ -387,7 +387,50 @@ def roof_outline_polygon(xyz: np.ndarray, ground_z: float, cfg: ContourConfig, o
         raise ValueError(f"only {len(lines)} outline edges left after squaring")
     cos_par = np.cos(np.radians(20.0))
     merged = _merge_lines(lines, cos_par, cfg.merge_offset)
-    return _ring_from_lines(merged, cos_par)
+    return _ring_from_lines(_place_steps(merged, top, cos_par, cfg.cell), cos_par)
+
+
+def _place_steps(lines: list[tuple[np.ndarray, np.ndarray, float]], top: np.ndarray, cos_par: float,
+                 cell: float, reach: float = 3.0) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Put the step between two consecutive parallel, offset lines ``(start (2,), unit direction (2,),
+    length)`` where the roof points ``top (n, 2)`` change from one line to the other.
+
+    Along the pair (``reach`` metres either side of their meeting), the outermost point of every ``cell``-long
+    slice is nearer to one line or the other; the change point is the slice boundary with the fewest slices on
+    the wrong side. The simplified mask's corners otherwise place the step up to a metre off.
+    """
+    out = list(lines)
+    k = len(out)
+    for i in range(k):
+        (p, d, lp), (q, e, lq) = out[i], out[(i + 1) % k]
+        if d @ e <= cos_par:  # consecutive walls of a ring only run the same way when they are offset
+            continue
+        nrm = np.array([d[1], -d[0]])
+        end = p + lp * d
+        t0 = float(((end + q) / 2 - p) @ d)
+        t = (top - p) @ d
+        o = (top - p) @ nrm
+        oi, oj = 0.0, float((q - p) @ nrm)
+        band = (np.abs(t - t0) < reach) & (o > min(oi, oj) - 1.0) & (o < max(oi, oj) + 1.0)
+        if band.sum() < 6:
+            continue
+        sl = np.floor((t[band] - t0 + reach) / cell).astype(np.int64)
+        n = int(np.ceil(2 * reach / cell))
+        outer = np.full(n, -np.inf)
+        np.maximum.at(outer, np.clip(sl, 0, n - 1), o[band])
+        has = np.isfinite(outer)
+        if has.sum() < 4:
+            continue
+        near_j = np.abs(outer - oj) < np.abs(outer - oi)
+        # errors for a change before slice b: slices < b nearer j, slices >= b nearer i
+        wrong_before = np.concatenate([[0], np.cumsum(has & near_j)])
+        wrong_after = np.concatenate([np.cumsum((has & ~near_j)[::-1])[::-1], [0]])
+        b = int(np.argmin(wrong_before + wrong_after))
+        ts = t0 - reach + b * cell
+        out[i] = (p, d, ts)
+        sq = float((q - p) @ d)
+        out[(i + 1) % k] = (q + (ts - sq) * e, e, lq - (ts - sq) * float(d @ e))
+    return out
 
 
 def _square_lines(lines: list[tuple[np.ndarray, np.ndarray, float]], tol_deg: float,

@@ -222,3 +222,20 @@ def test_wandering_ridge_boundary_moves_onto_the_plane_intersection():
     labels[:6, 8:10] = 2
     out = _relabel_by_planes(labels, {1: a, 2: b}, pts, cell)
     assert np.array_equal(out, truth)
+
+
+def test_step_between_parallel_outline_lines_placed_where_the_points_change():
+    """Two eave lines 0.6 m apart meet at x = 10; the simplified mask ended the first at x = 9. The step moves
+    to where the outermost roof points change from one line to the other (within one 0.5 m slice)."""
+    from oblique_city.core.buildings.contour import _place_steps
+
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0, 20, 6000)
+    y = rng.uniform(0, 5, 6000) + np.where(x < 10, 0.0, 0.6)   # south outline (ccw: running east) y = 0, then 0.6
+    top = np.column_stack([x, y])
+    d = np.array([1.0, 0.0])
+    lines = [(np.array([0.0, 0.0]), d, 9.0), (np.array([9.0, 0.6]), d, 11.0),      # the ring's other walls:
+             (np.array([20.0, 0.6]), np.array([0.0, 1.0]), 4.4), (np.array([20.0, 5.0]), -d, 20.0),
+             (np.array([0.0, 5.0]), np.array([0.0, -1.0]), 5.0)]
+    (p, _, lp), (q, _, lq) = _place_steps(lines, top, np.cos(np.radians(20)), 0.5)[:2]
+    assert abs(p[0] + lp - 10.0) <= 0.5 and abs(q[0] - (p[0] + lp)) < 1e-9 and abs(q[0] + lq - 20.0) < 1e-9
