@@ -5,9 +5,9 @@ collection under the scene's "Oblique City" collection (:func:`.scene_tree.layer
 one-line summary. :data:`BUILDERS` maps a stage name to its builder; ``block`` is the imported block (cameras and
 ground points, also rebuilt after ``aerotri`` with the adjusted orientations, together with the adjusted tie
 points of :mod:`.layers_aerotri`); :mod:`.layers` has the dense points and the DSM, :mod:`.layers_buildings` the
-buildings. Later stages add theirs with :func:`register_builder` (buildings, textures, ...); "Build Scene
-from Workspace" and the end of a job run every builder whose stage has finished, so new layers appear without
-touching the operators.
+buildings, :mod:`.layers_windows` the windows. Later stages add theirs with :func:`register_builder` (buildings,
+textures, ...); "Build Scene from Workspace" and the end of a job run every builder whose stage has finished, so
+new layers appear without touching the operators.
 
 All positions go through :mod:`.georef` (objects at ``world - origin``).
 """
@@ -24,7 +24,7 @@ from ..core.model import ImageBlock
 from ..core.pipeline import Workspace
 from ..core.pipeline.registry import stage_names
 from ..core.pipeline.runner import is_up_to_date
-from . import backgrounds, cameras, georef, layers, layers_aerotri, layers_buildings, layers_texture
+from . import backgrounds, cameras, georef, layers, layers_aerotri, layers_buildings, layers_texture, layers_windows
 from .scene_tree import child_collection, layer_collection
 
 Builder = Callable[..., str]
@@ -162,6 +162,7 @@ register_builder("dense", layers.build_dense_points)
 register_builder("surface", layers.build_surface)
 register_builder("buildings", layers_buildings.build_buildings)
 register_builder("texture", layers_texture.build_texture)
+register_builder("windows", layers_windows.build_windows)
 
 
 # --- the whole scene -------------------------------------------------------------------------------------

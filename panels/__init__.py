@@ -13,7 +13,7 @@ from pathlib import Path
 
 import bpy
 
-from ..addon import georef, jobs, layers_aerotri
+from ..addon import georef, jobs, layers_aerotri, layers_windows
 from ..core.errors import CityError
 from ..core.pipeline.registry import get_stage, stage_names
 from ..core.pipeline.workspace import ADJUSTED_BLOCK_FILE, BLOCK_FILE, STATE_FILE, Workspace
@@ -23,6 +23,7 @@ STAGE_PANELS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Dense & Surfaces", ("dense", "surface")),
     ("Buildings", ("buildings",)),
     ("Textures", ("texture",)),
+    ("Windows", ("windows",)),
     ("Export", ("export",)),
 )
 """Panel label -> the stages it shows, in pipeline order. Registered stages not named here go to "More Stages"."""
@@ -234,7 +235,40 @@ def draw_buildings(layout, context) -> None:
         col.label(text=f"... and {len(attention) - BUILDING_LINES} more (buildings/report.json)")
 
 
-PANEL_EXTRAS = {"Triangulation": draw_triangulation, "Buildings": draw_buildings, "Export": draw_export}
+WINDOW_LINES = 10
+"""At most this many buildings (those with the most windows) are listed with their window count."""
+
+
+def windows_summary(root: Path) -> dict:
+    """The figures of ``windows/windows.json`` (:func:`addon.layers_windows.windows_summary`), re-read only when
+    the file changed."""
+    path = root / layers_windows.WINDOWS_FILE
+    key = ("windows", str(root), _mtime(path))
+    if key[2] is None:
+        return {"error": "no windows yet"}
+    return _cached(key, lambda: layers_windows.windows_summary(path))
+
+
+def draw_windows(layout, context) -> None:
+    """The Windows panel's figures: the window count, and the window count of the buildings with the most."""
+    root = workspace_root(context)
+    if root is None:
+        return
+    s = windows_summary(root)
+    col = layout.column(align=True)
+    if "error" in s:
+        col.label(text=s["error"], icon="INFO")
+        return
+    col.label(text=f"{s['windows']} windows on {s['walls']} walls of {len(s['buildings'])} buildings "
+                   f"({s['grid']} from the facade grid)")
+    for bid, n in list(s["buildings"].items())[:WINDOW_LINES]:
+        col.label(text=f"    {bid}: {n}"[:80])
+    if len(s["buildings"]) > WINDOW_LINES:
+        col.label(text=f"... and {len(s['buildings']) - WINDOW_LINES} more buildings")
+
+
+PANEL_EXTRAS = {"Triangulation": draw_triangulation, "Buildings": draw_buildings, "Windows": draw_windows,
+                "Export": draw_export}
 """Panel label -> a function ``(layout, context)`` drawing that panel's own content under its stages."""
 
 
