@@ -261,7 +261,8 @@ def _run_profile(run) -> dict:
     """Where one adjustment spent its time: build, Ceres, statistics (seconds), iterations and rounds."""
     r = run.result
     return {**{k: round(v, 3) for k, v in r.timing.items()}, "wall_s": round(run.wall_s, 3),
-            "iterations": r.iterations, "rounds": r.rounds, "observations": int(len(run.obs_index))}
+            "iterations": r.iterations, "rounds": r.rounds, "observations": int(len(run.obs_index)),
+            "solver": next((x.split()[-1] for x in r.log if x.startswith("linear solver")), "")}
 
 
 def _f(v, scale=1.0, nd=3):
@@ -311,8 +312,10 @@ def print_tables(out: dict, sim) -> None:
           "precision, rejection); iterations / rounds; HAT phases")
     for r in rows:
         for name, p in r.get("profile", {}).items():
-            print(f"{r['method']:16s} {name:7s} obs {p['observations']:8d}  build {p['build_s']:6.1f}  "
-                  f"ceres {p['solve_s']:6.1f}  statistics {p['statistics_s']:6.1f}  wall {p['wall_s']:6.1f}  "
+            print(f"{r['method']:16s} {name:7s} {p['solver'][:6]:6s} obs {p['observations']:8d}  "
+                  f"build {p['build_s']:6.1f}  ceres {p['solve_s']:6.1f} "
+                  f"(jacobians {p.get('jacobian_s', 0):5.1f}, linear {p.get('linear_s', 0):5.1f})  "
+                  f"statistics {p['statistics_s']:6.1f}  wall {p['wall_s']:6.1f}  "
                   f"iterations {p['iterations']:3d}  rounds {p['rounds']}")
         if "phases" in r:
             print(f"{r['method']:16s} phases  " + "  ".join(f"{k[:-7]} {v:.1f}" for k, v in r["phases"].items()))
