@@ -17,7 +17,8 @@ import numpy as np
 from ..errors import InputError
 from ..model.camera import CameraModel
 from ..model.pose import Pose
-from .rectify import disparity_range, rectify_pair
+from .polar import PolarPair, polar_rectify_pair
+from .rectify import RectifiedPair, disparity_range, rectify_pair
 from .sgm import SgmConfig, coarse_range, sgm_disparity
 
 
@@ -37,6 +38,9 @@ class PairTask:
     coarse_above : a prior disparity interval wider than this (pixels) is first narrowed on a reduced pair
     max_size_factor : rectified images are clipped to this multiple of the original size
     threads : OpenCV threads of the worker (0 = OpenCV's default; 1 when pairs run in parallel processes)
+    polar_below_deg : pairs whose baseline is closer than this to the mean viewing direction (the along-track
+        pairs of forward and backward oblique heads) are rectified in log-polar form (:mod:`.polar`), which keeps
+        their facades; others planar (:mod:`.rectify`); 0 rectifies every pair planar
     """
 
     master: str
@@ -55,6 +59,7 @@ class PairTask:
     coarse_above: float = 96.0
     max_size_factor: float = 1.5
     threads: int = 0
+    polar_below_deg: float = 60.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,6 +99,24 @@ def master_grid(camera: CameraModel, step: int) -> tuple[np.ndarray, np.ndarray]
                        np.arange(0, camera.height, step, dtype=np.float64))
 
 
+def baseline_view_angle(pose_master: Pose, pose_slave: Pose) -> float:
+    """Angle in degrees (0 to 90) between the baseline and the mean viewing direction of a pair."""
+    b = pose_slave.C - pose_master.C
+    view = pose_master.R[2] + pose_slave.R[2]
+    c = abs(float(b @ view)) / max(float(np.linalg.norm(b) * np.linalg.norm(view)), 1e-12)
+    return float(np.degrees(np.arccos(min(c, 1.0))))
+
+
+def rectify(task: PairTask) -> RectifiedPair | PolarPair:
+    """The rectification of a pair: log-polar when its baseline runs within ``task.polar_below_deg`` of the
+    viewing direction, planar otherwise."""
+    if baseline_view_angle(task.pose_master, task.pose_slave) < task.polar_below_deg:
+        return polar_rectify_pair(task.cam_master, task.pose_master, task.cam_slave, task.pose_slave,
+                                  scale=task.scale, max_size_factor=task.max_size_factor)
+    return rectify_pair(task.cam_master, task.pose_master, task.cam_slave, task.pose_slave, scale=task.scale,
+                        max_size_factor=task.max_size_factor)
+
+
 def match_pair(task: PairTask) -> PairDepth:
     """Rectify, match (padded SGM with left-right check) and convert to master depth."""
     if task.threads > 0:
@@ -104,8 +127,7 @@ def match_pair(task: PairTask) -> PairDepth:
         if img.shape[1] != cam.width or img.shape[0] != cam.height:
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]}, camera says {cam.width}x{cam.height}",
                              path=path, field="size")
-    pair = rectify_pair(task.cam_master, task.pose_master, task.cam_slave, task.pose_slave, scale=task.scale,
-                        max_size_factor=task.max_size_factor)
+    pair = rectify(task)
     d_lo, d_hi = disparity_range(pair, task.z_min, task.z_max, task.cam_slave, task.pose_slave)
     rect_m, rect_s = pair.remap(img_m, img_s)
     if d_hi - d_lo > task.coarse_above:
@@ -123,5 +145,5 @@ def match_pair(task: PairTask) -> PairDepth:
     xyz = pair.triangulate(uv_rect[ok, 0], uv_rect[ok, 1], d[ok])
     depth[ok] = task.pose_master.transform(xyz)[:, 2]
     depth[depth <= 0] = np.nan
-    return PairDepth(task.master, task.slave, depth.reshape(uu.shape), pair.f * pair.baseline,
+    return PairDepth(task.master, task.slave, depth.reshape(uu.shape), pair.focal_baseline,
                      time.perf_counter() - t0, pair.width * pair.height / 1e6, d_hi - d_lo)

@@ -55,6 +55,11 @@ class RectifiedPair:
         return float(np.linalg.norm(self.c_slave - self.c_master))
 
     @property
+    def focal_baseline(self) -> float:
+        """``f B``: ``depth^2 / (f B)`` is the depth change of one pixel of disparity."""
+        return self.f * self.baseline
+
+    @property
     def disparity_offset(self) -> float:
         """``cx_master - cx_slave``: the disparity of a point at infinity."""
         return self.cx_master - self.cx_slave
@@ -66,6 +71,16 @@ class RectifiedPair:
     def rect_depth(self, xyz_world: np.ndarray) -> np.ndarray:
         """Depth of world points ``(n, 3)`` along the rectified z axis, ``(n,)``."""
         return (np.asarray(xyz_world, np.float64) - self.c_master) @ self.rect_from_world[2]
+
+    def disparity_of(self, xyz_world: np.ndarray) -> np.ndarray:
+        """Disparity ``(n,)`` of world points ``(n, 3)``."""
+        return self.depth_to_disparity(self.rect_depth(xyz_world))
+
+    def master_rays(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """World directions ``(n, 3)`` of the rays through master rectified pixels ``u, v : (n,)``."""
+        d_rect = np.stack([(np.asarray(u, np.float64) - self.cx_master) / self.f,
+                           (np.asarray(v, np.float64) - self.cy) / self.f, np.ones(np.size(u))], axis=1)
+        return d_rect @ self.rect_from_world
 
     def triangulate(self, u: np.ndarray, v: np.ndarray, disparity: np.ndarray) -> np.ndarray:
         """World points ``(n, 3)`` from master rectified pixels ``u, v : (n,)`` and disparities ``(n,)``."""
@@ -172,19 +187,18 @@ def rectify_pair(cam_master: CameraModel, pose_master: Pose, cam_slave: CameraMo
                          float(cy), width, height, maps[0], maps[1])
 
 
-def disparity_range(pair: RectifiedPair, z_world_min: float, z_world_max: float, cam_slave: CameraModel,
+def disparity_range(pair, z_world_min: float, z_world_max: float, cam_slave: CameraModel,
                     pose_slave: Pose, margin_px: float = 8.0, grid: int = 24) -> tuple[float, float]:
     """Disparity interval for terrain heights between ``z_world_min`` and ``z_world_max`` (the DSM/terrain prior).
 
-    Rays through a grid of rectified master pixels are intersected with the two horizontal planes; points that
-    the slave sees give the extreme rectified depths and so the disparities, widened by ``margin_px``.
+    ``pair`` is a :class:`RectifiedPair` or a :class:`.polar.PolarPair` (both give ``master_rays`` and
+    ``disparity_of``). Rays through a grid of rectified master pixels are intersected with the two horizontal
+    planes; points that the slave sees give the extreme disparities, widened by ``margin_px``.
     """
     u = np.linspace(0, pair.width - 1, grid)
     v = np.linspace(0, pair.height - 1, grid)
     uu, vv = np.meshgrid(u, v)
-    d_rect = np.stack([(uu.ravel() - pair.cx_master) / pair.f, (vv.ravel() - pair.cy) / pair.f,
-                       np.ones(uu.size)], axis=1)
-    d_world = d_rect @ pair.rect_from_world
+    d_world = pair.master_rays(uu.ravel(), vv.ravel())
     disps = []
     for z in (z_world_min, z_world_max):
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -196,7 +210,7 @@ def disparity_range(pair: RectifiedPair, z_world_min: float, z_world_max: float,
         uv = cam_slave.normalized_to_pixel(xc[front, :2] / xc[front, 2:3])
         seen = cam_slave.contains(uv)
         if seen.any():
-            disps.append(pair.depth_to_disparity(pair.rect_depth(xyz[front][seen])))
+            disps.append(pair.disparity_of(xyz[front][seen]))
     if not disps:
         raise ComputationError("disparity range: the slave sees none of the master's terrain")
     d = np.concatenate(disps)

@@ -60,6 +60,8 @@ class DenseConfig:
     bilateral, bilateral_sigma_m : depth smoothing
     max_incidence_deg : mixed-pixel filter (90 disables it)
     edge_radius_px : far-side erosion at depth edges, image pixels (0 disables it)
+    polar_below_deg : pairs whose baseline lies within this angle of the viewing direction are rectified in
+        log-polar form (0: all planar; see :mod:`.polar`)
     outlier_neighbours, outlier_std : statistical outlier removal (0 neighbours disables it)
     display_points : size of the display subsample
     """
@@ -89,6 +91,7 @@ class DenseConfig:
     outlier_neighbours: int = 16
     outlier_std: float = 2.5
     display_points: int = 300_000
+    polar_below_deg: float = 60.0
 
 
 def master_step(cfg: DenseConfig, view: str) -> int:
@@ -140,7 +143,8 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
             s = block.images[sid]
             tasks.append(PairTask(m.id, s.id, block.camera_of(m), m.pose, block.camera_of(s), s.pose,
                                   str(resolve_image(block, m.file)), str(resolve_image(block, s.file)),
-                                  z_min, z_max, master_step(cfg, sel.view), cfg.scale, sgm, threads=threads))
+                                  z_min, z_max, master_step(cfg, sel.view), cfg.scale, sgm, threads=threads,
+                                  polar_below_deg=cfg.polar_below_deg))
     total = len(tasks) + len(selection)
     results = executor.map(match_pair, tasks,
                                      on_done=lambda d, t: ctx.progress(d, total, f"matched {d}/{t} pairs"))
@@ -227,4 +231,4 @@ def _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted) 
 
 STAGE = Stage(name="dense", run=run, config=DenseConfig, requires=("block",),
               description="dense matching: image selection, SGM, multi-slave fusion, filtered point cloud",
-              version="1")
+              version="2")
