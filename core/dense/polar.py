@@ -31,10 +31,11 @@ import numpy as np
 from ..errors import ComputationError
 from ..model.camera import CameraModel
 from ..model.pose import Pose
+from .rectify import PairImages
 
 
 @dataclass(frozen=True, eq=False)
-class PolarPair:
+class PolarPair(PairImages):
     """The geometry of a log-polar rectified master/slave pair (same interface as ``RectifiedPair``).
 
     Attributes
@@ -67,10 +68,6 @@ class PolarPair:
     height: int
     map_master: np.ndarray
     map_slave: np.ndarray
-
-    @property
-    def baseline(self) -> float:
-        return float(np.linalg.norm(self.c_slave - self.c_master))
 
     @property
     def b_z(self) -> float:
@@ -144,12 +141,6 @@ class PolarPair:
         out = np.stack([self.sign * (logr - self.logr_master) / self.dlogr, row], axis=1)
         out[d[:, 2] <= 1e-9] = np.nan
         return out
-
-    def remap(self, master_img: np.ndarray, slave_img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The rectified master and slave images (bilinear, black outside the originals)."""
-        m = cv2.remap(master_img, self.map_master, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        s = cv2.remap(slave_img, self.map_slave, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        return m, s
 
 
 def _border_virtual(camera: CameraModel, pose: Pose, R: np.ndarray, K: np.ndarray, n: int = 24) -> np.ndarray:

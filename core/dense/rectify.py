@@ -23,8 +23,28 @@ from ..model.camera import CameraModel
 from ..model.pose import Pose
 
 
+class PairImages:
+    """What every rectification of a pair shares: the baseline and the remapping of both images (the attributes
+    ``c_master``, ``c_slave``, ``map_master``, ``map_slave`` come from the subclass)."""
+
+    c_master: np.ndarray
+    c_slave: np.ndarray
+    map_master: np.ndarray
+    map_slave: np.ndarray
+
+    @property
+    def baseline(self) -> float:
+        return float(np.linalg.norm(self.c_slave - self.c_master))
+
+    def remap(self, master_img: np.ndarray, slave_img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rectified master and slave images (bilinear, black outside the originals)."""
+        m = cv2.remap(master_img, self.map_master, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        s = cv2.remap(slave_img, self.map_slave, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        return m, s
+
+
 @dataclass(frozen=True, eq=False)
-class RectifiedPair:
+class RectifiedPair(PairImages):
     """The geometry of a rectified master/slave pair.
 
     Attributes
@@ -49,10 +69,6 @@ class RectifiedPair:
     height: int
     map_master: np.ndarray
     map_slave: np.ndarray
-
-    @property
-    def baseline(self) -> float:
-        return float(np.linalg.norm(self.c_slave - self.c_master))
 
     @property
     def focal_baseline(self) -> float:
@@ -94,12 +110,6 @@ class RectifiedPair:
     def master_to_rect(self, camera: CameraModel, pose: Pose, uv_px: np.ndarray) -> np.ndarray:
         """Original master pixels ``(n, 2)`` to rectified master pixels ``(n, 2)``."""
         return _to_rect(camera, pose, uv_px, self.rect_from_world, self.f, self.cx_master, self.cy)
-
-    def remap(self, master_img: np.ndarray, slave_img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The rectified master and slave images (bilinear, black outside the originals)."""
-        m = cv2.remap(master_img, self.map_master, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        s = cv2.remap(slave_img, self.map_slave, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        return m, s
 
 
 def _to_rect(camera: CameraModel, pose: Pose, uv_px: np.ndarray, rect_from_world: np.ndarray, f: float,

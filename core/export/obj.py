@@ -80,6 +80,23 @@ def write_obj(path: str | Path, buildings, origin: np.ndarray | None = None, tex
     write_text(mtl, mats)
 
 
+def _records(path: Path, parse) -> None:
+    """Call ``parse(parts)`` for every non-empty line of an OBJ file; a line it cannot read raises
+    :class:`InputError` naming the file, line and record."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("OBJ file not found", path) from None
+    for ln, line in enumerate(text.splitlines(), start=1):
+        parts = line.split()
+        if not parts:
+            continue
+        try:
+            parse(parts)
+        except (ValueError, IndexError, OSError):
+            raise InputError(f"malformed '{parts[0]}' record", path, line=ln, field=parts[0]) from None
+
+
 def read_obj(path: str | Path) -> tuple[np.ndarray, dict[str, list[list[int]]], np.ndarray]:
     """Read an OBJ written by :func:`write_obj` (or any polygon OBJ).
 
@@ -91,28 +108,21 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, dict[str, list[list[int]]], 
     path = Path(path)
     verts: list[list[float]] = []
     groups: dict[str, list[list[int]]] = {}
-    origin = np.zeros(3)
-    group = "default"
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("OBJ file not found", path) from None
-    for ln, line in enumerate(text.splitlines(), start=1):
-        parts = line.split()
-        if not parts:
-            continue
-        try:
-            if parts[0] == "#" and len(parts) == 5 and parts[1] == "origin":
-                origin = np.array([float(x) for x in parts[2:5]])
-            elif parts[0] == "v":
-                verts.append([float(x) for x in parts[1:4]])
-            elif parts[0] == "g":
-                group = parts[1] if len(parts) > 1 else "default"
-            elif parts[0] == "f":
-                idx = [int(p.split("/")[0]) for p in parts[1:]]
-                groups.setdefault(group, []).append([i - 1 if i > 0 else len(verts) + i for i in idx])
-        except (ValueError, IndexError):
-            raise InputError(f"malformed '{parts[0]}' record", path, line=ln, field=parts[0]) from None
+    state = {"origin": np.zeros(3), "group": "default"}
+
+    def parse(parts: list[str]) -> None:
+        if parts[0] == "#" and len(parts) == 5 and parts[1] == "origin":
+            state["origin"] = np.array([float(x) for x in parts[2:5]])
+        elif parts[0] == "v":
+            verts.append([float(x) for x in parts[1:4]])
+        elif parts[0] == "g":
+            state["group"] = parts[1] if len(parts) > 1 else "default"
+        elif parts[0] == "f":
+            idx = [int(p.split("/")[0]) for p in parts[1:]]
+            groups.setdefault(state["group"], []).append([i - 1 if i > 0 else len(verts) + i for i in idx])
+
+    _records(path, parse)
+    origin = state["origin"]
     return np.asarray(verts, dtype=np.float64).reshape(-1, 3) + origin, groups, origin
 
 
@@ -123,31 +133,24 @@ def read_obj_texcoords(path: str | Path) -> tuple[np.ndarray, dict[str, list[lis
     vts: list[list[float]] = []
     groups: dict[str, list[list[int]]] = {}
     maps: dict[str, str] = {}
-    group = "default"
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("OBJ file not found", path) from None
-    for ln, line in enumerate(text.splitlines(), start=1):
-        parts = line.split()
-        if not parts:
-            continue
-        try:
-            if parts[0] == "vt":
-                vts.append([float(x) for x in parts[1:3]])
-            elif parts[0] == "g":
-                group = parts[1] if len(parts) > 1 else "default"
-            elif parts[0] == "f":
-                groups.setdefault(group, []).append([int(p.split("/")[1]) - 1 for p in parts[1:]
-                                                     if len(p.split("/")) > 1 and p.split("/")[1]])
-            elif parts[0] == "mtllib":
-                mat = None
-                for mline in (path.parent / parts[1]).read_text(encoding="utf-8").splitlines():
-                    mp = mline.split()
-                    if mp and mp[0] == "newmtl":
-                        mat = mp[1]
-                    elif mp and mp[0] == "map_Kd" and mat is not None:
-                        maps[mat] = mp[-1]
-        except (ValueError, IndexError, OSError):
-            raise InputError(f"malformed '{parts[0]}' record", path, line=ln, field=parts[0]) from None
+    state = {"group": "default"}
+
+    def parse(parts: list[str]) -> None:
+        if parts[0] == "vt":
+            vts.append([float(x) for x in parts[1:3]])
+        elif parts[0] == "g":
+            state["group"] = parts[1] if len(parts) > 1 else "default"
+        elif parts[0] == "f":
+            groups.setdefault(state["group"], []).append([int(p.split("/")[1]) - 1 for p in parts[1:]
+                                                          if len(p.split("/")) > 1 and p.split("/")[1]])
+        elif parts[0] == "mtllib":
+            mat = None
+            for mline in (path.parent / parts[1]).read_text(encoding="utf-8").splitlines():
+                mp = mline.split()
+                if mp and mp[0] == "newmtl":
+                    mat = mp[1]
+                elif mp and mp[0] == "map_Kd" and mat is not None:
+                    maps[mat] = mp[-1]
+
+    _records(path, parse)
     return np.asarray(vts, dtype=np.float64).reshape(-1, 2), groups, maps
