@@ -567,7 +567,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             # the robust solution is not pulled by the blunders: reject every flagged observation at once
             bad = active & np.isfinite(w) & (w > opt.blunder_threshold)
         else:
-            bad = _worst_per_track(w, prob.obs_point, active, opt.blunder_threshold)
+            bad = worst_per_track(w, prob.obs_point, active, opt.blunder_threshold)
         bad |= active & ~np.isfinite(w)
         if bad.sum() > 0.5 * active.sum():
             raise ComputationError(
@@ -646,8 +646,8 @@ def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
         jp, _ = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
         w = good.astype(np.float64)
         n = precision.point_normals(jp, w, local, len(pts))
-        g = np.zeros((len(pts), 3))
-        np.add.at(g, local[good], np.einsum("mji,mj->mi", jp[good], v[good]))
+        jv = np.einsum("mji,mj->mi", jp[good], v[good])
+        g = np.stack([np.bincount(local[good], weights=jv[:, i], minlength=len(pts)) for i in range(3)], 1)
         q = precision.safe_inverse(n)
         step = np.einsum("kij,kj->ki", q, g)
         upd = ok & np.all(np.isfinite(step), 1)
@@ -655,7 +655,7 @@ def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     return xyz
 
 
-def _worst_per_track(w: np.ndarray, obs_point: np.ndarray, active: np.ndarray, threshold: float) -> np.ndarray:
+def worst_per_track(w: np.ndarray, obs_point: np.ndarray, active: np.ndarray, threshold: float) -> np.ndarray:
     """Mask of each track's largest normalised residual among active observations when above ``threshold``."""
     idx = np.flatnonzero(active & np.isfinite(w) & (w > threshold))
     out = np.zeros(len(w), bool)

@@ -27,9 +27,17 @@ import numpy as np
 from ..errors import ConfigError
 from ..geometry.views import OBLIQUE_VIEWS
 from ..model import ImageBlock, Pose, TiePoints
-from .bundle import BundleOptions, BundleResult, adjust
-from .precision import safe_inverse
-from .problem import SubProblem, build_problem, intersect_ties, result_poses
+from .bundle import BundleOptions, BundleResult, adjust, project_obs, refine_points, worst_per_track
+from .precision import collinearity_jacobians, point_normals, safe_inverse
+from .problem import (
+    SubProblem,
+    build_problem,
+    intersect_rays,
+    intersect_ties,
+    observation_rays,
+    result_poses,
+    thin_ties,
+)
 
 CONNECTIONS = ("cba", "2", "3", "5", "10")
 
@@ -155,11 +163,18 @@ def _adjust_unit(item: tuple[str, SubProblem, BundleOptions]) -> tuple[str, Bund
 def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connection: str = "cba",
                  cell: float = 50.0, executor=None, progress: Callable[[int, int, str], None] | None = None,
                  xyz0: np.ndarray | None = None, connection_sigma_scale: float = 1.0,
-                 oblique_control: bool = True) -> ATResult:
+                 oblique_control: bool = True, oblique_tie_grid: int = 8, oblique_ties_per_cell: int = 0) -> ATResult:
     """HAT as in the module docstring. ``executor`` has ``map(fn, items, on_done)`` (see pipeline.executor);
     ``connection_sigma_scale`` multiplies the propagated connection standard deviations; with
     ``oblique_control`` the control points measured in an oblique view are observations of its run too (with
-    the datum shift of the nadir run held fixed), as they are in IAT."""
+    the datum shift of the nadir run held fixed), as they are in IAT.
+
+    ``oblique_ties_per_cell > 0`` thins the tie points of the oblique runs (the nadir run keeps all of them) by
+    :func:`.problem.thin_ties`: per oblique image a grid of ``oblique_tie_grid`` cells across, in each cell the
+    ``oblique_ties_per_cell`` tracks with most rays in the view; connection points always stay. Every tie point
+    still gets coordinates: the tracks with thinned observations are intersected afterwards from all their rays
+    with the final orientations, with blunder tests (:func:`intersect_and_test`), and those coordinates replace
+    the combined ones. ``0`` adjusts all tie points in the oblique runs."""
     t0 = time.perf_counter()
     if connection not in CONNECTIONS:
         raise ConfigError(f"unknown connection selection '{connection}' (use one of {', '.join(CONNECTIONS)})")
@@ -191,6 +206,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     view_of_image = np.array([block.images[i].view for i in ties.image_ids])
     view_of_obs = view_of_image[ties.obs_image]
     items, conn_counts, conn_masks = [], {}, {}
+    thinned_obs = np.zeros(ties.n_obs, bool)
     for v in OBLIQUE_VIEWS:
         ids = views.get(v, [])
         if not ids:
@@ -201,8 +217,14 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
         start = np.where(sel[:, None], xyz_nadir, xyz_start)
-        sub = build_problem(block, ties, ids, start, use_control=oblique_control, point_prior_xyz=prior_xyz,
-                            point_prior_cov=prior_cov, prior_shift=res_n.datum_shift, initial=start_poses)
+        obs_mask = None
+        if oblique_ties_per_cell > 0:
+            kept = thin_ties(block, ties, in_view, rays_v, oblique_tie_grid, oblique_ties_per_cell) | sel
+            obs_mask = kept[ties.obs_track]
+            thinned_obs |= in_view & ~obs_mask
+        sub = build_problem(block, ties, ids, start, obs_mask=obs_mask, use_control=oblique_control,
+                            point_prior_xyz=prior_xyz, point_prior_cov=prior_cov, prior_shift=res_n.datum_shift,
+                            initial=start_poses)
         conn_counts[v] = int(sel.sum())
         conn_masks[v] = sel
         items.append((v, sub, replace(opt, datum_shift=False) if oblique_control else opt))
@@ -234,10 +256,23 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     rej = np.zeros(ties.n_obs, bool)
     for run in runs:
         rej[run.obs_index] |= run.obs_rejected
+    combine_wall = time.perf_counter() - t3
+    # tie points thinned out of the oblique runs: intersected from all their rays with the final orientations
+    t4 = time.perf_counter()
+    if thinned_obs.any():
+        thinned = np.zeros(n, bool)
+        thinned[ties.obs_track[thinned_obs]] = True
+        s0 = float(np.sqrt(sum(r.result.sigma0**2 * r.result.redundancy for r in runs)
+                           / max(sum(r.result.redundancy for r in runs), 1)))
+        xt, ct, rj = intersect_and_test(block, ties, poses, ~rej, thinned, opt.sigma_px, s0, opt.blunder_threshold)
+        ok = thinned & np.isfinite(xt[:, 0])
+        xyz[ok], cov[ok] = xt[ok], ct[ok]
+        rej |= rj
     return ATResult(mode="hierarchical", poses=poses, image_std=std, xyz=xyz, xyz_cov=cov, obs_rejected=rej,
                     runs=runs, connection=connection, wall_s=time.perf_counter() - t0,
                     extra={"nadir_wall_s": nadir.wall_s, "setup_wall_s": setup_wall, "oblique_wall_s": oblique_wall,
-                           "combine_wall_s": time.perf_counter() - t3, "cell": cell})
+                           "combine_wall_s": combine_wall, "intersection_wall_s": time.perf_counter() - t4,
+                           "cell": cell, "thinned_observations": int(thinned_obs.sum())})
 
 
 def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], cov_nadir: np.ndarray,
@@ -311,3 +346,60 @@ def nadir_propagation(block: ImageBlock, nadir_poses: dict[str, Pose]) -> dict[s
         a, b = pair
         out[iid] = Pose(img.pose_approx.R @ a.R.T @ b.R, b.C + b.R.T @ (a.R @ (img.pose_approx.C - a.C)))
     return out
+
+
+def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose], obs_ok: np.ndarray,
+                       tracks: np.ndarray, sigma_px: float, sigma0: float, threshold: float,
+                       max_rounds: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tie points from the final orientations (cameras fixed) with blunder tests: multi-ray forward intersection,
+    Gauss-Newton on the pixel residuals, then each round rejects every track's worst ray whose normalised residual
+    ``|v| / (sigma0 sigma_px sqrt(r))`` (r its redundancy number for the point alone) exceeds ``threshold``; only
+    tracks that lost a ray are recomputed in the next round.
+
+    ``obs_ok : (m,)`` observations allowed; ``tracks : (n,)`` bool tracks to compute. Returns ``xyz (n, 3)`` and
+    ``cov (n, 3, 3)`` (NaN for tracks not computed or with fewer than two rays) and the rejected ``(m,)``."""
+    n, m = ties.n_tracks, ties.n_obs
+    cam_ids = list(block.cameras)
+    cameras = [block.cameras[c] for c in cam_ids]
+    k_img = len(ties.image_ids)
+    r = np.full((k_img, 3, 3), np.nan)
+    c = np.full((k_img, 3), np.nan)
+    image_camera = np.zeros(k_img, np.int64)
+    for k, iid in enumerate(ties.image_ids):
+        image_camera[k] = cam_ids.index(block.images[iid].camera_id)
+        if iid in poses:
+            r[k], c[k] = poses[iid].R, poses[iid].C
+    use = obs_ok & tracks[ties.obs_track] & np.isfinite(c[ties.obs_image, 0])
+    xyz = np.full((n, 3), np.nan)
+    cov = np.full((n, 3, 3), np.nan)
+    rejected = np.zeros(m, bool)
+    todo = tracks.copy()
+    fx = np.array([cm.fx for cm in cameras])[image_camera]
+    fy = np.array([cm.fy for cm in cameras])[image_camera]
+    for _ in range(max_rounds):
+        sel = use & todo[ties.obs_track]
+        idx = np.flatnonzero(sel)
+        if len(idx) == 0:
+            break
+        o, d = observation_rays(block, ties.image_ids, poses, ties.obs_image[idx], ties.obs_uv[idx])
+        x0, _ = intersect_rays(o, d, ties.obs_track[idx], n)
+        x0 = refine_points(cameras, image_camera, r, c, x0, ties.obs_track, ties.obs_image, ties.obs_uv, sel, 1)
+        op, oi = ties.obs_track[idx], ties.obs_image[idx]
+        v = ties.obs_uv[idx] - project_obs(cameras, image_camera, r, c, x0, op, oi)
+        jp, _ = collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], x0[op])
+        q = safe_inverse(point_normals(jp, np.full(len(idx), sigma_px**-2), op, n))
+        hp = ((jp @ np.nan_to_num(q)[op]) * jp).sum(axis=(1, 2))
+        red = np.clip(1.0 - hp / sigma_px**2 / 2.0, 0.02, 1.0)
+        w = np.full(m, np.nan)
+        w[idx] = np.sqrt(np.sum(v**2, 1) / red) / (sigma_px * max(sigma0, 1e-9))
+        xyz[todo] = x0[todo]
+        cov[todo] = q[todo] * sigma0**2
+        bad = worst_per_track(w, ties.obs_track, sel, threshold) | (sel & ~np.isfinite(w))
+        if not bad.any():
+            break
+        rejected |= bad
+        use &= ~bad
+        todo = np.zeros(n, bool)
+        todo[ties.obs_track[bad]] = True
+    return xyz, cov, rejected
+

@@ -35,21 +35,17 @@ def collinearity_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx
     d = xyz_world - c_world
     xc = np.einsum("mij,mj->mi", r_cam_from_world, d)
     z = xc[:, 2]
-    a = np.zeros((len(z), 2, 3))
-    a[:, 0, 0] = fx / z
-    a[:, 0, 2] = -fx * xc[:, 0] / z**2
-    a[:, 1, 1] = fy / z
-    a[:, 1, 2] = -fy * xc[:, 1] / z**2
-    j_point = a @ r_cam_from_world
-    skew = np.zeros((len(z), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2] = -d[:, 2], d[:, 1]
-    skew[:, 1, 0], skew[:, 1, 2] = d[:, 2], -d[:, 0]
-    skew[:, 2, 0], skew[:, 2, 1] = -d[:, 1], d[:, 0]
-    j_rot = -(j_point @ skew)
+    # rows of the projection Jacobian times R, written out (batched 2x3 @ 3x3 products are slow in numpy)
+    rr = r_cam_from_world
+    j_point = np.empty((len(z), 2, 3))
+    j_point[:, 0] = (fx / z)[:, None] * rr[:, 0] - (fx * xc[:, 0] / z**2)[:, None] * rr[:, 2]
+    j_point[:, 1] = (fy / z)[:, None] * rr[:, 1] - (fy * xc[:, 1] / z**2)[:, None] * rr[:, 2]
+    # -(j [d]x) = d x j per row
+    j_rot = np.cross(d[:, None, :], j_point)
     return j_point, j_rot
 
 
-def _sum_blocks(blocks: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
+def sum_blocks(blocks: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
     """Sums of the blocks ``(m, d, d)`` per ``index (m,)`` into ``(n, d, d)`` (one bincount over all entries)."""
     d2 = blocks.shape[1] * blocks.shape[2]
     flat = (index[:, None] * d2 + np.arange(d2)).ravel()
@@ -63,7 +59,7 @@ def point_normals(j_point: np.ndarray, w_obs: np.ndarray, obs_point: np.ndarray,
     ``j_point (m, 2, 3)``, ``w_obs (m,)`` weights (1/sigma^2), ``obs_point (m,)``; ``prior_info (n, 3, 3)``
     inverse covariances of ground observations of the points (zeros when none). Returns ``(n, 3, 3)``.
     """
-    n = _sum_blocks((j_point.transpose(0, 2, 1) * w_obs[:, None, None]) @ j_point, obs_point, n_points)
+    n = sum_blocks((j_point.transpose(0, 2, 1) * w_obs[:, None, None]) @ j_point, obs_point, n_points)
     if prior_info is not None:
         n += prior_info
     return n
@@ -73,7 +69,7 @@ def image_normals(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray, obs
                   n_images: int, prior_info: np.ndarray | None = None) -> np.ndarray:
     """Normal blocks ``(n, 6, 6)`` of images (rotation about world axes, centre) with the points fixed."""
     j = np.concatenate([j_rot, -j_point], axis=2)
-    n = _sum_blocks((j.transpose(0, 2, 1) * w_obs[:, None, None]) @ j, obs_image, n_images)
+    n = sum_blocks((j.transpose(0, 2, 1) * w_obs[:, None, None]) @ j, obs_image, n_images)
     if prior_info is not None:
         n += prior_info
     return n

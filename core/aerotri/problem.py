@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from ..geometry.intersection import intersect_tracks
 from ..model import ImageBlock, Pose, TiePoints
 from .bundle import BundleProblem, BundleResult
+from .precision import safe_inverse, sum_blocks
 
 
 def observation_rays(block: ImageBlock, image_ids: list[str], poses: dict[str, Pose], obs_image: np.ndarray,
@@ -38,6 +38,21 @@ def observation_rays(block: ImageBlock, image_ids: list[str], poses: dict[str, P
     return c[obs_image], dirs
 
 
+def intersect_rays(o: np.ndarray, d: np.ndarray, track: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares intersection ``(n, 3)`` of rays ``o, d (m, 3)`` (unit ``d``) per ``track (m,)`` (NaN below two
+    rays or badly conditioned) and each ray's distance ``(m,)`` to its point; the normal blocks are summed by
+    bincount (``np.add.at`` took seconds per million rays)."""
+    ref = o.mean(0) if len(o) else np.zeros(3)
+    p = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    a = sum_blocks(p, track, n)
+    po = np.einsum("mij,mj->mi", p, o - ref)
+    b = np.stack([np.bincount(track, weights=po[:, i], minlength=n) for i in range(3)], 1)
+    ok = np.bincount(track, minlength=n) >= 2
+    xyz = np.where(ok[:, None], np.einsum("kij,kj->ki", safe_inverse(a), b) + ref, np.nan)
+    dist = np.linalg.norm(np.einsum("mij,mj->mi", p, xyz[track] - o), axis=1)
+    return xyz, dist
+
+
 def intersect_ties(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose],
                    obs_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Multi-ray forward intersection of all tracks from ``poses``.
@@ -48,7 +63,7 @@ def intersect_ties(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose],
     mask = np.ones(ties.n_obs, bool) if obs_mask is None else obs_mask.copy()
     o, d = observation_rays(block, ties.image_ids, poses, ties.obs_image, ties.obs_uv)
     mask &= np.isfinite(o[:, 0])
-    xyz, dist = intersect_tracks(o[mask], d[mask], ties.obs_track[mask], ties.n_tracks)
+    xyz, dist = intersect_rays(o[mask], d[mask], ties.obs_track[mask], ties.n_tracks)
     out = np.full(ties.n_obs, np.nan)
     out[mask] = dist
     return xyz, out
@@ -185,3 +200,33 @@ def result_poses(sub: SubProblem, result: BundleResult) -> dict[str, Pose]:
     """Adjusted poses of the images that took part (had observations)."""
     return {iid: Pose(result.r_cam_from_world[k], result.c_world[k])
             for k, iid in enumerate(sub.problem.image_ids) if result.image_adjusted[k]}
+
+
+def thin_ties(block: ImageBlock, ties: TiePoints, obs_sel: np.ndarray, priority: np.ndarray, grid: int,
+              per_cell: int) -> np.ndarray:
+    """Tie point reduction to a regular distribution per image (as production AT thins its tie points, e.g. a
+    per-image point limit or Gruber-like grid): each image of ``obs_sel`` is divided into ``grid`` cells across
+    its width (and as many square-ish cells down its height), and in each cell the ``per_cell`` tracks of highest
+    ``priority`` are kept. A track stays when any of its images keeps it.
+
+    ``obs_sel : (m,)`` bool observations considered; ``priority : (n,)`` per track (e.g. its ray count).
+    Returns the kept tracks as an ``(n,)`` bool mask."""
+    idx = np.flatnonzero(obs_sel)
+    keep = np.zeros(ties.n_tracks, bool)
+    if len(idx) == 0 or per_cell <= 0:
+        return keep
+    cams = [block.cameras[block.images[i].camera_id] for i in ties.image_ids]
+    w = np.array([c.width for c in cams], np.float64)[ties.obs_image[idx]]
+    h = np.array([c.height for c in cams], np.float64)[ties.obs_image[idx]]
+    gy = np.maximum(1, np.round(grid * h / w)).astype(np.int64)
+    uv = ties.obs_uv[idx]
+    cx = np.clip(np.floor((uv[:, 0] + 0.5) / w * grid), 0, grid - 1).astype(np.int64)
+    cy = np.clip(np.floor((uv[:, 1] + 0.5) / h * gy), 0, gy - 1).astype(np.int64)
+    key = (ties.obs_image[idx].astype(np.int64) * (grid * (gy.max() + 1)) + cy * grid + cx)
+    tr = ties.obs_track[idx]
+    order = np.lexsort((tr, -priority[tr], key))
+    k = key[order]
+    start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    rank = np.arange(len(k)) - np.repeat(start, np.diff(np.r_[start, len(k)]))
+    keep[tr[order[rank < per_cell]]] = True
+    return keep

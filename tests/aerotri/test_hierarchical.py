@@ -67,3 +67,32 @@ def test_nadir_propagation_is_exact_for_rigid_heads(sim):
     for iid, p in out.items():
         np.testing.assert_allclose(p.R, sim.true_poses[iid].R, atol=1e-9)
         np.testing.assert_allclose(p.C, sim.true_poses[iid].C, atol=1e-6)
+
+
+def test_hat_with_thinned_oblique_ties_keeps_accuracy_and_gives_every_tie_point_coordinates(sim, xyz0, options, iat):
+    hat = hierarchical(sim.block, sim.ties, options, connection="cba", cell=50.0, xyz0=xyz0,
+                       oblique_tie_grid=8, oblique_ties_per_cell=1)
+    assert hat.extra["thinned_observations"] > 0.3 * sim.ties.n_obs
+    oblique_obs = sum(len(r.obs_index) for r in hat.runs[1:])
+    assert oblique_obs < 0.5 * (sim.ties.n_obs - len(hat.runs[0].obs_index))
+    # every tie point IAT determines is determined here too (thinned ones by intersection)
+    assert np.isfinite(hat.xyz[np.isfinite(iat.xyz[:, 0]), 0]).mean() > 0.999
+    xy_h, z_h = rms_xy_z(check_point_errors(sim.block, hat.poses)[1])
+    xy_i, z_i = rms_xy_z(check_point_errors(sim.block, iat.poses)[1])
+    assert xy_h < 1.3 * xy_i + 0.002 and z_h < 1.3 * z_i + 0.005
+    # blunders among the thinned observations are found by the intersection tests
+    truth = sim.ties.obs_blunder
+    assert (truth & hat.obs_rejected).sum() > 0.9 * truth.sum()
+    assert (~truth & hat.obs_rejected).sum() < 0.01 * (~truth).sum()
+
+
+def test_thin_ties_keeps_the_best_track_per_image_cell(sim):
+    from oblique_city.core.aerotri.problem import thin_ties
+
+    ties = sim.ties
+    rays = ties.ray_counts()
+    keep = thin_ties(sim.block, ties, np.ones(ties.n_obs, bool), rays, 4, 1)
+    assert 0 < keep.sum() < ties.n_tracks
+    # in every image, the best-ranked observed track of each cell is kept: no image is left without kept tracks
+    per_image = np.bincount(ties.obs_image[keep[ties.obs_track]], minlength=len(ties.image_ids))
+    assert (per_image[np.bincount(ties.obs_image, minlength=len(ties.image_ids)) > 0] >= 4).all()
