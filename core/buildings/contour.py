@@ -62,7 +62,8 @@ class Fragment:
 class Contour:
     """polygon : (m, 2) counter-clockwise wall outline; fragments : the wall lines used; facade_cells : (k, 2)
     int grid indices (col, row); origin : grid origin (2,); cell : grid size; source : facades or the roof
-    outline fallback (with the reason)."""
+    outline fallback (with the reason); walls_inferred : edges placed by the building's median overhang because
+    no facade point shows their wall (an assumption, not a measurement)."""
 
     polygon: np.ndarray
     fragments: tuple[Fragment, ...]
@@ -70,6 +71,7 @@ class Contour:
     origin: np.ndarray
     cell: float
     source: str = "facades"
+    walls_inferred: int = 0
 
 
 def _ransac_line(xy: np.ndarray, tol: float, iterations: int, rng: np.random.Generator) -> np.ndarray | None:
@@ -568,6 +570,7 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
     """
     frags, cells, origin = wall_fragments(xyz, ground_z, cfg)
     source = "facades"
+    inferred = 0
     mask = building_mask(xyz, ground_z, origin, cfg.cell)
     try:
         if len(frags) < 3:
@@ -581,4 +584,4 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
         poly, moved, inferred = walls_under_roof_outline(poly, xyz, ground_z)
         source = (f"roof outline ({e} from the facades; {moved} of {len(poly)} edges moved onto facade points, "
                   f"{inferred} by the building's median overhang where no facade point shows the wall)")
-    return Contour(poly, tuple(frags), cells, origin, cfg.cell, source)
+    return Contour(poly, tuple(frags), cells, origin, cfg.cell, source, inferred)

@@ -147,7 +147,7 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     except ValueError as e:
         raise ValueError(f"contour: {e}") from None
     polygon = contour.polygon
-    info.update(corners=int(len(polygon)), contour_source=contour.source)
+    info.update(corners=int(len(polygon)), contour_source=contour.source, walls_inferred=contour.walls_inferred)
     roof = topology(roof_labels(xl, polygon, noise, cfg.roof), polygon)
     if not roof.planes:
         raise ValueError("roof: no roof plane found")

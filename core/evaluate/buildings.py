@@ -3,7 +3,8 @@
 Per building: outline corner deviation (each true footprint corner to the nearest reconstructed corner),
 roof plane normal error (each true roof plane against the reconstructed roof surface over it), overhang width
 error (each exposed true wall edge against the reconstructed outline edge that runs along it), whether the body
-is a closed valid solid, which path it took, and the time it needed.
+is a closed valid solid, which path it took, the time it needed, and how many of its walls no facade point
+showed (placed by an assumed overhang, see :func:`..buildings.contour.walls_under_roof_outline`).
 """
 
 from __future__ import annotations
@@ -118,6 +119,7 @@ class BuildingScore:
     normal_max_deg: float
     overhang_errors: list[float]
     overhang_median: float
+    walls_inferred: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -190,7 +192,7 @@ def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
                          float(model.info.get("seconds", np.nan)), med(c), float(np.mean(c)), float(np.max(c)),
                          int(sum(len(r) for r in truth.footprint)), int(len(model.footprint)), med(ne),
                          float(np.nanmax(ne)) if len(ne) and np.isfinite(ne).any() else float("nan"),
-                         [float(x) for x in oe], med(oe))
+                         [float(x) for x in oe], med(oe), int(model.info.get("walls_inferred", 0)))
 
 
 def match_truth(model: BuildingModel, truths: list[BuildingTruth]) -> int | None:
