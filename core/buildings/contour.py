@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .geometry import polygon_area
+from .geometry import points_in_polygon, polygon_area
 
 
 @dataclass(frozen=True)
@@ -26,10 +26,13 @@ class ContourConfig:
     roof-outline fallback: outline_tol : Douglas-Peucker tolerance (m); min_edge : shorter simplified edges
     are dropped (steps and cut corners are rebuilt by the ring closure) (m); square_deg : snapping of directions to
     the dominant one or its perpendicular (deg, 0 = off); merge_offset : consecutive parallel lines closer than
-    this are one (m)."""
+    this are one (m); a facade contour must have at least ``min_coverage`` of the building's occupied cells inside
+    it or within ``max_overhang`` m of it (m), else the roof outline is used."""
 
     cell: float = 0.5
     min_wall_height: float = 1.5
+    max_overhang: float = 1.5
+    min_coverage: float = 0.95
     z_bin: float = 0.5
     fill_share: float = 0.6
     line_tol: float = 0.12
@@ -561,12 +564,29 @@ def walls_under_roof_outline(ring: np.ndarray, xyz: np.ndarray, ground_z: float,
     return _ring_from_lines(lines, np.cos(np.radians(20.0))), moved, inferred
 
 
+def mask_coverage(polygon: np.ndarray, mask: np.ndarray, origin: np.ndarray, cell: float, margin: float) -> float:
+    """Share of the occupied cells of ``mask (rows, cols)`` whose centres lie inside ``polygon (m, 2)`` or within
+    ``margin`` metres of it (the roof may overhang the walls by that much)."""
+    rr, cc = np.nonzero(mask)
+    if len(rr) == 0:
+        return 0.0
+    xy = origin + (np.column_stack([cc, rr]) + 0.5) * cell
+    covered = points_in_polygon(xy, polygon)
+    a, b = polygon, np.roll(polygon, -1, axis=0)
+    for p, q in zip(a, b):
+        d = q - p
+        t = np.clip(((xy - p) @ d) / max(float(d @ d), 1e-12), 0.0, 1.0)
+        covered |= np.linalg.norm(xy - (p + t[:, None] * d), axis=1) <= margin
+    return float(covered.mean())
+
+
 def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = ContourConfig()) -> Contour:
     """The wall outline of one building's points ``xyz (n, 3)`` with the ground at ``ground_z``.
 
-    Falls back to the roof outline (:func:`roof_outline_polygon`) when the facades give no closed contour, its
-    edges moved onto the walls where sparse facade points show them (:func:`walls_under_roof_outline`);
-    ``Contour.source`` says which.
+    Falls back to the roof outline (:func:`roof_outline_polygon`) when the facades give no closed contour, or one
+    that leaves part of the building outside (:func:`mask_coverage` below ``cfg.min_coverage``: wall fragments of
+    inner steps or courtyards joined into a wrong ring), its edges moved onto the walls where sparse facade points
+    show them (:func:`walls_under_roof_outline`); ``Contour.source`` says which.
     """
     frags, cells, origin = wall_fragments(xyz, ground_z, cfg)
     source = "facades"
@@ -576,6 +596,9 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
         if len(frags) < 3:
             raise ValueError(f"only {len(frags)} wall fragments found")
         poly = close_contour(frags, mask, origin, cfg.cell, cfg)
+        cover = mask_coverage(poly, mask, origin, cfg.cell, cfg.max_overhang)
+        if cover < cfg.min_coverage:
+            raise ValueError(f"the closed contour leaves {1 - cover:.0%} of the building outside")
     except ValueError as e:
         try:
             poly = roof_outline_polygon(xyz, ground_z, cfg, origin)

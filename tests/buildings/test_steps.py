@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oblique_city.core.buildings.contour import extract_contour, walls_under_roof_outline
+from oblique_city.core.buildings.contour import ContourConfig, extract_contour, walls_under_roof_outline
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
 from oblique_city.core.buildings.hull import build_hull
 from oblique_city.core.buildings.overhang import overhang_widths
@@ -239,3 +239,23 @@ def test_step_between_parallel_outline_lines_placed_where_the_points_change():
              (np.array([0.0, 5.0]), np.array([0.0, -1.0]), 5.0)]
     (p, _, lp), (q, _, lq) = _place_steps(lines, top, np.cos(np.radians(20)), 0.5)[:2]
     assert abs(p[0] + lp - 10.0) <= 0.5 and abs(q[0] - (p[0] + lp)) < 1e-9 and abs(q[0] + lq - 20.0) < 1e-9
+
+
+def test_mask_coverage_flags_a_contour_that_leaves_part_of_an_l_outside():
+    """An L-shaped occupancy mask: its own outline covers it all; a ring over one wing only (inner wall fragments
+    joined into a wrong ring) leaves the other wing outside, beyond any overhang margin."""
+    from oblique_city.core.buildings.contour import mask_coverage
+
+    cell, origin = 0.5, np.array([0.0, 0.0])
+    mask = np.zeros((40, 40), bool)
+    mask[0:40, 0:12] = True   # west wing 6 m x 20 m
+    mask[0:12, 0:40] = True   # south wing 20 m x 6 m
+    l_ring = np.array([[0, 0], [20, 0], [20, 6], [6, 6], [6, 20], [0, 20]], float)
+    assert mask_coverage(l_ring, mask, origin, cell, 0.0) == pytest.approx(1.0)
+    inset = l_ring + np.array([[0.8, 0.8], [-0.8, 0.8], [-0.8, -0.8], [-0.8, -0.8], [-0.8, -0.8], [0.8, -0.8]])
+    assert mask_coverage(inset, mask, origin, cell, 0.0) < 0.8  # walls 0.8 m inside the eaves
+    assert mask_coverage(inset, mask, origin, cell, 1.5) == pytest.approx(1.0)  # the overhang margin covers it
+    one_wing = np.array([[0, 0], [20, 0], [20, 6], [0, 6]], float)
+    wing_cover = mask_coverage(one_wing, mask, origin, cell, 1.5)
+    assert 0.5 < wing_cover < 0.8
+    assert wing_cover < ContourConfig().min_coverage
