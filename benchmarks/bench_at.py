@@ -273,7 +273,8 @@ def describe_runs(args) -> str:
     return ("IAT: one adjustment of all images and all tie observations (Cauchy round, then least-squares rounds "
             "with data snooping; iterative Schur, the faster solver for this size).\n"
             f"HAT: nadir run with all its tie points and the datum; four oblique runs ({args.workers} processes) "
-            f"tied by connection points, {thin}; combination by error propagation.")
+            f"tied by connection points, {thin}; combination by error propagation, the datum shift refined from all "
+            "control measurements (the nadir run saw only the nadir ones).")
 
 
 def _run_profile(run) -> dict:

@@ -163,7 +163,8 @@ def _adjust_unit(item: tuple[str, SubProblem, BundleOptions]) -> tuple[str, Bund
 def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connection: str = "cba",
                  cell: float = 50.0, executor=None, progress: Callable[[int, int, str], None] | None = None,
                  xyz0: np.ndarray | None = None, connection_sigma_scale: float = 1.0,
-                 oblique_control: bool = True, oblique_tie_grid: int = 8, oblique_ties_per_cell: int = 0) -> ATResult:
+                 oblique_control: bool = True, oblique_tie_grid: int = 8, oblique_ties_per_cell: int = 0,
+                 combined_datum: bool = True) -> ATResult:
     """HAT as in the module docstring. ``executor`` has ``map(fn, items, on_done)`` (see pipeline.executor);
     ``connection_sigma_scale`` multiplies the propagated connection standard deviations; with
     ``oblique_control`` the control points measured in an oblique view are observations of its run too (with
@@ -174,7 +175,11 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     ``oblique_ties_per_cell`` tracks with most rays in the view; connection points always stay. Every tie point
     still gets coordinates: the tracks with thinned observations are intersected afterwards from all their rays
     with the final orientations, with blunder tests (:func:`intersect_and_test`), and those coordinates replace
-    the combined ones. ``0`` adjusts all tie points in the oblique runs."""
+    the combined ones. ``0`` adjusts all tie points in the oblique runs.
+
+    With ``combined_datum`` the datum shift, estimated in the nadir run from the nadir measurements of the control
+    points alone, is refined in step (3) from all their measurements (:func:`datum_correction`) and the whole
+    block is translated by the correction, as IAT estimates the shift from all views at once."""
     t0 = time.perf_counter()
     if connection not in CONNECTIONS:
         raise ConfigError(f"unknown connection selection '{connection}' (use one of {', '.join(CONNECTIONS)})")
@@ -256,6 +261,14 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     rej = np.zeros(ties.n_obs, bool)
     for run in runs:
         rej[run.obs_index] |= run.obs_rejected
+    datum_delta = np.zeros(3)
+    if combined_datum:
+        datum_delta = datum_correction(block, poses)
+        poses = {i: Pose(p.R, p.C + datum_delta) for i, p in poses.items()}
+        xyz = xyz + datum_delta
+        for run in runs:
+            run.poses = {i: Pose(p.R, p.C + datum_delta) for i, p in run.poses.items()}
+            run.xyz = run.xyz + datum_delta
     combine_wall = time.perf_counter() - t3
     # tie points thinned out of the oblique runs: intersected from all their rays with the final orientations
     t4 = time.perf_counter()
@@ -272,7 +285,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
                     runs=runs, connection=connection, wall_s=time.perf_counter() - t0,
                     extra={"nadir_wall_s": nadir.wall_s, "setup_wall_s": setup_wall, "oblique_wall_s": oblique_wall,
                            "combine_wall_s": combine_wall, "intersection_wall_s": time.perf_counter() - t4,
-                           "cell": cell, "thinned_observations": int(thinned_obs.sum())})
+                           "cell": cell, "thinned_observations": int(thinned_obs.sum()),
+                           "datum_shift": res_n.datum_shift + datum_delta, "datum_correction": datum_delta})
 
 
 def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], cov_nadir: np.ndarray,
@@ -403,3 +417,42 @@ def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose
         todo[ties.obs_track[bad]] = True
     return xyz, cov, rejected
 
+
+
+def datum_correction(block: ImageBlock, poses: dict[str, Pose]) -> np.ndarray:
+    """Translation ``(3,)`` that best moves the block onto its control points: each control point is intersected
+    from all its image measurements with ``poses`` (covariance from its pixel sigma), and the differences to the
+    given coordinates are averaged with the inverse of (intersection covariance + control covariance). Zero when
+    no control point has two measured rays."""
+    info = np.zeros((3, 3))
+    rhs = np.zeros(3)
+    for gp in block.ground_points.values():
+        if gp.kind != "control" or gp.xyz is None:
+            continue
+        ids = [i for i in gp.observations if i in poses]
+        if len(ids) < 2:
+            continue
+        uv = np.array([gp.observations[i] for i in ids], np.float64)
+        r = np.array([poses[i].R for i in ids])
+        c = np.array([poses[i].C for i in ids])
+        cams = [block.cameras[block.images[i].camera_id] for i in ids]
+        xy = np.array([cm.pixel_to_normalized(u[None])[0] for cm, u in zip(cams, uv)])
+        d = np.einsum("mji,mj->mi", r, np.column_stack([xy, np.ones(len(ids))]))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        x, _ = intersect_rays(c, d, np.zeros(len(ids), np.int64), 1)
+        if not np.isfinite(x[0, 0]):
+            continue
+        x = refine_points(cams, np.arange(len(ids)), r, c, x, np.zeros(len(ids), np.int64), np.arange(len(ids)), uv,
+                          np.ones(len(ids), bool))
+        fx = np.array([cm.fx for cm in cams])
+        fy = np.array([cm.fy for cm in cams])
+        jp, _ = collinearity_jacobians(r, c, fx, fy, np.repeat(x, len(ids), 0))
+        q = safe_inverse(point_normals(jp, np.full(len(ids), gp.sigma_px**-2), np.zeros(len(ids), np.int64), 1))[0]
+        if not np.all(np.isfinite(q)):
+            continue
+        w = np.linalg.inv(q + np.diag(np.asarray(gp.sigma, np.float64) ** 2))
+        info += w
+        rhs += w @ (np.asarray(gp.xyz, np.float64) - x[0])
+    if not np.any(info):
+        return np.zeros(3)
+    return np.linalg.solve(info, rhs)
