@@ -3,17 +3,41 @@
 * :class:`CityPreferences` (``bl_idname`` = the extension's root package, which is ``bl_ext.<repo>.oblique_city``
   inside Blender and ``oblique_city`` outside): how jobs run (child process or thread) and where a stage's
   independent units go (in-process, local processes, a Dask scheduler).
-* :class:`CitySceneSettings` on ``Scene.oblique_city``, saved in the .blend: the workspace folder and display
-  options. The georeference (CRS, float64 origin) is not here: see :mod:`.georef`.
+* :class:`CitySceneSettings` on ``Scene.oblique_city``, saved in the .blend: the workspace folder, display
+  options and the per-building list of the Buildings panel (:class:`CityBuildingItem`, filled by
+  :func:`.layers_buildings.fill_building_list`; making an item active selects that building's object). The
+  georeference (CRS, float64 origin) is not here: see :mod:`.georef`.
+* ``Scene.oblique_city.stage_options.<stage>``: the options of the stages in :data:`OPTION_STAGES` (those whose
+  module imports), one property per field of the stage's config dataclass. They store nothing in the .blend:
+  reading one reads ``[stages.<stage>]`` of the workspace's ``project.toml`` (cached until the file changes; a
+  missing key is the config's default), setting one writes that key there, as ``oblique_city run --set
+  stage.key=value`` does, so the panel, the CLI and the runner share one set of options.
 * :class:`CityJobState` on ``WindowManager.oblique_city_job``, never saved: the running job's progress.
 """
 
 from __future__ import annotations
 
-import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+import dataclasses
+from pathlib import Path
+from typing import Any
 
+import bpy
+from bpy.props import (
+    BoolProperty,
+    CollectionProperty,
+    EnumProperty,
+    FloatProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
+
+from ..core.errors import CityError
+from ..core.pipeline import Workspace
+from ..core.pipeline.registry import get_stage
+from ..core.pipeline.workspace import PROJECT_FILE
 from .jobs import ExecutorSettings
+from .layers_buildings import select_building
 
 ROOT_PACKAGE = __package__.rpartition(".")[0]
 """The extension's package name, as Blender knows it."""
@@ -48,6 +72,165 @@ class CityPreferences(bpy.types.AddonPreferences):
         row.prop(self, "scheduler")
 
 
+OPTION_STAGES = ("buildings",)
+"""The stages whose options their panel edits (``Scene.oblique_city.stage_options.<stage>``)."""
+
+OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
+    "buildings": {
+        "min_height": {"min": 0.0, "description": "Lowest building above the terrain (nDSM, m)"},
+        "min_area": {"min": 0.0, "description": "Smallest building footprint (m^2)"},
+        "use_masks": {"description": "Use the surface stage's building and vegetation masks (else roughness "
+                                     "rejects vegetation)"},
+        "footprints": {"description": "GeoJSON file of user footprints, workspace-relative or absolute "
+                                      "(empty: detect the buildings)"},
+        "voxel": {"min": 0.0, "description": "Noise filter cube (m, 0 = guessed)"},
+        "force_path": {"items": (("", "Automatic", "Each building takes the path its shape calls for"),
+                                 ("2d", "2D", "Footprint and roof planes for every building"),
+                                 ("volumetric", "Volumetric", "Volumetric reconstruction for every building"))},
+        "max_overhang": {"min": 0.0, "description": "Widest roof overhang searched (m)"},
+        "overhang_thickness": {"min": 0.0, "description": "Thickness of the overhang slab (m)"},
+    },
+}
+"""Stage -> field -> extra property settings: ``min``, ``description``, ``items`` (``(value, name, description)``
+choices that make a string field an enum)."""
+
+_options_cache: dict[str, tuple[tuple, dict[str, Any]]] = {}
+
+
+def scene_root(scene) -> Path | None:
+    """The scene's workspace folder (absolute), or None."""
+    path = scene.oblique_city.workspace
+    return Path(bpy.path.abspath(path)) if path else None
+
+
+def stage_option_values(scene, stage: str) -> dict[str, Any]:
+    """``[stages.<stage>]`` of the scene's ``project.toml`` (empty without a readable workspace), re-read only
+    when the file changed."""
+    root = scene_root(scene)
+    if root is None:
+        return {}
+    try:
+        st = (root / PROJECT_FILE).stat()
+    except OSError:
+        return {}
+    key = (st.st_mtime_ns, st.st_size, st.st_ino)
+    cached = _options_cache.get(str(root))
+    if cached is None or cached[0] != key:
+        try:
+            options = Workspace.open(root).project.get("stages", {})
+        except CityError:
+            options = {}
+        cached = _options_cache[str(root)] = (key, options)
+    return dict(cached[1].get(stage, {}))
+
+
+def set_stage_option(scene, stage: str, name: str, value: Any) -> None:
+    """Write one option into ``[stages.<stage>]`` of the scene's ``project.toml`` (checked by the stage's
+    ``make_config``); nothing is written without a workspace."""
+    root = scene_root(scene)
+    if root is None:
+        return
+    ws = Workspace.open(root)
+    options = ws.stage_options(stage)
+    options[name] = value
+    get_stage(stage).make_config(options)
+    ws.project.setdefault("stages", {})[stage] = options
+    ws.save_project()
+    _options_cache.pop(str(root), None)
+
+
+def _option_property(stage: str, field: dataclasses.Field, default: Any) -> Any:
+    """A property with get/set callbacks over one field of a stage's config, or None for a type the panel does
+    not edit (tuples, None defaults: those stay in ``project.toml``)."""
+    hints = OPTION_HINTS.get(stage, {}).get(field.name, {})
+    common = {"name": field.name.replace("_", " ").title(),
+              "description": hints.get("description", f"[stages.{stage}] {field.name} in project.toml")}
+
+    def value(scene) -> Any:
+        v = stage_option_values(scene, stage).get(field.name, default)
+        return v if isinstance(v, type(default)) or (isinstance(default, float) and isinstance(v, int)) else default
+
+    if "items" in hints:
+        values = [v for v, _, _ in hints["items"]]
+        items = [(v or "AUTO", n, d, i) for i, (v, n, d) in enumerate(hints["items"])]
+
+        def get_choice(self) -> int:
+            v = value(self.id_data)
+            return values.index(v) if v in values else 0
+
+        return EnumProperty(items=items, **common, get=get_choice,
+                            set=lambda self, i: set_stage_option(self.id_data, stage, field.name, values[i]))
+    limits = {"min": hints["min"]} if "min" in hints else {}
+    if isinstance(default, bool):
+        return BoolProperty(**common, get=lambda self: bool(value(self.id_data)),
+                            set=lambda self, v: set_stage_option(self.id_data, stage, field.name, bool(v)))
+    if isinstance(default, int):
+        return IntProperty(**common, **limits, get=lambda self: int(value(self.id_data)),
+                           set=lambda self, v: set_stage_option(self.id_data, stage, field.name, int(v)))
+    if isinstance(default, float):  # Blender floats are single precision: 7 digits, so 2.7 stays 2.7 in the file
+        return FloatProperty(**common, **limits, get=lambda self: float(value(self.id_data)),
+                             set=lambda self, v: set_stage_option(self.id_data, stage, field.name,
+                                                                  float(f"{v:.7g}")))
+    if isinstance(default, str):
+        return StringProperty(**common, get=lambda self: str(value(self.id_data)),
+                              set=lambda self, v: set_stage_option(self.id_data, stage, field.name, str(v)))
+    return None
+
+
+def stage_options_group(stage: str) -> type:
+    """A PropertyGroup with one property per editable field of the stage's config dataclass."""
+    config = get_stage(stage).config
+    defaults = config()
+    props = {f.name: _option_property(stage, f, getattr(defaults, f.name)) for f in dataclasses.fields(config)}
+    props = {k: v for k, v in props.items() if v is not None}
+    ident = "CityOptions_" + stage
+    return type(ident, (bpy.types.PropertyGroup,), {"__annotations__": props, "__doc__": f"Options of {stage}"})
+
+
+def option_groups() -> dict[str, type]:
+    """Stage -> its options PropertyGroup, for the stages of :data:`OPTION_STAGES` whose module imports (a stage
+    whose dependencies are missing cannot run either: it gets no options, and the add-on still registers)."""
+    groups = {}
+    for stage in OPTION_STAGES:
+        try:
+            groups[stage] = stage_options_group(stage)
+        except (CityError, ImportError):
+            continue
+    return groups
+
+
+STAGE_OPTION_GROUPS: dict[str, type] = option_groups()
+"""Stage -> its generated options PropertyGroup."""
+
+
+def option_fields(stage: str) -> list[str]:
+    """The fields of a stage's config that its panel edits, in the dataclass's order (none for a stage without
+    options in the panel)."""
+    return list(STAGE_OPTION_GROUPS[stage].__annotations__) if stage in STAGE_OPTION_GROUPS else []
+
+CityStageOptions = type("CityStageOptions", (bpy.types.PropertyGroup,),
+                        {"__annotations__": {stage: PointerProperty(type=cls)
+                                             for stage, cls in STAGE_OPTION_GROUPS.items()},
+                         "__doc__": "One group of options per stage of STAGE_OPTION_GROUPS"})
+
+
+class CityBuildingItem(bpy.types.PropertyGroup):
+    """One building of the Buildings panel's list; ``name`` is the building id (the list filters on it)."""
+
+    path: StringProperty(name="Path", description="Reconstruction path: 2d or volumetric (empty: failed)")
+    closed: BoolProperty(name="Closed", description="The model is a closed solid")
+    failed: BoolProperty(name="Failed", description="The reconstruction failed (status holds the reason)")
+    status: StringProperty(name="Status", description="closed solid, open: <problem> or failed: <reason>")
+    seconds: FloatProperty(name="Seconds", description="Reconstruction time")
+    surfaces: IntProperty(name="Surfaces", description="Number of surfaces of the model")
+
+
+def _select_active_building(self, context) -> None:
+    """Update of ``building_index``: select (and in a 3D viewport frame) the active building's object."""
+    if 0 <= self.building_index < len(self.building_list):
+        select_building(context, self.id_data, self.building_list[self.building_index].name)
+
+
 class CitySceneSettings(bpy.types.PropertyGroup):
     workspace: StringProperty(name="Workspace", subtype="DIR_PATH",
                               description="Oblique City workspace folder of this scene")
@@ -55,6 +238,9 @@ class CitySceneSettings(bpy.types.PropertyGroup):
         name="Undistort Backgrounds", default=True,
         description="When looking through an image, show it resampled to Blender's distortion-free camera")
     force: BoolProperty(name="Force", default=False, description="Run stages again even if they are up to date")
+    stage_options: PointerProperty(type=CityStageOptions)
+    building_list: CollectionProperty(type=CityBuildingItem)
+    building_index: IntProperty(name="Active Building", default=-1, update=_select_active_building)
 
 
 class CityJobState(bpy.types.PropertyGroup):
@@ -75,7 +261,8 @@ def preferences(context) -> tuple[str, ExecutorSettings]:
     return p.job_mode, ExecutorSettings(p.executor, p.workers, p.scheduler)
 
 
-CLASSES = (CityPreferences, CitySceneSettings, CityJobState)
+CLASSES = (CityPreferences, *STAGE_OPTION_GROUPS.values(), CityStageOptions, CityBuildingItem, CitySceneSettings,
+           CityJobState)
 
 
 def attach() -> None:

@@ -2,8 +2,10 @@
 
 Stage panels show each stage's status from ``state.json`` and Run buttons that call the generic
 ``city.run_stages`` operator, so they work for whichever stages are registered in ``core.pipeline.registry``; a
-stage that is not registered yet is listed as such. Panels only read cached summaries (re-read when
-``block.json`` or ``state.json`` change), never the workspace on every redraw.
+stage that is not registered yet is listed as such. The stages of ``addon.properties.STAGE_OPTION_GROUPS`` also show
+their options, which read and write ``[stages.<stage>]`` of ``project.toml``. The Buildings panel lists the
+buildings (:class:`CITY_UL_buildings`); making one active selects its object. Panels only read cached summaries
+(re-read when ``block.json`` or ``state.json`` change), never the workspace on every redraw.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from pathlib import Path
 import bpy
 
 from ..addon import georef, jobs, layers_aerotri, layers_windows
+from ..addon.properties import option_fields
 from ..core.errors import CityError
 from ..core.pipeline.registry import get_stage, stage_names
 from ..core.pipeline.workspace import ADJUSTED_BLOCK_FILE, BLOCK_FILE, STATE_FILE, Workspace
@@ -156,6 +159,20 @@ def draw_stages(layout, context, names: list[str]) -> None:
             description = str(e).splitlines()[0]
         if description:
             box.label(text=description[:80])
+        if option_fields(name):
+            draw_stage_options(box, context, name, enabled=root is not None and not running)
+
+
+def draw_stage_options(layout, context, name: str, enabled: bool = True) -> None:
+    """The options of a stage of :data:`~addon.properties.STAGE_OPTION_GROUPS`: one field per option, stored in
+    ``[stages.<name>]`` of ``project.toml`` (greyed out without a workspace or while a job runs)."""
+    options = getattr(context.scene.oblique_city.stage_options, name)
+    col = layout.column(align=True)
+    col.use_property_split = True
+    col.enabled = enabled
+    col.label(text="Options (project.toml)", icon="PREFERENCES")
+    for field in option_fields(name):
+        col.prop(options, field)
 
 
 def draw_export(layout, context) -> None:
@@ -211,9 +228,34 @@ def buildings_report(root: Path) -> dict:
     return _cached(key, lambda: json.loads(path.read_text(encoding="utf-8")))
 
 
+class CITY_UL_buildings(bpy.types.UIList):
+    """The Buildings panel's list: id, path, status (closed solid, open solid's problem, failure's reason),
+    reconstruction seconds and surface count of each building."""
+
+    bl_idname = "CITY_UL_buildings"
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0, flt_flag=0):
+        symbol = "CANCEL" if item.failed else "CHECKMARK" if item.closed else "ERROR"
+        if self.layout_type == "GRID":
+            layout.label(text=item.name, icon=symbol)
+            return
+        row = layout.row(align=True)
+        row.label(text=item.name, icon=symbol)
+        row.label(text=item.path or "-")
+        row.label(text=item.status)
+        if not item.failed:
+            row.label(text=f"{item.seconds:.1f} s, {item.surfaces} surf.")
+
+
+BUILDING_LIST_ROWS = 6
+"""Rows of the building list when it is not resized."""
+
+
 def draw_buildings(layout, context) -> None:
-    """The Buildings panel's per-building status: counts by path, closed solids, and the buildings that need
-    attention (open solids with their problem, failures with their reason)."""
+    """The Buildings panel's per-building status: counts by path, closed solids, and the building list (every
+    building with its status, failures with their reason; the active one is selected in the viewport). Before
+    the list is filled (the layer is not built yet), the buildings that need attention are listed from the
+    report instead."""
     root = workspace_root(context)
     if root is None:
         return
@@ -227,12 +269,26 @@ def draw_buildings(layout, context) -> None:
     closed = sum(bool(b.get("closed")) for b in done)
     col.label(text=f"{len(done)} buildings (2D {paths['2d']}, volumetric {paths['volumetric']}), "
                    f"{closed} closed, {len(failed)} failed")
+    settings = context.scene.oblique_city
+    if len(settings.building_list):
+        row = layout.row()
+        row.template_list(CITY_UL_buildings.bl_idname, "", settings, "building_list", settings, "building_index",
+                          rows=BUILDING_LIST_ROWS)
+        row.operator("city.refresh_buildings", text="", icon="FILE_REFRESH")
+        if 0 <= settings.building_index < len(settings.building_list):
+            item = settings.building_list[settings.building_index]
+            box = layout.box()
+            box.label(text=f"{item.name}: {item.status}"[:80], icon="CANCEL" if item.failed else "OBJECT_DATA")
+            if not item.failed:
+                box.label(text=f"{item.path} path, {item.surfaces} surfaces, {item.seconds:.1f} s")
+        return
     attention = [(b["id"], f"open solid: {b.get('solid_problem') or '?'}", "ERROR") for b in done
                  if not b.get("closed")] + [(f["id"], f"failed: {f.get('reason', '?')}", "CANCEL") for f in failed]
     for bid, text, icon in attention[:BUILDING_LINES]:
         col.label(text=f"{bid}  {text}"[:80], icon=icon)
     if len(attention) > BUILDING_LINES:
         col.label(text=f"... and {len(attention) - BUILDING_LINES} more (buildings/report.json)")
+    layout.operator("city.refresh_buildings", text="List Buildings", icon="FILE_REFRESH")
 
 
 WINDOW_LINES = 10
@@ -303,4 +359,4 @@ class CITY_PT_more_stages(CityPanel, bpy.types.Panel):
 
 
 STAGE_PANEL_CLASSES = tuple(_stage_panel(label, names) for label, names in STAGE_PANELS)
-CLASSES = (CITY_PT_block, CITY_PT_job, *STAGE_PANEL_CLASSES, CITY_PT_more_stages)
+CLASSES = (CITY_UL_buildings, CITY_PT_block, CITY_PT_job, *STAGE_PANEL_CLASSES, CITY_PT_more_stages)
