@@ -643,7 +643,7 @@ def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
         uv_hat = project_obs(cameras, image_camera, r, c, xyz, op, oi)
         v = obs_uv[idx] - uv_hat
         good = np.all(np.isfinite(v), 1)
-        jp, _ = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
+        jp = precision.point_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
         w = good.astype(np.float64)
         n = precision.point_normals(jp, w, local, len(pts))
         jv = np.einsum("mji,mj->mi", jp[good], v[good])

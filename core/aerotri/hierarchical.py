@@ -28,13 +28,12 @@ from ..errors import ConfigError
 from ..geometry.views import OBLIQUE_VIEWS
 from ..model import ImageBlock, Pose, TiePoints
 from .bundle import BundleOptions, BundleResult, adjust, project_obs, refine_points, worst_per_track
-from .precision import collinearity_jacobians, point_normals, safe_inverse
+from .precision import collinearity_jacobians, point_jacobians, point_normals, safe_inverse
 from .problem import (
     SubProblem,
     build_problem,
     intersect_rays,
     intersect_ties,
-    observation_rays,
     result_poses,
     thin_ties,
 )
@@ -277,7 +276,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         thinned[ties.obs_track[thinned_obs]] = True
         s0 = float(np.sqrt(sum(r.result.sigma0**2 * r.result.redundancy for r in runs)
                            / max(sum(r.result.redundancy for r in runs), 1)))
-        xt, ct, rj = intersect_and_test(block, ties, poses, ~rej, thinned, opt.sigma_px, s0, opt.blunder_threshold)
+        xt, ct, rj = intersect_and_test(block, ties, poses, ~rej, thinned, opt.sigma_px, s0, opt.blunder_threshold,
+                                        executor=executor)
         ok = thinned & np.isfinite(xt[:, 0])
         xyz[ok], cov[ok] = xt[ok], ct[ok]
         rej |= rj
@@ -363,12 +363,13 @@ def nadir_propagation(block: ImageBlock, nadir_poses: dict[str, Pose]) -> dict[s
 
 
 def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose], obs_ok: np.ndarray,
-                       tracks: np.ndarray, sigma_px: float, sigma0: float, threshold: float,
-                       max_rounds: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Tie points from the final orientations (cameras fixed) with blunder tests: multi-ray forward intersection,
-    Gauss-Newton on the pixel residuals, then each round rejects every track's worst ray whose normalised residual
-    ``|v| / (sigma0 sigma_px sqrt(r))`` (r its redundancy number for the point alone) exceeds ``threshold``; only
-    tracks that lost a ray are recomputed in the next round.
+                       tracks: np.ndarray, sigma_px: float, sigma0: float, threshold: float, max_rounds: int = 6,
+                       executor=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tie points from the final orientations (cameras fixed) with blunder tests: multi-ray forward intersection and
+    a Gauss-Newton step on the pixel residuals, then each round rejects every track's worst ray whose normalised
+    residual ``|v| / (sigma0 sigma_px sqrt(r))`` (r its redundancy number for the point alone) exceeds
+    ``threshold``; only tracks that lost a ray are recomputed in the next round. With a parallel ``executor`` the
+    tracks are split into one share per worker (only their observation arrays travel).
 
     ``obs_ok : (m,)`` observations allowed; ``tracks : (n,)`` bool tracks to compute. Returns ``xyz (n, 3)`` and
     ``cov (n, 3, 3)`` (NaN for tracks not computed or with fewer than two rays) and the rejected ``(m,)``."""
@@ -384,39 +385,79 @@ def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose
         if iid in poses:
             r[k], c[k] = poses[iid].R, poses[iid].C
     use = obs_ok & tracks[ties.obs_track] & np.isfinite(c[ties.obs_image, 0])
+    parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
+    shares = max(1, int(getattr(executor, "workers", 1))) if parallel else 1
+    items, index = [], []
+    for s in range(shares):
+        idx = np.flatnonzero(use & (ties.obs_track % shares == s))
+        pts, local = np.unique(ties.obs_track[idx], return_inverse=True)
+        index.append((idx, pts))
+        items.append((cameras, image_camera, r, c, local.astype(np.int64), ties.obs_image[idx], ties.obs_uv[idx],
+                      len(pts), sigma_px, sigma0, threshold, max_rounds))
+    outs = executor.map(_intersect_unit, items) if parallel else [_intersect_unit(it) for it in items]
     xyz = np.full((n, 3), np.nan)
     cov = np.full((n, 3, 3), np.nan)
     rejected = np.zeros(m, bool)
-    todo = tracks.copy()
+    for (idx, pts), (x, q, rej) in zip(index, outs):
+        xyz[pts], cov[pts] = x, q
+        rejected[idx] = rej
+    return xyz, cov, rejected
+
+
+def _intersect_unit(item: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Executor unit of :func:`intersect_and_test` over arrays: ``(cameras, image_camera (k,), r (k, 3, 3),
+    c (k, 3), obs_point (m,), obs_image (m,), obs_uv (m, 2), n_points, sigma_px, sigma0, threshold, max_rounds)``
+    -> ``xyz (n, 3)``, ``cov (n, 3, 3)``, rejected ``(m,)``."""
+    cameras, image_camera, r, c, op_all, oi_all, uv_all, n, sigma_px, sigma0, threshold, max_rounds = item
+    m = len(op_all)
     fx = np.array([cm.fx for cm in cameras])[image_camera]
     fy = np.array([cm.fy for cm in cameras])[image_camera]
+    xyz = np.full((n, 3), np.nan)
+    cov = np.full((n, 3, 3), np.nan)
+    use = np.ones(m, bool)
+    rejected = np.zeros(m, bool)
+    todo = np.ones(n, bool)
+    # ray directions once (undistortion is iterative)
+    xy = np.full((m, 2), np.nan)
+    cam_of_obs = image_camera[oi_all]
+    for ci, cam in enumerate(cameras):
+        sel = cam_of_obs == ci
+        if sel.any():
+            xy[sel] = cam.pixel_to_normalized(uv_all[sel])
+    d_all = np.einsum("mji,mj->mi", r[oi_all], np.concatenate([xy, np.ones((m, 1))], 1))
+    d_all /= np.linalg.norm(d_all, axis=1, keepdims=True)
     for _ in range(max_rounds):
-        sel = use & todo[ties.obs_track]
-        idx = np.flatnonzero(sel)
+        idx = np.flatnonzero(use & todo[op_all])
         if len(idx) == 0:
             break
-        o, d = observation_rays(block, ties.image_ids, poses, ties.obs_image[idx], ties.obs_uv[idx])
-        x0, _ = intersect_rays(o, d, ties.obs_track[idx], n)
-        x0 = refine_points(cameras, image_camera, r, c, x0, ties.obs_track, ties.obs_image, ties.obs_uv, sel, 1)
-        op, oi = ties.obs_track[idx], ties.obs_image[idx]
-        v = ties.obs_uv[idx] - project_obs(cameras, image_camera, r, c, x0, op, oi)
-        jp, _ = collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], x0[op])
-        q = safe_inverse(point_normals(jp, np.full(len(idx), sigma_px**-2), op, n))
+        op, oi, uv = op_all[idx], oi_all[idx], uv_all[idx]
+        x0, _ = intersect_rays(c[oi], d_all[idx], op, n)
+        # one Gauss-Newton step on the pixel residuals; the test uses the linearised residuals after it
+        v = uv - project_obs(cameras, image_camera, r, c, x0, op, oi)
+        jp = point_jacobians(r[oi], c[oi], fx[oi], fy[oi], x0[op])
+        good = np.all(np.isfinite(v), 1)
+        q = safe_inverse(point_normals(jp, np.where(good, sigma_px**-2, 0.0), op, n))
+        jv = np.einsum("mji,mj->mi", jp, np.nan_to_num(v)) * good[:, None]
+        g = np.stack([np.bincount(op, weights=jv[:, i], minlength=n) for i in range(3)], 1) * sigma_px**-2
+        step = np.nan_to_num(np.einsum("kij,kj->ki", q, g))
+        x1 = x0 + step
+        v1 = v - np.einsum("mij,mj->mi", jp, step[op])
         hp = ((jp @ np.nan_to_num(q)[op]) * jp).sum(axis=(1, 2))
         red = np.clip(1.0 - hp / sigma_px**2 / 2.0, 0.02, 1.0)
         w = np.full(m, np.nan)
-        w[idx] = np.sqrt(np.sum(v**2, 1) / red) / (sigma_px * max(sigma0, 1e-9))
-        xyz[todo] = x0[todo]
+        w[idx] = np.sqrt(np.sum(v1**2, 1) / red) / (sigma_px * max(sigma0, 1e-9))
+        xyz[todo] = x1[todo]
         cov[todo] = q[todo] * sigma0**2
-        bad = worst_per_track(w, ties.obs_track, sel, threshold) | (sel & ~np.isfinite(w))
+        cur = np.zeros(m, bool)
+        cur[idx] = True
+        bad = worst_per_track(w, op_all, cur, threshold) | (cur & ~np.isfinite(w))
         if not bad.any():
             break
         rejected |= bad
         use &= ~bad
         todo = np.zeros(n, bool)
-        todo[ties.obs_track[bad]] = True
+        todo[op_all[bad]] = True
     return xyz, cov, rejected
-
 
 
 def datum_correction(block: ImageBlock, poses: dict[str, Pose]) -> np.ndarray:

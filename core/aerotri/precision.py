@@ -33,16 +33,23 @@ def collinearity_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx
         (``R' = R exp([theta]x)``)
     """
     d = xyz_world - c_world
-    xc = np.einsum("mij,mj->mi", r_cam_from_world, d)
+    j_point = point_jacobians(r_cam_from_world, c_world, fx, fy, xyz_world)
+    # -(j [d]x) = d x j per row
+    j_rot = np.cross(d[:, None, :], j_point)
+    return j_point, j_rot
+
+
+def point_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx: np.ndarray, fy: np.ndarray,
+                    xyz_world: np.ndarray) -> np.ndarray:
+    """``d(uv)/d(point) (m, 2, 3)`` alone (see :func:`collinearity_jacobians` for the shapes)."""
+    xc = np.einsum("mij,mj->mi", r_cam_from_world, xyz_world - c_world)
     z = xc[:, 2]
     # rows of the projection Jacobian times R, written out (batched 2x3 @ 3x3 products are slow in numpy)
     rr = r_cam_from_world
     j_point = np.empty((len(z), 2, 3))
     j_point[:, 0] = (fx / z)[:, None] * rr[:, 0] - (fx * xc[:, 0] / z**2)[:, None] * rr[:, 2]
     j_point[:, 1] = (fy / z)[:, None] * rr[:, 1] - (fy * xc[:, 1] / z**2)[:, None] * rr[:, 2]
-    # -(j [d]x) = d x j per row
-    j_rot = np.cross(d[:, None, :], j_point)
-    return j_point, j_rot
+    return j_point
 
 
 def sum_blocks(blocks: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
