@@ -31,8 +31,8 @@ class ContourConfig:
 
     cell: float = 0.5
     min_wall_height: float = 1.5
-    max_overhang: float = 1.5
-    min_coverage: float = 0.95
+    max_overhang: float = 1.2
+    min_coverage: float = 0.98
     z_bin: float = 0.5
     fill_share: float = 0.6
     line_tol: float = 0.12
