@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -152,6 +153,15 @@ def select_connections(xyz: np.ndarray, candidate: np.ndarray, rays: np.ndarray,
     return out
 
 
+def _warm_up(hold_s: float) -> None:
+    """Executor unit run once per worker while the nadir run computes: imports the solver (a second or two per
+    process) and holds the worker for ``hold_s`` so that the pool spreads these units over all its workers."""
+    import pyceres  # noqa: F401
+    import pycolmap  # noqa: F401
+
+    time.sleep(hold_s)
+
+
 def _adjust_unit(item: tuple[str, SubProblem, BundleOptions]) -> tuple[str, BundleResult, float]:
     """Executor unit: one oblique sub-block (module-level so process pools and Dask can pickle it)."""
     name, sub, opt = item
@@ -187,6 +197,13 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     nadir_ids = views.get("nadir", [])
     if not nadir_ids:
         raise ConfigError("hierarchical AT needs nadir images (none found by viewing direction)")
+    # the worker processes start and import the solver while the nadir run computes
+    parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
+    warm = None
+    if parallel:
+        workers = max(1, int(getattr(executor, "workers", 1)))
+        warm = threading.Thread(target=executor.map, args=(_warm_up, [0.5] * workers), daemon=True)
+        warm.start()
     # (1) nadir sub-block with the datum
     t1 = time.perf_counter()
     sub_n = build_problem(block, ties, nadir_ids, xyz0)
@@ -233,7 +250,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         conn_masks[v] = sel
         items.append((v, sub, replace(opt, datum_shift=False) if oblique_control else opt))
     # parallel units share the cores: each gets its part of the threads (the largest blocks start first)
-    parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
+    if warm is not None:
+        warm.join()
     if parallel and len(items) > 1:
         per_unit = max(1, opt.threads // min(len(items), max(1, int(getattr(executor, "workers", 1)))))
         items = [(v, sub, replace(o, threads=per_unit)) for v, sub, o in items]
