@@ -10,8 +10,11 @@
   held fixed). The four oblique runs are independent and go through the executor (inline, processes or Dask),
   each with its share of the threads. The oblique blocks start from the nadir corrections propagated to the
   other heads of each exposure.
+  Optionally (``oblique_ties_per_cell``) the oblique runs adjust a thinned, regularly distributed subset of their
+  tie points (a production practice); the rest are intersected afterwards with the final orientations.
   (3) Combined statistics by error propagation: a point's information is the nadir information plus each
-  oblique block's own contribution (its information minus the connection prior it received).
+  oblique block's own contribution (its information minus the connection prior it received); the datum shift is
+  refined from all control measurements (the nadir run saw only the nadir ones).
 * Baselines: direct georeferencing (the navigation orientations) and nadir-only AT whose per-exposure
   corrections are propagated to the oblique images of the same exposure.
 """
