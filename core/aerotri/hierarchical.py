@@ -225,12 +225,10 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     # start values of the oblique blocks: each exposure's nadir correction propagated to its other heads, and
     # tie points re-intersected from those orientations (fewer iterations than from the navigation data)
     start_poses = nadir_propagation(block, nadir.poses)
-    xyz_start, _ = intersect_ties(block, ties, start_poses)
-    xyz_start = np.where(np.isfinite(xyz_start[:, :1]), xyz_start, xyz0)
     view_of_image = np.array([block.images[i].view for i in ties.image_ids])
     view_of_obs = view_of_image[ties.obs_image]
-    items, conn_counts, conn_masks = [], {}, {}
     thinned_obs = np.zeros(ties.n_obs, bool)
+    per_view = []
     for v in OBLIQUE_VIEWS:
         ids = views.get(v, [])
         if not ids:
@@ -238,14 +236,24 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         in_view = view_of_obs == v
         rays_v = np.bincount(ties.obs_track[in_view], minlength=n)
         sel = select_connections(xyz_nadir, (rays_v > 0) & cov_ok, nadir_rays + rays_v, nadir_rays, connection, cell)
-        prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
-        prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
-        start = np.where(sel[:, None], xyz_nadir, xyz_start)
         obs_mask = None
         if oblique_ties_per_cell > 0:
             kept = thin_ties(block, ties, in_view, rays_v, oblique_tie_grid, oblique_ties_per_cell) | sel
             obs_mask = kept[ties.obs_track]
             thinned_obs |= in_view & ~obs_mask
+        per_view.append((v, ids, sel, obs_mask))
+    # start coordinates only of the tracks that enter an oblique run (thinned tracks are intersected at the end)
+    used = np.zeros(n, bool)
+    for v, _, _, obs_mask in per_view:
+        in_run = (view_of_obs == v) if obs_mask is None else (view_of_obs == v) & obs_mask
+        used[ties.obs_track[in_run]] = True
+    xyz_start, _ = intersect_ties(block, ties, start_poses, obs_mask=used[ties.obs_track])
+    xyz_start = np.where(np.isfinite(xyz_start[:, :1]), xyz_start, xyz0)
+    items, conn_counts, conn_masks = [], {}, {}
+    for v, ids, sel, obs_mask in per_view:
+        prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
+        prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
+        start = np.where(sel[:, None], xyz_nadir, xyz_start)
         sub = build_problem(block, ties, ids, start, obs_mask=obs_mask, use_control=oblique_control,
                             point_prior_xyz=prior_xyz, point_prior_cov=prior_cov, prior_shift=res_n.datum_shift,
                             initial=start_poses)

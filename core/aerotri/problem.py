@@ -60,12 +60,12 @@ def intersect_ties(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose],
     Returns ``xyz (n, 3)`` (NaN for tracks with fewer than two usable rays) and the ray distances ``(m,)``
     (NaN for observations not used).
     """
-    mask = np.ones(ties.n_obs, bool) if obs_mask is None else obs_mask.copy()
-    o, d = observation_rays(block, ties.image_ids, poses, ties.obs_image, ties.obs_uv)
-    mask &= np.isfinite(o[:, 0])
-    xyz, dist = intersect_rays(o[mask], d[mask], ties.obs_track[mask], ties.n_tracks)
+    idx = np.arange(ties.n_obs) if obs_mask is None else np.flatnonzero(obs_mask)
+    o, d = observation_rays(block, ties.image_ids, poses, ties.obs_image[idx], ties.obs_uv[idx])
+    ok = np.isfinite(o[:, 0])
+    xyz, dist = intersect_rays(o[ok], d[ok], ties.obs_track[idx[ok]], ties.n_tracks)
     out = np.full(ties.n_obs, np.nan)
-    out[mask] = dist
+    out[idx[ok]] = dist
     return xyz, out
 
 
