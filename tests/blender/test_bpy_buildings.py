@@ -33,14 +33,20 @@ def box_building(bid: str, dx: float, path: str, closed: bool) -> BuildingModel:
                          info)
 
 
-@pytest.fixture
-def ws(tmp_path, utm_block):
-    w = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
-    w.save_block(utm_block)
+def two_box_workspace(tmp_path, block) -> tuple[Workspace, list[BuildingModel]]:
+    """A workspace with ``block`` and two box buildings (B0001 closed, 2D path; B0002 open, volumetric), the
+    buildings stage marked done (other tests add their stage's files)."""
+    w = Workspace.create(tmp_path / "ws", crs=block.crs)
+    w.save_block(block)
     models = [box_building("B0001", 0.0, "2d", True), box_building("B0002", 30.0, "volumetric", False)]
-    save_buildings(w.stage_dir("buildings") / "buildings.json", models, utm_block.crs)
+    save_buildings(w.stage_dir("buildings") / "buildings.json", models, block.crs)
     w.write_state({"buildings": {"status": "done"}})
     return w, models
+
+
+@pytest.fixture
+def ws(tmp_path, utm_block):
+    return two_box_workspace(tmp_path, utm_block)
 
 
 def test_buildings_layer(addon, ws):

@@ -15,10 +15,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from test_bpy_buildings import box_building
+from test_bpy_buildings import two_box_workspace
 from test_bpy_ui import RecordingLayout
 
-from oblique_city.core.buildings.model import save_buildings
 from oblique_city.core.pipeline import Workspace
 from oblique_city.core.pipeline.atomic import write_json
 from oblique_city.core.pipeline.registry import get_stage
@@ -38,12 +37,8 @@ REPORT = {
 
 @pytest.fixture
 def ws(tmp_path, utm_block):
-    w = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
-    w.save_block(utm_block)
-    models = [box_building("B0001", 0.0, "2d", True), box_building("B0002", 30.0, "volumetric", False)]
-    save_buildings(w.stage_dir("buildings") / "buildings.json", models, utm_block.crs)
+    w, _ = two_box_workspace(tmp_path, utm_block)
     write_json(w.stage_dir("buildings") / "report.json", REPORT)
-    w.write_state({"buildings": {"status": "done"}})
     return w
 
 

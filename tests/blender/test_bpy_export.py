@@ -9,23 +9,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_bpy_buildings import box_building
+from test_bpy_buildings import two_box_workspace
 from test_bpy_ui import draw
-
-from oblique_city.core.buildings.model import save_buildings
-from oblique_city.core.pipeline import Workspace
 
 pytestmark = pytest.mark.xdist_group("bpy")
 
 
 @pytest.fixture
 def ws(tmp_path, utm_block):
-    w = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
-    w.save_block(utm_block)
-    models = [box_building("B0001", 0.0, "2d", True), box_building("B0002", 30.0, "volumetric", False)]
-    save_buildings(w.stage_dir("buildings") / "buildings.json", models, utm_block.crs)
-    w.write_state({"buildings": {"status": "done"}})
-    return w, models
+    return two_box_workspace(tmp_path, utm_block)
 
 
 def test_export_citygml_and_cityjson(addon, ws, tmp_path):

@@ -12,10 +12,8 @@ import json
 
 import numpy as np
 import pytest
-from test_bpy_buildings import X0, Y0, Z0, box_building
+from test_bpy_buildings import X0, Y0, Z0, two_box_workspace
 
-from oblique_city.core.buildings.model import save_buildings
-from oblique_city.core.pipeline import Workspace
 from oblique_city.core.windows.store import Window, load_windows, write_windows_json
 
 pytestmark = pytest.mark.xdist_group("bpy")
@@ -46,10 +44,7 @@ def windows_of_the_test() -> list[Window]:
 
 @pytest.fixture
 def ws(tmp_path, utm_block):
-    w = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
-    w.save_block(utm_block)
-    models = [box_building("B0001", 0.0, "2d", True), box_building("B0002", 30.0, "volumetric", False)]
-    save_buildings(w.stage_dir("buildings") / "buildings.json", models, utm_block.crs)
+    w, _ = two_box_workspace(tmp_path, utm_block)
     write_windows_json(w.stage_dir("windows") / "windows.json", windows_of_the_test(), utm_block.crs,
                        {"config": {}, "stats": {"windows": 5}})
     w.write_state({"buildings": {"status": "done"}, "windows": {"status": "done"}})
