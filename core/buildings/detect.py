@@ -17,7 +17,6 @@ so that its nearest edge moves out by ``dilate``, collects its points.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..errors import InputError
+from ..io.validate import read_json
 from ..model.raster import Raster
 from .geometry import points_in_polygon
 
@@ -138,12 +138,7 @@ def points_per_building(xyz: np.ndarray, labels: np.ndarray, grid: Raster, dtm: 
 def read_footprints(path: str | Path) -> list[np.ndarray]:
     """Outer rings (m, 2) of the Polygon / MultiPolygon features of a GeoJSON file (project CRS)."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("footprint file not found", path) from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None
+    doc = read_json(path, "footprint file not found")
     feats = doc.get("features", [doc] if doc.get("type") == "Feature" else None)
     if feats is None:
         raise InputError("expected a FeatureCollection or a Feature", path, field="type")

@@ -10,7 +10,6 @@ Stored in the workspace as ``buildings/buildings.json`` (:func:`save_buildings` 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io.validate import read_json
 from ..pipeline.atomic import write_json
 
 SURFACE_KINDS = ("ground", "wall", "roof", "overhang_roof", "overhang_fascia", "overhang_underside")
@@ -184,12 +184,7 @@ def save_buildings(path: str | Path, buildings: list[BuildingModel], crs: str) -
 def load_buildings(path: str | Path) -> tuple[list[BuildingModel], str]:
     """Read ``buildings.json``: the buildings and the CRS."""
     path = Path(path)
-    if not path.exists():
-        raise InputError("no buildings file (run the 'buildings' stage first)", path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None
+    doc = read_json(path, "no buildings file (run the 'buildings' stage first)")
     if doc.get("format") != "oblique-city-buildings":
         raise InputError("not an Oblique City buildings file", path, field="format")
     return [BuildingModel.from_dict(d, path) for d in doc.get("buildings", [])], str(doc.get("crs", ""))

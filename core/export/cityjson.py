@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..io.validate import read_json
 from ..pipeline.atomic import write_text
 from .textures import copy_pages, textured
 
@@ -213,10 +213,4 @@ def check_cityjson(doc: dict[str, Any]) -> list[str]:
 
 def read_cityjson(path: str | Path) -> dict[str, Any]:
     """Load a CityJSON file (InputError on malformed JSON)."""
-    path = Path(path)
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("CityJSON file not found", path) from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None
+    return read_json(path, "CityJSON file not found")

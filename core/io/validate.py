@@ -1,4 +1,5 @@
-"""Checks shared by every block reader: numbers, units, CRS, options, XML safety, image files and sizes.
+"""Checks shared by every block reader: numbers, units, CRS, options, XML safety, image files and sizes, and
+the one JSON file reader of the workspace's own files.
 
 Every check raises :class:`InputError` naming the file, the line (1-based, for text files and XML elements) and
 the field, so a user can go straight to the offending place. Readers build the whole block in memory first and
@@ -342,3 +343,15 @@ def check_block(block: ImageBlock, source: str | Path) -> None:
             if np.abs(pose.R @ pose.R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(pose.R) < 0:
                 raise InputError(f"image '{img.id}': rotation is not a proper rotation matrix", path=source,
                                  field=attr)
+
+
+def read_json(path: str | Path, missing: str = "file not found") -> Any:
+    """The content of a JSON file; :class:`InputError` naming the file with ``missing`` when it is not there, or
+    the line of a syntax error."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(missing, path) from None
+    except json.JSONDecodeError as e:
+        raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None

@@ -12,7 +12,6 @@ half-texel positions (``u = x / width``, ``v = 1 - y / height`` with ``x, y`` co
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ComputationError, InputError
+from ..io.validate import read_json
 
 FORMAT = "oblique-city-textures"
 FORMAT_VERSION = 1
@@ -123,12 +123,7 @@ class TextureSet:
 def load_textures(path: str | Path) -> TextureSet:
     """Read ``texture/textures.json``; page files are resolved beside it."""
     path = Path(path)
-    if not path.exists():
-        raise InputError("no textures file (run the 'texture' stage first)", path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None
+    doc = read_json(path, "no textures file (run the 'texture' stage first)")
     if doc.get("format") != FORMAT:
         raise InputError("not an Oblique City textures file", path, field="format")
     try:

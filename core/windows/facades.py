@@ -8,13 +8,13 @@ therefore gives back the rectified facade, and the frame maps texel coordinates 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..io.validate import read_json
 from ..texture.plane import texel_grid
 from .detect import Detection, WindowOptions, boxes_to_world, detect_windows
 
@@ -57,12 +57,7 @@ def workspace_facades(textures_json: str | Path, buildings, kinds: tuple[str, ..
     import cv2
 
     path = Path(textures_json)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("no textures file (run the 'texture' stage first)", path) from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None
+    doc = read_json(path, "no textures file (run the 'texture' stage first)")
     pages: dict[int, np.ndarray] = {}
     out = []
     for b in buildings:

@@ -13,7 +13,6 @@ seen from outside).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io.validate import read_json
 
 FORMAT = "oblique-city-windows"
 FORMAT_VERSION = 1
@@ -60,12 +60,7 @@ def write_windows_json(path: str | Path, windows: list[Window], crs: str, extra:
 def load_windows(path: str | Path) -> list[Window]:
     """Read ``windows/windows.json``."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("no windows file (run the 'windows' stage first)", path) from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None
+    doc = read_json(path, "no windows file (run the 'windows' stage first)")
     if doc.get("format") != FORMAT:
         raise InputError("not an Oblique City windows file", path, field="format")
     out = []
