@@ -81,7 +81,7 @@ def truth_colours(renderer, xyz: np.ndarray, normal: np.ndarray, texel: float, o
     p = start[hi] - t[hi, None] * normal.astype(np.float32)
     uvc = city.uv[tri]
     uv = uvc[:, 0] * (1 - bary[:, 0:1] - bary[:, 1:2]) + uvc[:, 1] * bary[:, 0:1] + uvc[:, 2] * bary[:, 1:2]
-    albedo = renderer._albedo(tri, uv, p, np.full(len(hi), texel, np.float32))  # the simulator's own materials
+    albedo = renderer.albedo(tri, uv, p, np.full(len(hi), texel, np.float32))  # the simulator's own materials
     n = renderer.normals[tri].copy()
     n[(n @ normal.astype(np.float32)) < 0] *= -1.0
     sun = cfg.sun_direction().astype(np.float32)

@@ -251,7 +251,7 @@ class Renderer:
         uvc = self.city.uv[tri]
         uv = (uvc[:, 0] * (1 - bary[:, 0:1] - bary[:, 1:2]) + uvc[:, 1] * bary[:, 0:1]
               + uvc[:, 2] * bary[:, 1:2])
-        albedo = self._albedo(tri, uv, p_local, fp)
+        albedo = self.albedo(tri, uv, p_local, fp)
         # lighting
         sun = cfg.sun_direction().astype(np.float32)
         ndl = n @ sun
@@ -269,9 +269,10 @@ class Renderer:
         out[hi] = albedo * irr[:, None]
         return out, t
 
-    def _albedo(self, tri: np.ndarray, uv: np.ndarray, p: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    def albedo(self, tri: np.ndarray, uv: np.ndarray, p: np.ndarray, fp: np.ndarray) -> np.ndarray:
         """Procedural albedo ``(n, 3)`` of hits on triangles ``tri`` with texture coordinates ``uv`` (metres),
-        local positions ``p`` and pixel footprints ``fp`` (metres)."""
+        local positions ``p`` and pixel footprints ``fp`` (metres): the simulator's own materials, public so that
+        evaluations can compare textures with them."""
         mat = self.city.material[tri]
         kind = self.kind[tri]
         c1, c2 = self.col1[mat], self.col2[mat]
