@@ -35,6 +35,9 @@ class AerotriConfig:
     cell_size : CBA grid cell, metres
     oblique_control : HAT: control points measured in oblique images also enter the oblique runs (datum from
         the nadir run)
+    oblique_ties_per_cell, oblique_tie_grid : HAT: thin the oblique runs' tie points to this many tracks per cell of
+        a grid ``oblique_tie_grid`` cells across each image (connection points kept; the thinned points are
+        intersected afterwards with the final orientations); 0 keeps every tie point (the seed's method)
     sigma_px : a priori standard deviation of tie measurements, pixels
     self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
     datum_shift : estimate a 3D shift between the GNSS frame and the control frame
@@ -54,6 +57,8 @@ class AerotriConfig:
     connection: str = "cba"
     cell_size: float = 50.0
     oblique_control: bool = True
+    oblique_ties_per_cell: int = 0
+    oblique_tie_grid: int = 8
     sigma_px: float = 0.5
     self_calibration: tuple[str, ...] = ()
     datum_shift: bool = True
@@ -105,7 +110,9 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
         at = integrated(block, ties, opt, progress=ctx.progress)
     else:
         at = hierarchical(block, ties, opt, connection=str(cfg.connection), cell=cfg.cell_size,
-                          executor=ctx.get_executor(), progress=ctx.progress, oblique_control=cfg.oblique_control)
+                          executor=ctx.get_executor(), progress=ctx.progress, oblique_control=cfg.oblique_control,
+                          oblique_ties_per_cell=int(cfg.oblique_ties_per_cell),
+                          oblique_tie_grid=int(cfg.oblique_tie_grid))
     for iid, pose in at.poses.items():
         block.images[iid].pose_adjusted = pose
     out = ws.stage_dir("aerotri")
@@ -116,6 +123,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     adj.save(str(out / "ties.npz"))
     ctx.progress(1, 2, "statistics and layers")
     report = block_report(block, ties, at, cfg.sigma_px)
+    report["thinned_observations"] = int(at.extra.get("thinned_observations", 0))
     layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size, cfg.layer_views)
     files = write_layers(layers, out / "layers")
     write_json(out / "report.json", report)
@@ -128,7 +136,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  *(f"aerotri/layers/{f}" for f in files)),
         metrics={"sigma0": report["sigma0"], "sigma0_px": report["sigma0_px"], "images": report["images"],
                  "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],
-                 "blunder_percent": report["blunder_percent"], "wall_s": report["wall_s"]},
+                 "blunder_percent": report["blunder_percent"], "wall_s": report["wall_s"],
+                 "thinned_observations": report["thinned_observations"]},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m")
 

@@ -44,3 +44,35 @@ def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
     assert np.nanmedian(after) < np.nanmedian(before)
     graph = json.loads(ws.path("matching/graph.json").read_text())
     assert graph["edges"] and all(e["matches"] >= 15 for e in graph["edges"])
+
+
+def test_aerotri_stage_thinned_hierarchical_still_gives_every_tie_point(tmp_path):
+    """HAT with thinned oblique runs through the stage options: the orientation improves on the navigation data and
+    the thinned tie points still get coordinates (intersected afterwards) close to the true ones."""
+    from oblique_city.core.model import TiePoints
+
+    s = simulate_block(SimulationConfig(n_images=60, tie_density=0.0004, seed=2))
+    ws = Workspace.create(tmp_path / "ws", "EPSG:32632")
+    ws.save_block(s.block)
+    ws.stage_dir("matching")
+    s.ties.save(str(ws.path("matching/ties.npz")))
+    ws.project["stages"] = {"match": {"tie_source": "file"}, "aerotri": {"sigma_px": 0.3}}
+    ws.save_project()
+    assert main(["run", str(ws.root), "--stages", "match,aerotri", "--set", "aerotri.mode=hierarchical",
+                 "--set", "aerotri.oblique_ties_per_cell=1", "--set", "aerotri.oblique_tie_grid=4"]) == 0
+    ws = Workspace.open(ws.root)
+    assert ws.stage_options("aerotri")["oblique_ties_per_cell"] == 1
+    report = json.loads(ws.path("aerotri/report.json").read_text())
+    assert report["thinned_observations"] > 0.2 * s.ties.n_obs  # the oblique runs adjusted a subset
+    block = ws.load_block()
+    adjusted = [i for i, im in block.images.items() if im.pose_adjusted is not None]
+    err = np.array([block.images[i].pose_adjusted.C - s.true_poses[i].C for i in adjusted])
+    nav = np.array([block.images[i].pose_approx.C - s.true_poses[i].C for i in adjusted])
+    assert len(adjusted) > 0.9 * len(block.images) and np.sqrt(np.mean(err**2)) < np.sqrt(np.mean(nav**2))
+    ties = TiePoints.load(str(ws.path("aerotri/ties.npz")))  # the stage keeps the tracks with >= 3 rays, in order
+    multi = s.ties.ray_counts() >= 3
+    assert ties.n_tracks == multi.sum()
+    ok = np.isfinite(ties.xyz[:, 0])
+    assert ok.mean() > 0.95
+    d = np.linalg.norm(ties.xyz[ok] - s.true_xyz[multi][ok], axis=1)
+    assert np.median(d) < 0.1
