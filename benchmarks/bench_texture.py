@@ -45,14 +45,11 @@ registration shift in block GSD, median luminance NCC."""
 
 
 def block_gsd(ws: Workspace) -> float:
-    """Median nadir GSD of the block: height above the DTM's median over the focal length in pixels."""
+    """Median nadir GSD of the block over the median height of the surface stage's DTM."""
     from oblique_city.core.io.geotiff import read_geotiff
+    from oblique_city.core.surface.stage import nadir_gsd
 
-    block = ws.load_block()
-    z = float(np.nanmedian(read_geotiff(ws.path("surface", "dtm.tif")).data))
-    g = [(img.pose.C[2] - z) / block.cameras[img.camera_id].fx for img in block.images.values()
-         if img.pose is not None and img.view == "nadir"]
-    return float(np.median(g))
+    return nadir_gsd(ws.load_block(), float(np.nanmedian(read_geotiff(ws.path("surface", "dtm.tif")).data)))
 
 
 def main(argv: list[str] | None = None) -> int:

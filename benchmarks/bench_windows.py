@@ -37,17 +37,10 @@ from oblique_city.core.evaluate.windows import building_of, true_walls, truth_wi
 from oblique_city.core.pipeline import Workspace  # noqa: E402
 from oblique_city.core.pipeline.context import RunContext  # noqa: E402
 from oblique_city.core.pipeline.registry import get_stage  # noqa: E402
+from oblique_city.core.surface.stage import nadir_gsd  # noqa: E402
 from oblique_city.core.windows.detect import WindowOptions  # noqa: E402
 from oblique_city.core.windows.facades import Facade, detect_facade  # noqa: E402
 from oblique_city.core.windows.store import load_windows  # noqa: E402
-
-
-def nadir_gsd(truth) -> float:
-    """Median nadir GSD of the true block over the true DTM (m)."""
-    z = float(np.nanmedian(truth.dtm.data))
-    g = [(img.pose.C[2] - z) / truth.block.cameras[img.camera_id].fx for img in truth.block.images.values()
-         if img.pose is not None and img.view == "nadir"]
-    return float(np.median(g))
 
 
 def true_wall_facades(truth, sim_root: Path) -> list[Facade]:
@@ -130,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     ws = Workspace.open(args.workspace)
     truth_dir = Path(args.truth) if args.truth else Path(ws.load_block().image_root or ".") / "truth"
     truth = load_truth(truth_dir)
-    gsd = nadir_gsd(truth)
+    gsd = nadir_gsd(truth.block, float(np.nanmedian(truth.dtm.data)))  # true block over the true DTM
     names = {b.id: b.name for b in truth.city.buildings}
     truth_by: dict[int, list[np.ndarray]] = {}
     for w, c in zip(truth.windows["windows"], truth_windows(truth.windows), strict=True):

@@ -52,6 +52,28 @@ def _cached(key: tuple, compute):
     return _cache[key]
 
 
+def _file_cached(path: Path, missing: dict, compute) -> dict:
+    """``compute()`` of a file, re-run only when the file changed; ``missing`` while the file is not there."""
+    key = (str(path), _mtime(path))
+    if key[1] is None:
+        return missing
+    return _cached(key, compute)
+
+
+def _figures_column(layout, context, summary):
+    """The column of a panel's figures and the figures ``summary(root)``, or None when there is no workspace or the
+    figures are an error (shown as one line)."""
+    root = workspace_root(context)
+    if root is None:
+        return None
+    s = summary(root)
+    col = layout.column(align=True)
+    if "error" in s:
+        col.label(text=s["error"], icon="INFO")
+        return None
+    return col, s
+
+
 def block_summary(root: Path) -> dict:
     """The block's summary (``ImageBlock.summary()``), re-read only when a block file changed."""
     key = ("block", str(root), _mtime(root / BLOCK_FILE), _mtime(root / ADJUSTED_BLOCK_FILE))
@@ -63,10 +85,7 @@ def block_summary(root: Path) -> dict:
 def stage_state(root: Path) -> dict:
     """``state.json`` as a dict, re-read only when it changed."""
     path = root / STATE_FILE
-    key = ("state", str(root), _mtime(path))
-    if key[2] is None:
-        return {}
-    return _cached(key, lambda: json.loads(path.read_text(encoding="utf-8")))
+    return _file_cached(path, {}, lambda: json.loads(path.read_text(encoding="utf-8")))
 
 
 def workspace_root(context) -> Path | None:
@@ -186,10 +205,7 @@ def triangulation_summary(root: Path) -> dict:
     """The key figures of ``aerotri/report.json`` (:func:`addon.layers_aerotri.report_summary`), re-read only when
     the report changed."""
     path = root / layers_aerotri.REPORT_FILE
-    key = ("aerotri_report", str(root), _mtime(path))
-    if key[2] is None:
-        return {"error": "no triangulation report yet"}
-    return _cached(key, lambda: layers_aerotri.report_summary(path))
+    return _file_cached(path, {"error": "no triangulation report yet"}, lambda: layers_aerotri.report_summary(path))
 
 
 def _metres(v) -> str:
@@ -198,14 +214,10 @@ def _metres(v) -> str:
 
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders) and Open Report."""
-    root = workspace_root(context)
-    if root is None:
+    figures = _figures_column(layout, context, triangulation_summary)
+    if figures is None:
         return
-    s = triangulation_summary(root)
-    col = layout.column(align=True)
-    if "error" in s:
-        col.label(text=s["error"], icon="INFO")
-        return
+    col, s = figures
     mode = s["mode"] + (f" ({s['connection']})" if s["connection"] else "")
     col.label(text=f"Mode: {mode}, {s['images']} images")
     col.label(text=f"Sigma0: {s['sigma0']:.3f} ({s['sigma0_px']:.3f} px)")
@@ -222,10 +234,8 @@ BUILDING_LINES = 15
 def buildings_report(root: Path) -> dict:
     """``buildings/report.json`` as a dict, re-read only when it changed."""
     path = root / "buildings" / "report.json"
-    key = ("buildings_report", str(root), _mtime(path))
-    if key[2] is None:
-        return {"error": "no buildings report yet"}
-    return _cached(key, lambda: json.loads(path.read_text(encoding="utf-8")))
+    return _file_cached(path, {"error": "no buildings report yet"},
+                        lambda: json.loads(path.read_text(encoding="utf-8")))
 
 
 class CITY_UL_buildings(bpy.types.UIList):
@@ -299,22 +309,15 @@ def windows_summary(root: Path) -> dict:
     """The figures of ``windows/windows.json`` (:func:`addon.layers_windows.windows_summary`), re-read only when
     the file changed."""
     path = root / layers_windows.WINDOWS_FILE
-    key = ("windows", str(root), _mtime(path))
-    if key[2] is None:
-        return {"error": "no windows yet"}
-    return _cached(key, lambda: layers_windows.windows_summary(path))
+    return _file_cached(path, {"error": "no windows yet"}, lambda: layers_windows.windows_summary(path))
 
 
 def draw_windows(layout, context) -> None:
     """The Windows panel's figures: the window count, and the window count of the buildings with the most."""
-    root = workspace_root(context)
-    if root is None:
+    figures = _figures_column(layout, context, windows_summary)
+    if figures is None:
         return
-    s = windows_summary(root)
-    col = layout.column(align=True)
-    if "error" in s:
-        col.label(text=s["error"], icon="INFO")
-        return
+    col, s = figures
     col.label(text=f"{s['windows']} windows on {s['walls']} walls of {len(s['buildings'])} buildings "
                    f"({s['grid']} from the facade grid)")
     for bid, n in list(s["buildings"].items())[:WINDOW_LINES]:

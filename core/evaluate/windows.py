@@ -14,6 +14,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..texture.plane import PlaneFrame, plane_frame
+
 
 @dataclass(frozen=True)
 class WindowScores:
@@ -37,21 +39,10 @@ class WindowScores:
         return asdict(self)
 
 
-def _frame(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Origin ``(3,)``, unit normal ``(3,)`` and in-plane axes ``(2, 3)`` (horizontal, up) of a facade rectangle."""
-    c = corners.mean(0)
-    n = np.cross(corners[1] - corners[0], corners[2] - corners[1])
-    n /= np.linalg.norm(n)
-    u = np.cross([0.0, 0.0, 1.0], n)
-    if np.linalg.norm(u) < 1e-9:  # a horizontal rectangle (roof window): any in-plane pair
-        u = corners[1] - corners[0]
-    u /= np.linalg.norm(u)
-    return c, n, np.stack([u, np.cross(n, u)])
-
-
-def _box(corners: np.ndarray, origin: np.ndarray, axes: np.ndarray) -> np.ndarray:
-    """Axis-aligned 2D box ``(umin, vmin, umax, vmax)`` of corners ``(4, 3)`` in a facade frame."""
-    uv = (corners - origin) @ axes.T
+def _box(corners: np.ndarray, frame: PlaneFrame) -> np.ndarray:
+    """Axis-aligned 2D box ``(umin, vmin, umax, vmax)`` of corners ``(4, 3)`` in a facade frame (along the wall,
+    up)."""
+    uv = frame.to_plane(corners)
     return np.concatenate([uv.min(0), uv.max(0)])
 
 
@@ -78,19 +69,19 @@ def window_scores(detected: list[np.ndarray], truth: list[np.ndarray], min_iou: 
     det = [np.asarray(d, dtype=np.float64).reshape(4, 3) for d in detected]
     tru = [np.asarray(t, dtype=np.float64).reshape(4, 3) for t in truth]
     cos_max = np.cos(np.radians(max_angle_deg))
-    frames = [_frame(t) for t in tru]
-    det_frames = [_frame(d) for d in det]
+    frames = [plane_frame(t) for t in tru]
+    det_normals = [plane_frame(d).normal for d in det]
     det_centres = np.array([d.mean(0) for d in det]).reshape(-1, 3)
     pairs = []
-    for j, (origin, n, axes) in enumerate(frames):
+    for j, frame in enumerate(frames):
         if not len(det):
             break
-        near = np.flatnonzero(np.abs((det_centres - origin) @ n) <= max_plane_dist)
-        tb = _box(tru[j], origin, axes)
+        near = np.flatnonzero(np.abs((det_centres - frame.origin) @ frame.normal) <= max_plane_dist)
+        tb = _box(tru[j], frame)
         for i in near:
-            if abs(det_frames[i][1] @ n) < cos_max:
+            if abs(det_normals[i] @ frame.normal) < cos_max:
                 continue
-            iou = _iou(_box(det[i], origin, axes), tb)
+            iou = _iou(_box(det[i], frame), tb)
             if iou >= min_iou:
                 pairs.append((iou, i, j))
     pairs.sort(key=lambda p: -p[0])

@@ -106,12 +106,6 @@ def texel_grid(ring_xyz: np.ndarray, texel: float) -> TexelGrid:
     return TexelGrid(frame, float(texel), float(s0), float(t1), (rows, cols), ring_xy, mask.astype(bool))
 
 
-def polygon_area(xy: np.ndarray) -> float:
-    """Unsigned shoelace area of a 2-D ring ``(k, 2)``."""
-    x, y = xy[:, 0], xy[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
-
-
 def ring_area(ring_xyz: np.ndarray) -> float:
     """Area of a planar 3-D ring ``(k, 3)`` (Newell)."""
     c = np.asarray(ring_xyz, np.float64)

@@ -12,7 +12,8 @@ from oblique_city.core.pipeline import Workspace
 from oblique_city.core.simulate.observations import SimulationConfig, simulate_block
 
 
-def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
+def _simulated_workspace(tmp_path):
+    """A 60-image simulated block with its tie points as the match stage's input file."""
     s = simulate_block(SimulationConfig(n_images=60, tie_density=0.0004, seed=2))
     ws = Workspace.create(tmp_path / "ws", "EPSG:32632")
     ws.save_block(s.block)
@@ -20,6 +21,11 @@ def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
     s.ties.save(str(ws.path("matching/ties.npz")))
     ws.project["stages"] = {"match": {"tie_source": "file"}, "aerotri": {"sigma_px": 0.3}}
     ws.save_project()
+    return s, ws
+
+
+def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
+    s, ws = _simulated_workspace(tmp_path)
     assert main(["aerotri", str(ws.root), "--mode", "hierarchical", "--connection", "cba",
                  "--cell-size", "40"]) == 0
     ws = Workspace.open(ws.root)
@@ -51,13 +57,7 @@ def test_aerotri_stage_thinned_hierarchical_still_gives_every_tie_point(tmp_path
     the thinned tie points still get coordinates (intersected afterwards) close to the true ones."""
     from oblique_city.core.model import TiePoints
 
-    s = simulate_block(SimulationConfig(n_images=60, tie_density=0.0004, seed=2))
-    ws = Workspace.create(tmp_path / "ws", "EPSG:32632")
-    ws.save_block(s.block)
-    ws.stage_dir("matching")
-    s.ties.save(str(ws.path("matching/ties.npz")))
-    ws.project["stages"] = {"match": {"tie_source": "file"}, "aerotri": {"sigma_px": 0.3}}
-    ws.save_project()
+    s, ws = _simulated_workspace(tmp_path)
     assert main(["run", str(ws.root), "--stages", "match,aerotri", "--set", "aerotri.mode=hierarchical",
                  "--set", "aerotri.oblique_ties_per_cell=1", "--set", "aerotri.oblique_tie_grid=4"]) == 0
     ws = Workspace.open(ws.root)
