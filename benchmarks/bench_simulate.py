@@ -31,6 +31,7 @@ if str(ROOT.parent) not in sys.path:
     sys.path.insert(0, str(ROOT.parent))
 
 from oblique_city.core.geometry.projection import backproject_depth, project  # noqa: E402
+from oblique_city.core.matching.features import SIFT_OFFSET_PX  # noqa: E402
 from oblique_city.core.simulate.render import Renderer  # noqa: E402
 from oblique_city.core.simulate.simulator import SimulationConfig, simulate  # noqa: E402
 from oblique_city.core.simulate.truth import load_truth  # noqa: E402
@@ -58,8 +59,8 @@ def sift_pairs(out: Path, n_pairs: int = 2) -> list[dict]:
             kb, db = sift.detectAndCompute(gb, None)
             m = cv2.BFMatcher().knnMatch(da, db, k=2)
             good = [x[0] for x in m if len(x) == 2 and x[0].distance < 0.8 * x[1].distance]
-            ua = np.array([ka[g.queryIdx].pt for g in good], np.float64).reshape(-1, 2)
-            ub = np.array([kb[g.trainIdx].pt for g in good], np.float64).reshape(-1, 2)
+            ua = np.array([ka[g.queryIdx].pt for g in good], np.float64).reshape(-1, 2) - SIFT_OFFSET_PX
+            ub = np.array([kb[g.trainIdx].pt for g in good], np.float64).reshape(-1, 2) - SIFT_OFFSET_PX
             cam_a, cam_b = block.camera_of(ia), block.camera_of(ib)
             depth, _ = renderer.trace(cam_a, ia.pose_approx)
             r = np.clip(np.rint(ua).astype(int), 0, [cam_a.width - 1, cam_a.height - 1])

@@ -1,6 +1,10 @@
 """SIFT features, matching guided by the approximate orientation, and geometric verification.
 
-* Features: OpenCV SIFT on the grey image (keypoint positions use OpenCV's pixel-centre origin, as the core).
+* Features: OpenCV SIFT on the grey image. OpenCV reports keypoints of its doubled first octave halved, but its
+  doubling (``resize``, pixel-centre aligned) puts source pixel ``x`` at ``2x + 0.5``: every keypoint comes out
+  0.25 px right of and below the feature in the pixel-centre origin of the core. The shift is removed
+  (:data:`SIFT_OFFSET_PX`); left in, it tilts each camera by 0.25 px / f against its control point measurements,
+  and the opposite headings of neighbouring strips turn that into height errors.
 * Guided matching: a keypoint of image A, intersected with the planes ``z_lo`` and ``z_hi`` (the height range
   of the scene), projects into image B as a segment of the epipolar line. Only keypoints of B within
   ``band_px`` of that segment are candidates; among them the best descriptor must pass Lowe's ratio test
@@ -34,15 +38,20 @@ class MatchOptions:
     min_matches: int = 15
 
 
+SIFT_OFFSET_PX = 0.25
+"""Shift of OpenCV's SIFT keypoints against the pixel-centre origin (both axes), subtracted by :func:`sift_features`."""
+
+
 def sift_features(grey: np.ndarray, max_features: int = 8000) -> tuple[np.ndarray, np.ndarray]:
-    """SIFT keypoints ``uv (n, 2) float64`` and descriptors ``(n, 128) float32`` of a uint8 image."""
+    """SIFT keypoints ``uv (n, 2) float64`` (pixel-centre origin) and descriptors ``(n, 128) float32`` of a uint8
+    image."""
     import cv2
 
     sift = cv2.SIFT_create(nfeatures=max_features)
     kps, des = sift.detectAndCompute(grey, None)
     if des is None:
         return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
-    return np.array([k.pt for k in kps], np.float64), des.astype(np.float32)
+    return np.array([k.pt for k in kps], np.float64) - SIFT_OFFSET_PX, des.astype(np.float32)
 
 
 def epipolar_segments(uv_a: np.ndarray, cam_a: CameraModel, pose_a: Pose, cam_b: CameraModel, pose_b: Pose,
