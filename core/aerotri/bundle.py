@@ -237,7 +237,8 @@ def _camera_from_params(cam: CameraModel, p: np.ndarray) -> CameraModel:
 def project_obs(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                 xyz: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray) -> np.ndarray:
     """Projected pixel positions ``(m, 2)`` of observations (NaN behind the camera)."""
-    xc = np.einsum("mij,mj->mi", r[obs_image], xyz[obs_point] - c[obs_image])
+    w = np.take(xyz, obs_point, 0) - np.take(c, obs_image, 0)
+    xc = (np.take(r, obs_image, 0) @ w[:, :, None])[:, :, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = xc[:, :2] / xc[:, 2:3]
     out = np.full((len(obs_point), 2), np.nan)
@@ -286,12 +287,20 @@ class _Model:
         self.obs_starts = np.searchsorted(prob.obs_point[self.obs_order], np.arange(prob.n_points + 1))
         self.track_len = np.where(counts >= 2, counts, 0)
         self.point_ids = np.full(prob.n_points, -1, np.int64)
-        for p in np.flatnonzero(counts >= 2):
-            sl = self.obs_order[self.obs_starts[p]:self.obs_starts[p + 1]]
-            sl = sl[self.in_rec[sl]]
+        # the observations in the reconstruction grouped by point, as Python ints (one C++ call per element)
+        grouped = self.obs_order[self.in_rec[self.obs_order]]
+        bounds = np.searchsorted(prob.obs_point[grouped], np.arange(prob.n_points + 1)).tolist()
+        images = (prob.obs_image[grouped] + 1).tolist()
+        p2d = self.p2d[grouped].tolist()
+        xyz_local = prob.xyz - ref
+        self.xyz_views = {}  # point -> view of its coordinates in the reconstruction (stable until deleted)
+        for p in np.flatnonzero(counts >= 2).tolist():
             tr = pycolmap.Track()
-            tr.add_elements([pycolmap.TrackElement(int(prob.obs_image[s]) + 1, int(self.p2d[s])) for s in sl])
-            self.point_ids[p] = rec.add_point3D(prob.xyz[p] - ref, tr)
+            for j in range(bounds[p], bounds[p + 1]):
+                tr.add_element(images[j], p2d[j])
+            pid = rec.add_point3D(xyz_local[p], tr)
+            self.point_ids[p] = pid
+            self.xyz_views[p] = rec.point3D(pid).xyz
         self.frame_params = [rec.frame(rec.image(k + 1).frame_id).rig_from_world.params
                              for k in range(prob.n_images)]
         self.cam_params = {ci: rec.camera(ci + 1).params for ci in range(len(prob.cameras))}
@@ -311,6 +320,7 @@ class _Model:
             else:
                 rec.delete_point3D(int(self.point_ids[p]))
                 self.point_ids[p] = -1
+                del self.xyz_views[p]
                 self.track_len[p] = 0
                 self.in_rec[self.obs_order[self.obs_starts[p]:self.obs_starts[p + 1]]] = False
 
@@ -320,9 +330,8 @@ class _Model:
         for k, fp in enumerate(self.frame_params):
             r[k] = _matrix_from_quat(fp[:4])
             c[k] = -r[k].T @ fp[4:] + ref
-        rec = self.rec
-        for p in np.flatnonzero(self.point_ids >= 0):
-            xyz[p] = rec.point3D(int(self.point_ids[p])).xyz + ref
+        if self.xyz_views:
+            xyz[list(self.xyz_views)] = np.array(list(self.xyz_views.values())) + ref
         for ci, p in self.cam_params.items():
             cam_params[ci] = p
 
@@ -402,7 +411,7 @@ class _Round:
         conn_in_rec = np.flatnonzero(has_prior_pt & (model.point_ids >= 0))
         self.point_views = []  # the parameter blocks Ceres holds pointers to (views into the reconstruction)
         for p in conn_in_rec:
-            xv = rec.point3D(int(model.point_ids[p])).xyz
+            xv = model.xyz_views[p]
             self.point_views.append(xv)
             cost = cf.Point3DAlignmentCost(prob.point_prior_cov[p] / sp**2, prob.point_prior_xyz[p] - ref)
             problem.add_residual_block(cost, None, [xv, self.sim_const])
@@ -542,9 +551,13 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         shift = rd.sim_datum[4:7].copy()
         point_used = rd.point_used
         active &= point_used[prob.obs_point]
-        eo = pyceres.EvaluateOptions()
-        eo.apply_loss_function = False
-        chi2 = float(np.sum(np.square(rd.problem.evaluate_residuals(eo)))) / opt.sigma_px**2
+        if rnd == 0:
+            # the robust round's cost is the Cauchy one: chi-square needs the plain residuals
+            eo = pyceres.EvaluateOptions()
+            eo.apply_loss_function = False
+            chi2 = float(np.sum(np.square(rd.problem.evaluate_residuals(eo)))) / opt.sigma_px**2
+        else:
+            chi2 = 2.0 * summary.final_cost / opt.sigma_px**2
         redundancy = int(summary.num_residuals_reduced - summary.num_effective_parameters_reduced)
         sigma0 = float(np.sqrt(chi2 / max(redundancy, 1)))
         # residuals, precision, normalised residuals

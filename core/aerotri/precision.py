@@ -42,21 +42,29 @@ def collinearity_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx
 def point_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx: np.ndarray, fy: np.ndarray,
                     xyz_world: np.ndarray) -> np.ndarray:
     """``d(uv)/d(point) (m, 2, 3)`` alone (see :func:`collinearity_jacobians` for the shapes)."""
-    xc = np.einsum("mij,mj->mi", r_cam_from_world, xyz_world - c_world)
-    z = xc[:, 2]
-    # rows of the projection Jacobian times R, written out (batched 2x3 @ 3x3 products are slow in numpy)
     rr = r_cam_from_world
+    xc = (rr @ (xyz_world - c_world)[:, :, None])[:, :, 0]
+    z = xc[:, 2]
+    # rows of the projection Jacobian times R: (f / z) (R_row - (x / z) R_2), written out
     j_point = np.empty((len(z), 2, 3))
-    j_point[:, 0] = (fx / z)[:, None] * rr[:, 0] - (fx * xc[:, 0] / z**2)[:, None] * rr[:, 2]
-    j_point[:, 1] = (fy / z)[:, None] * rr[:, 1] - (fy * xc[:, 1] / z**2)[:, None] * rr[:, 2]
+    j_point[:, 0] = (fx / z)[:, None] * (rr[:, 0] - (xc[:, 0] / z)[:, None] * rr[:, 2])
+    j_point[:, 1] = (fy / z)[:, None] * (rr[:, 1] - (xc[:, 1] / z)[:, None] * rr[:, 2])
     return j_point
 
 
-def sum_blocks(blocks: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
-    """Sums of the blocks ``(m, d, d)`` per ``index (m,)`` into ``(n, d, d)`` (one bincount over all entries)."""
-    d2 = blocks.shape[1] * blocks.shape[2]
-    flat = (index[:, None] * d2 + np.arange(d2)).ravel()
-    return np.bincount(flat, weights=blocks.reshape(-1), minlength=n * d2).reshape(n, *blocks.shape[1:])
+def sum_outer(rows: np.ndarray, w: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
+    """Weighted sums of outer products per group: ``out[g] = sum_{k: index[k] = g} w[k] rows[k]^T rows[k]``.
+
+    ``rows (m, r, d)`` (r rows of d columns per item, e.g. the 2 x 3 Jacobian of an image measurement),
+    ``w (m,)``, ``index (m,)`` -> ``(n, d, d)``. One bincount per unique entry of the symmetric result: no
+    ``(m, d, d)`` temporaries (they cost both time and ``72 d**2`` bytes per item on large blocks)."""
+    d = rows.shape[2]
+    out = np.empty((n, d, d))
+    for i in range(d):
+        for j in range(i, d):
+            v = np.einsum("mr,mr->m", rows[:, :, i], rows[:, :, j]) * w
+            out[:, i, j] = out[:, j, i] = np.bincount(index, weights=v, minlength=n)
+    return out
 
 
 def point_normals(j_point: np.ndarray, w_obs: np.ndarray, obs_point: np.ndarray, n_points: int,
@@ -66,7 +74,7 @@ def point_normals(j_point: np.ndarray, w_obs: np.ndarray, obs_point: np.ndarray,
     ``j_point (m, 2, 3)``, ``w_obs (m,)`` weights (1/sigma^2), ``obs_point (m,)``; ``prior_info (n, 3, 3)``
     inverse covariances of ground observations of the points (zeros when none). Returns ``(n, 3, 3)``.
     """
-    n = sum_blocks((j_point.transpose(0, 2, 1) * w_obs[:, None, None]) @ j_point, obs_point, n_points)
+    n = sum_outer(j_point, w_obs, obs_point, n_points)
     if prior_info is not None:
         n += prior_info
     return n
@@ -75,11 +83,21 @@ def point_normals(j_point: np.ndarray, w_obs: np.ndarray, obs_point: np.ndarray,
 def image_normals(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray, obs_image: np.ndarray,
                   n_images: int, prior_info: np.ndarray | None = None) -> np.ndarray:
     """Normal blocks ``(n, 6, 6)`` of images (rotation about world axes, centre) with the points fixed."""
-    j = np.concatenate([j_rot, -j_point], axis=2)
-    n = sum_blocks((j.transpose(0, 2, 1) * w_obs[:, None, None]) @ j, obs_image, n_images)
+    n = sum_outer(np.concatenate([j_rot, -j_point], axis=2), w_obs, obs_image, n_images)
     if prior_info is not None:
         n += prior_info
     return n
+
+
+def quadratic_forms(rows: np.ndarray, q: np.ndarray, index: np.ndarray, chunk: int = 500_000) -> np.ndarray:
+    """``sum_r rows[k, r] q[index[k]] rows[k, r]^T`` per item ``(m,)`` for ``rows (m, r, d)`` and the symmetric
+    blocks ``q (n, d, d)`` (NaN counts as 0), in chunks of ``chunk`` items so the gathered blocks stay small."""
+    q = np.nan_to_num(q)
+    out = np.empty(len(rows))
+    for s in range(0, len(rows), chunk):
+        a = rows[s:s + chunk]
+        out[s:s + chunk] = np.einsum("mri,mij,mrj->m", a, q[index[s:s + chunk]], a, optimize=True)
+    return out
 
 
 def _inv3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -135,7 +153,6 @@ def redundancy_numbers(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray
     ``r = 1 - (tr(J_p Q_p J_p^T) + tr(J_c Q_c J_c^T)) w / 2`` with the point and image cofactor blocks
     ``q_point (n, 3, 3)`` and ``q_image (k, 6, 6)``; the coupling between them is neglected.
     """
-    jc = np.concatenate([j_rot, -j_point], axis=2)
-    hp = ((j_point @ np.nan_to_num(q_point)[obs_point]) * j_point).sum(axis=(1, 2))
-    hc = ((jc @ np.nan_to_num(q_image)[obs_image]) * jc).sum(axis=(1, 2))
+    hp = quadratic_forms(j_point, q_point, obs_point)
+    hc = quadratic_forms(np.concatenate([j_rot, -j_point], axis=2), q_image, obs_image)
     return np.clip(1.0 - (hp + hc) * w_obs / 2.0, 0.02, 1.0)
