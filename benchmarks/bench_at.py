@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT.parent) not in sys.path:
     sys.path.insert(0, str(ROOT.parent))
 
-from oblique_city.core.aerotri.bundle import BundleOptions, _Model  # noqa: E402
+from oblique_city.core.aerotri.bundle import BundleOptions, _Model, adjust  # noqa: E402
 from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
     direct_georeferencing,
     hierarchical,
@@ -113,12 +113,34 @@ class CpuTime:
         self.seconds = self._cpu() - self._start
 
 
-def stock_colmap_time(block, ties, xyz0, opt: BundleOptions) -> float:
-    """Wall time of pycolmap's own bundle adjuster (Cauchy loss, same solver and threads, no priors, gauge fixed
-    by two cameras) on the same images and tie observations."""
+def stock_sub_block(block, n_images: int) -> list[str]:
+    """Images of the exposures nearest the block's centre (every head of an exposure), about ``n_images``: a
+    compact sub-block on which pycolmap's stock adjuster finishes here (on 3,000 images it ran over 22 min)."""
+    exposures: dict[str, list[str]] = {}
+    for iid, im in block.images.items():
+        exposures.setdefault(im.exposure or iid, []).append(iid)
+    centre = {e: np.mean([block.images[i].pose_approx.C[:2] for i in ids], 0) for e, ids in exposures.items()}
+    mid = np.mean(list(centre.values()), 0)
+    out: list[str] = []
+    for e in sorted(exposures, key=lambda e: float(np.sum((centre[e] - mid) ** 2))):
+        if len(out) >= n_images:
+            break
+        out += exposures[e]
+    return out
+
+
+def stock_comparison(block, ties, xyz0, opt: BundleOptions, image_ids: list[str], time_limit: float) -> dict:
+    """Our engine (the IAT adjustment: robust round, least-squares rounds with data snooping, precision) and
+    pycolmap's own ``bundle_adjustment`` (Cauchy loss, same threads and iteration limit, its default tolerances
+    and solver choice, no priors, its default gauge) on the same images, tie observations and starting values
+    (navigation orientations, tie points intersected from them). The stock run stops at ``time_limit`` seconds
+    (Ceres' solver time limit); wall seconds of both and their ratio."""
     import pycolmap
 
-    sub = build_problem(block, ties, list(block.images), xyz0, use_control=False)
+    sub = build_problem(block, ties, image_ids, xyz0)
+    t0 = time.perf_counter()
+    res = adjust(sub.problem, opt)
+    ours = time.perf_counter() - t0
     p = sub.problem
     ref = np.round(p.c_world.mean(0), 0)
     rec = _Model(p, ref, np.isfinite(p.xyz[p.obs_point, 0])).rec
@@ -131,9 +153,14 @@ def stock_colmap_time(block, ties, xyz0, opt: BundleOptions) -> float:
     options.ceres.loss_function_scale = opt.robust_scale * opt.sigma_px
     options.ceres.solver_options.num_threads = opt.threads
     options.ceres.solver_options.max_num_iterations = opt.max_iterations
+    options.ceres.solver_options.max_solver_time_in_seconds = time_limit
     t0 = time.perf_counter()
     pycolmap.bundle_adjustment(rec, options)
-    return time.perf_counter() - t0
+    stock = time.perf_counter() - t0
+    return {"images": len(image_ids), "observations": int(len(sub.obs_index)), "ours_s": ours,
+            "ours_iterations": res.iterations, "ours_rounds": res.rounds, "stock_s": stock,
+            "stock_time_limit_s": time_limit, "stock_hit_limit": bool(stock >= time_limit),
+            "ours_over_stock": ours / stock}
 
 
 def evaluate(name, block, ties, sim, poses, xyz, obs_ok, sigma0, sigma_px, wall, mem_gb, extra=None) -> dict:
@@ -161,6 +188,9 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="Ceres threads per adjustment")
     ap.add_argument("--skip-iat", action="store_true", help="only HAT (for blocks too large for IAT here)")
     ap.add_argument("--skip-stock", action="store_true", help="do not time pycolmap's stock adjuster")
+    ap.add_argument("--stock-images", type=int, default=300,
+                    help="sub-block (central exposures) on which our engine and pycolmap's stock adjuster are timed")
+    ap.add_argument("--stock-time-limit", type=float, default=900.0, help="seconds, for the stock adjuster")
     ap.add_argument("--oblique-ties-per-cell", type=int, default=1,
                     help="HAT: tie point reduction in the oblique runs, tracks kept per image grid cell (0: all)")
     ap.add_argument("--oblique-tie-grid", type=int, default=8, help="HAT: grid cells across an oblique image")
@@ -208,12 +238,14 @@ def main(argv=None) -> int:
                                                  "datum_shift": r.datum_shift.tolist(), "cpu_s": cpu.seconds,
                                                  "profile": {"iat": _run_profile(iat.runs[0])}}))
         print(f"IAT {wall:.1f} s, sigma0 {r.sigma0:.3f}, peak {mem.peak_gb:.2f} GB")
-        if not args.skip_stock:
-            stock = stock_colmap_time(block, ties, xyz0, opt)
-            out["timing"]["pycolmap_stock_ba_s"] = stock
-            out["timing"]["iat_over_stock"] = wall / stock
-            print(f"pycolmap stock bundle_adjustment {stock:.1f} s (one robust solve, no priors); IAT total / stock "
-                  f"{wall / stock:.2f}")
+    if not args.skip_stock:
+        ids = stock_sub_block(block, args.stock_images)
+        st = stock_comparison(block, ties, xyz0, opt, ids, args.stock_time_limit)
+        out["stock"] = st
+        print(f"sub-block of {st['images']} images ({st['observations']} observations): our IAT engine "
+              f"{st['ours_s']:.1f} s, pycolmap stock bundle_adjustment {st['stock_s']:.1f} s"
+              + (" (stopped at its time limit)" if st["stock_hit_limit"] else "")
+              + f"; ours / stock {st['ours_over_stock']:.2f}")
     ex = Executor(args.executor, workers=args.workers) if args.executor != "inline" else None
     hats = {}
     try:
@@ -359,9 +391,11 @@ def targets(out: dict) -> None:
         b = iat["blunders"]
         res["blunder recall >= 95 %"] = (b["recall"] >= 0.95, f"{b['recall']:.3f}")
         res["false alarms <= 1 %"] = (b["false_alarm"] <= 0.01, f"{b['false_alarm']:.4f}")
-        if "iat_over_stock" in out["timing"]:
-            res["IAT time / pycolmap stock BA"] = (out["timing"]["iat_over_stock"] <= 1.0,
-                                                   f"{out['timing']['iat_over_stock']:.2f}")
+    if "stock" in out:
+        st = out["stock"]
+        res[f"our IAT engine / stock BA ({st['images']} images)"] = (
+            st["ours_over_stock"] <= 1.0 and not st["stock_hit_limit"],
+            f"{st['ours_over_stock']:.2f}" + (" (stock stopped at its limit)" if st["stock_hit_limit"] else ""))
     print("\nTargets")
     for k, (ok, v) in res.items():
         print(f"  {'PASS' if ok else 'FAIL'}  {k:38s} {v}")

@@ -537,6 +537,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         if progress is not None:
             progress(rnd, total_rounds, f"bundle adjustment round {rnd + 1}")
         model.keep_only(active)
+        rd = None  # the previous round's Ceres problem goes before the next one is built (peak memory)
         rd = _Round(model, opt, ref, xyz, gcp_xyz, shift, active, robust=(rnd == 0))
         lap("build_s")
         summary = rd.solve(opt, solver, robust=(rnd == 0))
@@ -614,6 +615,10 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         active &= ~bad
         log.append(f"round {rnd}: rejected {int(bad.sum())} observations")
         rnd += 1
+    # the reconstruction and the Ceres problem are millions of small C++ allocations: hand their pages back
+    adjusted = rd.adjusted
+    del rd, model
+    release_heap()
     # final values in the control frame
     image_std = np.sqrt(np.abs(np.diagonal(q_image, axis1=1, axis2=2))) * sigma0
     xyz_cov = q_point * sigma0**2
@@ -628,12 +633,24 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     for k in np.flatnonzero(has_prior):
         att_res[k] = matrix_to_rotvec(prob.prior_r[k].T @ r[k])
     return BundleResult(
-        r_cam_from_world=r, c_world=c + shift, image_adjusted=rd.adjusted, image_std=image_std, cameras=cams,
+        r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
         obs_w=w, gcp_xyz=gcp_out, gcp_residual=gcp_out - prob.gcp_xyz, datum_shift=shift, sigma0=sigma0,
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
         timing=timing)
+
+
+def release_heap() -> None:
+    """Return freed heap pages to the operating system (glibc's ``malloc_trim``; nothing elsewhere). After an
+    adjustment of 1.25 M observations the process kept 1.15 GB of freed C++ allocations (pycolmap's
+    reconstruction, Ceres' problem) that later numpy arrays could not reuse."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,

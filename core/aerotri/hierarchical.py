@@ -30,16 +30,27 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..geometry.views import OBLIQUE_VIEWS
-from ..model import CameraModel, ImageBlock, Pose, TiePoints
-from .bundle import BundleOptions, BundleResult, adjust, project_obs, refine_points, worst_per_track
+from ..model import ImageBlock, Pose, TiePoints
+from .bundle import (
+    BundleOptions,
+    BundleResult,
+    adjust,
+    project_obs,
+    refine_points,
+    release_heap,
+    worst_per_track,
+)
 from .precision import point_jacobians, point_normals, quadratic_forms, safe_inverse
 from .problem import (
     SubProblem,
     build_problem,
     intersect_rays,
     intersect_ties,
+    pose_arrays,
+    ray_directions,
     result_poses,
     thin_ties,
+    track_shares,
 )
 
 CONNECTIONS = ("cba", "2", "3", "5", "10")
@@ -261,6 +272,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         conn_counts[v] = int(sel.sum())
         conn_masks[v] = sel
         items.append((v, sub, replace(opt, datum_shift=False) if oblique_control else opt))
+    release_heap()  # what the nadir run and the set-up freed, before the oblique runs and the intersection
     # parallel units share the cores: each gets its part of the threads (the largest blocks start first)
     if warm is not None:
         warm.join()
@@ -394,32 +406,25 @@ def nadir_propagation(block: ImageBlock, nadir_poses: dict[str, Pose]) -> dict[s
 
 def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose], obs_ok: np.ndarray,
                        tracks: np.ndarray, sigma_px: float, sigma0: float, threshold: float, max_rounds: int = 6,
-                       executor=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       executor=None, share_obs: int = 1_000_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Tie points from the final orientations (cameras fixed) with blunder tests: multi-ray forward intersection and
     a Gauss-Newton step on the pixel residuals, then each round rejects every track's worst ray whose normalised
     residual ``|v| / (sigma0 sigma_px sqrt(r))`` (r its redundancy number for the point alone) exceeds
     ``threshold``; only tracks that lost a ray are recomputed in the next round. With a parallel ``executor`` the
-    tracks are split into one share per worker (only their observation arrays travel).
+    tracks are split into shares of at most ``share_obs`` observations, at least one per worker (only their
+    observation arrays travel; a unit needs a few hundred bytes per observation).
 
     ``obs_ok : (m,)`` observations allowed; ``tracks : (n,)`` bool tracks to compute. Returns ``xyz (n, 3)`` and
     ``cov (n, 3, 3)`` (NaN for tracks not computed or with fewer than two rays) and the rejected ``(m,)``."""
     n, m = ties.n_tracks, ties.n_obs
-    cam_ids = list(block.cameras)
-    cameras = [block.cameras[c] for c in cam_ids]
-    k_img = len(ties.image_ids)
-    r = np.full((k_img, 3, 3), np.nan)
-    c = np.full((k_img, 3), np.nan)
-    image_camera = np.zeros(k_img, np.int64)
-    for k, iid in enumerate(ties.image_ids):
-        image_camera[k] = cam_ids.index(block.images[iid].camera_id)
-        if iid in poses:
-            r[k], c[k] = poses[iid].R, poses[iid].C
+    cameras, image_camera, r, c = pose_arrays(block, ties.image_ids, poses)
     use = obs_ok & tracks[ties.obs_track] & np.isfinite(c[ties.obs_image, 0])
     parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
-    shares = max(1, int(getattr(executor, "workers", 1))) if parallel else 1
+    # at least one share per worker, and no share above ``share_obs`` observations (memory per unit)
+    shares = max(max(1, int(getattr(executor, "workers", 1))) if parallel else 1,
+                 -(-int(use.sum()) // max(share_obs, 1)))
     items, index = [], []
-    for s in range(shares):
-        idx = np.flatnonzero(use & (ties.obs_track % shares == s))
+    for idx in track_shares(ties.obs_track, np.flatnonzero(use), shares):
         pts, local = np.unique(ties.obs_track[idx], return_inverse=True)
         index.append((idx, pts))
         items.append((cameras, image_camera, r, c, local.astype(np.int64), ties.obs_image[idx], ties.obs_uv[idx],
@@ -437,8 +442,16 @@ def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose
 def _intersect_unit(item: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Executor unit of :func:`intersect_and_test` over arrays: ``(cameras, image_camera (k,), r (k, 3, 3),
     c (k, 3), obs_point (m,), obs_image (m,), obs_uv (m, 2), n_points, sigma_px, sigma0, threshold, max_rounds)``
-    -> ``xyz (n, 3)``, ``cov (n, 3, 3)``, rejected ``(m,)``."""
-    cameras, image_camera, r, c, op_all, oi_all, uv_all, n, sigma_px, sigma0, threshold, max_rounds = item
+    -> ``xyz (n, 3)``, ``cov (n, 3, 3)``, rejected ``(m,)``. The worker's freed heap is handed back afterwards."""
+    out = _intersect_share(*item)
+    release_heap()
+    return out
+
+
+def _intersect_share(cameras: list, image_camera: np.ndarray, r: np.ndarray, c: np.ndarray, op_all: np.ndarray,
+                     oi_all: np.ndarray, uv_all: np.ndarray, n: int, sigma_px: float, sigma0: float,
+                     threshold: float, max_rounds: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_intersect_unit` with its arguments spelt out."""
     m = len(op_all)
     fx = np.array([cm.fx for cm in cameras])[image_camera]
     fy = np.array([cm.fy for cm in cameras])[image_camera]
@@ -447,7 +460,7 @@ def _intersect_unit(item: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     use = np.ones(m, bool)
     rejected = np.zeros(m, bool)
     todo = np.ones(n, bool)
-    d_all = _ray_directions(cameras, image_camera, r, oi_all, uv_all, undistort_iterations=4)
+    d_all = ray_directions(cameras, image_camera, r, oi_all, uv_all, undistort_iterations=4)
     for _ in range(max_rounds):
         idx = np.flatnonzero(use & todo[op_all])
         if len(idx) == 0:
@@ -483,25 +496,6 @@ def _intersect_unit(item: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return xyz, cov, rejected
 
 
-def _ray_directions(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, obs_image: np.ndarray,
-                    obs_uv: np.ndarray, undistort_iterations: int = 20) -> np.ndarray:
-    """Unit world directions ``(m, 3)`` of the rays of pixel observations ``obs_uv (m, 2)`` in the images
-    ``obs_image (m,)`` (rotations ``r (k, 3, 3)`` cam_from_world, ``image_camera (k,)`` into ``cameras``):
-    ``R^T (x, y, 1)``, undistorted per camera by ``undistort_iterations`` fixed-point steps. The rays only start
-    a Gauss-Newton step on the pixel residuals with the full camera model, so they need not be exact: 4 steps
-    leave below 1e-7 px on the simulated cameras (20 are needed for 1e-10 on strongly distorted ones)."""
-    xy = np.empty((len(obs_image), 2))
-    cam_of_obs = image_camera[obs_image]
-    for ci, cam in enumerate(cameras):
-        sel = cam_of_obs == ci
-        if sel.any():
-            xy[sel] = cam.pixel_to_normalized(obs_uv[sel], undistort=False)
-            if cam.has_distortion:
-                xy[sel] = cam.undistort_normalized(xy[sel], iterations=undistort_iterations)
-    d = (np.take(r, obs_image, 0).transpose(0, 2, 1) @ np.column_stack([xy, np.ones(len(xy))])[:, :, None])[:, :, 0]
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
 def datum_correction(block: ImageBlock, poses: dict[str, Pose]) -> np.ndarray:
     """Translation ``(3,)`` that best moves the block onto its control points: each control point is intersected
     from all its image measurements with ``poses`` (covariance from its pixel sigma), and the differences to the
@@ -518,12 +512,8 @@ def datum_correction(block: ImageBlock, poses: dict[str, Pose]) -> np.ndarray:
     op = np.array([o[0] for o in obs], np.int64)
     oi = np.array([o[1] for o in obs], np.int64)
     uv = np.array([o[2] for o in obs], np.float64).reshape(-1, 2)
-    cam_ids = list(block.cameras)
-    cameras = [block.cameras[cid] for cid in cam_ids]
-    image_camera = np.array([cam_ids.index(block.images[i].camera_id) for i in image_ids], np.int64)
-    r = np.array([poses[i].R for i in image_ids])
-    c = np.array([poses[i].C for i in image_ids])
-    d = _ray_directions(cameras, image_camera, r, oi, uv)
+    cameras, image_camera, r, c = pose_arrays(block, image_ids, poses)
+    d = ray_directions(cameras, image_camera, r, oi, uv)
     x, _ = intersect_rays(c[oi], d, op, len(gps))
     ok_obs = np.isfinite(x[op, 0])
     x = refine_points(cameras, image_camera, r, c, x, op, oi, uv, ok_obs)

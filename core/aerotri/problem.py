@@ -7,35 +7,45 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from ..model import ImageBlock, Pose, TiePoints
+from ..model import CameraModel, ImageBlock, Pose, TiePoints
 from .bundle import BundleProblem, BundleResult
 from .precision import safe_inverse, sum_outer
 
 
-def observation_rays(block: ImageBlock, image_ids: list[str], poses: dict[str, Pose], obs_image: np.ndarray,
-                     obs_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ray origins and unit directions ``(m, 3)`` of observations (``obs_image`` indexes ``image_ids``; NaN for
-    images without a pose). Undistortion runs once per camera over all its observations."""
-    n = len(image_ids)
-    r = np.full((n, 3, 3), np.nan)
-    c = np.full((n, 3), np.nan)
-    cam_of_image = np.full(n, -1, np.int64)
+def pose_arrays(block: ImageBlock, image_ids: list[str], poses: dict[str, Pose]
+                ) -> tuple[list[CameraModel], np.ndarray, np.ndarray, np.ndarray]:
+    """The block's cameras and, per image of ``image_ids``, its camera index ``(k,)`` and rotation
+    ``(k, 3, 3)`` / centre ``(k, 3)`` from ``poses`` (NaN for images without a pose)."""
+    k = len(image_ids)
     cam_ids = list(block.cameras)
-    for k, iid in enumerate(image_ids):
-        pose = poses.get(iid)
-        if pose is None:
-            continue
-        r[k], c[k] = pose.R, pose.C
-        cam_of_image[k] = cam_ids.index(block.images[iid].camera_id)
+    r = np.full((k, 3, 3), np.nan)
+    c = np.full((k, 3), np.nan)
+    image_camera = np.zeros(k, np.int64)
+    for j, iid in enumerate(image_ids):
+        image_camera[j] = cam_ids.index(block.images[iid].camera_id)
+        if iid in poses:
+            r[j], c[j] = poses[iid].R, poses[iid].C
+    return [block.cameras[cid] for cid in cam_ids], image_camera, r, c
+
+
+def ray_directions(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, obs_image: np.ndarray,
+                   obs_uv: np.ndarray, undistort_iterations: int = 20) -> np.ndarray:
+    """Unit world directions ``(m, 3)`` of the rays of pixel observations ``obs_uv (m, 2)`` in the images
+    ``obs_image (m,)`` (rotations ``r (k, 3, 3)`` cam_from_world, NaN rows for images without a pose;
+    ``image_camera (k,)`` into ``cameras``): ``R^T (x, y, 1)``, undistorted per camera by
+    ``undistort_iterations`` fixed-point steps (20 reach 1e-10 on strongly distorted aerial cameras; rays that
+    only start a Gauss-Newton step on the pixel residuals need fewer: 4 leave below 1e-7 px on the simulated
+    cameras)."""
     xy = np.full((len(obs_image), 2), np.nan)
-    cam_of_obs = cam_of_image[obs_image]
-    for ci, cid in enumerate(cam_ids):
+    cam_of_obs = image_camera[obs_image]
+    for ci, cam in enumerate(cameras):
         sel = cam_of_obs == ci
         if sel.any():
-            xy[sel] = block.cameras[cid].pixel_to_normalized(obs_uv[sel])
-    d = np.einsum("mji,mj->mi", r[obs_image], np.concatenate([xy, np.ones((len(xy), 1))], 1))
-    dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
-    return c[obs_image], dirs
+            xy[sel] = cam.pixel_to_normalized(obs_uv[sel], undistort=False)
+            if cam.has_distortion:
+                xy[sel] = cam.undistort_normalized(xy[sel], iterations=undistort_iterations)
+    d = (np.take(r, obs_image, 0).transpose(0, 2, 1) @ np.column_stack([xy, np.ones(len(xy))])[:, :, None])[:, :, 0]
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def intersect_rays(o: np.ndarray, d: np.ndarray, track: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -56,19 +66,35 @@ def intersect_rays(o: np.ndarray, d: np.ndarray, track: np.ndarray, n: int) -> t
     return xyz, dist
 
 
+def track_shares(obs_track: np.ndarray, idx: np.ndarray, shares: int) -> list[np.ndarray]:
+    """The observations ``idx`` split into ``shares`` groups by track (``track % shares``), so that every track's
+    observations stay together: a list of index arrays into ``obs_track (m,)``, each in ``idx`` order."""
+    share_of = obs_track[idx] % shares
+    order = np.argsort(share_of, kind="stable")
+    bounds = np.searchsorted(share_of[order], np.arange(shares + 1))
+    return [idx[order[bounds[s]:bounds[s + 1]]] for s in range(shares)]
+
+
 def intersect_ties(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose],
-                   obs_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Multi-ray forward intersection of all tracks from ``poses``.
+                   obs_mask: np.ndarray | None = None, chunk_obs: int = 2_000_000) -> tuple[np.ndarray, np.ndarray]:
+    """Multi-ray forward intersection of all tracks from ``poses``, in shares of tracks of about ``chunk_obs``
+    observations (the rays cost about 200 bytes per observation while they exist).
 
     Returns ``xyz (n, 3)`` (NaN for tracks with fewer than two usable rays) and the ray distances ``(m,)``
     (NaN for observations not used).
     """
-    idx = np.arange(ties.n_obs) if obs_mask is None else np.flatnonzero(obs_mask)
-    o, d = observation_rays(block, ties.image_ids, poses, ties.obs_image[idx], ties.obs_uv[idx])
-    ok = np.isfinite(o[:, 0])
-    xyz, dist = intersect_rays(o[ok], d[ok], ties.obs_track[idx[ok]], ties.n_tracks)
+    idx_all = np.arange(ties.n_obs) if obs_mask is None else np.flatnonzero(obs_mask)
+    cameras, image_camera, r, c = pose_arrays(block, ties.image_ids, poses)
+    xyz = np.full((ties.n_tracks, 3), np.nan)
     out = np.full(ties.n_obs, np.nan)
-    out[idx[ok]] = dist
+    for idx in track_shares(ties.obs_track, idx_all, max(1, -(-len(idx_all) // max(chunk_obs, 1)))):
+        o = np.take(c, ties.obs_image[idx], 0)
+        d = ray_directions(cameras, image_camera, r, ties.obs_image[idx], ties.obs_uv[idx])
+        ok = np.isfinite(o[:, 0])
+        x, dist = intersect_rays(o[ok], d[ok], ties.obs_track[idx[ok]], ties.n_tracks)
+        done = np.isfinite(x[:, 0])
+        xyz[done] = x[done]
+        out[idx[ok]] = dist
     return xyz, out
 
 
