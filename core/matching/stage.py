@@ -19,6 +19,9 @@ from .features import MatchOptions, guided_match, sift_features, verify
 from .graph import GraphOptions, build_graph
 from .tracks import build_tracks
 
+FEATURES_VERSION = 2
+"""Version of the cached keypoint files (2: keypoints in the pixel-centre origin); older caches are recomputed."""
+
 
 @dataclass(frozen=True)
 class MatchConfig:
@@ -85,13 +88,14 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
         f = feat_dir / f"{k:06d}.npz"
         if f.exists():
             with np.load(f) as z:
-                if str(z["image"]) == iid and int(z["max_features"]) == cfg.max_features:
+                if (str(z["image"]) == iid and int(z["max_features"]) == cfg.max_features
+                        and "version" in z.files and int(z["version"]) == FEATURES_VERSION):
                     uv.append(z["uv"])
                     des.append(z["des"])
                     continue
         u, d = sift_features(_read_grey(block, iid), cfg.max_features)
         with atomic_path(f, suffix=".npz") as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, uv=u, des=d, image=iid, max_features=cfg.max_features)
+            np.savez(fh, uv=u, des=d, image=iid, max_features=cfg.max_features, version=FEATURES_VERSION)
         uv.append(u)
         des.append(d)
     opt = MatchOptions(max_features=cfg.max_features, ratio=cfg.ratio, band_px=cfg.band_px, z_lo=z0 - 5.0,

@@ -3,9 +3,10 @@
 Per cell the height is the median of the points in the top band of the cell (within ``band`` metres below the
 cell's 90th percentile): on a roof this is the median of the roof points (robust against noise and the odd
 blunder), in a cell crossed by a wall it is the roof, not the middle of the wall, because the DSM is the top
-surface. Isolated blunders (cells with almost no neighbour at their height) are removed. Holes up to
-``max_hole_m2`` (occlusions, poor texture) are filled: by inpainting where their surroundings are nearly
-level, with the low side's height where they lie between a roof and the ground; larger holes stay empty (NaN).
+surface. Isolated blunders (cells with almost no neighbour at their height) and narrow deep pits (matching
+blunders inside roofs) are removed. Holes up to ``max_hole_m2`` (occlusions, poor texture) are filled: by a
+harmonic surface spanned by their own border cells where those are nearly level, by their border's plane in a
+sloped roof, with the low side's height where they lie between a roof and the ground; larger holes stay empty.
 """
 
 from __future__ import annotations
@@ -71,6 +72,9 @@ class DsmConfig:
         between a roof and the ground) take the height of their low surroundings, unless their surroundings lie on
         one plane within ``hole_plane_tol`` (a hole in a sloped roof), which then fills them
     hole_plane_tol : RMS distance (metres) of a hole's surrounding cells to their plane for a planar fill
+    pit_size_m, pit_depth : cells lower by more than ``pit_depth`` metres than the grey closing of the DSM with a
+        ``pit_size_m`` square (pits narrower than that in every direction) are removed before the holes are
+        filled (0 size disables it)
     """
 
     cell: float = 0.0
@@ -81,6 +85,8 @@ class DsmConfig:
     max_hole_m2: float = 50.0
     max_hole_step: float = 1.0
     hole_plane_tol: float = 0.2
+    pit_size_m: float = 3.2
+    pit_depth: float = 2.0
 
 
 def _group_quantile(key: np.ndarray, z: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -195,7 +201,8 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
                      plane_tol: float = 0.0) -> np.ndarray:
     """Fill NaN regions of at most ``max_cells`` cells (not touching the border).
 
-    A hole whose surrounding cells span less than ``max_step`` metres is inpainted (Navier-Stokes) from them. A
+    A hole whose surrounding cells span less than ``max_step`` metres takes the harmonic surface with its border
+    cells as boundary values (:func:`harmonic_fill`: only its own border, never a cell across a wall). A
     hole whose surroundings span more but lie on one plane (RMS <= ``plane_tol`` metres: a hole in a sloped
     roof) takes the plane's heights. A hole between a high and a low surface (an occlusion beside a building,
     seen from above) takes the median of its low surrounding cells (those within ``max_step`` of the lowest): the
@@ -233,11 +240,7 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
     step = small & ~level & ~planar
     fill = level[labels]
     if fill.any():
-        lo = float(np.nanmin(height))
-        span = max(float(np.nanmax(height)) - lo, 1e-6)
-        norm = np.nan_to_num((height - lo) / span, nan=0.0).astype(np.float32)
-        out = cv2.inpaint(norm, fill.astype(np.uint8), 3, cv2.INPAINT_NS).astype(np.float64) * span + lo
-        result[fill] = out[fill]
+        result[fill] = harmonic_fill(height, fill)[fill]
     if step.any():
         # the low side: ring cells near the ring's lower quartile (a few blunder cells in the ring do not count)
         rk = np.flatnonzero((ring.ravel() > 0) & step[ring.ravel()])
@@ -250,6 +253,43 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
         sel = step[labels]
         result[sel] = ground[labels[sel]]
     return result
+
+
+def harmonic_fill(height: np.ndarray, fill: np.ndarray) -> np.ndarray:
+    """``height (rows, cols)`` with the cells of ``fill`` (bool, same shape; regions not touching the border)
+    replaced by the solution of Laplace's equation whose boundary values are the 4-neighbours of the regions
+    (a membrane stretched over each hole: linear ramps and planes are kept, nothing beyond the hole's own border
+    enters the fill, unlike a windowed inpainting that reaches across a wall).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import spsolve
+
+    rr, cc = np.nonzero(fill)
+    n = len(rr)
+    out = height.copy()
+    if n == 0:
+        return out
+    index = np.full(height.shape, -1, np.int64)
+    index[rr, cc] = np.arange(n)
+    rows_i, cols_i, vals = [np.arange(n)], [np.arange(n)], [np.zeros(n)]
+    rhs = np.zeros(n)
+    deg = np.zeros(n)
+    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        r2, c2 = rr + dr, cc + dc
+        ok = (r2 >= 0) & (r2 < height.shape[0]) & (c2 >= 0) & (c2 < height.shape[1])
+        r2, c2 = np.where(ok, r2, rr), np.where(ok, c2, cc)
+        nb = index[r2, c2]
+        inner = ok & (nb >= 0)
+        border = ok & (nb < 0) & np.isfinite(height[r2, c2])
+        deg += inner | border
+        rows_i.append(np.flatnonzero(inner))
+        cols_i.append(nb[inner])
+        vals.append(-np.ones(int(inner.sum())))
+        rhs[border] += height[r2[border], c2[border]]
+    vals[0] = np.maximum(deg, 1.0)
+    a = coo_matrix((np.concatenate(vals), (np.concatenate(rows_i), np.concatenate(cols_i))), shape=(n, n)).tocsr()
+    out[rr, cc] = spsolve(a, rhs)
+    return out
 
 
 def cell_colours(grid: GridSpec, xyz: np.ndarray, rgb: np.ndarray, use: np.ndarray) -> np.ndarray:
@@ -265,9 +305,27 @@ def cell_colours(grid: GridSpec, xyz: np.ndarray, rgb: np.ndarray, use: np.ndarr
     return out.reshape(grid.rows, grid.cols, 3)
 
 
+def pits(height: np.ndarray, size_cells: int, depth: float) -> np.ndarray:
+    """Mask ``(rows, cols)`` of cells more than ``depth`` metres below the grey closing of ``height`` (NaN-free)
+    with a ``size_cells`` square: patches narrower than the square in every direction, sunk into higher
+    surroundings. Within a roof such a patch is a blunder (matching that slid to the ground on a dark or
+    repetitive roof, a spot only one master saw); a narrow gap between two buildings is one too, but its hole is
+    then filled from its low side, the ground, again."""
+    k = np.ones((size_cells, size_cells), np.uint8)
+    closed = cv2.erode(cv2.dilate(height.astype(np.float32), k), k)
+    return closed - height > depth
+
+
 def make_dsm(grid: GridSpec, xyz: np.ndarray, crs: str, cfg: DsmConfig = DsmConfig()) -> tuple[Raster, np.ndarray]:
-    """The DSM raster (holes filled) and the top-band mask of the points."""
+    """The DSM raster (spikes and pits removed, holes filled) and the top-band mask of the points."""
     height, top = grid_points(grid, xyz, cfg)
     height = remove_spikes(height, cfg.spike) if cfg.spike > 0 else height
-    filled = fill_small_holes(height, int(cfg.max_hole_m2 / grid.cell ** 2), cfg.max_hole_step, cfg.hole_plane_tol)
+    max_cells = int(cfg.max_hole_m2 / grid.cell ** 2)
+    filled = fill_small_holes(height, max_cells, cfg.max_hole_step, cfg.hole_plane_tol)
+    size = int(round(cfg.pit_size_m / grid.cell)) | 1
+    if cfg.pit_size_m > 0 and size >= 3 and np.isfinite(height).any():
+        base = np.where(np.isfinite(filled), filled, np.nanmin(height))
+        pit = np.isfinite(height) & pits(base, size, cfg.pit_depth)
+        if pit.any():
+            filled = fill_small_holes(np.where(pit, np.nan, height), max_cells, cfg.max_hole_step, cfg.hole_plane_tol)
     return grid.raster(filled.astype(np.float32), crs), top
