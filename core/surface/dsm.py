@@ -306,14 +306,30 @@ def cell_colours(grid: GridSpec, xyz: np.ndarray, rgb: np.ndarray, use: np.ndarr
 
 
 def pits(height: np.ndarray, size_cells: int, depth: float) -> np.ndarray:
-    """Mask ``(rows, cols)`` of cells more than ``depth`` metres below the grey closing of ``height`` (NaN-free)
-    with a ``size_cells`` square: patches narrower than the square in every direction, sunk into higher
-    surroundings. Within a roof such a patch is a blunder (matching that slid to the ground on a dark or
-    repetitive roof, a spot only one master saw); a narrow gap between two buildings is one too, but its hole is
-    then filled from its low side, the ground, again."""
+    """Mask ``(rows, cols)`` of enclosed pits in ``height`` (NaN-free): patches more than ``depth`` metres below
+    the grey closing with a ``size_cells`` square (narrower than the square in every direction) whose border is
+    higher nearly all round (its lower quartile more than ``depth`` above the patch's median). Within a roof such
+    a patch is a blunder (matching that slid to the ground on a dark or repetitive roof, a spot only one master
+    saw). A short passage between two buildings is open at its ends (more than a quarter of its border is
+    ground) and stays; a passage narrower than ``size_cells`` and more than about three times as long as wide is
+    taken for a pit and bridged at roof height."""
     k = np.ones((size_cells, size_cells), np.uint8)
     closed = cv2.erode(cv2.dilate(height.astype(np.float32), k), k)
-    return closed - height > depth
+    cand = closed - height > depth
+    labels, n = ndimage.label(cand)
+    if n == 0:
+        return cand
+    idx = np.arange(1, n + 1)
+    ring = ndimage.grey_dilation(labels, size=3) * ~cand
+    rk = np.flatnonzero(ring.ravel() > 0)
+    lab_r, q25, _ = _group_quantile(ring.ravel()[rk], height.ravel()[rk], 0.25)
+    border = np.full(n + 1, -np.inf)
+    border[lab_r] = q25
+    inner = np.full(n + 1, np.inf)
+    inner[1:] = ndimage.median(height, labels, idx)
+    enclosed = border - inner > depth
+    enclosed[0] = False
+    return enclosed[labels]
 
 
 def make_dsm(grid: GridSpec, xyz: np.ndarray, crs: str, cfg: DsmConfig = DsmConfig()) -> tuple[Raster, np.ndarray]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from oblique_city.core.surface.dsm import DsmConfig, GridSpec, fill_small_holes, grid_points
+from oblique_city.core.surface.dsm import DsmConfig, GridSpec, fill_small_holes, grid_points, harmonic_fill, make_dsm
 from oblique_city.core.surface.dtm import ABOVE, BELOW, ON, DtmConfig, greenness, make_dtm, object_masks
 
 X0, Y0 = 500000.0, 5400000.0
@@ -87,6 +87,45 @@ def test_fill_small_holes_only():
     f = fill_small_holes(g, 20, 1.0)
     assert np.allclose(f[10:14, 12:15], 100.0)
     assert np.allclose(fill_small_holes(g, 20, 1.0, plane_tol=0.2)[10:14, 12:15], 100.0)  # a step is no plane
+
+
+def test_level_hole_beside_a_wall_takes_only_its_own_border():
+    """A level hole on the ground one cell from a 10 m wall is filled from its ground border alone: a windowed
+    inpainting (OpenCV's, radius 3) lets the roof across the wall in. The harmonic fill keeps a ramp exactly."""
+    g = np.full((40, 40), 100.0)
+    g[:, 20:] = 110.0
+    g[15:25, 12:19] = np.nan            # ground hole; its border column 19 is ground, the roof starts at 20
+    f = fill_small_holes(g, 200, 1.0)
+    assert np.allclose(f[15:25, 12:19], 100.0, atol=1e-6)
+    y, x = np.mgrid[0:30, 0:30]
+    ramp = 100.0 + 0.03 * x + 0.02 * y
+    hole = np.zeros(ramp.shape, bool)
+    hole[8:20, 5:25] = True
+    assert np.allclose(harmonic_fill(np.where(hole, np.nan, ramp), hole)[hole], ramp[hole], atol=1e-6)
+
+
+def test_narrow_pit_in_a_roof_is_removed_and_a_gap_between_buildings_kept():
+    """A 1 x 1.5 m patch of ground-level blunders inside a 12 m roof is replaced by the roof; a 2 m wide, 5 m
+    long passage between two buildings (open at its ends) keeps its ground."""
+    rng = np.random.default_rng(1)
+    cell = 0.25
+    grid = GridSpec(0.0, 40.0, cell, 160, 160)
+    x, y = rng.uniform(0, 40, 400_000), rng.uniform(0, 40, 400_000)
+    z = np.full(len(x), 100.0)
+    roof = (x > 5) & (x < 35) & (y > 5) & (y < 18)
+    z[roof] = 112.0
+    pit = roof & (x > 15) & (x < 16) & (y > 10) & (y < 11.5)
+    z[pit] = 101.0                      # matching slid to the ground
+    left, right = (x > 5) & (x < 19) & (y > 25) & (y < 30), (x > 21) & (x < 35) & (y > 25) & (y < 30)
+    z[left | right] = 110.0             # two buildings 2 m apart
+    xyz = np.column_stack([x, y, z + rng.normal(0, 0.02, len(x))])
+    d_on, _ = make_dsm(grid, xyz, "EPSG:25832", DsmConfig(cell=cell))
+    d_off, _ = make_dsm(grid, xyz, "EPSG:25832", DsmConfig(cell=cell, pit_size_m=0))
+    r, c, _ = grid.cell_index(np.array([[15.5, 10.75]]))
+    assert abs(d_off.data[r[0], c[0]] - 101.0) < 0.2          # without the filter the blunder stays
+    assert abs(d_on.data[r[0], c[0]] - 112.0) < 0.2
+    gap = grid.cell_index(np.array([[20.0, 27.5]]))
+    assert abs(d_on.data[gap[0][0], gap[1][0]] - 100.0) < 0.2
 
 
 def test_fill_hole_in_sloped_roof_by_its_plane():
