@@ -72,7 +72,7 @@ class CityPreferences(bpy.types.AddonPreferences):
         row.prop(self, "scheduler")
 
 
-OPTION_STAGES = ("buildings",)
+OPTION_STAGES = ("dense", "surface", "buildings")
 """The stages whose options their panel edits (``Scene.oblique_city.stage_options.<stage>``)."""
 
 OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
@@ -89,6 +89,21 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                  ("volumetric", "Volumetric", "Volumetric reconstruction for every building"))},
         "max_overhang": {"min": 0.0, "description": "Widest roof overhang searched (m)"},
         "overhang_thickness": {"min": 0.0, "description": "Thickness of the overhang slab (m)"},
+    },
+    "dense": {
+        "sgm_mode": {"items": (("sgbm_3way", "SGBM 3-way", "OpenCV's fast 3-way SGBM"),
+                               ("sgbm", "SGBM 5 paths", "OpenCV's single-pass SGBM"),
+                               ("hh", "Full SGM (8 paths)", "Full SGM, slower and more memory"),
+                               ("hh4", "HH4", "OpenCV's 4-path full SGM"))},
+        "min_agree": {"min": 1, "description": "Slaves that must agree for a master pixel to be kept"},
+        "tol_px": {"min": 0.0, "description": "Agreement tolerance (disparity pixels)"},
+    },
+    "surface": {
+        "cell": {"min": 0.0, "description": "DSM and ortho cell (m, 0 = nadir GSD)"},
+        "pit_size_m": {"min": 0.0, "description": "Enclosed DSM pits narrower than this are blunders (m, 0 = keep)"},
+        "pit_depth": {"min": 0.0, "description": "Depth below their surroundings that makes a pit (m)"},
+        "se_size": {"min": 0.0, "description": "DTM structuring element (m)"},
+        "threshold": {"min": 0.0, "description": "Points within this of the opened surface are ground (m)"},
     },
 }
 """Stage -> field -> extra property settings: ``min``, ``description``, ``items`` (``(value, name, description)``

@@ -32,6 +32,7 @@ class SurfaceConfig:
     cell : DSM/ortho cell in metres (0 = the nadir GSD)
     aoi : ``[x0, y0, x1, y1]`` area of interest (empty = the ground the nadir images see, cut to the points)
     dsm_min_support, dsm_band, max_hole_m2 : DSM gridding and hole filling (:class:`.dsm.DsmConfig`)
+    pit_size_m, pit_depth : enclosed pits narrower and deeper than these are removed from the DSM (0 size: kept)
     dtm_cell, se_size, erosion_rank, threshold : DTM by robust morphological opening
     building_min_height, vegetation_min_height, greenness_min : object masks
     ortho_views : views used for the true orthophoto
@@ -43,6 +44,8 @@ class SurfaceConfig:
     dsm_min_support: int = 2
     dsm_band: float = 0.5
     max_hole_m2: float = 50.0
+    pit_size_m: float = 3.2
+    pit_depth: float = 2.0
     dtm_cell: float = 1.0
     se_size: float = 60.0
     erosion_rank: float = 0.03
@@ -96,7 +99,8 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     above_ground = classes != BELOW
     xyz_s, rgb_s = xyz[above_ground], rgb[above_ground]
     dsm, top = make_dsm(grid, xyz_s, crs, DsmConfig(cell=cell, min_support=cfg.dsm_min_support, band=cfg.dsm_band,
-                                                    max_hole_m2=cfg.max_hole_m2))
+                                                    max_hole_m2=cfg.max_hole_m2, pit_size_m=cfg.pit_size_m,
+                                                    pit_depth=cfg.pit_depth))
     ndsm = grid.raster((dsm.data - dtm.data).astype(np.float32), crs)
     ctx.progress(2, steps, "true orthophoto")
     by_view = block.images_by_view()
@@ -163,4 +167,4 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
-              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="3")
+              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="4")
