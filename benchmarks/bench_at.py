@@ -214,9 +214,11 @@ def main(argv=None) -> int:
                          "median_nadir_rays_of_nadir_points": float(np.median(nadir_rays[nadir_rays > 0])),
                          "p90_nadir_rays": float(np.percentile(nadir_rays[nadir_rays > 0], 90)),
                          "blunders": int(ties.obs_blunder.sum()), "gsd_m": sim.gsd,
-                         "wall_s": time.perf_counter() - t0, "peak_gb": mem.peak_gb}
+                         "wall_s": time.perf_counter() - t0, "peak_gb": mem.peak_gb,
+                         "resident_after_gb": mem.proc.memory_info().rss / 1e9}
     print(f"simulated {len(block.images)} images, {ties.n_tracks} tie points, {ties.n_obs} observations, "
-          f"{ties.obs_blunder.sum()} blunders, GSD {sim.gsd:.3f} m in {time.perf_counter() - t0:.1f} s")
+          f"{ties.obs_blunder.sum()} blunders, GSD {sim.gsd:.3f} m in {time.perf_counter() - t0:.1f} s, peak "
+          f"{mem.peak_gb:.2f} GB, {out['simulation']['resident_after_gb']:.2f} GB resident after it")
     t = time.perf_counter()
     xyz0 = initial_tie_coordinates(block, ties)
     out["timing"]["forward_intersection_s"] = time.perf_counter() - t

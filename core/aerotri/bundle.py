@@ -62,11 +62,14 @@ class BundleOptions:
         of the cost per iteration without changing which observations are flagged
     linear_solver : ``auto``, ``sparse_schur`` or ``iterative_schur``; ``auto`` factorises the reduced camera
         system (sparse Schur) while it has at most ``sparse_schur_max_blocks`` non-zero 6x6 blocks (image pairs
-        sharing a point, counted on a sample of the tracks) and solves it by conjugate gradients (iterative Schur,
-        Schur-Jacobi preconditioner) above. Measured on the 3,000-image simulated block: a one-view sub-block of
-        600 images has ~26-34 k blocks (43-57 neighbours per image) and sparse Schur solved the nadir one in 10.5 s
-        against 27.8 s iterative; all 3,000 images together have ~670 k blocks (222 neighbours per image), where
-        the factorisation fills in: IAT spent 458 s in Ceres with sparse Schur against 206 s iterative
+        sharing a point, counted on a sample of the tracks) or at most ``sparse_schur_max_neighbours`` of them per
+        image, and solves it by conjugate gradients (iterative Schur, Schur-Jacobi preconditioner) otherwise. The
+        fill-in of the factorisation grows with the neighbours per image. Measured on simulated blocks: one-view
+        sub-blocks have 41-58 neighbours per image at any size; sparse Schur solved the 600-image nadir one of the
+        3,000-image block in 10.5 s against 27.8 s iterative, and the 1,608-image nadir one of an 8,000-image
+        block in 23.0 s against 51.7 s (same rejections); all 3,000 images together have 611 k blocks (204 per
+        image), where the factorisation fills in: IAT spent 458 s in Ceres with sparse Schur against 206 s
+        iterative
     resolve_tolerance : a least-squares round whose flagged observations carry less than this share of chi-square
         ends the rejection without another solve: they are rejected and only the points that lost them are
         re-estimated (cameras fixed), since a full solve would move the cameras by far less than their precision
@@ -88,6 +91,7 @@ class BundleOptions:
     threads: int = 2
     linear_solver: str = "auto"
     sparse_schur_max_blocks: int = 60_000
+    sparse_schur_max_neighbours: float = 100.0
     resolve_tolerance: float = 1e-4
 
 
@@ -494,7 +498,8 @@ def linear_solver_kind(prob: BundleProblem, opt: BundleOptions, active: np.ndarr
     if opt.linear_solver != "auto":
         return opt.linear_solver
     blocks = camera_blocks(prob.obs_point[active], prob.obs_image[active], prob.n_points, prob.n_images)
-    return "sparse_schur" if blocks <= opt.sparse_schur_max_blocks else "iterative_schur"
+    sparse = blocks <= opt.sparse_schur_max_blocks or blocks <= opt.sparse_schur_max_neighbours * prob.n_images
+    return "sparse_schur" if sparse else "iterative_schur"
 
 
 def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),

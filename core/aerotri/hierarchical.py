@@ -411,8 +411,8 @@ def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose
     a Gauss-Newton step on the pixel residuals, then each round rejects every track's worst ray whose normalised
     residual ``|v| / (sigma0 sigma_px sqrt(r))`` (r its redundancy number for the point alone) exceeds
     ``threshold``; only tracks that lost a ray are recomputed in the next round. With a parallel ``executor`` the
-    tracks are split into shares of at most ``share_obs`` observations, at least one per worker (only their
-    observation arrays travel; a unit needs a few hundred bytes per observation).
+    tracks are split into shares of at most ``share_obs`` observations, the same number for every worker (only
+    their observation arrays travel; a unit needs a few hundred bytes per observation).
 
     ``obs_ok : (m,)`` observations allowed; ``tracks : (n,)`` bool tracks to compute. Returns ``xyz (n, 3)`` and
     ``cov (n, 3, 3)`` (NaN for tracks not computed or with fewer than two rays) and the rejected ``(m,)``."""
@@ -420,9 +420,9 @@ def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose
     cameras, image_camera, r, c = pose_arrays(block, ties.image_ids, poses)
     use = obs_ok & tracks[ties.obs_track] & np.isfinite(c[ties.obs_image, 0])
     parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
-    # at least one share per worker, and no share above ``share_obs`` observations (memory per unit)
-    shares = max(max(1, int(getattr(executor, "workers", 1))) if parallel else 1,
-                 -(-int(use.sum()) // max(share_obs, 1)))
+    # a whole number of shares per worker (balanced waves), none above ``share_obs`` observations (memory)
+    workers = max(1, int(getattr(executor, "workers", 1))) if parallel else 1
+    shares = workers * max(1, -(-int(use.sum()) // (workers * max(share_obs, 1))))
     items, index = [], []
     for idx in track_shares(ties.obs_track, np.flatnonzero(use), shares):
         pts, local = np.unique(ties.obs_track[idx], return_inverse=True)

@@ -96,3 +96,32 @@ def test_thin_ties_keeps_the_best_track_per_image_cell(sim):
     # in every image, the best-ranked observed track of each cell is kept: no image is left without kept tracks
     per_image = np.bincount(ties.obs_image[keep[ties.obs_track]], minlength=len(ties.image_ids))
     assert (per_image[np.bincount(ties.obs_image, minlength=len(ties.image_ids)) > 0] >= 4).all()
+
+
+def test_intersections_in_shares_match_one_piece_and_the_truth(sim, options):
+    """Forward intersection in track shares and the intersection with blunder tests in shares of a few
+    observations give what one piece gives; from the true orientations they find the planted blunders and land
+    on the true points within the measurement noise (0.3 px: a few hundredths of the GSD per ray, more for the
+    many two- and three-ray points)."""
+    from oblique_city.core.aerotri.hierarchical import intersect_and_test
+    from oblique_city.core.aerotri.problem import intersect_ties
+
+    ties = sim.ties
+    whole, dist = intersect_ties(sim.block, ties, sim.true_poses)
+    parts, dist_parts = intersect_ties(sim.block, ties, sim.true_poses, chunk_obs=ties.n_obs // 7)
+    np.testing.assert_allclose(parts, whole, atol=1e-9)
+    np.testing.assert_allclose(dist_parts, dist, atol=1e-9)
+    clean = np.bincount(ties.obs_track[ties.obs_blunder], minlength=ties.n_tracks) == 0
+    ok = clean & np.isfinite(whole[:, 0])
+    assert np.median(np.linalg.norm(whole[ok] - sim.true_xyz[ok], axis=1)) < 0.5 * sim.gsd
+    tracks, obs_ok = np.ones(ties.n_tracks, bool), np.ones(ties.n_obs, bool)
+    one = intersect_and_test(sim.block, ties, sim.true_poses, obs_ok, tracks, options.sigma_px, 1.0, 4.3)
+    many = intersect_and_test(sim.block, ties, sim.true_poses, obs_ok, tracks, options.sigma_px, 1.0, 4.3,
+                              share_obs=ties.n_obs // 5)
+    np.testing.assert_allclose(many[0], one[0], atol=1e-9)
+    np.testing.assert_array_equal(many[2], one[2])
+    truth = ties.obs_blunder
+    assert (truth & one[2]).sum() > 0.95 * truth.sum()
+    assert (~truth & one[2]).sum() < 0.01 * (~truth).sum()
+    good = np.isfinite(one[0][:, 0])
+    assert np.median(np.linalg.norm(one[0][good] - sim.true_xyz[good], axis=1)) < 0.5 * sim.gsd
