@@ -123,7 +123,7 @@ def build_atlas(patches: list[SurfacePatch], gains: dict, cfg: TextureConfig) ->
         records[p.surface_id] = {
             "building": p.building_id, "page": pl.page, "rect": [pl.x, pl.y, cols, rows],
             "uv": np.round(ring_uv(p.grid.ring_xy, pl, sizes[pl.page]), 8).tolist(),
-            "texel": round(p.grid.texel, 5), "coverage": round(p.coverage, 4), "sources": p.source_shares(),
+            "texel": p.grid.texel, "coverage": round(p.coverage, 4), "sources": p.source_shares(),
             "frame": {"origin": p.grid.frame.origin.tolist(), "e1": p.grid.frame.e1.tolist(),
                       "e2": p.grid.frame.e2.tolist(), "s0": p.grid.s0, "t1": p.grid.t1},
         }
@@ -174,4 +174,4 @@ def run(ws, cfg: TextureConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="texture", run=run, config=TextureConfig, requires=("buildings",),
-              description="perspective-correct multi-source texture atlases of the buildings", version="1")
+              description="perspective-correct multi-source texture atlases of the buildings", version="2")

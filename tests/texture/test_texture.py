@@ -146,3 +146,12 @@ def test_occluded_part_comes_from_the_other_image(textured):
     assert np.percentile(np.abs(col - GREEN * 1.0).sum(1), 1) > 60
     # the radiometric adjustment sees the 1.25 exposure ratio of the two images
     assert abs(gains["south"][1] / gains["southwest"][1] - 1.25) < 0.05
+
+
+def test_stored_texel_rebuilds_every_rect(textured):
+    """The texel size stored for a surface rebuilds its texel grid at exactly the atlas rect's size (the windows
+    stage reads the facades back that way; a rounded texel flips ceil() at a grid boundary)."""
+    _, _, records, _, _ = textured
+    rings = {s.id: b.vertices[list(s.ring)] for b in buildings() for s in b.surfaces}
+    for sid, rec in records.items():
+        assert texel_grid(rings[sid], rec["texel"]).shape == (rec["rect"][3], rec["rect"][2]), sid
