@@ -160,4 +160,5 @@ def pair_counts(ties, image_ids: list[str], edges: np.ndarray) -> np.ndarray:
 
 
 STAGE = Stage(name="match", run=run, config=MatchConfig, requires=("block",),
-              description="connectivity graph, SIFT, guided matching along graph edges, tracks", version="3")
+              description="connectivity graph, SIFT, guided matching along graph edges, tracks", version="3",
+              adjusted_block=False)

@@ -1,7 +1,9 @@
 """The runner: the single entry point that runs stages for the CLI, batch scripts, Blender jobs and tests.
 
-A stage is skipped when its fingerprint (stage version, config, fingerprints of the stages it requires, and of
-the imported block) matches the last successful run recorded in ``state.json`` and its outputs still exist.
+A stage is skipped when its fingerprint (stage version, config, the fingerprints and finishing times of the stages
+it requires, and the block it reads: the imported one and, once aerial triangulation has written it, the adjusted
+one) matches the last successful run recorded in ``state.json`` and its outputs still exist. A dependency that
+ran again (forced, or after a change of its own inputs) therefore makes every stage after it stale.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from dataclasses import dataclass
 from ..errors import Cancelled, CityError, WorkspaceError
 from .context import RunContext, log
 from .registry import get_stage, stage_names
-from .workspace import BLOCK_FILE, Workspace
+from .workspace import ADJUSTED_BLOCK_FILE, BLOCK_FILE, Workspace
 
 
 @dataclass(frozen=True)
@@ -45,8 +47,11 @@ def fingerprint(ws: Workspace, name: str, state: dict) -> str:
     for dep in stage.requires:
         if dep == "block":
             doc["deps"]["block"] = _file_digest(ws.path(BLOCK_FILE)) if ws.has_block() else None
+            if stage.adjusted_block and ws.path(ADJUSTED_BLOCK_FILE).exists():
+                doc["deps"]["adjusted_block"] = _file_digest(ws.path(ADJUSTED_BLOCK_FILE))
         else:
-            doc["deps"][dep] = state.get(dep, {}).get("fingerprint")
+            rec = state.get(dep, {})
+            doc["deps"][dep] = [rec.get("fingerprint"), rec.get("finished")]
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -135,18 +140,22 @@ def _record(ws: Workspace, name: str, rec: dict) -> None:
 
 
 def status(ws: Workspace) -> list[dict]:
-    """One row per known stage: name, status (``done``, ``stale``, ``failed``, ``cancelled``, ``pending``),
-    seconds and message."""
+    """One row per known stage: name, status (``done``, ``stale``: its inputs changed or a stage it requires is not
+    done, ``failed``, ``cancelled``, ``pending``), seconds and message."""
     state = ws.read_state()
     rows = []
+    not_done: set[str] = set()
     for name in stage_names():
         rec = state.get(name)
         if rec is None:
             st = "pending"
         elif rec.get("status") == "done":
-            st = "done" if ws.has_block() and is_up_to_date(ws, name, state) else "stale"
+            fresh = ws.has_block() and is_up_to_date(ws, name, state)
+            st = "done" if fresh and not not_done.intersection(get_stage(name).requires) else "stale"
         else:
             st = rec.get("status", "pending")
+        if st != "done":
+            not_done.add(name)
         rows.append({"stage": name, "status": st, "seconds": rec.get("seconds") if rec else None,
                      "message": rec.get("message", "") if rec else ""})
     return rows

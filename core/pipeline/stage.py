@@ -31,6 +31,8 @@ class Stage:
     requires : stages whose outputs this one reads (``block`` is the imported block)
     description : one line for ``--help`` and panels
     version : bump when the algorithm changes so finished runs are redone
+    adjusted_block : with ``block`` in ``requires``: the stage reads ``ws.load_block()``, the adjusted block once
+        aerial triangulation has written it (False for the stages before and of aerial triangulation)
     """
 
     name: str
@@ -39,6 +41,7 @@ class Stage:
     requires: tuple[str, ...] = ("block",)
     description: str = ""
     version: str = "1"
+    adjusted_block: bool = True
 
     def make_config(self, values: dict[str, Any] | None = None, source: str = "project.toml") -> Any:
         """Build the config dataclass from a dict, rejecting unknown keys and wrong types."""

@@ -103,6 +103,30 @@ def test_runner_skips_unchanged_and_reruns_on_change(utm_block, tmp_path, square
     assert {r["stage"]: r["status"] for r in status(ws)}["square"] == "stale"
 
 
+def test_downstream_follows_a_rerun_dependency_and_the_adjusted_block(utm_block, tmp_path, square_stage) -> None:
+    """A forced rerun of a stage makes the stages after it stale (same inputs, new outputs); an adjusted block
+    written by aerial triangulation makes the stages that read it stale, not those that read the imported one."""
+    from oblique_city.core.pipeline.workspace import ADJUSTED_BLOCK_FILE
+
+    after = Stage("after", lambda ws, cfg, ctx: StageResult(outputs=()), SquareConfig, requires=("square",))
+    before = Stage("before", lambda ws, cfg, ctx: StageResult(outputs=()), SquareConfig, adjusted_block=False)
+    for st in (after, before):
+        registry.register(st)
+    try:
+        ws = Workspace.create(tmp_path / "ws", crs="EPSG:32632")
+        ws.save_block(utm_block)
+        run_stages(ws, ["before", "square", "after"])
+        assert {r.status for r in run_stages(ws, ["before", "square", "after"])} == {"skipped"}
+        run_stages(ws, ["square"], force=True)
+        assert [r.status for r in run_stages(ws, ["after"])] == ["skipped", "done"]
+        write_block(utm_block, ws.path(ADJUSTED_BLOCK_FILE))
+        stat = {r["stage"]: r["status"] for r in status(ws)}
+        assert (stat["before"], stat["square"], stat["after"]) == ("done", "stale", "stale")
+    finally:
+        registry.unregister("after")
+        registry.unregister("before")
+
+
 def test_runner_cancellation_is_recorded_and_leaves_old_outputs(utm_block, tmp_path, square_stage) -> None:
     ws = Workspace.create(tmp_path / "ws", crs="EPSG:32632")
     ws.save_block(utm_block)
