@@ -42,6 +42,7 @@ class FusionConfig:
     max_incidence_deg : mixed-pixel filter threshold on the ray/normal angle (90 disables it)
     normal_offset : grid offset of the neighbours used for normals
     edge_radius_px : far-side erosion radius in image pixels (0 disables it)
+    near_edge_radius_px : near-side erosion radius in image pixels (0 disables it)
     edge_jump_m, edge_jump_rel : depth step (metres, and relative to the depth) that makes a depth edge
     """
 
@@ -54,6 +55,7 @@ class FusionConfig:
     max_incidence_deg: float = 82.0
     normal_offset: int = 2
     edge_radius_px: float = 2.0
+    near_edge_radius_px: float = 0.0
     edge_jump_m: float = 1.0
     edge_jump_rel: float = 0.01
 
@@ -89,14 +91,25 @@ def fuse_depths(depths: np.ndarray, focal_baselines: np.ndarray, cfg: FusionConf
 def erode_far_edges(depth: np.ndarray, step: int, cfg: FusionConfig = FusionConfig()) -> np.ndarray:
     """``depth (rows, cols)`` on a master grid sampled every ``step`` pixels, with the far side of depth edges
     emptied: pixels with a neighbour (within ``cfg.edge_radius_px`` image pixels) nearer by more than
-    ``max(edge_jump_m, edge_jump_rel * depth)``."""
-    radius = int(round(cfg.edge_radius_px / step))
-    if radius <= 0 or not np.isfinite(depth).any():
+    ``max(edge_jump_m, edge_jump_rel * depth)``; and, when ``cfg.near_edge_radius_px`` > 0, the near side too
+    (pixels with a neighbour that much farther within that radius: the foreground a matching window fattens)."""
+    if not np.isfinite(depth).any():
         return depth
-    near = cv2.erode(np.nan_to_num(depth, nan=np.inf).astype(np.float32), np.ones((2 * radius + 1,) * 2, np.uint8))
-    with np.errstate(invalid="ignore"):
-        far = depth - near > np.maximum(cfg.edge_jump_m, cfg.edge_jump_rel * depth)
-    return np.where(far, np.nan, depth).astype(depth.dtype)
+    jump = np.maximum(cfg.edge_jump_m, cfg.edge_jump_rel * np.nan_to_num(depth, nan=0.0))
+    drop = np.zeros(depth.shape, bool)
+    radius = int(round(cfg.edge_radius_px / step))
+    if radius > 0:
+        kernel = np.ones((2 * radius + 1,) * 2, np.uint8)
+        near = cv2.erode(np.nan_to_num(depth, nan=np.inf).astype(np.float32), kernel)
+        with np.errstate(invalid="ignore"):
+            drop |= depth - near > jump
+    radius = int(round(cfg.near_edge_radius_px / step))
+    if radius > 0:
+        kernel = np.ones((2 * radius + 1,) * 2, np.uint8)
+        far = cv2.dilate(np.nan_to_num(depth, nan=-np.inf).astype(np.float32), kernel)
+        with np.errstate(invalid="ignore"):
+            drop |= far - depth > jump
+    return np.where(drop, np.nan, depth).astype(depth.dtype)
 
 
 def smooth_depth(depth: np.ndarray, cfg: FusionConfig = FusionConfig()) -> np.ndarray:

@@ -60,6 +60,8 @@ class DenseConfig:
     bilateral, bilateral_sigma_m : depth smoothing
     max_incidence_deg : mixed-pixel filter (90 disables it)
     edge_radius_px : far-side erosion at depth edges, image pixels (0 disables it)
+    near_edge_radius_px : near-side erosion at depth edges (the foreground fattened by the matching window),
+        image pixels (0 disables it)
     polar_below_deg : pairs whose baseline lies within this angle of the viewing direction are rectified in
         log-polar form (0: all planar; see :mod:`.polar`)
     outlier_neighbours, outlier_std : statistical outlier removal (0 neighbours disables it)
@@ -88,6 +90,7 @@ class DenseConfig:
     bilateral_sigma_m: float = 0.3
     max_incidence_deg: float = 82.0
     edge_radius_px: float = 2.0
+    near_edge_radius_px: float = 0.0
     outlier_neighbours: int = 16
     outlier_std: float = 2.5
     display_points: int = 300_000
@@ -154,7 +157,7 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
 
     fcfg = FusionConfig(min_agree=cfg.min_agree, tol_px=cfg.tol_px, bilateral=cfg.bilateral,
                         bilateral_sigma_m=cfg.bilateral_sigma_m, max_incidence_deg=cfg.max_incidence_deg,
-                        edge_radius_px=cfg.edge_radius_px)
+                        edge_radius_px=cfg.edge_radius_px, near_edge_radius_px=cfg.near_edge_radius_px)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("xyz", "rgb", "normal", "view", "master", "incidence",
                                                           "mixed", "err_used", "err_approx")}
     masters = [s.master for s in selection]

@@ -76,6 +76,8 @@ def test_far_side_of_depth_edges_is_eroded():
     ramp = (300.0 + 0.3 * np.arange(20, dtype=np.float32))[:, None].repeat(20, 1)
     assert np.isfinite(erode_far_edges(ramp, 1, FusionConfig())).all()
     assert np.isnan(erode_far_edges(d, 2, FusionConfig(edge_radius_px=2.0))[:, 10]).all()
+    both = erode_far_edges(d, 1, FusionConfig(edge_radius_px=2.0, near_edge_radius_px=1.0))
+    assert np.isfinite(both[:, :9]).all() and np.isnan(both[:, 9:12]).all() and np.isfinite(both[:, 12:]).all()
 
 
 def test_bilateral_keeps_edges_and_holes():
