@@ -7,7 +7,8 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
 
 Prints the tables and writes them as JSON (``--out``, default ``build/bench_at_<images>.json``).
 Times are wall-clock seconds measured in this run on this machine; peak memory is the largest resident set of
-this process plus its worker processes, sampled every 0.2 s during each step.
+this process plus its worker processes, sampled every 0.2 s during each step. pycolmap's stock adjuster is timed
+beside our engine on a central sub-block (``--stock-images``; it did not finish 3,000 images in 22 min here).
 """
 
 from __future__ import annotations
@@ -308,7 +309,13 @@ def describe_runs(args) -> str:
             "with data snooping; iterative Schur, the faster solver for this size).\n"
             f"HAT: nadir run with all its tie points and the datum; four oblique runs ({args.workers} processes) "
             f"tied by connection points, {thin}; combination by error propagation, the datum shift refined from all "
-            "control measurements (the nadir run saw only the nadir ones).")
+            "control measurements (the nadir run saw only the nadir ones)."
+            + ("" if args.skip_stock else
+               "\nStock comparison: our engine (the IAT adjustment) and pycolmap's bundle_adjustment (one Cauchy "
+               f"solve, no priors, its default gauge, tolerances and solver) on the {args.stock_images} images of the "
+               "central "
+               "exposures, same tie observations and starting values, the stock run limited to "
+               f"{args.stock_time_limit:.0f} s."))
 
 
 def _run_profile(run) -> dict:
