@@ -648,13 +648,13 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
 
 def release_heap() -> None:
     """Return freed heap pages to the operating system (glibc's ``malloc_trim``; nothing elsewhere). After an
-    adjustment of 1.25 M observations the process kept 1.15 GB of freed C++ allocations (pycolmap's
-    reconstruction, Ceres' problem) that later numpy arrays could not reuse."""
+    adjustment of 1.25 M observations the process still held 1.15 GB of freed C++ allocations (pycolmap's
+    reconstruction, Ceres' problem) as resident memory: 1.70 GB resident before the call, 0.55 GB after it."""
     import ctypes
 
     try:
         ctypes.CDLL(None).malloc_trim(0)
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):  # not glibc (macOS has no malloc_trim; Windows no CDLL(None))
         pass
 
 
