@@ -103,7 +103,8 @@ def master_step(cfg: DenseConfig, view: str) -> int:
 
 def height_prior(ws, block: ImageBlock, cfg: DenseConfig) -> tuple[float, float, float]:
     """``(z_min, z_max, z_ground)``: the height interval searched by matching and a typical ground height, from
-    the config, else the tie points of matching/aerotri, else the ground points."""
+    the config, else the tie points of matching/aerotri (their 0.5th percentile minus 10 m up to their 99.5th
+    percentile plus twice its height above the ground), else the ground points."""
     if math.isfinite(cfg.z_min) and math.isfinite(cfg.z_max):
         return cfg.z_min, cfg.z_max, cfg.z_min
     for path in sorted(glob.glob(str(ws.path("aerotri", "*.npz"))) + glob.glob(str(ws.path("matching", "*.npz")))):
@@ -115,7 +116,10 @@ def height_prior(ws, block: ImageBlock, cfg: DenseConfig) -> tuple[float, float,
         z = z[np.isfinite(z)]
         if len(z) > 20:
             lo, hi, ground = np.percentile(z, [0.5, 99.5, 10.0])
-            return float(lo - 10.0), float(hi + 10.0), float(ground)
+            # few tie points lie on the tallest objects (a tower top is a few square metres): room above the
+            # 99.5th percentile for objects three times as tall above the ground (coarse-to-fine matching narrows
+            # the search of each pair again)
+            return float(lo - 10.0), float(hi + max(10.0, 2.0 * (hi - ground))), float(ground)
     zs = [p.xyz[2] for p in block.ground_points.values() if p.xyz is not None]
     if zs:
         return float(min(zs) - 10.0), float(max(zs) + cfg.max_object_height), float(np.median(zs))
@@ -234,4 +238,4 @@ def _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted) 
 
 STAGE = Stage(name="dense", run=run, config=DenseConfig, requires=("block",),
               description="dense matching: image selection, SGM, multi-slave fusion, filtered point cloud",
-              version="2")
+              version="3")

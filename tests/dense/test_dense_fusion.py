@@ -137,3 +137,21 @@ def test_selection_covers_and_pairs_are_rectifiable(nadir_oblique_block):
         assert all(block.images[x].view == s.view for x in s.slaves)
     nadir_masters = [s.master for s in sel if s.view == "nadir"]
     assert 2 <= len(nadir_masters) <= 4
+
+
+def test_height_prior_leaves_room_for_a_tower(tmp_path):
+    """Tie points of a town: ground at 100 m, roofs up to 112 m, and a 4 m x 4 m tower top at 128 m that only a
+    handful of tie points see: the searched interval covers the tower, which the 99.5th percentile alone misses."""
+    from oblique_city.core.dense.stage import DenseConfig, height_prior
+    from oblique_city.core.model.tiepoints import TiePoints
+    from oblique_city.core.pipeline import Workspace
+
+    rng = np.random.default_rng(2)
+    z = np.concatenate([100.0 + rng.normal(0, 0.3, 7000), rng.uniform(104, 112, 2990), np.full(10, 128.0)])
+    ws = Workspace.create(tmp_path / "ws", crs="EPSG:32632")
+    xyz = np.column_stack([rng.uniform(0, 100, len(z)), rng.uniform(0, 100, len(z)), z])
+    (ws.root / "matching").mkdir()
+    TiePoints(xyz, np.zeros(0), np.zeros(0), np.zeros((0, 2)), []).save(str(ws.path("matching", "ties.npz")))
+    lo, hi, ground = height_prior(ws, None, DenseConfig())
+    assert np.percentile(z, 99.5) + 10.0 < 128.0 < hi < 150.0
+    assert lo < 99.0 and abs(ground - 100.0) < 1.0
