@@ -194,7 +194,9 @@ def main(argv=None) -> int:
     ap.add_argument("--stock-time-limit", type=float, default=900.0, help="seconds, for the stock adjuster")
     ap.add_argument("--oblique-ties-per-cell", type=int, default=1,
                     help="HAT: tie point reduction in the oblique runs, tracks kept per image grid cell (0: all)")
-    ap.add_argument("--oblique-tie-grid", type=int, default=8, help="HAT: grid cells across an oblique image")
+    ap.add_argument("--oblique-tie-grid", type=int, default=6,
+                    help="HAT: grid cells across an oblique image (6: 6 x 4 cells on 1200 x 900 px; on 3,000 images "
+                         "it halved the oblique runs' observations against 8 with the same check point RMS)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out")
     args = ap.parse_args(argv)
