@@ -63,7 +63,8 @@ class DsmConfig:
     min_support : the top of a cell is its highest point with at least this many points (itself included) within
         ``band`` of its height in the cell and its 8 neighbours: an isolated high blunder is passed over, and a
         roof seen by a few points wins over more numerous mismatched points at ground level under it (nothing can
-        be seen below a roof from above)
+        be seen below a roof from above); the default 8 (a cell of nadir GSD holds about one point per master
+        seeing it) also passes over the thin fringe a matching window fattens a roof edge with
     band : points within this many metres below the top form the cell's top band
     min_points : cells with fewer points are empty
     spike : cells with fewer than two of their 8 neighbours within this many metres are removed as blunders
@@ -78,7 +79,7 @@ class DsmConfig:
     """
 
     cell: float = 0.0
-    min_support: int = 2
+    min_support: int = 8
     band: float = 0.5
     min_points: int = 1
     spike: float = 1.0

@@ -41,7 +41,7 @@ class SurfaceConfig:
 
     cell: float = 0.0
     aoi: tuple[float, ...] = ()
-    dsm_min_support: int = 2
+    dsm_min_support: int = 8
     dsm_band: float = 0.5
     max_hole_m2: float = 50.0
     pit_size_m: float = 3.2
@@ -167,4 +167,4 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
-              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="4")
+              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="5")

@@ -183,3 +183,24 @@ def test_sparse_roof_wins_through_its_neighbours():
     h, _ = grid_points(g, np.array(pts), DsmConfig(cell=1.0, min_support=2, band=0.5))
     truth = 15.0 + 0.1 * (np.arange(4) + 0.5)[None, :]
     assert np.abs(h - truth).max() < 0.2
+
+
+def test_thin_fattened_fringe_of_a_roof_is_passed_over():
+    """A roof (5 points per cell) whose edge a matching window fattened by two cells (one roof-height point per
+    cell) beside ground seen by 5 points per cell: with the default support the outer fringe cell takes the
+    ground (the inner one borrows support from the roof beside it: one cell, within a wall's tolerance), with a
+    support of 2 both take the roof."""
+    rng = np.random.default_rng(4)
+    g = GridSpec(0.0, 20.0, 1.0, 20, 20)
+    pts = []
+    for r in range(20):
+        for c in range(20):
+            x, y = c + 0.5, 19.5 - r
+            z = 110.0 if c < 10 else 100.0
+            pts += [(x + dx, y + dy, z + dz) for dx, dy, dz in rng.uniform(-0.3, 0.3, (5, 3)) * [1, 1, 0.1]]
+            if c in (10, 11):
+                pts.append((x, y, 110.0))
+    h8, _ = grid_points(g, np.array(pts), DsmConfig(cell=1.0))
+    h2, _ = grid_points(g, np.array(pts), DsmConfig(cell=1.0, min_support=2))
+    assert np.allclose(h8[:, 11:], 100.0, atol=0.1) and np.allclose(h8[:, :10], 110.0, atol=0.1)
+    assert np.allclose(h2[:, 10:12], 110.0, atol=0.1)
