@@ -26,6 +26,7 @@ from scipy import ndimage
 from ..errors import InputError
 from ..io.validate import read_json
 from ..model.raster import Raster
+from ..surface.dtm import normal_variation
 from .geometry import points_in_polygon
 
 
@@ -101,16 +102,6 @@ def building_labels(dsm: Raster, dtm: Raster, cfg: DetectConfig = DetectConfig()
         k += 1
         out[sl][m] = k
     return out, k, stats
-
-
-def normal_variation(z: np.ndarray, cell: float, window: float = 1.0) -> np.ndarray:
-    """``1 - |mean unit normal|`` over a ``window`` (m) of a height grid ``z (rows, cols)`` smoothed with a
-    one-cell Gaussian: 0 on a plane, growing with curvature and small-scale roughness."""
-    gy, gx = np.gradient(ndimage.gaussian_filter(z, 1.0), cell)
-    nz = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
-    k = max(int(round(window / cell)) | 1, 3)
-    mean = [ndimage.uniform_filter(c, k) for c in (-gx * nz, -gy * nz, nz)]
-    return 1.0 - np.sqrt(mean[0] ** 2 + mean[1] ** 2 + mean[2] ** 2)
 
 
 def points_per_building(xyz: np.ndarray, labels: np.ndarray, grid: Raster, dtm: Raster,

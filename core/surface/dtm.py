@@ -46,6 +46,8 @@ class DtmConfig:
     building_min_height, vegetation_min_height : nDSM thresholds of the masks, metres
     greenness_min : excess-green threshold of a vegetation cell
     roughness_min : least median roughness (metres) of a vegetation object
+    curvature_min : least median normal variation (:func:`normal_variation`) of a vegetation object smooth enough
+        to pass ``roughness_min``
     min_object_m2 : objects smaller than this are removed from the masks
     """
 
@@ -60,6 +62,7 @@ class DtmConfig:
     vegetation_min_height: float = 1.0
     greenness_min: float = 0.3
     roughness_min: float = 0.06
+    curvature_min: float = 0.025
     min_object_m2: float = 10.0
 
 
@@ -178,6 +181,16 @@ def roughness(ndsm: np.ndarray, window: int = 5) -> np.ndarray:
     return ndimage.uniform_filter(np.abs(z - cv2.medianBlur(z, window)), window)
 
 
+def normal_variation(z: np.ndarray, cell: float, window: float = 1.0) -> np.ndarray:
+    """``1 - |mean unit normal|`` over a ``window`` (m) of a height grid ``z (rows, cols)`` smoothed with a
+    one-cell Gaussian: 0 on a plane, growing with curvature and small-scale roughness."""
+    gy, gx = np.gradient(ndimage.gaussian_filter(z, 1.0), cell)
+    nz = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
+    k = max(int(round(window / cell)) | 1, 3)
+    mean = [ndimage.uniform_filter(c, k) for c in (-gx * nz, -gy * nz, nz)]
+    return 1.0 - np.sqrt(mean[0] ** 2 + mean[1] ** 2 + mean[2] ** 2)
+
+
 def object_masks(ndsm: np.ndarray, rgb: np.ndarray | None, cell: float, cfg: DtmConfig = DtmConfig()
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Building and vegetation masks ``(rows, cols)`` bool from the nDSM and, when given, cell colours
@@ -185,8 +198,10 @@ def object_masks(ndsm: np.ndarray, rgb: np.ndarray | None, cell: float, cfg: Dtm
 
     Raised objects (connected cells above ``vegetation_min_height``) are classified whole: vegetation when most
     of their cells are green (excess-green index above ``greenness_min``) and their surface is rough (median
-    :func:`roughness` above ``roughness_min``: a green roof is smooth), else their cells above
-    ``building_min_height`` are building. Without colour every raised object counts as a building.
+    :func:`roughness` above ``roughness_min``) or curved (median :func:`normal_variation` above
+    ``curvature_min``: a crown smooth enough to pass the roughness test is still a dome, while a green roof is
+    smooth and planar), else their cells above ``building_min_height`` are building. Without colour every raised
+    object counts as a building.
     """
     with np.errstate(invalid="ignore"):
         raised = ndsm > cfg.vegetation_min_height
@@ -198,7 +213,8 @@ def object_masks(ndsm: np.ndarray, rgb: np.ndarray | None, cell: float, cfg: Dtm
         green = (greenness(rgb) > cfg.greenness_min).astype(np.float64)
         green_share = ndimage.mean(green, lab, index=idx)
         rough = ndimage.median(roughness(ndsm), lab, index=idx)
-        veg_obj[1:] = (green_share > 0.5) & (rough > cfg.roughness_min)
+        curved = ndimage.median(normal_variation(np.nan_to_num(ndsm), cell), lab, index=idx)
+        veg_obj[1:] = (green_share > 0.5) & ((rough > cfg.roughness_min) | (curved > cfg.curvature_min))
     veg = veg_obj[lab] & raised
     with np.errstate(invalid="ignore"):
         bld = raised & ~veg & (ndsm > cfg.building_min_height)
