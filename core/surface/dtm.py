@@ -198,9 +198,10 @@ def object_masks(ndsm: np.ndarray, rgb: np.ndarray | None, cell: float, cfg: Dtm
 
     Raised objects (connected cells above ``vegetation_min_height``) are classified whole: vegetation when most
     of their cells are green (excess-green index above ``greenness_min``) and their surface is rough (median
-    :func:`roughness` above ``roughness_min``) or curved (median :func:`normal_variation` above
-    ``curvature_min``: a crown smooth enough to pass the roughness test is still a dome, while a green roof is
-    smooth and planar), else their cells above ``building_min_height`` are building. Without colour every raised
+    :func:`roughness` above ``roughness_min``) or bumpy at the metre scale (median :func:`normal_variation`
+    above ``curvature_min``: crowns smooth enough to pass the roughness test still scatter their normals, a
+    green roof is planar; as noisy as the demo's worst roofs it would count as vegetation too), else their cells
+    above ``building_min_height`` are building. Without colour every raised
     object counts as a building.
     """
     with np.errstate(invalid="ignore"):

@@ -157,6 +157,32 @@ def test_masks_split_buildings_and_vegetation():
     assert greenness(np.array([60, 140, 50])) > 0.3
 
 
+def test_green_bumpy_crowns_are_vegetation_and_a_smooth_green_roof_is_not():
+    """A green object whose surface is bumpy at the metre scale (the DSM of a crown group: 0.15 m bumps about
+    0.6 m wide), too little for the roughness test, is vegetation by its normal variation; the same object
+    with a smooth top is a green roof, a building."""
+    from scipy import ndimage
+
+    cell = 0.156
+    rng = np.random.default_rng(7)
+    y, x = np.mgrid[0:160, 0:160] * cell
+    bumps = ndimage.gaussian_filter(rng.normal(0, 1, x.shape), 2.0)
+    bumps *= 0.15 / bumps.std()
+    crowns = (x > 2) & (x < 10) & (y > 2) & (y < 10)
+    roof = (x > 14) & (x < 22) & (y > 14) & (y < 22)
+    ndsm = np.zeros(x.shape)
+    ndsm[crowns] = 8.0 + bumps[crowns]
+    ndsm[roof] = 8.0
+    rgb = np.full(x.shape + (3,), 120.0)
+    rgb[crowns | roof] = (60, 140, 50)
+    bld, veg = object_masks(ndsm, rgb, cell, DtmConfig())
+    inner = (x > 3) & (x < 9) & (y > 3) & (y < 9)
+    assert veg[inner].mean() > 0.9 and not bld[inner].any()
+    assert bld[roof].mean() > 0.9 and not veg[roof].any()
+    bld0, _ = object_masks(ndsm, rgb, cell, DtmConfig(curvature_min=np.inf))  # roughness alone: a building
+    assert bld0[inner].mean() > 0.9
+
+
 def test_cell_top_is_the_highest_supported_point():
     """Per cell: two roof points beat six mismatched ground points under them; a lone high blunder is passed
     over; a cell with a single point keeps it."""
