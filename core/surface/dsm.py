@@ -63,8 +63,10 @@ class DsmConfig:
     min_support : the top of a cell is its highest point with at least this many points (itself included) within
         ``band`` of its height in the cell and its 8 neighbours: an isolated high blunder is passed over, and a
         roof seen by a few points wins over more numerous mismatched points at ground level under it (nothing can
-        be seen below a roof from above); the default 8 (a cell of nadir GSD holds about one point per master
-        seeing it) also passes over the thin fringe a matching window fattens a roof edge with
+        be seen below a roof from above); 0 (the default) takes ``support_share`` of the median number of points
+        in the 3 x 3 neighbourhoods of occupied cells (at least 2): with the several points per cell of a dense
+        cloud the top also passes over the thin fringe a matching window fattens a roof edge with
+    support_share : share of the typical neighbourhood point count that supports a top when ``min_support`` is 0
     band : points within this many metres below the top form the cell's top band
     min_points : cells with fewer points are empty
     spike : cells with fewer than two of their 8 neighbours within this many metres are removed as blunders
@@ -79,7 +81,8 @@ class DsmConfig:
     """
 
     cell: float = 0.0
-    min_support: int = 8
+    min_support: int = 0
+    support_share: float = 0.3
     band: float = 0.5
     min_points: int = 1
     spike: float = 1.0
@@ -98,6 +101,14 @@ def _group_quantile(key: np.ndarray, z: np.ndarray, q: float) -> tuple[np.ndarra
     return uniq, zs[start + np.floor(q * (counts - 1)).astype(np.int64)], counts
 
 
+def auto_support(grid: GridSpec, keys: np.ndarray, share: float) -> int:
+    """``share`` of the median number of points in the 3 x 3 neighbourhoods of the occupied cells (cell indices
+    ``keys (n,)`` of the points), at least 2."""
+    counts = np.bincount(keys, minlength=grid.rows * grid.cols).reshape(grid.rows, grid.cols).astype(np.float64)
+    around = ndimage.uniform_filter(counts, size=3, mode="constant") * 9.0
+    return max(2, int(round(share * float(np.median(around[counts > 0])))))
+
+
 def grid_points(grid: GridSpec, xyz: np.ndarray, cfg: DsmConfig = DsmConfig()) -> tuple[np.ndarray, np.ndarray]:
     """Robust per-cell heights of points ``xyz : (n, 3)``.
 
@@ -113,6 +124,7 @@ def grid_points(grid: GridSpec, xyz: np.ndarray, cfg: DsmConfig = DsmConfig()) -
     top_of = np.full(grid.rows * grid.cols, np.nan)
     if len(idx):
         k, zz = key[idx], z[idx]
+        min_support = cfg.min_support if cfg.min_support > 0 else auto_support(grid, k, cfg.support_share)
         order = np.lexsort((zz, k))
         k, zz = k[order], zz[order]
         # support of each point: points within ``band`` of its height in its cell and the 8 around it (cells are
@@ -130,7 +142,7 @@ def grid_points(grid: GridSpec, xyz: np.ndarray, cfg: DsmConfig = DsmConfig()) -
                 support += np.where(ok, n, 0)
         within = pos - np.searchsorted(k, k, side="left")
         # per cell: the highest point with enough support, else the best-supported point (the highest of those)
-        rank = np.where(support >= cfg.min_support, 1e12 + within, support * 1e6 + within)
+        rank = np.where(support >= min_support, 1e12 + within, support * 1e6 + within)
         best = np.full(grid.rows * grid.cols, -1.0)
         np.maximum.at(best, k, rank)
         pick = rank == best[k]

@@ -31,7 +31,8 @@ class SurfaceConfig:
 
     cell : DSM/ortho cell in metres (0 = the nadir GSD)
     aoi : ``[x0, y0, x1, y1]`` area of interest (empty = the ground the nadir images see, cut to the points)
-    dsm_min_support, dsm_band, max_hole_m2 : DSM gridding and hole filling (:class:`.dsm.DsmConfig`)
+    dsm_min_support, dsm_band, max_hole_m2 : DSM gridding and hole filling (:class:`.dsm.DsmConfig`; support 0 =
+        from the point density)
     pit_size_m, pit_depth : enclosed pits narrower and deeper than these are removed from the DSM (0 size: kept)
     dtm_cell, se_size, erosion_rank, threshold : DTM by robust morphological opening
     building_min_height, vegetation_min_height, greenness_min : object masks
@@ -41,7 +42,7 @@ class SurfaceConfig:
 
     cell: float = 0.0
     aoi: tuple[float, ...] = ()
-    dsm_min_support: int = 8
+    dsm_min_support: int = 0
     dsm_band: float = 0.5
     max_hole_m2: float = 50.0
     pit_size_m: float = 3.2
@@ -167,4 +168,4 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
-              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="6")
+              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="7")
