@@ -82,7 +82,7 @@ class DsmConfig:
 
     cell: float = 0.0
     min_support: int = 0
-    support_share: float = 0.3
+    support_share: float = 0.2
     band: float = 0.5
     min_points: int = 1
     spike: float = 1.0
