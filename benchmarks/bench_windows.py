@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     truth_dir = Path(args.truth) if args.truth else Path(ws.load_block().image_root or ".") / "truth"
     truth = load_truth(truth_dir)
     gsd = nadir_gsd(truth.block, float(np.nanmedian(truth.dtm.data)))  # true block over the true DTM
-    names = {b.id: b.name for b in truth.city.buildings}
+    names = {b.id: b.name for b in truth.city.buildings} | {-1: "no true building"}
     truth_by: dict[int, list[np.ndarray]] = {}
     for w, c in zip(truth.windows["windows"], truth_windows(truth.windows), strict=True):
         truth_by.setdefault(int(w["building"]), []).append(c)
@@ -137,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     doc = json.loads(ws.path("windows", "windows.json").read_text())
     buildings, _ = load_buildings(ws.path("buildings", "buildings.json"))
     to_true = {b.id: building_of(b.vertices[:, :2].mean(0), truth.footprints) for b in buildings}
+    to_true = {k: -1 if v is None else v for k, v in to_true.items()}  # -1: no true building (false detection)
     dets: dict[int, list[np.ndarray]] = {}
     for w in load_windows(ws.path("windows", "windows.json")):
         dets.setdefault(to_true.get(w.building_id, -1), []).append(w.corners)
