@@ -31,7 +31,7 @@ if str(ROOT.parent) not in sys.path:
     sys.path.insert(0, str(ROOT.parent))
 
 from oblique_city.core.geometry.projection import backproject_depth, project  # noqa: E402
-from oblique_city.core.matching.features import SIFT_OFFSET_PX  # noqa: E402
+from oblique_city.core.matching.features import sift_features  # noqa: E402
 from oblique_city.core.simulate.render import Renderer  # noqa: E402
 from oblique_city.core.simulate.simulator import SimulationConfig, simulate  # noqa: E402
 from oblique_city.core.simulate.truth import load_truth  # noqa: E402
@@ -44,7 +44,6 @@ def sift_pairs(out: Path, n_pairs: int = 2) -> list[dict]:
     truth = load_truth(out)
     block = truth.block
     renderer = Renderer(truth.city)
-    sift = cv2.SIFT_create(nfeatures=8000)
     rows = []
     by_head: dict[str, list[str]] = {}
     for iid, img in block.images.items():
@@ -55,12 +54,12 @@ def sift_pairs(out: Path, n_pairs: int = 2) -> list[dict]:
             ia, ib = block.images[a], block.images[b]
             ga = cv2.imread(str(out / ia.file), cv2.IMREAD_GRAYSCALE)
             gb = cv2.imread(str(out / ib.file), cv2.IMREAD_GRAYSCALE)
-            ka, da = sift.detectAndCompute(ga, None)
-            kb, db = sift.detectAndCompute(gb, None)
+            ka, da = sift_features(ga, 8000)
+            kb, db = sift_features(gb, 8000)
             m = cv2.BFMatcher().knnMatch(da, db, k=2)
             good = [x[0] for x in m if len(x) == 2 and x[0].distance < 0.8 * x[1].distance]
-            ua = np.array([ka[g.queryIdx].pt for g in good], np.float64).reshape(-1, 2) - SIFT_OFFSET_PX
-            ub = np.array([kb[g.trainIdx].pt for g in good], np.float64).reshape(-1, 2) - SIFT_OFFSET_PX
+            ua = ka[[g.queryIdx for g in good]].reshape(-1, 2)
+            ub = kb[[g.trainIdx for g in good]].reshape(-1, 2)
             cam_a, cam_b = block.camera_of(ia), block.camera_of(ib)
             depth, _ = renderer.trace(cam_a, ia.pose_approx)
             r = np.clip(np.rint(ua).astype(int), 0, [cam_a.width - 1, cam_a.height - 1])

@@ -97,18 +97,15 @@ def erode_far_edges(depth: np.ndarray, step: int, cfg: FusionConfig = FusionConf
         return depth
     jump = np.maximum(cfg.edge_jump_m, cfg.edge_jump_rel * np.nan_to_num(depth, nan=0.0))
     drop = np.zeros(depth.shape, bool)
-    radius = int(round(cfg.edge_radius_px / step))
-    if radius > 0:
-        kernel = np.ones((2 * radius + 1,) * 2, np.uint8)
-        near = cv2.erode(np.nan_to_num(depth, nan=np.inf).astype(np.float32), kernel)
-        with np.errstate(invalid="ignore"):
-            drop |= depth - near > jump
-    radius = int(round(cfg.near_edge_radius_px / step))
-    if radius > 0:
-        kernel = np.ones((2 * radius + 1,) * 2, np.uint8)
-        far = cv2.dilate(np.nan_to_num(depth, nan=-np.inf).astype(np.float32), kernel)
-        with np.errstate(invalid="ignore"):
-            drop |= far - depth > jump
+    # far side: the nearest neighbour (erosion, holes +inf) is much nearer; near side: the farthest (dilation,
+    # holes -inf) is much farther
+    for radius_px, morph, hole, sign in ((cfg.edge_radius_px, cv2.erode, np.inf, 1.0),
+                                         (cfg.near_edge_radius_px, cv2.dilate, -np.inf, -1.0)):
+        radius = int(round(radius_px / step))
+        if radius > 0:
+            other = morph(np.nan_to_num(depth, nan=hole).astype(np.float32), np.ones((2 * radius + 1,) * 2, np.uint8))
+            with np.errstate(invalid="ignore"):
+                drop |= sign * (depth - other) > jump
     return np.where(drop, np.nan, depth).astype(depth.dtype)
 
 

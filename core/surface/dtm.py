@@ -201,8 +201,7 @@ def object_masks(ndsm: np.ndarray, rgb: np.ndarray | None, cell: float, cfg: Dtm
     :func:`roughness` above ``roughness_min``) or bumpy at the metre scale (median :func:`normal_variation`
     above ``curvature_min``: crowns smooth enough to pass the roughness test still scatter their normals, a
     green roof is planar; as noisy as the demo's worst roofs it would count as vegetation too), else their cells
-    above ``building_min_height`` are building. Without colour every raised
-    object counts as a building.
+    above ``building_min_height`` are building. Without colour every raised object counts as a building.
     """
     with np.errstate(invalid="ignore"):
         raised = ndsm > cfg.vegetation_min_height
