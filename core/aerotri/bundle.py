@@ -243,15 +243,22 @@ def project_obs(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     """Projected pixel positions ``(m, 2)`` of observations (NaN behind the camera)."""
     w = np.take(xyz, obs_point, 0) - np.take(c, obs_image, 0)
     xc = (np.take(r, obs_image, 0) @ w[:, :, None])[:, :, 0]
+    return pixels_from_camera(cameras, image_camera, xc, obs_image)
+
+
+def pixels_from_camera(cameras: list[CameraModel], image_camera: np.ndarray, xyz_cam: np.ndarray,
+                       obs_image: np.ndarray) -> np.ndarray:
+    """Pixel positions ``(m, 2)`` of points given in the cameras' frames ``xyz_cam (m, 3)`` of the observations'
+    images ``obs_image (m,)`` (NaN behind the camera)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        xy = xc[:, :2] / xc[:, 2:3]
-    out = np.full((len(obs_point), 2), np.nan)
+        xy = xyz_cam[:, :2] / xyz_cam[:, 2:3]
+    out = np.full((len(obs_image), 2), np.nan)
     cam_of_obs = image_camera[obs_image]
     for ci, cam in enumerate(cameras):
         sel = cam_of_obs == ci
         if sel.any():
             out[sel] = cam.normalized_to_pixel(xy[sel])
-    out[xc[:, 2] <= 0] = np.nan
+    out[xyz_cam[:, 2] <= 0] = np.nan
     return out
 
 

@@ -35,12 +35,12 @@ from .bundle import (
     BundleOptions,
     BundleResult,
     adjust,
-    project_obs,
+    pixels_from_camera,
     refine_points,
     release_heap,
     worst_per_track,
 )
-from .precision import point_jacobians, point_normals, quadratic_forms, safe_inverse
+from .precision import pinhole_point_jacobians, point_jacobians, point_normals, quadratic_forms, safe_inverse
 from .problem import (
     SubProblem,
     build_problem,
@@ -197,8 +197,9 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     :func:`.problem.thin_ties`: per oblique image a grid of ``oblique_tie_grid`` cells across, in each cell the
     ``oblique_ties_per_cell`` tracks with most rays in the view; connection points always stay. Every tie point
     still gets coordinates: the tracks with thinned observations are intersected afterwards from all their rays
-    with the final orientations, with blunder tests (:func:`intersect_and_test`), and those coordinates replace
-    the combined ones. ``0`` adjusts all tie points in the oblique runs.
+    with the final orientations, with blunder tests (:func:`intersect_and_test`, starting from the combined
+    coordinates where a run gave some), and those coordinates replace the combined ones. ``0`` adjusts all tie
+    points in the oblique runs.
 
     With ``combined_datum`` the datum shift, estimated in the nadir run from the nadir measurements of the control
     points alone, is refined in step (3) from all their measurements (:func:`datum_correction`) and the whole
@@ -319,7 +320,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         s0 = float(np.sqrt(sum(r.result.sigma0**2 * r.result.redundancy for r in runs)
                            / max(sum(r.result.redundancy for r in runs), 1)))
         xt, ct, rj = intersect_and_test(block, ties, poses, ~rej, thinned, opt.sigma_px, s0, opt.blunder_threshold,
-                                        executor=executor)
+                                        executor=executor, xyz_start=xyz)
         ok = thinned & np.isfinite(xt[:, 0])
         xyz[ok], cov[ok] = xt[ok], ct[ok]
         rej |= rj
@@ -406,29 +407,36 @@ def nadir_propagation(block: ImageBlock, nadir_poses: dict[str, Pose]) -> dict[s
 
 def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose], obs_ok: np.ndarray,
                        tracks: np.ndarray, sigma_px: float, sigma0: float, threshold: float, max_rounds: int = 6,
-                       executor=None, share_obs: int = 1_000_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Tie points from the final orientations (cameras fixed) with blunder tests: multi-ray forward intersection and
-    a Gauss-Newton step on the pixel residuals, then each round rejects every track's worst ray whose normalised
-    residual ``|v| / (sigma0 sigma_px sqrt(r))`` (r its redundancy number for the point alone) exceeds
-    ``threshold``; only tracks that lost a ray are recomputed in the next round. With a parallel ``executor`` the
-    tracks are split into shares of at most ``share_obs`` observations, the same number for every worker (only
-    their observation arrays travel; a unit needs a few hundred bytes per observation).
+                       executor=None, share_obs: int = 1_000_000, xyz_start: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tie points from the final orientations (cameras fixed) with blunder tests: from a start (``xyz_start (n, 3)``
+    where finite, else the multi-ray forward intersection) a Gauss-Newton step on the pixel residuals, then each
+    round rejects every track's worst ray whose normalised residual ``|v| / (sigma0 sigma_px sqrt(r))`` (r its
+    redundancy number for the point alone) exceeds ``threshold``; only tracks that lost a ray take another step,
+    from where they are. With a parallel ``executor`` the tracks are split into shares of at most ``share_obs``
+    observations, the same number for every worker (only their observation arrays travel; a unit needs a few
+    hundred bytes per observation).
 
     ``obs_ok : (m,)`` observations allowed; ``tracks : (n,)`` bool tracks to compute. Returns ``xyz (n, 3)`` and
     ``cov (n, 3, 3)`` (NaN for tracks not computed or with fewer than two rays) and the rejected ``(m,)``."""
     n, m = ties.n_tracks, ties.n_obs
     cameras, image_camera, r, c = pose_arrays(block, ties.image_ids, poses)
     use = obs_ok & tracks[ties.obs_track] & np.isfinite(c[ties.obs_image, 0])
+    start = np.full((n, 3), np.nan) if xyz_start is None else np.asarray(xyz_start, np.float64)
     parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
     # a whole number of shares per worker (balanced waves), none above ``share_obs`` observations (memory)
     workers = max(1, int(getattr(executor, "workers", 1))) if parallel else 1
     shares = workers * max(1, -(-int(use.sum()) // (workers * max(share_obs, 1))))
     items, index = [], []
     for idx in track_shares(ties.obs_track, np.flatnonzero(use), shares):
-        pts, local = np.unique(ties.obs_track[idx], return_inverse=True)
+        # tracks of the share numbered 0.. in track order (a rank table instead of a sort)
+        seen = np.zeros(n, bool)
+        seen[ties.obs_track[idx]] = True
+        pts = np.flatnonzero(seen)
+        rank = np.cumsum(seen) - 1
         index.append((idx, pts))
-        items.append((cameras, image_camera, r, c, local.astype(np.int64), ties.obs_image[idx], ties.obs_uv[idx],
-                      len(pts), sigma_px, sigma0, threshold, max_rounds))
+        items.append((cameras, image_camera, r, c, rank[ties.obs_track[idx]], ties.obs_image[idx], ties.obs_uv[idx],
+                      start[pts], sigma_px, sigma0, threshold, max_rounds))
     outs = executor.map(_intersect_unit, items) if parallel else [_intersect_unit(it) for it in items]
     xyz = np.full((n, 3), np.nan)
     cov = np.full((n, 3, 3), np.nan)
@@ -441,48 +449,58 @@ def intersect_and_test(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose
 
 def _intersect_unit(item: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Executor unit of :func:`intersect_and_test` over arrays: ``(cameras, image_camera (k,), r (k, 3, 3),
-    c (k, 3), obs_point (m,), obs_image (m,), obs_uv (m, 2), n_points, sigma_px, sigma0, threshold, max_rounds)``
-    -> ``xyz (n, 3)``, ``cov (n, 3, 3)``, rejected ``(m,)``. The worker's freed heap is handed back afterwards."""
+    c (k, 3), obs_point (m,), obs_image (m,), obs_uv (m, 2), xyz_start (n, 3), sigma_px, sigma0, threshold,
+    max_rounds)`` -> ``xyz (n, 3)``, ``cov (n, 3, 3)``, rejected ``(m,)``. The worker's freed heap is handed back
+    afterwards."""
     out = _intersect_share(*item)
     release_heap()
     return out
 
 
 def _intersect_share(cameras: list, image_camera: np.ndarray, r: np.ndarray, c: np.ndarray, op_all: np.ndarray,
-                     oi_all: np.ndarray, uv_all: np.ndarray, n: int, sigma_px: float, sigma0: float,
+                     oi_all: np.ndarray, uv_all: np.ndarray, xyz_start: np.ndarray, sigma_px: float, sigma0: float,
                      threshold: float, max_rounds: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_intersect_unit` with its arguments spelt out."""
-    m = len(op_all)
+    m, n = len(op_all), len(xyz_start)
     fx = np.array([cm.fx for cm in cameras])[image_camera]
     fy = np.array([cm.fy for cm in cameras])[image_camera]
+    x = np.array(xyz_start, np.float64)
+    missing = ~np.isfinite(x[:, 0])
+    if missing.any():
+        sel = np.flatnonzero(missing[op_all])
+        d = ray_directions(cameras, image_camera, r, oi_all[sel], uv_all[sel], undistort_iterations=4)
+        x0, _ = intersect_rays(np.take(c, oi_all[sel], 0), d, op_all[sel], n)
+        x[missing] = x0[missing]
     xyz = np.full((n, 3), np.nan)
     cov = np.full((n, 3, 3), np.nan)
     use = np.ones(m, bool)
     rejected = np.zeros(m, bool)
     todo = np.ones(n, bool)
-    d_all = ray_directions(cameras, image_camera, r, oi_all, uv_all, undistort_iterations=4)
     for _ in range(max_rounds):
         idx = np.flatnonzero(use & todo[op_all])
         if len(idx) == 0:
             break
-        op, oi, uv = op_all[idx], oi_all[idx], uv_all[idx]
-        c_obs = np.take(c, oi, 0)
-        x0, _ = intersect_rays(c_obs, d_all[idx], op, n)
+        op, oi = op_all[idx], oi_all[idx]
         # one Gauss-Newton step on the pixel residuals; the test uses the linearised residuals after it
-        v = uv - project_obs(cameras, image_camera, r, c, x0, op, oi)
-        jp = point_jacobians(np.take(r, oi, 0), c_obs, fx[oi], fy[oi], np.take(x0, op, 0))
+        rr = np.take(r, oi, 0)
+        xc = np.einsum("mij,mj->mi", rr, np.take(x, op, 0) - np.take(c, oi, 0))
+        v = uv_all[idx] - pixels_from_camera(cameras, image_camera, xc, oi)
+        jp = pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
+        del rr, xc
         good = np.all(np.isfinite(v), 1)
         q = safe_inverse(point_normals(jp, np.where(good, sigma_px**-2, 0.0), op, n))
-        v = np.where(good[:, None], v, 0.0)
+        v[~good] = 0.0
         jv = np.einsum("mri,mr->mi", jp, v)
         g = np.stack([np.bincount(op, weights=jv[:, i], minlength=n) for i in range(3)], 1) * sigma_px**-2
-        step = np.nan_to_num(np.einsum("kij,kj->ki", q, g))
-        x1 = x0 + step
-        v1 = v - np.einsum("mij,mj->mi", jp, step[op])
+        step = np.einsum("kij,kj->ki", q, g)
+        solved = np.all(np.isfinite(step), 1)  # fewer than two rays or badly conditioned: no point
+        v1 = v - np.einsum("mij,mj->mi", jp, np.nan_to_num(step)[op])
         red = np.clip(1.0 - quadratic_forms(jp, q, op) / sigma_px**2 / 2.0, 0.02, 1.0)
         w = np.full(m, np.nan)
-        w[idx] = np.where(good, np.sqrt(np.sum(v1**2, 1) / red) / (sigma_px * max(sigma0, 1e-9)), np.nan)
-        xyz[todo] = x1[todo]
+        w[idx] = np.where(good & solved[op], np.sqrt(np.sum(v1**2, 1) / red) / (sigma_px * max(sigma0, 1e-9)),
+                          np.nan)
+        x = np.where((todo & solved)[:, None], x + np.nan_to_num(step), x)
+        xyz[todo] = np.where(solved[todo, None], x[todo], np.nan)
         cov[todo] = q[todo] * sigma0**2
         cur = np.zeros(m, bool)
         cur[idx] = True

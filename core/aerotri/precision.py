@@ -42,14 +42,30 @@ def collinearity_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx
 def point_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx: np.ndarray, fy: np.ndarray,
                     xyz_world: np.ndarray) -> np.ndarray:
     """``d(uv)/d(point) (m, 2, 3)`` alone (see :func:`collinearity_jacobians` for the shapes)."""
-    rr = r_cam_from_world
-    xc = (rr @ (xyz_world - c_world)[:, :, None])[:, :, 0]
+    xc = (r_cam_from_world @ (xyz_world - c_world)[:, :, None])[:, :, 0]
+    return pinhole_point_jacobians(r_cam_from_world, xc, fx, fy)
+
+
+def pinhole_point_jacobians(r_cam_from_world: np.ndarray, xyz_cam: np.ndarray, fx: np.ndarray, fy: np.ndarray
+                            ) -> np.ndarray:
+    """:func:`point_jacobians` from each observation's rotation ``(m, 3, 3)`` and the point already in its camera
+    frame ``xyz_cam (m, 3)`` (callers that also project reuse it)."""
+    rr, xc = r_cam_from_world, xyz_cam
     z = xc[:, 2]
     # rows of the projection Jacobian times R: (f / z) (R_row - (x / z) R_2), written out
     j_point = np.empty((len(z), 2, 3))
     j_point[:, 0] = (fx / z)[:, None] * (rr[:, 0] - (xc[:, 0] / z)[:, None] * rr[:, 2])
     j_point[:, 1] = (fy / z)[:, None] * (rr[:, 1] - (xc[:, 1] / z)[:, None] * rr[:, 2])
     return j_point
+
+
+def _pair_product(rows: np.ndarray, i: int, j: int) -> np.ndarray:
+    """``sum_r rows[:, r, i] rows[:, r, j]`` ``(m,)`` for ``rows (m, r, d)``, without ``(m, r)`` temporaries beyond
+    one row."""
+    out = rows[:, 0, i] * rows[:, 0, j]
+    for k in range(1, rows.shape[1]):
+        out += rows[:, k, i] * rows[:, k, j]
+    return out
 
 
 def sum_outer(rows: np.ndarray, w: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
@@ -62,7 +78,8 @@ def sum_outer(rows: np.ndarray, w: np.ndarray, index: np.ndarray, n: int) -> np.
     out = np.empty((n, d, d))
     for i in range(d):
         for j in range(i, d):
-            v = np.einsum("mr,mr->m", rows[:, :, i], rows[:, :, j]) * w
+            v = _pair_product(rows, i, j)
+            v *= w
             out[:, i, j] = out[:, j, i] = np.bincount(index, weights=v, minlength=n)
     return out
 
@@ -89,14 +106,19 @@ def image_normals(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray, obs
     return n
 
 
-def quadratic_forms(rows: np.ndarray, q: np.ndarray, index: np.ndarray, chunk: int = 500_000) -> np.ndarray:
+def quadratic_forms(rows: np.ndarray, q: np.ndarray, index: np.ndarray) -> np.ndarray:
     """``sum_r rows[k, r] q[index[k]] rows[k, r]^T`` per item ``(m,)`` for ``rows (m, r, d)`` and the symmetric
-    blocks ``q (n, d, d)`` (NaN counts as 0), in chunks of ``chunk`` items so the gathered blocks stay small."""
+    blocks ``q (n, d, d)`` (NaN counts as 0): one gathered entry of ``q`` times the matching sum of row products
+    per unique entry, so nothing larger than ``(m,)`` is gathered (gathering whole ``(m, d, d)`` blocks for an
+    einsum was 3.7 times slower for d = 3 on 2.5 M items)."""
     q = np.nan_to_num(q)
-    out = np.empty(len(rows))
-    for s in range(0, len(rows), chunk):
-        a = rows[s:s + chunk]
-        out[s:s + chunk] = np.einsum("mri,mij,mrj->m", a, q[index[s:s + chunk]], a, optimize=True)
+    d = rows.shape[2]
+    out = np.zeros(len(rows))
+    for i in range(d):
+        for j in range(i, d):
+            t = _pair_product(rows, i, j)
+            t *= np.take(np.ascontiguousarray(q[:, i, j]), index) * (1.0 if i == j else 2.0)
+            out += t
     return out
 
 

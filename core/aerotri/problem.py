@@ -69,10 +69,10 @@ def intersect_rays(o: np.ndarray, d: np.ndarray, track: np.ndarray, n: int) -> t
 def track_shares(obs_track: np.ndarray, idx: np.ndarray, shares: int) -> list[np.ndarray]:
     """The observations ``idx`` split into ``shares`` groups by track (``track % shares``), so that every track's
     observations stay together: a list of index arrays into ``obs_track (m,)``, each in ``idx`` order."""
+    if shares <= 1:
+        return [idx]
     share_of = obs_track[idx] % shares
-    order = np.argsort(share_of, kind="stable")
-    bounds = np.searchsorted(share_of[order], np.arange(shares + 1))
-    return [idx[order[bounds[s]:bounds[s + 1]]] for s in range(shares)]
+    return [idx[share_of == s] for s in range(shares)]
 
 
 def intersect_ties(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose],
