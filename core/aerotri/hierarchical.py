@@ -255,19 +255,21 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
             obs_mask = kept[ties.obs_track]
             thinned_obs |= in_view & ~obs_mask
         per_view.append((v, ids, sel, obs_mask))
-    # start coordinates only of the tracks that enter an oblique run (thinned tracks are intersected at the end)
+    # start coordinates of the tracks that enter an oblique run (thinned tracks are intersected at the end): the
+    # nadir run's where it adjusted them, else intersected from the propagated orientations
     used = np.zeros(n, bool)
     for v, _, _, obs_mask in per_view:
         in_run = (view_of_obs == codes[v]) if obs_mask is None else (view_of_obs == codes[v]) & obs_mask
         used[ties.obs_track[in_run]] = True
+    used &= ~np.isfinite(xyz_nadir[:, 0])
     xyz_start, _ = intersect_ties(block, ties, start_poses, obs_mask=used[ties.obs_track])
-    xyz_start = np.where(np.isfinite(xyz_start[:, :1]), xyz_start, xyz0)
+    xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir,
+                         np.where(np.isfinite(xyz_start[:, :1]), xyz_start, xyz0))
     items, conn_counts, conn_masks = [], {}, {}
     for v, ids, sel, obs_mask in per_view:
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
-        start = np.where(sel[:, None], xyz_nadir, xyz_start)
-        sub = build_problem(block, ties, ids, start, obs_mask=obs_mask, use_control=oblique_control,
+        sub = build_problem(block, ties, ids, xyz_start, obs_mask=obs_mask, use_control=oblique_control,
                             point_prior_xyz=prior_xyz, point_prior_cov=prior_cov, prior_shift=res_n.datum_shift,
                             initial=start_poses)
         conn_counts[v] = int(sel.sum())
