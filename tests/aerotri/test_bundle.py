@@ -127,3 +127,22 @@ def test_cba_layers_from_selected_views(sim, iat):
     # the intersection error after adjustment is below the one from the navigation data
     assert np.nanmedian(all_v["intersection_error_after"].data) < np.nanmedian(
         all_v["intersection_error_before"].data)
+
+
+def test_linear_solver_follows_observations_per_image(sim, xyz0):
+    """'auto' factorises the reduced camera system of a sub-block with many observations per image and solves a
+    thinned one (fewer than ``sparse_schur_min_obs_per_image``) by conjugate gradients; the nadir sub-block of
+    the test block has several hundred observations per image."""
+    from oblique_city.core.aerotri.bundle import linear_solver_kind
+
+    nadir = sim.block.images_by_view()["nadir"]
+    sub = build_problem(sim.block, sim.ties, nadir, xyz0)
+    p = sub.problem
+    active = np.ones(len(p.obs_point), bool)
+    per_image = len(p.obs_point) / p.n_images
+    opt = BundleOptions(sigma_px=0.3)
+    assert linear_solver_kind(p, opt, active) == "sparse_schur"
+    assert linear_solver_kind(p, replace(opt, sparse_schur_min_obs_per_image=2 * per_image), active) == \
+        "iterative_schur"
+    assert linear_solver_kind(p, replace(opt, linear_solver="sparse_schur",
+                                         sparse_schur_min_obs_per_image=2 * per_image), active) == "sparse_schur"

@@ -125,3 +125,14 @@ def test_intersections_in_shares_match_one_piece_and_the_truth(sim, options):
     assert (~truth & one[2]).sum() < 0.01 * (~truth).sum()
     good = np.isfinite(one[0][:, 0])
     assert np.median(np.linalg.norm(one[0][good] - sim.true_xyz[good], axis=1)) < 0.5 * sim.gsd
+    # from start coordinates a few centimetres off (as the combined run coordinates are) the same points and
+    # rejections as from the forward intersection; tracks without a start are intersected
+    rng = np.random.default_rng(1)
+    start = sim.true_xyz + rng.normal(0.0, 0.05, sim.true_xyz.shape)
+    start[::3] = np.nan
+    from_start = intersect_and_test(sim.block, ties, sim.true_poses, obs_ok, tracks, options.sigma_px, 1.0, 4.3,
+                                    xyz_start=start)
+    both = good & np.isfinite(from_start[0][:, 0])
+    assert both.sum() > 0.99 * good.sum()
+    assert np.median(np.linalg.norm(from_start[0][both] - one[0][both], axis=1)) < 0.01 * sim.gsd
+    assert (from_start[2] != one[2]).sum() < 1e-3 * one[2].sum()
