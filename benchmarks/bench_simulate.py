@@ -1,6 +1,6 @@
 """Simulator benchmark: render the default block (or a variant) and print the figures of the issue.
 
-    python benchmarks/bench_simulate.py                    # the default block (105 images, 1.47 MP each)
+    python benchmarks/bench_simulate.py                    # the default block (125 images, 1.47 MP each)
     python benchmarks/bench_simulate.py --size 800x600     # smaller images
     python benchmarks/bench_simulate.py --workers 1
 

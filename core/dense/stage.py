@@ -5,7 +5,7 @@ writes into ``dense/``:
 
 * ``points.npz``: every fused point with colour, normal, view, master, incidence angle, the forward
   intersection error with the matching orientation and with the approximate one, and why it was removed
-  (0 kept, 1 mixed pixel, 2 statistical outlier) -- the input of the ``surface`` stage and the benchmarks;
+  (0 kept, 1 mixed pixel, 2 isolated point) -- the input of the ``surface`` stage and the benchmarks;
 * ``points.laz`` and ``points.ply``: the kept points (colour, normal, source view, master id);
 * ``points_display.ply``: a random subsample for display (Blender);
 * ``selection.json``: masters and slaves per view, with per-pair timings.
@@ -32,9 +32,9 @@ from .fusion import (
     erode_far_edges,
     fuse_depths,
     intersection_errors,
+    local_outliers,
     master_points,
     smooth_depth,
-    statistical_outliers,
 )
 from .pairs import PairTask, match_pair, read_image
 from .selection import SelectionConfig, select_pairs
@@ -64,7 +64,8 @@ class DenseConfig:
         image pixels (0 disables it)
     polar_below_deg : pairs whose baseline lies within this angle of the viewing direction are rectified in
         log-polar form (0: all planar; see :mod:`.polar`)
-    outlier_neighbours, outlier_std : statistical outlier removal (0 neighbours disables it)
+    outlier_neighbours, outlier_ratio : isolated points removed by their local density ratio
+        (:func:`.fusion.local_outliers`; 0 neighbours disables it)
     display_points : size of the display subsample
     """
 
@@ -92,7 +93,7 @@ class DenseConfig:
     edge_radius_px: float = 2.0
     near_edge_radius_px: float = 0.0
     outlier_neighbours: int = 16
-    outlier_std: float = 2.5
+    outlier_ratio: float = 2.0
     display_points: int = 300_000
     polar_below_deg: float = 60.0
 
@@ -198,7 +199,7 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
     removed = np.where(arr.pop("mixed"), MIXED, KEPT).astype(np.uint8)
     if cfg.outlier_neighbours > 0:
         cand = np.flatnonzero(removed == KEPT)
-        out = statistical_outliers(arr["xyz"][cand], cfg.outlier_neighbours, cfg.outlier_std)
+        out = local_outliers(arr["xyz"][cand], cfg.outlier_neighbours, cfg.outlier_ratio)
         removed[cand[out]] = OUTLIER
     return _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted)
 
@@ -238,4 +239,4 @@ def _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted) 
 
 STAGE = Stage(name="dense", run=run, config=DenseConfig, requires=("block",),
               description="dense matching: image selection, SGM, multi-slave fusion, filtered point cloud",
-              version="3")
+              version="4")

@@ -52,7 +52,7 @@ def add_commands(subparsers) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--gsd", type=float, help="nadir GSD in metres (default 0.155)")
     s.add_argument("--size", help="image size WxH per head (default 1400x1050)")
-    s.add_argument("--extend", type=float, help="strip extension beyond the area, in flying heights (default 0.85)")
+    s.add_argument("--extend", type=float, help="strip extension beyond the area, in flying heights (default 1.1)")
     s.add_argument("--no-cross", action="store_true", help="no north-south cross strip")
     s.add_argument("--depth", action="store_true", help="also write per-image depth maps to truth/depth")
     s.add_argument("--workers", type=int, default=2, help="rendering processes")
