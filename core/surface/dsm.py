@@ -78,6 +78,8 @@ class DsmConfig:
     pit_size_m, pit_depth : cells lower by more than ``pit_depth`` metres than the grey closing of the DSM with a
         ``pit_size_m`` square (pits narrower than that in every direction) are removed before the holes are
         filled (0 size disables it)
+    roof_hole_sides : a hole bounded by high cells on this many of its four sides is filled as an unmatched part
+        of a roof (see :func:`fill_small_holes`; 5 disables it)
     """
 
     cell: float = 0.0
@@ -91,6 +93,7 @@ class DsmConfig:
     hole_plane_tol: float = 0.2
     pit_size_m: float = 3.2
     pit_depth: float = 2.0
+    roof_hole_sides: int = 3
 
 
 def _group_quantile(key: np.ndarray, z: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -211,17 +214,19 @@ def ring_planes(height: np.ndarray, ring: np.ndarray, n: int) -> tuple[np.ndarra
 
 
 def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.inf,
-                     plane_tol: float = 0.0) -> np.ndarray:
+                     plane_tol: float = 0.0, roof_sides: int = 3) -> np.ndarray:
     """Fill NaN regions of at most ``max_cells`` cells (not touching the border).
 
     A hole whose surrounding cells span less than ``max_step`` metres takes the harmonic surface with its border
     cells as boundary values (:func:`harmonic_fill`: only its own border, never a cell across a wall). A
     hole whose surroundings span more but lie on one plane (RMS <= ``plane_tol`` metres: a hole in a sloped
-    roof) takes the plane's heights. A hole between a high and a low surface (an occlusion beside a building,
-    seen from above) takes the median of its low surrounding cells (those within ``max_step`` of the lowest): the
-    ground hidden behind the wall,
-    rather than a made-up slope from the roof down to the ground ("low" is taken near the lower quartile of
-    the surrounding cells, so a few blunder cells below the ground do not decide it).
+    roof) takes the plane's heights. A hole between a high and a low surface whose border is high on at least
+    ``roof_sides`` of its four sides (north, east, south, west of its centre; 5 disables it), a part of a roof
+    matching missed that is open to the ground at an eave, takes the harmonic surface over its high border
+    cells. Any other hole between a high and a low surface (an occlusion beside a building, seen from above)
+    takes the median of its low surrounding cells (those within ``max_step`` of the lowest): the ground hidden
+    behind the wall, rather than a made-up slope from the roof down to the ground ("low" is taken near the lower
+    quartile of the surrounding cells, so a few blunder cells below the ground do not decide it).
     """
     holes = ~np.isfinite(height)
     if not holes.any() or holes.all():
@@ -251,6 +256,28 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
             lab = labels[rr, cc]
             result[rr, cc] = coef[lab, 0] * cc + coef[lab, 1] * rr + coef[lab, 2]
     step = small & ~level & ~planar
+    if step.any():
+        # a hole enclosed by high cells on at least three of its four sides (north, east, south, west of its
+        # centre) is a part of a roof that matching missed (a dark or sparsely measured roof, a tower top), not
+        # ground hidden behind a wall, which leaves the wall on one side (two at a corner): the membrane over
+        # its high border cells fills it
+        rr, cc = np.nonzero((ring > 0) & step[ring])
+        lab_r = ring[rr, cc]
+        high_cell = height[rr, cc] > ring_lo[lab_r] + max_step
+        hr, hc = np.nonzero(step[labels])
+        hl = labels[hr, hc]
+        cnt = np.maximum(np.bincount(hl, minlength=n + 1), 1)
+        mr, mc = np.bincount(hl, hr, n + 1) / cnt, np.bincount(hl, hc, n + 1) / cnt
+        sector = (np.floor((np.arctan2(mr[lab_r] - rr, cc - mc[lab_r]) / (np.pi / 2)) + 0.5).astype(np.int64)) % 4
+        key = lab_r * 4 + sector
+        high_share = np.bincount(key, high_cell, 4 * (n + 1)) / np.maximum(np.bincount(key, minlength=4 * (n + 1)), 1)
+        high_sides = (high_share > 0.5).reshape(n + 1, 4).sum(axis=1)
+        roof = step & (high_sides >= roof_sides)
+        if roof.any():
+            sel = roof[labels]
+            low_ring = (ring > 0) & roof[ring] & (height <= ring_lo[ring] + max_step)
+            result[sel] = harmonic_fill(np.where(low_ring, np.nan, height), sel)[sel]
+        step &= ~roof
     fill = level[labels]
     if fill.any():
         result[fill] = harmonic_fill(height, fill)[fill]
@@ -350,11 +377,12 @@ def make_dsm(grid: GridSpec, xyz: np.ndarray, crs: str, cfg: DsmConfig = DsmConf
     height, top = grid_points(grid, xyz, cfg)
     height = remove_spikes(height, cfg.spike) if cfg.spike > 0 else height
     max_cells = int(cfg.max_hole_m2 / grid.cell ** 2)
-    filled = fill_small_holes(height, max_cells, cfg.max_hole_step, cfg.hole_plane_tol)
+    filled = fill_small_holes(height, max_cells, cfg.max_hole_step, cfg.hole_plane_tol, cfg.roof_hole_sides)
     size = int(round(cfg.pit_size_m / grid.cell)) | 1
     if cfg.pit_size_m > 0 and size >= 3 and np.isfinite(height).any():
         base = np.where(np.isfinite(filled), filled, np.nanmin(height))
         pit = np.isfinite(height) & pits(base, size, cfg.pit_depth)
         if pit.any():
-            filled = fill_small_holes(np.where(pit, np.nan, height), max_cells, cfg.max_hole_step, cfg.hole_plane_tol)
+            filled = fill_small_holes(np.where(pit, np.nan, height), max_cells, cfg.max_hole_step,
+                                      cfg.hole_plane_tol, cfg.roof_hole_sides)
     return grid.raster(filled.astype(np.float32), crs), top

@@ -34,6 +34,9 @@ class SurfaceConfig:
     dsm_min_support, dsm_band, max_hole_m2 : DSM gridding and hole filling (:class:`.dsm.DsmConfig`; support 0 =
         from the point density)
     pit_size_m, pit_depth : enclosed pits narrower and deeper than these are removed from the DSM (0 size: kept)
+    dsm_facade_nz : points whose normal lies within this of horizontal (``|n_z|`` below it: facade points) are
+        left out of the DSM, whose cells hold the top of the surface (0 keeps them)
+    dsm_roof_hole_sides : holes bounded by roofs on this many sides are roof (:class:`.dsm.DsmConfig`; 5: never)
     dtm_cell, se_size, erosion_rank, threshold : DTM by robust morphological opening
     building_min_height, vegetation_min_height, greenness_min : object masks
     ortho_views : views used for the true orthophoto
@@ -47,6 +50,8 @@ class SurfaceConfig:
     max_hole_m2: float = 50.0
     pit_size_m: float = 3.2
     pit_depth: float = 2.0
+    dsm_facade_nz: float = 0.3
+    dsm_roof_hole_sides: int = 3
     dtm_cell: float = 1.0
     se_size: float = 60.0
     erosion_rank: float = 0.03
@@ -75,7 +80,7 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     block = ws.load_block()
     with np.load(path) as z:
         kept = z["removed"] == 0
-        xyz, rgb = z["xyz"][kept], z["rgb"][kept]
+        xyz, rgb, normal = z["xyz"][kept], z["rgb"][kept], z["normal"][kept]
         err_used, err_approx = z["err_used"][kept], z["err_approx"][kept]
     if len(xyz) == 0:
         raise WorkspaceError(f"{path}: the dense point cloud is empty")
@@ -99,9 +104,13 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     # points below the opened ground surface are blunders (nothing is under the terrain): not in the DSM
     above_ground = classes != BELOW
     xyz_s, rgb_s = xyz[above_ground], rgb[above_ground]
-    dsm, top = make_dsm(grid, xyz_s, crs, DsmConfig(cell=cell, min_support=cfg.dsm_min_support, band=cfg.dsm_band,
-                                                    max_hole_m2=cfg.max_hole_m2, pit_size_m=cfg.pit_size_m,
-                                                    pit_depth=cfg.pit_depth))
+    n_s = normal[above_ground]
+    in_dsm = ~((np.abs(n_s[:, 2]) < cfg.dsm_facade_nz) & np.any(n_s != 0, axis=1))  # points without a normal stay
+    dsm_cfg = DsmConfig(cell=cell, min_support=cfg.dsm_min_support, band=cfg.dsm_band, max_hole_m2=cfg.max_hole_m2,
+                        pit_size_m=cfg.pit_size_m, pit_depth=cfg.pit_depth, roof_hole_sides=cfg.dsm_roof_hole_sides)
+    dsm, top_in = make_dsm(grid, xyz_s[in_dsm], crs, dsm_cfg)
+    top = np.zeros(len(xyz_s), bool)
+    top[in_dsm] = top_in
     ndsm = grid.raster((dsm.data - dtm.data).astype(np.float32), crs)
     ctx.progress(2, steps, "true orthophoto")
     by_view = block.images_by_view()
@@ -168,4 +177,4 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
-              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="8")
+              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="9")

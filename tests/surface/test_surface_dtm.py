@@ -104,6 +104,21 @@ def test_level_hole_beside_a_wall_takes_only_its_own_border():
     assert np.allclose(harmonic_fill(np.where(hole, np.nan, ramp), hole)[hole], ramp[hole], atol=1e-6)
 
 
+def test_hole_enclosed_by_roof_is_roof_and_an_occlusion_strip_is_ground():
+    """A gap matching left in a roof, open to the ground only at the eave, is bounded by roof on three sides: it
+    is filled at roof height (and with ``roof_sides=5``, the ground rule that fills it at 100 m is what would
+    apply). A strip beside a wall, bounded by the roof on one side only, is ground hidden behind the wall."""
+    g = np.full((60, 60), 100.0)
+    g[10:40, 10:40] = 110.0                 # a flat roof 10 m above the ground
+    g[10:16, 20:30] = np.nan                # unmatched part of the roof reaching its north eave
+    g[10:40, 40:44] = np.nan                # occlusion strip east of the wall
+    f = fill_small_holes(g, 400, 1.0)
+    assert np.allclose(f[10:16, 20:30], 110.0, atol=1e-6)
+    assert np.allclose(f[10:40, 40:44], 100.0, atol=1e-6)
+    off = fill_small_holes(g, 400, 1.0, roof_sides=5)
+    assert np.allclose(off[10:16, 20:30], 100.0, atol=1e-6)
+
+
 def test_narrow_pit_in_a_roof_is_removed_and_a_gap_between_buildings_kept():
     """A 1 x 1.5 m patch of ground-level blunders inside a 12 m roof is replaced by the roof; a 2 m wide, 5 m
     long passage between two buildings (open at its ends) keeps its ground."""
