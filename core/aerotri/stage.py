@@ -99,6 +99,11 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     ties_path = ws.path(TIES_FILE)
     if not ties_path.exists():
         raise WorkspaceError(f"{ties_path}: no tie points (run the 'match' stage first)")
+    if cfg.rig and not (block.rigs and any(img.exposure is not None for img in block.images.values())):
+        raise ConfigError(f"aerotri.rig is on, but the block in {ws.path('block', 'block.json')} has no rig "
+                          "(heads with boresight and lever arm, images grouped by exposure); of the import formats "
+                          "only the native block.json carries one (the simulator writes it beside block.xml): "
+                          "import that, or turn aerotri.rig off")
     ties = _multi_ray(TiePoints.load(str(ties_path)), cfg.min_rays)
     for img in block.images.values():
         if img.sigma_position is None or img.sigma_attitude is None:

@@ -76,3 +76,20 @@ def test_aerotri_stage_thinned_hierarchical_still_gives_every_tie_point(tmp_path
     assert ok.mean() > 0.95
     d = np.linalg.norm(ties.xyz[ok] - s.true_xyz[multi][ok], axis=1)
     assert np.median(d) < 0.1
+
+
+def test_rig_constraint_on_a_block_without_rig_is_refused(tmp_path):
+    """``aerotri.rig`` on a block that holds no rig (a BlocksExchange import) would constrain nothing: the stage
+    says so instead of running without the constraint."""
+    import pytest
+
+    from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
+    from oblique_city.core.errors import ConfigError
+    from oblique_city.core.pipeline import RunContext
+
+    s, ws = _simulated_workspace(tmp_path)
+    block = ws.load_block()
+    block.rigs.clear()
+    ws.save_block(block)
+    with pytest.raises(ConfigError, match="no rig"):
+        STAGE.run(ws, AerotriConfig(rig=True), RunContext())
