@@ -97,17 +97,23 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                ("hh4", "HH4", "OpenCV's 4-path full SGM"))},
         "min_agree": {"min": 1, "description": "Slaves that must agree for a master pixel to be kept"},
         "tol_px": {"min": 0.0, "description": "Agreement tolerance (disparity pixels)"},
+        "outlier_ratio": {"min": 1.0, "description": "A point is isolated when its mean distance to its neighbours "
+                                                     "exceeds theirs by this factor"},
     },
     "surface": {
         "cell": {"min": 0.0, "description": "DSM and ortho cell (m, 0 = nadir GSD)"},
         "pit_size_m": {"min": 0.0, "description": "Enclosed DSM pits narrower than this are blunders (m, 0 = keep)"},
         "pit_depth": {"min": 0.0, "description": "Depth below their surroundings that makes a pit (m)"},
+        "dsm_facade_nz": {"min": 0.0, "max": 1.0, "description": "Points whose normal is closer to horizontal than "
+                                                             "this (|n_z|) are facade points, left out of the DSM"},
+        "dsm_roof_hole_sides": {"min": 1, "max": 5, "description": "A DSM hole with roof on this many of its four "
+                                                                   "sides is filled as roof (5 = never)"},
         "se_size": {"min": 0.0, "description": "DTM structuring element (m)"},
         "threshold": {"min": 0.0, "description": "Points within this of the opened surface are ground (m)"},
     },
 }
-"""Stage -> field -> extra property settings: ``min``, ``description``, ``items`` (``(value, name, description)``
-choices that make a string field an enum)."""
+"""Stage -> field -> extra property settings: ``min``, ``max``, ``description``, ``items``
+(``(value, name, description)`` choices that make a string field an enum)."""
 
 _options_cache: dict[str, tuple[tuple, dict[str, Any]]] = {}
 
@@ -175,7 +181,7 @@ def _option_property(stage: str, field: dataclasses.Field, default: Any) -> Any:
 
         return EnumProperty(items=items, **common, get=get_choice,
                             set=lambda self, i: set_stage_option(self.id_data, stage, field.name, values[i]))
-    limits = {"min": hints["min"]} if "min" in hints else {}
+    limits = {k: hints[k] for k in ("min", "max") if k in hints}
     if isinstance(default, bool):
         return BoolProperty(**common, get=lambda self: bool(value(self.id_data)),
                             set=lambda self, v: set_stage_option(self.id_data, stage, field.name, bool(v)))
