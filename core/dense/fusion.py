@@ -218,7 +218,8 @@ def local_outliers(xyz: np.ndarray, neighbours: int = 16, ratio: float = 2.0, ch
     on true walls (2.5 % of all points, half of them on the true surface); this test removes 0.5 % of the
     points, 84 % of them off the surface, and keeps the walls.
 
-    xyz : (n, 3) float64 points; chunk : points queried at a time (memory)
+    xyz : (n, 3) float64 points; chunk : points queried at a time (memory: the tree, one float per point and
+    the neighbours of one chunk)
     """
     from scipy.spatial import cKDTree
 
@@ -228,16 +229,15 @@ def local_outliers(xyz: np.ndarray, neighbours: int = 16, ratio: float = 2.0, ch
         return np.zeros(n, bool)
     local = xyz - xyz.mean(axis=0)
     tree = cKDTree(local)
+    # two passes over chunks keep the memory at one float per point (the neighbour lists are not stored)
     mean_d = np.empty(n)
-    nb = np.empty((n, neighbours), np.int64)
     for s in range(0, n, chunk):
-        d, i = tree.query(local[s:s + chunk], k=neighbours + 1, workers=-1)
+        d, _ = tree.query(local[s:s + chunk], k=neighbours + 1, workers=-1)
         mean_d[s:s + chunk] = d[:, 1:].mean(axis=1)
-        nb[s:s + chunk] = i[:, 1:]
     out = np.empty(n, bool)
     for s in range(0, n, chunk):
-        around = np.median(mean_d[nb[s:s + chunk]], axis=1)
-        out[s:s + chunk] = mean_d[s:s + chunk] > ratio * around
+        _, i = tree.query(local[s:s + chunk], k=neighbours + 1, workers=-1)
+        out[s:s + chunk] = mean_d[s:s + chunk] > ratio * np.median(mean_d[i[:, 1:]], axis=1)
     return out
 
 
