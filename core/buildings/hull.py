@@ -188,7 +188,10 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
         for a, b in zip(ring, ring[1:] + ring[:1]):
             cells_at_edge.setdefault((min(a, b), max(a, b)), set()).add(ci)
     # the boundary between kept and dropped cells; where kept cells touch only along an edge (a checkerboard of
-    # sliver cells) the smallest dropped cell at that edge is added, until the surface is a 2-manifold
+    # sliver cells) the smallest dropped cell at that edge is added, until the surface is a 2-manifold; a cell on
+    # the search box is outside the building by construction and never added (it would open the hull there)
+    on_box = np.zeros(len(cells), bool)
+    on_box[[ci for ci, fid, _ in facets if fid < 0]] = True
     for _ in range(50):
         count: dict[frozenset, int] = {}
         for ci, _, ring in rings:
@@ -203,7 +206,7 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
         bad = [e for e, n in directed.items() if n > 1]
         flips = set()
         for a, b in bad:
-            dropped = [c for c in cells_at_edge.get((min(a, b), max(a, b)), ()) if not keep[c]]
+            dropped = [c for c in cells_at_edge.get((min(a, b), max(a, b)), ()) if not keep[c] and not on_box[c]]
             if dropped:
                 flips.add(min(dropped, key=lambda c: abs(volume[c])))
         if not flips:
