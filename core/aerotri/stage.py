@@ -8,16 +8,17 @@ Reads the imported block and the tie points of the ``match`` stage (``matching/t
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import ConfigError, WorkspaceError
-from ..model import TiePoints
+from ..model import CameraModel, ImageBlock, TiePoints
 from ..pipeline.atomic import write_json, write_text
 from ..pipeline.stage import Stage, StageResult
 from .bundle import CALIBRATION_GROUPS, BundleOptions
-from .hierarchical import CONNECTIONS, hierarchical, integrated
+from .hierarchical import CONNECTIONS, ATResult, hierarchical, integrated
 from .report import block_report, html_report, quality_layers, write_layers
 
 MODES = ("integrated", "hierarchical")
@@ -88,6 +89,19 @@ class AerotriConfig:
                              threads=self.threads)
 
 
+def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
+    """Camera id -> the camera model as self-calibrated by the run holding most of its images (in HAT a head
+    that looks in two directions on crossing strips takes part in two runs)."""
+    best: dict[str, tuple[int, CameraModel]] = {}
+    for run in at.runs:
+        counts = Counter(block.images[iid].camera_id for iid in run.poses)
+        for cam in run.result.cameras:
+            n = counts.get(cam.id, 0)
+            if n > best.get(cam.id, (0, cam))[0]:
+                best[cam.id] = (n, cam)
+    return {cid: cam for cid, (_, cam) in best.items()}
+
+
 def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     if cfg.mode not in MODES:
         raise ConfigError(f"aerotri.mode '{cfg.mode}' unknown (use integrated or hierarchical)")
@@ -120,6 +134,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                           oblique_tie_grid=int(cfg.oblique_tie_grid))
     for iid, pose in at.poses.items():
         block.images[iid].pose_adjusted = pose
+    if cfg.self_calibration:  # the adjusted orientations hold only with the cameras calibrated beside them
+        block.cameras.update(calibrated_cameras(block, at))
     out = ws.stage_dir("aerotri")
     ws.save_block(block, "aerotri/block.json")
     adj = TiePoints(xyz=at.xyz, obs_track=ties.obs_track, obs_image=ties.obs_image, obs_uv=ties.obs_uv,

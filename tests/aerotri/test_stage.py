@@ -93,3 +93,25 @@ def test_rig_constraint_on_a_block_without_rig_is_refused(tmp_path):
     ws.save_block(block)
     with pytest.raises(ConfigError, match="no rig"):
         STAGE.run(ws, AerotriConfig(rig=True), RunContext())
+
+
+def test_self_calibrated_cameras_are_saved_with_the_adjusted_block(tmp_path):
+    """The imported focal lengths are 0.3 % off: with ``self_calibration = ["focal"]`` the adjusted block the later
+    stages read carries the calibrated cameras (within 0.05 % of the true focal), not the imported ones that the
+    adjusted orientations no longer fit."""
+    from dataclasses import replace
+
+    from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
+    from oblique_city.core.pipeline import RunContext
+
+    s, ws = _simulated_workspace(tmp_path)
+    block = ws.load_block()
+    true_fx = {cid: cam.fx for cid, cam in block.cameras.items()}
+    for cid, cam in list(block.cameras.items()):
+        block.cameras[cid] = replace(cam, fx=cam.fx * 1.003, fy=cam.fy * 1.003)
+    ws.save_block(block)
+    STAGE.run(ws, AerotriConfig(self_calibration=("focal",), sigma_px=0.3), RunContext())
+    adjusted = Workspace.open(ws.root).load_block()
+    for cid, fx in true_fx.items():
+        assert abs(adjusted.cameras[cid].fx / fx - 1.0) < 5e-4, (cid, adjusted.cameras[cid].fx, fx)
+    assert all(abs(ws.load_block(adjusted=False).cameras[c].fx / fx - 1.003) < 1e-9 for c, fx in true_fx.items())
