@@ -79,6 +79,11 @@ class BundleOptions:
     resolve_tolerance : a least-squares round whose flagged observations carry less than this share of chi-square
         ends the rejection without another solve: they are rejected and only the points that lost them are
         re-estimated (cameras fixed), since a full solve would move the cameras by far less than their precision
+    marginal_max_images : up to this many adjusted images (0: never), the images' standard deviations are the
+        marginal ones (:func:`marginal_image_std`: the correlations between images and with the datum and the
+        control included); above it, or when that fails, the conditional ones (each image's 6 x 6 normal block
+        with the points held fixed), which are cheaper (the marginal ones added 14 s to a 19 s adjustment of 600
+        images) and a lower bound
     """
 
     sigma_px: float = 0.5
@@ -100,6 +105,7 @@ class BundleOptions:
     sparse_schur_max_neighbours: float = 100.0
     sparse_schur_min_obs_per_image: float = 200.0
     resolve_tolerance: float = 1e-4
+    marginal_max_images: int = 0
 
 
 @dataclass(eq=False)
@@ -164,7 +170,8 @@ class BundleResult:
     Attributes
     ----------
     r_cam_from_world, c_world : (n, 3, 3), (n, 3); image_adjusted : (n,) bool (images with observations)
-    image_std : (n, 6) std of rotation about world X Y Z (radians) and of the centre (metres)
+    image_std : (n, 6) std of rotation about world X Y Z (radians) and of the centre (metres);
+        image_std_kind : ``marginal`` or ``conditional`` (see ``BundleOptions.marginal_max_images``)
     cameras : adjusted camera models
     xyz : (p, 3) tie points (NaN for points dropped); xyz_cov : (p, 3, 3) covariance with cameras fixed
     obs_residual : (m, 2) pixels (observed - computed); obs_rejected : (m,) bool; obs_w : (m,) normalised residual
@@ -198,6 +205,7 @@ class BundleResult:
     obs_used: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     prior_residual_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     prior_residual_att: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    image_std_kind: str = "conditional"
     log: list[str] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)
 
@@ -635,12 +643,19 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         active &= ~bad
         log.append(f"round {rnd}: rejected {int(bad.sum())} observations")
         rnd += 1
-    # the reconstruction and the Ceres problem are millions of small C++ allocations: hand their pages back
     adjusted = rd.adjusted
+    image_std = np.sqrt(np.abs(np.diagonal(q_image, axis1=1, axis2=2))) * sigma0
+    image_std_kind = "conditional"
+    if 0 < adjusted.sum() <= opt.marginal_max_images:
+        marginal = marginal_image_std(model.rec, rd.problem, r, c - ref, adjusted)
+        if marginal is not None:
+            image_std = np.where(adjusted[:, None], marginal * opt.sigma_px * sigma0, image_std)
+            image_std_kind = "marginal"
+    lap("statistics_s")
+    # the reconstruction and the Ceres problem are millions of small C++ allocations: hand their pages back
     del rd, model
     release_heap()
     # final values in the control frame
-    image_std = np.sqrt(np.abs(np.diagonal(q_image, axis1=1, axis2=2))) * sigma0
     xyz_cov = q_point * sigma0**2
     pt_ok = point_used & np.isfinite(xyz[:, 0])
     xyz_out = np.where(pt_ok[:, None], xyz + shift, np.nan)
@@ -656,9 +671,49 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
         obs_w=w, gcp_xyz=gcp_out, gcp_residual=gcp_out - prob.gcp_xyz, datum_shift=shift, sigma0=sigma0,
+        image_std_kind=image_std_kind,
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
         timing=timing)
+
+
+def marginal_image_std(rec, problem, r_cam_from_world: np.ndarray, c_local: np.ndarray,
+                       adjusted: np.ndarray) -> np.ndarray | None:
+    """Marginal standard deviations ``(n, 6)`` (rotation about world X Y Z in radians, centre in metres) of the
+    adjusted images for unit weight, from pycolmap's covariance estimation on the solved Ceres ``problem`` of the
+    reconstruction ``rec`` (image ids ``k + 1``); None when the estimation fails.
+
+    pycolmap gives the 6 x 6 covariance of ``cam_from_world`` in its tangent space: the quaternion's increment
+    ``d`` applied on the left (Ceres' quaternion manifold: a rotation by the vector ``2 d`` in camera axes, ``R' =
+    exp([2d]x) R``) and an added translation ``dt``. With ``C = -R^T t`` that is the world-axes rotation ``2 R^T d``
+    (``R' = R exp([2 R^T d]x)``, the convention of :mod:`.precision`) and the centre change
+    ``-2 R^T [t]x d - R^T dt``. On a simulated 600-image block the result is above the conditional figures, as a
+    marginal must be, and matches the true errors: median std per axis 0.0015-0.0023 deg and 0.0066-0.0077 m
+    against RMS errors of 0.0018-0.0025 deg and 0.0061-0.0068 m.
+
+    r_cam_from_world : (n, 3, 3); c_local : (n, 3) centres in the problem's local frame; adjusted : (n,) bool
+    """
+    import pycolmap
+
+    opts = pycolmap.BACovarianceOptions()
+    opts.params = pycolmap.BACovarianceOptionsParams.POSES
+    cov = pycolmap.estimate_ba_covariance_from_problem(opts, rec, problem)
+    if cov is None:
+        return None
+    out = np.full((len(r_cam_from_world), 6), np.nan)
+    for k in np.flatnonzero(adjusted):
+        m = cov.get_cam_cov_from_world(int(k) + 1)
+        if m is None:
+            continue
+        rt = r_cam_from_world[k].T
+        t = -r_cam_from_world[k] @ c_local[k]
+        tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+        j = np.zeros((6, 6))
+        j[:3, :3] = 2.0 * rt
+        j[3:, :3] = -2.0 * rt @ tx
+        j[3:, 3:] = -rt
+        out[k] = np.sqrt(np.abs(np.diag(j @ np.asarray(m) @ j.T)))
+    return out
 
 
 def release_heap() -> None:

@@ -99,6 +99,7 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
         "datum_shift_m": res.datum_shift.tolist(),
         "median_std_attitude_deg": np.degrees(np.nanmedian(std[:, :3], 0)).tolist() if len(std) else None,
         "median_std_position_m": np.nanmedian(std[:, 3:], 0).tolist() if len(std) else None,
+        "std_kind": res.image_std_kind,
         "point_std_xy_m": sxy, "point_std_z_m": sz,
         "connection_points": run.connection_count, "wall_s": run.wall_s, "log": res.log,
     }
@@ -253,7 +254,7 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
              f"rejected {report['blunder_percent']:.2f} % of the observations.</p>"]
     keys = ["images", "points", "observations", "connection_points", "sigma0", "sigma0_px", "iterations", "rounds",
             "blunder_percent", "rms_image_px", "rms_control_m", "rms_prior_position_m", "rms_prior_attitude_deg",
-            "datum_shift_m", "median_std_attitude_deg", "median_std_position_m", "point_std_xy_m",
+            "datum_shift_m", "median_std_attitude_deg", "median_std_position_m", "std_kind", "point_std_xy_m",
             "point_std_z_m", "wall_s"]
     head = "".join(f"<th>{html.escape(r['name'])}</th>" for r in report["runs"])
     rows = "".join(f"<tr><td>{k}</td>" + "".join(f"<td>{_fmt(r.get(k))}</td>" for r in report["runs"]) + "</tr>"

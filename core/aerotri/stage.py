@@ -50,6 +50,8 @@ class AerotriConfig:
     layer_cell : cell of the quality layers in metres (0: the CBA cell size)
     layer_views : rays and intersection precision of the CBA layers from ``all``, ``nadir`` or ``oblique`` views
     min_rays : tie tracks with fewer rays are left out (two-ray points are badly constrained and hide blunders)
+    marginal_std_max_images : blocks (and HAT runs) of up to this many images report marginal standard deviations
+        of their orientations (pycolmap's covariance estimation), larger ones the conditional ones (0: always)
     default_sigma_position, default_sigma_attitude_deg : EO prior sigmas (metres, degrees) for images whose
         import carries none (e.g. BlocksExchange); the same for X, Y, Z and omega, phi, kappa
     """
@@ -73,6 +75,7 @@ class AerotriConfig:
     layer_cell: float = 0.0
     layer_views: str = "all"
     min_rays: int = 3
+    marginal_std_max_images: int = 500
     default_sigma_position: float = 0.15
     default_sigma_attitude_deg: float = 0.05
 
@@ -86,7 +89,7 @@ class AerotriConfig:
                              max_rejection_rounds=self.max_rejection_rounds,
                              self_calibration=tuple(self.self_calibration), datum_shift=self.datum_shift,
                              rig=self.rig, rig_sigma_deg=self.rig_sigma_deg, rig_sigma_m=self.rig_sigma_m,
-                             threads=self.threads)
+                             threads=self.threads, marginal_max_images=self.marginal_std_max_images)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
