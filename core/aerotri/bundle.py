@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ComputationError
+from ..geometry.rotations import matrix_to_rotvec, skew
 from ..model import CameraModel
 from . import precision
 
@@ -663,8 +664,6 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     # prior residuals (adjusted - prior), world frame
     pos_res = np.where(has_prior[:, None], c - prob.prior_c, np.nan)
     att_res = np.full((prob.n_images, 3), np.nan)
-    from ..geometry.rotations import matrix_to_rotvec
-
     for k in np.flatnonzero(has_prior):
         att_res[k] = matrix_to_rotvec(prob.prior_r[k].T @ r[k])
     return BundleResult(
@@ -706,11 +705,9 @@ def marginal_image_std(rec, problem, r_cam_from_world: np.ndarray, c_local: np.n
         if m is None:
             continue
         rt = r_cam_from_world[k].T
-        t = -r_cam_from_world[k] @ c_local[k]
-        tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
         j = np.zeros((6, 6))
         j[:3, :3] = 2.0 * rt
-        j[3:, :3] = -2.0 * rt @ tx
+        j[3:, :3] = -2.0 * rt @ skew(-r_cam_from_world[k] @ c_local[k])
         j[3:, 3:] = -rt
         out[k] = np.sqrt(np.abs(np.diag(j @ np.asarray(m) @ j.T)))
     return out

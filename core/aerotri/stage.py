@@ -51,7 +51,8 @@ class AerotriConfig:
     layer_views : rays and intersection precision of the CBA layers from ``all``, ``nadir`` or ``oblique`` views
     min_rays : tie tracks with fewer rays are left out (two-ray points are badly constrained and hide blunders)
     marginal_std_max_images : blocks (and HAT runs) of up to this many images report marginal standard deviations
-        of their orientations (pycolmap's covariance estimation), larger ones the conditional ones (0: always)
+        of their orientations (pycolmap's covariance estimation), larger ones the conditional ones (0: always the
+        conditional ones)
     default_sigma_position, default_sigma_attitude_deg : EO prior sigmas (metres, degrees) for images whose
         import carries none (e.g. BlocksExchange); the same for X, Y, Z and omega, phi, kappa
     """

@@ -149,6 +149,11 @@ def rotation_angle(r_a: np.ndarray, r_b: np.ndarray) -> float:
     return float(np.arccos(np.clip(c, -1.0, 1.0)))
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """The cross-product matrix ``[v]x`` (3, 3) of a vector ``v`` (3,): ``skew(v) @ w == np.cross(v, w)``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
 def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues: axis-angle vector (3,) to rotation matrix (3, 3)."""
     v = np.asarray(rotvec, dtype=np.float64)
@@ -156,7 +161,7 @@ def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     if a < 1e-15:
         return np.eye(3)
     k = v / a
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    kx = skew(k)
     return np.eye(3) + np.sin(a) * kx + (1.0 - np.cos(a)) * (kx @ kx)
 
 

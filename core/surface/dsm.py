@@ -257,8 +257,8 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
             result[rr, cc] = coef[lab, 0] * cc + coef[lab, 1] * rr + coef[lab, 2]
     step = small & ~level & ~planar
     if step.any():
-        # a hole enclosed by high cells on at least three of its four sides (north, east, south, west of its
-        # centre) is a part of a roof that matching missed (a dark or sparsely measured roof, a tower top), not
+        # a hole enclosed by high cells on at least ``roof_sides`` of its four sides (north, east, south, west of
+        # its centre) is a part of a roof that matching missed (a dark or sparsely measured roof, a tower top), not
         # ground hidden behind a wall, which leaves the wall on one side (two at a corner): the membrane over
         # its high border cells fills it
         rr, cc = np.nonzero((ring > 0) & step[ring])
