@@ -108,6 +108,8 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                                              "this (|n_z|) are facade points, left out of the DSM"},
         "dsm_roof_hole_sides": {"min": 1, "max": 5, "description": "A DSM hole with roof on this many of its four "
                                                                    "sides is filled as roof (5 = never)"},
+        "dsm_wall_step": {"min": 0.0, "description": "A DSM cell this far (m) below one neighbour and above the "
+                                                     "opposite one lies on a wall and takes the nearer side (0 = off)"},
         "se_size": {"min": 0.0, "description": "DTM structuring element (m)"},
         "threshold": {"min": 0.0, "description": "Points within this of the opened surface are ground (m)"},
     },

@@ -7,6 +7,8 @@ surface. Isolated blunders (cells with almost no neighbour at their height) and 
 blunders inside roofs) are removed. Holes up to ``max_hole_m2`` (occlusions, poor texture) are filled: by a
 harmonic surface spanned by their own border cells where those are nearly level, by their border's plane in a
 sloped roof, with the low side's height where they lie between a roof and the ground; larger holes stay empty.
+Last, a cell between a much higher and a much lower neighbour sits on a wall (a facade point, a fill across the
+step) and takes the nearer of the two surfaces.
 """
 
 from __future__ import annotations
@@ -80,6 +82,8 @@ class DsmConfig:
         filled (0 size disables it)
     roof_hole_sides : a hole bounded by high cells on this many of its four sides is filled as an unmatched part
         of a roof (see :func:`fill_small_holes`; 5 disables it)
+    wall_step : a cell more than this many metres below one neighbour and above the opposite one takes the nearer
+        side (:func:`snap_wall_steps`; 0 disables it)
     """
 
     cell: float = 0.0
@@ -94,6 +98,7 @@ class DsmConfig:
     pit_size_m: float = 3.2
     pit_depth: float = 2.0
     roof_hole_sides: int = 3
+    wall_step: float = 1.0
 
 
 def _group_quantile(key: np.ndarray, z: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -177,17 +182,42 @@ def remove_spikes(height: np.ndarray, threshold: float, min_support: int = 2) ->
     return out
 
 
-def ring_planes(height: np.ndarray, ring: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares plane ``z = a*col + b*row + c`` of the cells labelled ``1..n`` in ``ring (rows, cols)``.
+def hole_rings(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ring of every hole of ``labels (rows, cols)`` (holes labelled ``1..n``, 0 elsewhere): each pair of a
+    hole's label and a non-hole cell among the 8 neighbours of its cells, once.
+
+    A cell between two holes belongs to both rings (a dilated label image would give it to one of them only, and
+    a hole among many small holes would keep a ring of a few cells that misjudges its surroundings).
+
+    Returns
+    -------
+    lab, rr, cc : (m,) int64 label, row and column of each ring cell
+    """
+    rows, cols = labels.shape
+    hr, hc = np.nonzero(labels > 0)
+    hl = labels[hr, hc].astype(np.int64)
+    keys = []
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            r2, c2 = hr + dr, hc + dc
+            ok = (r2 >= 0) & (r2 < rows) & (c2 >= 0) & (c2 < cols)
+            ok[ok] = labels[r2[ok], c2[ok]] == 0
+            keys.append(hl[ok] * (rows * cols) + r2[ok] * cols + c2[ok])
+    u = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+    cell = u % (rows * cols)
+    return u // (rows * cols), cell // cols, cell % cols
+
+
+def ring_planes(z: np.ndarray, rr: np.ndarray, cc: np.ndarray, lab: np.ndarray,
+                n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane ``z = a*col + b*row + c`` per label ``1..n`` of ring cells with heights ``z (m,)``, rows
+    ``rr (m,)``, columns ``cc (m,)`` and labels ``lab (m,)``.
 
     Returns
     -------
     coef : (n + 1, 3) float64 ``(a, b, c)`` per label (row 0 and degenerate labels NaN)
     rms : (n + 1,) float64 RMS distance in height of each label's cells to its plane
     """
-    rr, cc = np.nonzero(ring > 0)
-    lab = ring[rr, cc]
-    z = height[rr, cc]
     ok = np.isfinite(z)
     rr, cc, lab, z = rr[ok].astype(np.float64), cc[ok].astype(np.float64), lab[ok], z[ok]
     # centred per label for conditioning
@@ -232,67 +262,76 @@ def fill_small_holes(height: np.ndarray, max_cells: int, max_step: float = np.in
     if not holes.any() or holes.all():
         return height
     labels, n = ndimage.label(holes)
-    idx = np.arange(1, n + 1)
-    sizes = ndimage.sum(holes, labels, index=idx)
-    ring = ndimage.grey_dilation(labels, size=3) * ~holes  # border cells carry the label of the hole they touch
-    ring_lo = np.full(n + 1, np.nan)
-    ring_hi = np.full(n + 1, np.nan)
-    ring_lo[1:] = ndimage.minimum(height, ring, index=idx)
-    ring_hi[1:] = ndimage.maximum(height, ring, index=idx)
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    lab_r, rr, cc = hole_rings(labels)
+    z_r = height[rr, cc]
+    ring_lo = np.full(n + 1, np.inf)
+    ring_hi = np.full(n + 1, -np.inf)
+    np.minimum.at(ring_lo, lab_r, z_r)
+    np.maximum.at(ring_hi, lab_r, z_r)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    small = np.zeros(n + 1, bool)
-    small[1:] = sizes <= max_cells
+    small = sizes <= max_cells
+    small[0] = False
     small[border] = False
     small &= np.isfinite(ring_lo)
     level = small & (ring_hi - ring_lo < max_step)
     planar = np.zeros(n + 1, bool)
     result = height.copy()
     if plane_tol > 0 and (small & ~level).any():
-        coef, rms = ring_planes(height, np.where((small & ~level)[ring], ring, 0), n)
+        on = (small & ~level)[lab_r]
+        coef, rms = ring_planes(z_r[on], rr[on], cc[on], lab_r[on], n)
         planar = small & ~level & (rms <= plane_tol)
         sel = planar[labels]
         if sel.any():
-            rr, cc = np.nonzero(sel)
-            lab = labels[rr, cc]
-            result[rr, cc] = coef[lab, 0] * cc + coef[lab, 1] * rr + coef[lab, 2]
+            pr, pc = np.nonzero(sel)
+            lab = labels[pr, pc]
+            result[pr, pc] = coef[lab, 0] * pc + coef[lab, 1] * pr + coef[lab, 2]
     step = small & ~level & ~planar
     if step.any():
         # a hole enclosed by high cells on at least ``roof_sides`` of its four sides (north, east, south, west of
         # its centre) is a part of a roof that matching missed (a dark or sparsely measured roof, a tower top), not
         # ground hidden behind a wall, which leaves the wall on one side (two at a corner): the membrane over
         # its high border cells fills it
-        rr, cc = np.nonzero((ring > 0) & step[ring])
-        lab_r = ring[rr, cc]
-        high_cell = height[rr, cc] > ring_lo[lab_r] + max_step
+        on = step[lab_r]
+        lab_s, rs, cs, zs = lab_r[on], rr[on], cc[on], z_r[on]
+        high_cell = zs > ring_lo[lab_s] + max_step
         hr, hc = np.nonzero(step[labels])
         hl = labels[hr, hc]
         cnt = np.maximum(np.bincount(hl, minlength=n + 1), 1)
         mr, mc = np.bincount(hl, hr, n + 1) / cnt, np.bincount(hl, hc, n + 1) / cnt
-        sector = (np.floor((np.arctan2(mr[lab_r] - rr, cc - mc[lab_r]) / (np.pi / 2)) + 0.5).astype(np.int64)) % 4
-        key = lab_r * 4 + sector
+        sector = (np.floor((np.arctan2(mr[lab_s] - rs, cs - mc[lab_s]) / (np.pi / 2)) + 0.5).astype(np.int64)) % 4
+        key = lab_s * 4 + sector
         high_share = np.bincount(key, high_cell, 4 * (n + 1)) / np.maximum(np.bincount(key, minlength=4 * (n + 1)), 1)
         high_sides = (high_share > 0.5).reshape(n + 1, 4).sum(axis=1)
         roof = step & (high_sides >= roof_sides)
         if roof.any():
             sel = roof[labels]
-            low_ring = (ring > 0) & roof[ring] & (height <= ring_lo[ring] + max_step)
-            result[sel] = harmonic_fill(np.where(low_ring, np.nan, height), sel)[sel]
+            low = roof[lab_s] & ~high_cell
+            result[sel] = harmonic_fill(_with_nan(height, rs[low], cs[low]), sel)[sel]
         step &= ~roof
     fill = level[labels]
     if fill.any():
         result[fill] = harmonic_fill(height, fill)[fill]
     if step.any():
         # the low side: ring cells near the ring's lower quartile (a few blunder cells in the ring do not count)
-        rk = np.flatnonzero((ring.ravel() > 0) & step[ring.ravel()])
-        uniq, q25, _ = _group_quantile(ring.ravel()[rk], height.ravel()[rk], 0.25)
+        on = step[lab_r]
+        lab_s, zs = lab_r[on], z_r[on]
+        uniq, q25, _ = _group_quantile(lab_s, zs, 0.25)
         low_ref = np.full(n + 1, np.nan)
         low_ref[uniq] = q25
-        near = (ring > 0) & step[ring] & (np.abs(height - low_ref[ring]) <= max_step)
+        near = np.abs(zs - low_ref[lab_s]) <= max_step
+        uniq, med, _ = _group_quantile(lab_s[near], zs[near], 0.5)
         ground = np.full(n + 1, np.nan)
-        ground[1:] = ndimage.median(height, np.where(near, ring, 0), index=idx)
+        ground[uniq] = med
         sel = step[labels]
         result[sel] = ground[labels[sel]]
     return result
+
+
+def _with_nan(height: np.ndarray, rr: np.ndarray, cc: np.ndarray) -> np.ndarray:
+    out = height.copy()
+    out[rr, cc] = np.nan
+    return out
 
 
 def harmonic_fill(height: np.ndarray, fill: np.ndarray) -> np.ndarray:
@@ -372,17 +411,61 @@ def pits(height: np.ndarray, size_cells: int, depth: float) -> np.ndarray:
     return enclosed[labels]
 
 
-def make_dsm(grid: GridSpec, xyz: np.ndarray, crs: str, cfg: DsmConfig = DsmConfig()) -> tuple[Raster, np.ndarray]:
-    """The DSM raster (spikes and pits removed, holes filled) and the top-band mask of the points."""
-    height, top = grid_points(grid, xyz, cfg)
+def wall_steps(height: np.ndarray, step: float) -> np.ndarray:
+    """Mask ``(rows, cols)`` of the cells of ``height`` (NaN-free) that lie more than ``step`` metres below a
+    neighbour and more than ``step`` above the opposite neighbour (along a row, a column or a diagonal).
+
+    A 2.5D surface steeper than ``2 * step`` over two cells is a wall, whose top cell belongs to the roof and
+    whose foot cell to the ground: a cell in between holds a point of the wall itself (a facade point whose normal
+    was lost, an edge the matching window rounded) or a hole fill that bridged the step.
+    """
+    rows, cols = height.shape
+    pad = np.pad(height, 1, mode="edge")
+    found = np.zeros(height.shape, bool)
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = pad[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols]
+        b = pad[1 - dr:1 - dr + rows, 1 - dc:1 - dc + cols]
+        found |= ((a > height + step) & (b < height - step)) | ((b > height + step) & (a < height - step))
+    return found
+
+
+def snap_wall_steps(height: np.ndarray, step: float, rounds: int = 2) -> np.ndarray:
+    """``height (rows, cols)`` with each cell of :func:`wall_steps` set to the nearer of its two sides (the
+    highest and the lowest of its 8 neighbours): the DSM steps from the roof to the ground at the wall instead of
+    passing through a height no surface has there. ``rounds`` passes (a two-cell slope needs two); NaN cells are
+    left alone."""
+    out = height.copy()
+    for _ in range(rounds):
+        finite = np.isfinite(out)
+        base = np.where(finite, out, np.nanmin(out) if finite.any() else 0.0)
+        wall = wall_steps(base, step) & finite
+        if not wall.any():
+            break
+        hi = ndimage.maximum_filter(base, size=3)
+        lo = ndimage.minimum_filter(base, size=3)
+        out[wall] = np.where(hi[wall] - base[wall] < base[wall] - lo[wall], hi[wall], lo[wall])
+    return out
+
+
+def finish_dsm(height: np.ndarray, cell: float, cfg: DsmConfig = DsmConfig()) -> np.ndarray:
+    """The DSM grid from per-cell heights ``(rows, cols)`` (NaN empty): spikes and pits removed, holes filled,
+    cells on wall steps snapped to the roof or the ground."""
     height = remove_spikes(height, cfg.spike) if cfg.spike > 0 else height
-    max_cells = int(cfg.max_hole_m2 / grid.cell ** 2)
+    max_cells = int(cfg.max_hole_m2 / cell ** 2)
     filled = fill_small_holes(height, max_cells, cfg.max_hole_step, cfg.hole_plane_tol, cfg.roof_hole_sides)
-    size = int(round(cfg.pit_size_m / grid.cell)) | 1
+    size = int(round(cfg.pit_size_m / cell)) | 1
     if cfg.pit_size_m > 0 and size >= 3 and np.isfinite(height).any():
         base = np.where(np.isfinite(filled), filled, np.nanmin(height))
         pit = np.isfinite(height) & pits(base, size, cfg.pit_depth)
         if pit.any():
             filled = fill_small_holes(np.where(pit, np.nan, height), max_cells, cfg.max_hole_step,
                                       cfg.hole_plane_tol, cfg.roof_hole_sides)
-    return grid.raster(filled.astype(np.float32), crs), top
+    if cfg.wall_step > 0:
+        filled = snap_wall_steps(filled, cfg.wall_step)
+    return filled
+
+
+def make_dsm(grid: GridSpec, xyz: np.ndarray, crs: str, cfg: DsmConfig = DsmConfig()) -> tuple[Raster, np.ndarray]:
+    """The DSM raster (:func:`grid_points`, then :func:`finish_dsm`) and the top-band mask of the points."""
+    height, top = grid_points(grid, xyz, cfg)
+    return grid.raster(finish_dsm(height, grid.cell, cfg).astype(np.float32), crs), top

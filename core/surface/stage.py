@@ -37,6 +37,8 @@ class SurfaceConfig:
     dsm_facade_nz : points whose normal lies within this of horizontal (``|n_z|`` below it: facade points) are
         left out of the DSM, whose cells hold the top of the surface (0 keeps them)
     dsm_roof_hole_sides : holes bounded by roofs on this many sides are roof (:class:`.dsm.DsmConfig`; 5: never)
+    dsm_wall_step : a DSM cell more than this (metres) below one neighbour and above the opposite one lies on a
+        wall and takes the nearer side (:class:`.dsm.DsmConfig`; 0: off)
     dtm_cell, se_size, erosion_rank, threshold : DTM by robust morphological opening
     building_min_height, vegetation_min_height, greenness_min : object masks
     ortho_views : views used for the true orthophoto
@@ -52,6 +54,7 @@ class SurfaceConfig:
     pit_depth: float = 2.0
     dsm_facade_nz: float = 0.3
     dsm_roof_hole_sides: int = 3
+    dsm_wall_step: float = 1.0
     dtm_cell: float = 1.0
     se_size: float = 60.0
     erosion_rank: float = 0.03
@@ -107,7 +110,8 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     n_s = normal[above_ground]
     in_dsm = ~((np.abs(n_s[:, 2]) < cfg.dsm_facade_nz) & np.any(n_s != 0, axis=1))  # points without a normal stay
     dsm_cfg = DsmConfig(cell=cell, min_support=cfg.dsm_min_support, band=cfg.dsm_band, max_hole_m2=cfg.max_hole_m2,
-                        pit_size_m=cfg.pit_size_m, pit_depth=cfg.pit_depth, roof_hole_sides=cfg.dsm_roof_hole_sides)
+                        pit_size_m=cfg.pit_size_m, pit_depth=cfg.pit_depth, roof_hole_sides=cfg.dsm_roof_hole_sides,
+                        wall_step=cfg.dsm_wall_step)
     dsm, top_in = make_dsm(grid, xyz_s[in_dsm], crs, dsm_cfg)
     top = np.zeros(len(xyz_s), bool)
     top[in_dsm] = top_in
@@ -177,4 +181,4 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
-              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="9")
+              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="10")

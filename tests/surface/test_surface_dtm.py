@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from oblique_city.core.surface.dsm import DsmConfig, GridSpec, fill_small_holes, grid_points, harmonic_fill, make_dsm
+from oblique_city.core.surface.dsm import (
+    DsmConfig,
+    GridSpec,
+    fill_small_holes,
+    grid_points,
+    harmonic_fill,
+    make_dsm,
+    snap_wall_steps,
+)
 from oblique_city.core.surface.dtm import ABOVE, BELOW, ON, DtmConfig, greenness, make_dtm, object_masks
 
 X0, Y0 = 500000.0, 5400000.0
@@ -117,6 +125,34 @@ def test_hole_enclosed_by_roof_is_roof_and_an_occlusion_strip_is_ground():
     assert np.allclose(f[10:40, 40:44], 100.0, atol=1e-6)
     off = fill_small_holes(g, 400, 1.0, roof_sides=5)
     assert np.allclose(off[10:16, 20:30], 100.0, atol=1e-6)
+
+
+def test_a_hole_at_a_wall_foot_is_judged_on_its_whole_ring():
+    """A one-cell hole on the last ground row before a 7 m wall, with two one-cell holes in the roof diagonally
+    next to it, is ground hidden at the wall foot: it takes the ground height. A cell on two rings belongs to both;
+    when each ring cell went to one hole only, the roof cell below it went to the later roof holes, its ring held
+    ground only, it passed for a level hole and took the 4-neighbour mean, 101.75 m, a height up the wall."""
+    g = np.full((20, 20), 100.0)
+    g[10:] = 107.0                      # roof from row 10
+    g[9, 5] = np.nan
+    g[10, 4] = g[10, 6] = np.nan
+    assert fill_small_holes(g, 20, 1.0)[9, 5] == 100.0
+
+
+def test_cells_on_a_wall_step_take_the_roof_or_the_ground_and_slopes_stay():
+    """A line of facade heights between a 12 m roof and the ground (2 and 9 m up the wall) is snapped to the
+    nearer side; a 60-degree roof (0.27 m per 0.156 m cell) and a chimney are no wall steps."""
+    g = np.full((20, 30), 100.0)
+    g[:, 15:] = 112.0
+    g[:, 14] = 102.0                     # mid-wall points near the foot
+    g[5:10, 14] = 109.0                 # and near the top
+    f = snap_wall_steps(g, 1.0)
+    assert np.allclose(f[:5, 14], 100.0) and np.allclose(f[5:10, 14], 112.0) and np.allclose(f[10:, 14], 100.0)
+    assert np.allclose(f[:, :14], 100.0) and np.allclose(f[:, 15:], 112.0)
+    y, x = np.mgrid[0:20, 0:30]
+    roof = 110.0 + np.tan(np.radians(60)) * 0.156 * np.minimum(x, 29 - x)
+    roof[10, 10] += 3.0                  # a chimney
+    assert np.array_equal(snap_wall_steps(roof, 1.0), roof)
 
 
 def test_narrow_pit_in_a_roof_is_removed_and_a_gap_between_buildings_kept():
