@@ -22,6 +22,9 @@ Blunders: a first solve with a Cauchy loss, after which every observation whose 
 threshold is rejected; then least-squares rounds, after each of which every tie track's worst observation is
 rejected when its normalised residual ``w = |v| / (sigma0 sigma_px sqrt(r))`` (r the redundancy
 number, see :mod:`.precision`; ``w^2`` is chi-square with 2 degrees of freedom) exceeds the threshold.
+A start already close to the solution (``BundleOptions.screen_start``) replaces the robust solve by tests at the
+start with the cameras held (:func:`screen_points`, one resection step of the images from their inliers, the tests
+again), so that a single least-squares solve usually remains.
 Coordinates are solved around a local origin (the mean prior centre) so UTM magnitudes cost no digits.
 """
 
@@ -34,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ComputationError
-from ..geometry.rotations import matrix_to_rotvec, skew
+from ..geometry.rotations import matrix_to_rotvec, rotvec_to_matrix, skew
 from ..model import CameraModel
 from . import precision
 
@@ -85,6 +88,12 @@ class BundleOptions:
         control included); above it, or when that fails, the conditional ones (each image's 6 x 6 normal block
         with the points held fixed), which are cheaper (the marginal ones added 14 s to a 19 s adjustment of 600
         images) and a lower bound
+    screen_start : for a start already close to the solution (HAT's oblique runs start from the adjusted nadir
+        orientations propagated to their heads): the robust round is replaced by :func:`screen_points` at the start
+        (cameras held, each point re-estimated from its rays with blunder tests, sigma0 estimated robustly), and the
+        least-squares rounds follow. When the screening's sigma0 exceeds ``screen_max_sigma0`` (the start is not
+        close enough for tests with the cameras held) the robust round runs as usual. ``screen_rounds`` bounds the
+        screening's rejection rounds (one ray per track and round; blunders can come several to a track)
     """
 
     sigma_px: float = 0.5
@@ -107,6 +116,9 @@ class BundleOptions:
     sparse_schur_min_obs_per_image: float = 200.0
     resolve_tolerance: float = 1e-4
     marginal_max_images: int = 0
+    screen_start: bool = False
+    screen_max_sigma0: float = 2.0
+    screen_rounds: int = 10
 
 
 @dataclass(eq=False)
@@ -284,13 +296,16 @@ class _Model:
     observations that leave the solution are deleted from it, so a round only rebuilds the Ceres problem (in
     C++) and the small extra costs, never the per-observation Python objects.
 
-    Tracks with at least two active observations are pycolmap points; ``in_rec (m,)`` marks the observations
-    they hold and ``point_ids (p,)`` their ids (-1 for points not in the reconstruction)."""
+    The images and points start from ``start = (r (n, 3, 3), c (n, 3), xyz (p, 3))``, by default the problem's
+    start values. Tracks with at least two active observations are pycolmap points; ``in_rec (m,)`` marks the
+    observations they hold and ``point_ids (p,)`` their ids (-1 for points not in the reconstruction)."""
 
-    def __init__(self, prob: BundleProblem, ref: np.ndarray, active: np.ndarray) -> None:
+    def __init__(self, prob: BundleProblem, ref: np.ndarray, active: np.ndarray,
+                 start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
         import pycolmap
 
         self.prob = prob
+        r0, c0, xyz0 = (prob.r_cam_from_world, prob.c_world, prob.xyz) if start is None else start
         self.rec = rec = pycolmap.Reconstruction()
         for ci, cam in enumerate(prob.cameras):
             pc = pycolmap.Camera.create_from_model_name(ci + 1, "FULL_OPENCV", cam.fx, cam.width, cam.height)
@@ -308,7 +323,7 @@ class _Model:
             self.p2d[sl] = np.arange(len(sl))
             im = pycolmap.Image(name=prob.image_ids[k], keypoints=prob.obs_uv[sl] + 0.5,
                                 camera_id=int(prob.image_camera[k]) + 1, image_id=k + 1)
-            rec.add_image_with_trivial_frame(im, _rigid(prob.r_cam_from_world[k], prob.c_world[k] - ref))
+            rec.add_image_with_trivial_frame(im, _rigid(r0[k], c0[k] - ref))
         # observations of every point (all of them, in or out of the reconstruction)
         self.obs_order = np.argsort(prob.obs_point, kind="stable")
         self.obs_starts = np.searchsorted(prob.obs_point[self.obs_order], np.arange(prob.n_points + 1))
@@ -319,7 +334,7 @@ class _Model:
         bounds = np.searchsorted(prob.obs_point[grouped], np.arange(prob.n_points + 1)).tolist()
         images = (prob.obs_image[grouped] + 1).tolist()
         p2d = self.p2d[grouped].tolist()
-        xyz_local = prob.xyz - ref
+        xyz_local = xyz0 - ref
         self.xyz_views = {}  # point -> view of its coordinates in the reconstruction (stable until deleted)
         for p in np.flatnonzero(counts >= 2).tolist():
             tr = pycolmap.Track()
@@ -558,10 +573,41 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         timing[key] += now - clock[0]
         clock[0] = now
 
-    model = _Model(prob, ref, active)
+    rnd = 0
+    if opt.screen_start:
+        # blunders tested at the start with the cameras held (no robust round), see BundleOptions.screen_start
+        idx = np.flatnonzero(active)
+        pt_prior = {}
+        if prob.point_prior_xyz is not None:
+            has = np.isfinite(prob.point_prior_xyz[:, 0])
+            info = np.zeros((prob.n_points, 3, 3))
+            info[has] = np.nan_to_num(precision.safe_inverse(prob.point_prior_cov[has]))
+            pt_prior = {"prior_xyz": prob.point_prior_xyz, "prior_info": info}
+        x_s, _, bad_s, s0_s = screen_points(prob.cameras, prob.image_camera, r, c, prob.obs_point[idx],
+                                            prob.obs_image[idx], prob.obs_uv[idx], xyz, opt.sigma_px, None,
+                                            opt.blunder_threshold, opt.screen_rounds,
+                                            reject_undetermined=False, **pt_prior)
+        if s0_s <= opt.screen_max_sigma0:
+            # the images from their inliers with the points held, then the test again from the new images
+            ok = ~bad_s & np.isfinite(x_s[prob.obs_point[idx], 0])
+            r, c = resect_images(prob.cameras, prob.image_camera, r, c, x_s, prob.obs_point[idx[ok]],
+                                 prob.obs_image[idx[ok]], prob.obs_uv[idx[ok]])
+            x_s, _, bad_s, s0_s = screen_points(prob.cameras, prob.image_camera, r, c, prob.obs_point[idx],
+                                                prob.obs_image[idx], prob.obs_uv[idx],
+                                                np.where(np.isfinite(x_s[:, :1]), x_s, xyz), opt.sigma_px, None,
+                                                opt.blunder_threshold, opt.screen_rounds,
+                                                reject_undetermined=False, **pt_prior)
+            xyz = np.where(np.isfinite(x_s[:, :1]), x_s, xyz)
+            rejected[idx[bad_s]] = True
+            active &= ~rejected
+            rnd = 1
+            log.append(f"screening at the start: sigma0 {s0_s:.3f}, rejected {int(bad_s.sum())} observations")
+        else:
+            log.append(f"screening at the start: sigma0 {s0_s:.3f} above {opt.screen_max_sigma0}: robust round")
+        lap("statistics_s")
+    model = _Model(prob, ref, active, (r, c, xyz))
     solver = linear_solver_kind(prob, opt, active)
     log.append(f"linear solver {solver}")
-    rnd = 0
     while True:
         if progress is not None:
             progress(rnd, total_rounds, f"bundle adjustment round {rnd + 1}")
@@ -755,6 +801,109 @@ def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
         upd = ok & np.all(np.isfinite(step), 1)
         xyz[pts[upd]] += step[upd]
     return xyz
+
+
+def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
+                  op_all: np.ndarray, oi_all: np.ndarray, uv_all: np.ndarray, xyz_start: np.ndarray, sigma_px: float,
+                  sigma0: float | None, threshold: float, max_rounds: int, reject_undetermined: bool = True,
+                  prior_xyz: np.ndarray | None = None, prior_info: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Points from fixed cameras with blunder tests: from ``xyz_start (n, 3)`` (finite for every point observed) a
+    Gauss-Newton step on the pixel residuals of the observations ``op_all``, ``oi_all (m,)``, ``uv_all (m, 2)``
+    (images with ``r (k, 3, 3)``, ``c (k, 3)``, ``image_camera (k,)`` into ``cameras``), then each round rejects
+    every track's worst ray whose normalised residual ``|v| / (sigma0 sigma_px sqrt(r))`` (r its redundancy number
+    for the point alone, from the linearised residuals after the step) exceeds ``threshold``; only tracks that
+    lost a ray take another step, from where they are, up to ``max_rounds`` rounds. ``sigma0=None`` estimates it
+    robustly (the median of ``w^2``, chi-square with 2 degrees of freedom) from all rays in use after each round
+    (at first, rays of points pulled by blunders inflate it) and every track is tested again with it. With
+    ``reject_undetermined`` the rays of a point left undetermined (fewer than two rays, badly conditioned, behind a
+    camera) count as rejected too; without it they are only left untested. ``prior_xyz (n, 3)`` and
+    ``prior_info (n, 3, 3)`` are ground observations of points (connection points; NaN rows and zero blocks for
+    none) with their inverse covariances: they enter each point's step, so a point with one ray and a ground
+    observation is tested too.
+
+    Returns ``xyz (n, 3)`` and ``cov (n, 3, 3)`` (NaN for points with fewer than two rays or badly conditioned),
+    the rejected observations ``(m,)`` and the sigma0 used."""
+    m, n = len(op_all), len(xyz_start)
+    fx = np.array([cm.fx for cm in cameras])[image_camera]
+    fy = np.array([cm.fy for cm in cameras])[image_camera]
+    x = np.array(xyz_start, np.float64)
+    xyz = np.full((n, 3), np.nan)
+    cov = np.full((n, 3, 3), np.nan)
+    use = np.ones(m, bool)
+    rejected = np.zeros(m, bool)
+    todo = np.ones(n, bool)
+    t_all = np.full(m, np.nan)  # squared normalised residuals for unit sigma0
+    robust = sigma0 is None
+    s0 = 1.0 if sigma0 is None else sigma0
+    for _ in range(max_rounds):
+        idx = np.flatnonzero(use & todo[op_all])
+        if len(idx) == 0:
+            break
+        op, oi = op_all[idx], oi_all[idx]
+        # one Gauss-Newton step on the pixel residuals; the test uses the linearised residuals after it
+        rr = np.take(r, oi, 0)
+        xc = np.einsum("mij,mj->mi", rr, np.take(x, op, 0) - np.take(c, oi, 0))
+        v = uv_all[idx] - pixels_from_camera(cameras, image_camera, xc, oi)
+        jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
+        del rr, xc
+        good = np.all(np.isfinite(v), 1)
+        q = precision.safe_inverse(precision.point_normals(jp, np.where(good, sigma_px**-2, 0.0), op, n,
+                                                           prior_info))
+        v[~good] = 0.0
+        jv = np.einsum("mri,mr->mi", jp, v)
+        g = np.stack([np.bincount(op, weights=jv[:, i], minlength=n) for i in range(3)], 1) * sigma_px**-2
+        if prior_info is not None:
+            g += np.einsum("kij,kj->ki", prior_info, np.nan_to_num(prior_xyz - x))
+        step = np.einsum("kij,kj->ki", q, g)
+        solved = np.all(np.isfinite(step), 1)  # fewer than two rays or badly conditioned: no point
+        v1 = v - np.einsum("mij,mj->mi", jp, np.nan_to_num(step)[op])
+        red = np.clip(1.0 - precision.quadratic_forms(jp, q, op) / sigma_px**2 / 2.0, 0.02, 1.0)
+        t_all[idx] = np.where(good & solved[op], np.sum(v1**2, 1) / red / sigma_px**2, np.nan)
+        if robust:
+            # from every ray still in use, each with its point's latest step
+            t_use = t_all[use & np.isfinite(t_all)]
+            s0 = float(np.sqrt(np.median(t_use) / (2 * np.log(2)))) if len(t_use) else 1.0
+        w = np.where(use, np.sqrt(t_all) / max(s0, 1e-9), np.nan)
+        x = np.where((todo & solved)[:, None], x + np.nan_to_num(step), x)
+        xyz[todo] = np.where(solved[todo, None], x[todo], np.nan)
+        cov[todo] = q[todo]
+        cur = np.zeros(m, bool)
+        cur[idx] = True
+        bad = worst_per_track(w, op_all, use, threshold)
+        if reject_undetermined:
+            bad |= cur & ~np.isfinite(w)
+        if not bad.any():
+            break
+        rejected |= bad
+        use &= ~bad
+        todo = np.zeros(n, bool)
+        todo[op_all[bad]] = True
+    return xyz, cov * s0**2, rejected, s0
+
+
+def resect_images(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
+                  xyz: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray, obs_uv: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """One Gauss-Newton step per image on the pixel residuals of its observations ``obs_point``, ``obs_image``
+    ``(m,)``, ``obs_uv (m, 2)`` with the points ``xyz (p, 3)`` held (each image's 6 x 6 normal block: rotation
+    about the world axes, centre). Returns new ``r (n, 3, 3)``, ``c (n, 3)``; images without a determined step
+    keep theirs."""
+    fx = np.array([cm.fx for cm in cameras])[image_camera]
+    fy = np.array([cm.fy for cm in cameras])[image_camera]
+    v = obs_uv - project_obs(cameras, image_camera, r, c, xyz, obs_point, obs_image)
+    good = np.all(np.isfinite(v), 1)
+    op, oi, v = obs_point[good], obs_image[good], v[good]
+    jp, jr = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
+    n = len(r)
+    q = precision.safe_inverse(precision.image_normals(jp, jr, np.ones(len(oi)), oi, n))
+    g = np.einsum("kri,kr->ki", np.concatenate([jr, -jp], axis=2), v)
+    step = np.einsum("kij,kj->ki", q, np.stack([np.bincount(oi, weights=g[:, i], minlength=n) for i in range(6)], 1))
+    r, c = r.copy(), c.copy()
+    for k in np.flatnonzero(np.all(np.isfinite(step), 1)):
+        r[k] = r[k] @ rotvec_to_matrix(step[k, :3])
+        c[k] = c[k] + step[k, 3:]
+    return r, c
 
 
 def worst_per_track(w: np.ndarray, obs_point: np.ndarray, active: np.ndarray, threshold: float) -> np.ndarray:

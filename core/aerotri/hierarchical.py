@@ -9,7 +9,8 @@
   view). Control points measured in the view are observations there too (their datum shift is the nadir run's,
   held fixed). The four oblique runs are independent and go through the executor (inline, processes or Dask),
   each with its share of the threads. The oblique blocks start from the nadir corrections propagated to the
-  other heads of each exposure.
+  other heads of each exposure; from there their blunders are tested at the start (``BundleOptions.screen_start``)
+  instead of by a robust solve, so each oblique run needs one least-squares solve.
   Optionally (``oblique_ties_per_cell``) the oblique runs adjust a thinned, regularly distributed subset of their
   tie points (a production practice); the rest are intersected afterwards with the final orientations.
   (3) Combined statistics by error propagation: a point's information is the nadir information plus each
@@ -35,12 +36,11 @@ from .bundle import (
     BundleOptions,
     BundleResult,
     adjust,
-    pixels_from_camera,
     refine_points,
     release_heap,
-    worst_per_track,
+    screen_points,
 )
-from .precision import pinhole_point_jacobians, point_jacobians, point_normals, quadratic_forms, safe_inverse
+from .precision import point_jacobians, point_normals, safe_inverse
 from .problem import (
     SubProblem,
     build_problem,
@@ -274,7 +274,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
                             initial=start_poses)
         conn_counts[v] = int(sel.sum())
         conn_masks[v] = sel
-        items.append((v, sub, replace(opt, datum_shift=False) if oblique_control else opt))
+        items.append((v, sub, replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True)))
     release_heap()  # what the nadir run and the set-up freed, before the oblique runs and the intersection
     # parallel units share the cores: each gets its part of the threads (the largest blocks start first)
     if warm is not None:
@@ -463,9 +463,7 @@ def _intersect_share(cameras: list, image_camera: np.ndarray, r: np.ndarray, c: 
                      oi_all: np.ndarray, uv_all: np.ndarray, xyz_start: np.ndarray, sigma_px: float, sigma0: float,
                      threshold: float, max_rounds: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_intersect_unit` with its arguments spelt out."""
-    m, n = len(op_all), len(xyz_start)
-    fx = np.array([cm.fx for cm in cameras])[image_camera]
-    fy = np.array([cm.fy for cm in cameras])[image_camera]
+    n = len(xyz_start)
     x = np.array(xyz_start, np.float64)
     missing = ~np.isfinite(x[:, 0])
     if missing.any():
@@ -473,47 +471,8 @@ def _intersect_share(cameras: list, image_camera: np.ndarray, r: np.ndarray, c: 
         d = ray_directions(cameras, image_camera, r, oi_all[sel], uv_all[sel], undistort_iterations=4)
         x0, _ = intersect_rays(np.take(c, oi_all[sel], 0), d, op_all[sel], n)
         x[missing] = x0[missing]
-    xyz = np.full((n, 3), np.nan)
-    cov = np.full((n, 3, 3), np.nan)
-    use = np.ones(m, bool)
-    rejected = np.zeros(m, bool)
-    todo = np.ones(n, bool)
-    for _ in range(max_rounds):
-        idx = np.flatnonzero(use & todo[op_all])
-        if len(idx) == 0:
-            break
-        op, oi = op_all[idx], oi_all[idx]
-        # one Gauss-Newton step on the pixel residuals; the test uses the linearised residuals after it
-        rr = np.take(r, oi, 0)
-        xc = np.einsum("mij,mj->mi", rr, np.take(x, op, 0) - np.take(c, oi, 0))
-        v = uv_all[idx] - pixels_from_camera(cameras, image_camera, xc, oi)
-        jp = pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
-        del rr, xc
-        good = np.all(np.isfinite(v), 1)
-        q = safe_inverse(point_normals(jp, np.where(good, sigma_px**-2, 0.0), op, n))
-        v[~good] = 0.0
-        jv = np.einsum("mri,mr->mi", jp, v)
-        g = np.stack([np.bincount(op, weights=jv[:, i], minlength=n) for i in range(3)], 1) * sigma_px**-2
-        step = np.einsum("kij,kj->ki", q, g)
-        solved = np.all(np.isfinite(step), 1)  # fewer than two rays or badly conditioned: no point
-        v1 = v - np.einsum("mij,mj->mi", jp, np.nan_to_num(step)[op])
-        red = np.clip(1.0 - quadratic_forms(jp, q, op) / sigma_px**2 / 2.0, 0.02, 1.0)
-        w = np.full(m, np.nan)
-        w[idx] = np.where(good & solved[op], np.sqrt(np.sum(v1**2, 1) / red) / (sigma_px * max(sigma0, 1e-9)),
-                          np.nan)
-        x = np.where((todo & solved)[:, None], x + np.nan_to_num(step), x)
-        xyz[todo] = np.where(solved[todo, None], x[todo], np.nan)
-        cov[todo] = q[todo] * sigma0**2
-        cur = np.zeros(m, bool)
-        cur[idx] = True
-        bad = worst_per_track(w, op_all, cur, threshold) | (cur & ~np.isfinite(w))
-        if not bad.any():
-            break
-        rejected |= bad
-        use &= ~bad
-        todo = np.zeros(n, bool)
-        todo[op_all[bad]] = True
-    return xyz, cov, rejected
+    return screen_points(cameras, image_camera, r, c, op_all, oi_all, uv_all, x, sigma_px, sigma0, threshold,
+                         max_rounds)[:3]
 
 
 def datum_correction(block: ImageBlock, poses: dict[str, Pose]) -> np.ndarray:

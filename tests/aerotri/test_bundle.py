@@ -169,3 +169,58 @@ def test_marginal_image_std_bounds_the_conditional_and_matches_the_errors():
     ratio_att = np.sqrt(np.mean(att**2)) / np.nanmedian(sm[:, :3])
     ratio_cen = np.sqrt(np.mean(cen**2)) / np.nanmedian(sm[:, 3:])
     assert 0.5 < ratio_att < 2.0 and 0.5 < ratio_cen < 2.0, (ratio_att, ratio_cen)
+
+
+def test_screened_start_tests_blunders_without_a_robust_solve(sim, xyz0, options):
+    """From orientations close to the solution (here the true ones; in HAT the nadir corrections propagated to the
+    oblique heads) the blunders are tested at the start with the cameras held and one least-squares solve remains:
+    planted blunders found, sigma0 and orientations as from a full adjustment. From the navigation orientations
+    the screening's sigma0 is far above 1 and the robust round runs as before."""
+    ids = sim.block.images_by_view()["north"]
+    opt = replace(options, screen_start=True)
+    sub = build_problem(sim.block, sim.ties, ids, xyz0, initial=sim.true_poses)
+    res = adjust(sub.problem, opt)
+    assert res.log[0].startswith("screening at the start")
+    assert abs(float(res.log[0].split("sigma0 ")[1].split(",")[0]) - 1.0) < 0.1
+    assert not any("cauchy" in line for line in res.log)
+    assert sum(line.startswith("round") and "least squares" in line for line in res.log) == 1
+    s = blunder_scores(sim.ties.obs_blunder[sub.obs_index], res.obs_rejected)
+    assert s["planted"] > 300 and s["recall"] >= 0.95 and s["false_alarm"] <= 0.01
+    assert abs(res.sigma0 - 1.0) < 0.1
+    # the same orientations as the robust round and data snooping from the same start, well within their std
+    ref = adjust(sub.problem, options)
+    ang = [np.degrees(rotation_angle(a, b)) for a, b in zip(res.r_cam_from_world, ref.r_cam_from_world)]
+    dc = np.linalg.norm(res.c_world - ref.c_world, axis=1)
+    std_deg, std_m = np.median(np.degrees(ref.image_std[:, :3])), np.median(ref.image_std[:, 3:])
+    assert np.median(ang) < 0.1 * std_deg and np.median(dc) < 0.1 * std_m
+    assert np.max(ang) < std_deg and np.max(dc) < std_m
+    nav = adjust(build_problem(sim.block, sim.ties, ids, xyz0).problem, opt)
+    assert "robust round" in nav.log[0] and any("cauchy" in line for line in nav.log)
+
+
+def test_screen_points_sigma0_ignores_blunders_and_tests_single_rays_with_a_ground_observation(sim, options):
+    """The robust sigma0 of the screening is that of the noise (the first round's rays of points pulled by blunders
+    would inflate it by a third), and a point with one ray and a ground observation has its ray tested."""
+    from oblique_city.core.aerotri.bundle import screen_points
+    from oblique_city.core.aerotri.problem import pose_arrays
+
+    ties = sim.ties
+    cameras, image_camera, r, c = pose_arrays(sim.block, ties.image_ids, sim.true_poses)
+    op, oi, uv = ties.obs_track, ties.obs_image, ties.obs_uv
+    _, _, rej, s0 = screen_points(cameras, image_camera, r, c, op, oi, uv, sim.true_xyz, options.sigma_px, None,
+                                  4.3, 10)
+    assert abs(s0 - 1.0) < 0.05
+    s = blunder_scores(ties.obs_blunder, rej)
+    assert s["recall"] >= 0.95 and s["false_alarm"] <= 0.01
+    # one ray of a track with a 10 px blunder, the track's true point as a ground observation (1 cm)
+    k = int(np.flatnonzero(~ties.obs_blunder)[0])
+    t = op[k]
+    uv_bad = uv[k:k + 1] + np.array([[10.0, 0.0]])
+    info = np.zeros((len(sim.true_xyz), 3, 3))
+    info[t] = np.eye(3) / 0.01**2
+    args = (cameras, image_camera, r, c, op[k:k + 1], oi[k:k + 1])
+    _, _, rej1, _ = screen_points(*args, uv_bad, sim.true_xyz, options.sigma_px, 1.0, 4.3, 10,
+                                  reject_undetermined=False, prior_xyz=sim.true_xyz, prior_info=info)
+    _, _, rej0, _ = screen_points(*args, uv[k:k + 1], sim.true_xyz, options.sigma_px, 1.0, 4.3, 10,
+                                  reject_undetermined=False, prior_xyz=sim.true_xyz, prior_info=info)
+    assert rej1[0] and not rej0[0]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from oblique_city.core.aerotri.hierarchical import hierarchical, nadir_propagation, select_connections
-from oblique_city.core.evaluate.aerotri import check_point_errors, rms_xy_z
+from oblique_city.core.evaluate.aerotri import blunder_scores, check_point_errors, rms_xy_z
 from oblique_city.core.geometry.rotations import rotation_angle
 from oblique_city.core.pipeline import Executor
 
@@ -17,6 +17,14 @@ def test_hat_cba_agrees_with_iat(sim, xyz0, options, iat):
     hat = hierarchical(sim.block, sim.ties, options, connection="cba", cell=50.0, xyz0=xyz0)
     assert [r.name for r in hat.runs] == ["nadir", "north", "east", "south", "west"]
     assert all(r.connection_count > 20 for r in hat.runs[1:])
+    # the oblique runs start from the propagated nadir corrections: blunders screened there, no robust solve (a
+    # second least-squares solve when the last rejections carry more than resolve_tolerance of chi-square)
+    for run in hat.runs[1:]:
+        assert run.result.log[0].startswith("screening at the start") and "robust" not in run.result.log[0]
+        assert not any("cauchy" in line for line in run.result.log)
+        assert sum("least squares" in line for line in run.result.log) <= 2
+    s = blunder_scores(sim.ties.obs_blunder, hat.obs_rejected)
+    assert s["recall"] >= 0.95 and s["false_alarm"] <= 0.01
     assert set(hat.poses) == set(iat.poses)
     xy_h, z_h = rms_xy_z(check_point_errors(sim.block, hat.poses)[1])
     xy_i, z_i = rms_xy_z(check_point_errors(sim.block, iat.poses)[1])
