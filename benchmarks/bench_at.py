@@ -309,9 +309,12 @@ def describe_runs(args) -> str:
             "afterwards from all their rays with the final orientations, with blunder tests")
     return ("IAT: one adjustment of all images and all tie observations (Cauchy round, then least-squares rounds "
             "with data snooping; iterative Schur, the faster solver for this size).\n"
-            f"HAT: nadir run with all its tie points and the datum; four oblique runs ({args.workers} processes) "
-            f"tied by connection points, {thin}; combination by error propagation, the datum shift refined from all "
-            "control measurements (the nadir run saw only the nadir ones)."
+            "HAT: nadir run with all its tie points and the datum (Cauchy round, then least-squares rounds); four "
+            f"oblique runs ({args.workers} processes) tied by connection points, {thin}, starting from the nadir "
+            "corrections propagated to their heads, their blunders screened there with the cameras held (one "
+            "resection step, tests again) and then least-squares rounds with data snooping (a Cauchy round only "
+            "when the screening's sigma0 is above 2); combination by error propagation, the datum shift refined "
+            "from all control measurements (the nadir run saw only the nadir ones)."
             + ("" if args.skip_stock else
                "\nStock comparison: our engine (the IAT adjustment) and pycolmap's bundle_adjustment (one Cauchy "
                f"solve, no priors, its default gauge, tolerances and solver) on the {args.stock_images} images of the "
