@@ -840,24 +840,31 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
         idx = np.flatnonzero(use & todo[op_all])
         if len(idx) == 0:
             break
-        op, oi = op_all[idx], oi_all[idx]
+        # the points of this round numbered 0.. (after the first round only those that lost a ray)
+        pts = np.flatnonzero(todo)
+        rank = np.cumsum(todo) - 1
+        op, oi = rank[op_all[idx]], oi_all[idx]
+        x_pts = x[pts]
         # one Gauss-Newton step on the pixel residuals; the test uses the linearised residuals after it
         rr = np.take(r, oi, 0)
-        xc = np.einsum("mij,mj->mi", rr, np.take(x, op, 0) - np.take(c, oi, 0))
+        xc = np.einsum("mij,mj->mi", rr, np.take(x_pts, op, 0) - np.take(c, oi, 0))
         v = uv_all[idx] - pixels_from_camera(cameras, image_camera, xc, oi)
         jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
         del rr, xc
         good = np.all(np.isfinite(v), 1)
-        q = precision.safe_inverse(precision.point_normals(jp, np.where(good, sigma_px**-2, 0.0), op, n,
-                                                           prior_info))
+        info_pts = None if prior_info is None else prior_info[pts]
+        q = precision.safe_inverse(precision.point_normals(jp, np.where(good, sigma_px**-2, 0.0), op, len(pts),
+                                                           info_pts))
         v[~good] = 0.0
-        jv = np.einsum("mri,mr->mi", jp, v)
-        g = np.stack([np.bincount(op, weights=jv[:, i], minlength=n) for i in range(3)], 1) * sigma_px**-2
-        if prior_info is not None:
-            g += np.einsum("kij,kj->ki", prior_info, np.nan_to_num(prior_xyz - x))
+        g = np.stack([np.bincount(op, weights=jp[:, 0, i] * v[:, 0] + jp[:, 1, i] * v[:, 1], minlength=len(pts))
+                      for i in range(3)], 1) * sigma_px**-2
+        if info_pts is not None:
+            g += np.einsum("kij,kj->ki", info_pts, np.nan_to_num(prior_xyz[pts] - x_pts))
         step = np.einsum("kij,kj->ki", q, g)
         solved = np.all(np.isfinite(step), 1)  # fewer than two rays or badly conditioned: no point
-        v1 = v - np.einsum("mij,mj->mi", jp, np.nan_to_num(step)[op])
+        dx = np.take(np.nan_to_num(step), op, 0)
+        v1 = v - np.stack([jp[:, k, 0] * dx[:, 0] + jp[:, k, 1] * dx[:, 1] + jp[:, k, 2] * dx[:, 2]
+                           for k in range(2)], 1)
         red = np.clip(1.0 - precision.quadratic_forms(jp, q, op) / sigma_px**2 / 2.0, 0.02, 1.0)
         t_all[idx] = np.where(good & solved[op], np.sum(v1**2, 1) / red / sigma_px**2, np.nan)
         if robust:
@@ -865,9 +872,9 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
             t_use = t_all[use & np.isfinite(t_all)]
             s0 = float(np.sqrt(np.median(t_use) / (2 * np.log(2)))) if len(t_use) else 1.0
         w = np.where(use, np.sqrt(t_all) / max(s0, 1e-9), np.nan)
-        x = np.where((todo & solved)[:, None], x + np.nan_to_num(step), x)
-        xyz[todo] = np.where(solved[todo, None], x[todo], np.nan)
-        cov[todo] = q[todo]
+        x[pts[solved]] = x_pts[solved] + step[solved]
+        xyz[pts] = np.where(solved[:, None], x[pts], np.nan)
+        cov[pts] = q
         cur = np.zeros(m, bool)
         cur[idx] = True
         bad = worst_per_track(w, op_all, use, threshold)
@@ -897,7 +904,7 @@ def resect_images(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     jp, jr = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
     n = len(r)
     q = precision.safe_inverse(precision.image_normals(jp, jr, np.ones(len(oi)), oi, n))
-    g = np.einsum("kri,kr->ki", np.concatenate([jr, -jp], axis=2), v)
+    g = np.einsum("kri,kr->ki", precision.image_rows(jp, jr), v)
     step = np.einsum("kij,kj->ki", q, np.stack([np.bincount(oi, weights=g[:, i], minlength=n) for i in range(6)], 1))
     r, c = r.copy(), c.copy()
     for k in np.flatnonzero(np.all(np.isfinite(step), 1)):
