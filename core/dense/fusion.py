@@ -6,7 +6,8 @@
 * Depth edges: a pixel whose depth lies behind a neighbour within ``edge_radius_px`` by more than
   ``max(edge_jump_m, edge_jump_rel * depth)`` is dropped (far-side erosion): matching fattens the background into
   the foreground at occlusion edges, which puts ground-level points inside roof outlines; other masters see
-  that ground from elsewhere.
+  that ground from elsewhere. The near side goes too (``near_edge_radius_px``): the window also fattens the
+  foreground, a roof edge carried out over the ground beyond its wall.
 * Smoothing: a bilateral filter on the fused depth (range sigma in metres), holes filled by their nearest
   neighbour for the filter and emptied again afterwards, so edges and holes stay where they are.
 * Points: back-projection of the master grid with colour, a normal from the local depth-map surface (oriented
@@ -55,7 +56,7 @@ class FusionConfig:
     max_incidence_deg: float = 82.0
     normal_offset: int = 2
     edge_radius_px: float = 2.0
-    near_edge_radius_px: float = 0.0
+    near_edge_radius_px: float = 2.0
     edge_jump_m: float = 1.0
     edge_jump_rel: float = 0.01
 

@@ -91,7 +91,7 @@ class DenseConfig:
     bilateral_sigma_m: float = 0.3
     max_incidence_deg: float = 82.0
     edge_radius_px: float = 2.0
-    near_edge_radius_px: float = 0.0
+    near_edge_radius_px: float = 2.0
     outlier_neighbours: int = 16
     outlier_ratio: float = 2.0
     display_points: int = 300_000

@@ -72,11 +72,12 @@ def test_far_side_of_depth_edges_is_eroded():
     roof go, the roof stays; a smooth slanted surface (oblique ground, 0.3 m per pixel) loses nothing."""
     d = np.full((20, 20), 200.0, np.float32)
     d[:, :10] = 190.0
-    out = erode_far_edges(d, 1, FusionConfig(edge_radius_px=2.0, edge_jump_m=1.0, edge_jump_rel=0.01))
+    out = erode_far_edges(d, 1, FusionConfig(edge_radius_px=2.0, near_edge_radius_px=0.0, edge_jump_m=1.0,
+                                                 edge_jump_rel=0.01))
     assert np.isfinite(out[:, :10]).all() and np.isnan(out[:, 10:12]).all() and np.isfinite(out[:, 12:]).all()
     ramp = (300.0 + 0.3 * np.arange(20, dtype=np.float32))[:, None].repeat(20, 1)
     assert np.isfinite(erode_far_edges(ramp, 1, FusionConfig())).all()
-    assert np.isnan(erode_far_edges(d, 2, FusionConfig(edge_radius_px=2.0))[:, 10]).all()
+    assert np.isnan(erode_far_edges(d, 2, FusionConfig(edge_radius_px=2.0, near_edge_radius_px=0.0))[:, 10]).all()
     both = erode_far_edges(d, 1, FusionConfig(edge_radius_px=2.0, near_edge_radius_px=1.0))
     assert np.isfinite(both[:, :9]).all() and np.isnan(both[:, 9:12]).all() and np.isfinite(both[:, 12:]).all()
 
