@@ -262,7 +262,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         in_run = (view_of_obs == codes[v]) if obs_mask is None else (view_of_obs == codes[v]) & obs_mask
         used[ties.obs_track[in_run]] = True
     used &= ~np.isfinite(xyz_nadir[:, 0])
-    xyz_start, _ = intersect_ties(block, ties, start_poses, obs_mask=used[ties.obs_track])
+    xyz_start, _ = intersect_ties(block, ties, start_poses, obs_mask=used[ties.obs_track], undistort_iterations=4)
     xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir,
                          np.where(np.isfinite(xyz_start[:, :1]), xyz_start, xyz0))
     items, conn_counts, conn_masks = [], {}, {}

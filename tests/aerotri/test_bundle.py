@@ -224,3 +224,83 @@ def test_screen_points_sigma0_ignores_blunders_and_tests_single_rays_with_a_grou
     _, _, rej0, _ = screen_points(*args, uv[k:k + 1], sim.true_xyz, options.sigma_px, 1.0, 4.3, 10,
                                   reject_undetermined=False, prior_xyz=sim.true_xyz, prior_info=info)
     assert rej1[0] and not rej0[0]
+
+
+def test_model_read_from_binary_equals_the_one_built_through_the_api(sim, xyz0, tmp_path):
+    """The reconstruction that holds the tie points is written as a COLMAP binary model and read by pycolmap; it
+    is the same, byte for byte once written again, as the one built element by element through pycolmap's API
+    (cameras with trivial rigs, images with trivial frames and their poses, points with their tracks), here with
+    some observations left out and points with a single ray left out of the reconstruction."""
+    import pycolmap
+
+    from oblique_city.core.aerotri.bundle import _colmap_params, _Model, _rigid
+
+    ids = sim.block.images_by_view()["north"] + sim.block.images_by_view()["nadir"]
+    p = build_problem(sim.block, sim.ties, ids, xyz0).problem
+    ref = np.round(p.c_world.mean(0), 0)
+    active = np.random.default_rng(0).random(len(p.obs_point)) > 0.1
+    model = _Model(p, ref, active)
+    # the reference: built through the API as before
+    rec = pycolmap.Reconstruction()
+    for ci, cam in enumerate(p.cameras):
+        pc = pycolmap.Camera.create_from_model_name(ci + 1, "FULL_OPENCV", cam.fx, cam.width, cam.height)
+        pc.params = _colmap_params(cam)
+        rec.add_camera_with_trivial_rig(pc)
+    counts = np.bincount(p.obs_point[active], minlength=p.n_points)
+    in_rec = active & (counts >= 2)[p.obs_point]
+    p2d = np.full(len(p.obs_point), -1)
+    for k in range(p.n_images):
+        sl = np.flatnonzero(in_rec & (p.obs_image == k))
+        p2d[sl] = np.arange(len(sl))
+        im = pycolmap.Image(name=p.image_ids[k], keypoints=p.obs_uv[sl] + 0.5, camera_id=int(p.image_camera[k]) + 1,
+                            image_id=k + 1)
+        rec.add_image_with_trivial_frame(im, _rigid(p.r_cam_from_world[k], p.c_world[k] - ref))
+    point_ids = np.full(p.n_points, -1)
+    for q in np.flatnonzero(counts >= 2):
+        track = pycolmap.Track()
+        for s in np.flatnonzero(in_rec & (p.obs_point == q)):
+            track.add_element(int(p.obs_image[s]) + 1, int(p2d[s]))
+        point_ids[q] = rec.add_point3D(p.xyz[q] - ref, track)
+    assert np.array_equal(model.in_rec, in_rec)
+    assert np.array_equal(model.p2d[in_rec], p2d[in_rec])
+    assert np.array_equal(model.point_ids, point_ids)
+    (tmp_path / "api").mkdir()
+    (tmp_path / "binary").mkdir()
+    rec.write_binary(str(tmp_path / "api"))
+    model.rec.write_binary(str(tmp_path / "binary"))
+    for name in ("cameras.bin", "rigs.bin", "frames.bin", "images.bin", "points3D.bin"):
+        assert (tmp_path / "api" / name).read_bytes() == (tmp_path / "binary" / name).read_bytes(), name
+    # the coordinate views are the reconstruction's own
+    q = int(np.flatnonzero(counts >= 2)[0])
+    model.xyz_views[q][:] += 1.0
+    assert np.allclose(model.rec.point3D(int(point_ids[q])).xyz, p.xyz[q] - ref + 1.0)
+
+
+def test_column_layout_jacobians_and_normals_equal_the_direct_formulas():
+    """The Jacobians stored column by column and the normal blocks and quadratic forms summed from them equal
+    the textbook expressions (projection Jacobian times R, the rotation column as d x j, sums of J^T W J)."""
+    from oblique_city.core.aerotri import precision
+
+    rng = np.random.default_rng(5)
+    m, n = 500, 7
+    r = np.linalg.qr(rng.normal(size=(m, 3, 3)))[0]
+    c = rng.normal(size=(m, 3))
+    xyz = c + np.einsum("mji,mj->mi", r, rng.normal(size=(m, 3)) * [1, 1, 0.1] + [0, 0, 20])  # in front
+    fx, fy = rng.uniform(900, 1100, m), rng.uniform(900, 1100, m)
+    jp, jr = precision.collinearity_jacobians(r, c, fx, fy, xyz)
+    xc = np.einsum("mij,mj->mi", r, xyz - c)
+    proj = np.zeros((m, 2, 3))
+    proj[:, 0, 0], proj[:, 1, 1] = fx / xc[:, 2], fy / xc[:, 2]
+    proj[:, 0, 2], proj[:, 1, 2] = -fx * xc[:, 0] / xc[:, 2] ** 2, -fy * xc[:, 1] / xc[:, 2] ** 2
+    jp_ref = proj @ r
+    assert np.allclose(jp, jp_ref, rtol=1e-12, atol=0)
+    assert np.allclose(jr, np.cross((xyz - c)[:, None, :], jp_ref), rtol=1e-10, atol=1e-12)
+    w = rng.uniform(0.5, 2.0, m)
+    idx = rng.integers(0, n, m)
+    rows = np.concatenate([jr, -jp], axis=2)
+    n_ref = np.zeros((n, 6, 6))
+    np.add.at(n_ref, idx, w[:, None, None] * np.einsum("mri,mrj->mij", rows, rows))
+    assert np.allclose(precision.image_normals(jp, jr, w, idx, n), n_ref, rtol=1e-12, atol=0)
+    q = np.linalg.inv(n_ref + np.eye(6))
+    assert np.allclose(precision.quadratic_forms(precision.image_rows(jp, jr), q, idx),
+                       np.einsum("mri,mij,mrj->m", rows, q[idx], rows), rtol=1e-10, atol=0)
