@@ -412,38 +412,39 @@ def pits(height: np.ndarray, size_cells: int, depth: float) -> np.ndarray:
 
 
 def wall_steps(height: np.ndarray, step: float) -> np.ndarray:
-    """Mask ``(rows, cols)`` of the cells of ``height`` (NaN-free) that lie more than ``step`` metres below a
-    neighbour and more than ``step`` above the opposite neighbour (along a row, a column or a diagonal).
+    """Mask ``(rows, cols)`` of the cells of ``height`` that lie more than ``step`` metres below a neighbour and
+    more than ``step`` above the opposite neighbour (along a row, a column or a diagonal; NaN cells and NaN
+    neighbours never count).
 
     A 2.5D surface steeper than ``2 * step`` over two cells is a wall, whose top cell belongs to the roof and
     whose foot cell to the ground: a cell in between holds a point of the wall itself (a facade point whose normal
     was lost, an edge the matching window rounded) or a hole fill that bridged the step.
     """
     rows, cols = height.shape
-    pad = np.pad(height, 1, mode="edge")
+    pad = np.pad(height, 1, constant_values=np.nan)
     found = np.zeros(height.shape, bool)
-    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        a = pad[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols]
-        b = pad[1 - dr:1 - dr + rows, 1 - dc:1 - dc + cols]
-        found |= ((a > height + step) & (b < height - step)) | ((b > height + step) & (a < height - step))
+    with np.errstate(invalid="ignore"):
+        for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            a = pad[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols]
+            b = pad[1 - dr:1 - dr + rows, 1 - dc:1 - dc + cols]
+            found |= ((a > height + step) & (b < height - step)) | ((b > height + step) & (a < height - step))
     return found
 
 
 def snap_wall_steps(height: np.ndarray, step: float, rounds: int = 2) -> np.ndarray:
     """``height (rows, cols)`` with each cell of :func:`wall_steps` set to the nearer of its two sides (the
     highest and the lowest of its 8 neighbours): the DSM steps from the roof to the ground at the wall instead of
-    passing through a height no surface has there. ``rounds`` passes (a two-cell slope needs two); NaN cells are
-    left alone."""
+    passing through a height no surface has there. ``rounds`` passes (a two-cell slope needs two); NaN cells stay
+    NaN."""
     out = height.copy()
     for _ in range(rounds):
-        finite = np.isfinite(out)
-        base = np.where(finite, out, np.nanmin(out) if finite.any() else 0.0)
-        wall = wall_steps(base, step) & finite
+        wall = wall_steps(out, step)
         if not wall.any():
             break
-        hi = ndimage.maximum_filter(base, size=3)
-        lo = ndimage.minimum_filter(base, size=3)
-        out[wall] = np.where(hi[wall] - base[wall] < base[wall] - lo[wall], hi[wall], lo[wall])
+        finite = np.isfinite(out)
+        hi = ndimage.maximum_filter(np.where(finite, out, -np.inf), size=3)[wall]
+        lo = ndimage.minimum_filter(np.where(finite, out, np.inf), size=3)[wall]
+        out[wall] = np.where(hi - out[wall] < out[wall] - lo, hi, lo)
     return out
 
 

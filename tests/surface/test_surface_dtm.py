@@ -149,6 +149,8 @@ def test_cells_on_a_wall_step_take_the_roof_or_the_ground_and_slopes_stay():
     f = snap_wall_steps(g, 1.0)
     assert np.allclose(f[:5, 14], 100.0) and np.allclose(f[5:10, 14], 112.0) and np.allclose(f[10:, 14], 100.0)
     assert np.allclose(f[:, :14], 100.0) and np.allclose(f[:, 15:], 112.0)
+    g[:, 13] = np.nan                   # no measured ground beside them: no evidence of a step, nothing changes
+    assert np.array_equal(snap_wall_steps(g, 1.0), g, equal_nan=True)
     y, x = np.mgrid[0:20, 0:30]
     roof = 110.0 + np.tan(np.radians(60)) * 0.156 * np.minimum(x, 29 - x)
     roof[10, 10] += 3.0                  # a chimney
