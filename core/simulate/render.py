@@ -187,10 +187,15 @@ class Renderer:
             vv, uu = np.mgrid[0:camera.height, 0:camera.width]
             uv = np.column_stack([uu.ravel(), vv.ravel()]).astype(np.float64)
             rng = np.random.default_rng(seed)
+            # the centre ray first (it gives the depth), then jittered rays whose offsets average to zero: the
+            # same offsets serve every pixel, so a non-zero mean would shift the whole image by it
+            jit = np.zeros((samples, 2))
+            if samples > 1:
+                jit[1:] = rng.uniform(-0.5, 0.5, (samples - 1, 2))
+                jit[1:] -= jit[1:].mean(axis=0)
             out = []
             for s in range(samples):
-                jit = np.zeros(2) if s == 0 else rng.uniform(-0.5, 0.5, 2)
-                xy = camera.pixel_to_normalized(uv + jit)
+                xy = camera.pixel_to_normalized(uv + jit[s])
                 out.append(np.column_stack([xy, np.ones(len(xy))]).astype(np.float32))
             if len(self._dirs) > 8:
                 self._dirs.clear()
