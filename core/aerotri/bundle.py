@@ -67,6 +67,14 @@ class BundleOptions:
     robust_function_tolerance, robust_max_iterations : the same and an iteration limit for the robust (Cauchy)
         round, which only has to separate the blunders: its tail creeps along weakly determined points by 1e-4
         of the cost per iteration without changing which observations are flagged
+    ls_trust_region_radius : Ceres' initial trust region radius (Levenberg-Marquardt damping ``1 / radius`` times
+        the normal matrix' diagonal) of the least-squares rounds, which start close to the solution (from the
+        robust round or the screened start): large, so that their first step is the Gauss-Newton one. Ceres'
+        default (1e4, kept for the robust round from the navigation data) damps the weakly determined directions
+        (small eigenvalues against the diagonal) of a sub-block tied to connection points by half: on a 600-image
+        oblique run of the 3,000-image block the first step left 0.09 of the cost change (2.1 of chi-square) to a
+        second one and a third confirmed convergence; from 1e6 up the first step reached the same cost and the
+        second confirmed it (3 -> 2 iterations, same final cost to 7 digits)
     linear_solver : ``auto``, ``sparse_schur`` or ``iterative_schur``; ``auto`` factorises the reduced camera
         system (sparse Schur) while it has at most ``sparse_schur_max_blocks`` non-zero 6x6 blocks (image pairs
         sharing a point, counted on a sample of the tracks) or at most ``sparse_schur_max_neighbours`` of them per
@@ -112,6 +120,7 @@ class BundleOptions:
     function_tolerance: float = 1e-6
     robust_function_tolerance: float = 1e-4
     robust_max_iterations: int = 10
+    ls_trust_region_radius: float = 1e8
     threads: int = 2
     linear_solver: str = "auto"
     sparse_schur_max_blocks: int = 60_000
@@ -575,6 +584,8 @@ class _Round:
         so.num_threads = opt.threads
         so.max_num_iterations = opt.robust_max_iterations if robust else opt.max_iterations
         so.function_tolerance = opt.robust_function_tolerance if robust else opt.function_tolerance
+        if not robust:
+            so.initial_trust_region_radius = opt.ls_trust_region_radius
         so.gradient_tolerance = 1e-10
         so.parameter_tolerance = 1e-8
         summary = pyceres.SolverSummary()

@@ -304,3 +304,26 @@ def test_column_layout_jacobians_and_normals_equal_the_direct_formulas():
     q = np.linalg.inv(n_ref + np.eye(6))
     assert np.allclose(precision.quadratic_forms(precision.image_rows(jp, jr), q, idx),
                        np.einsum("mri,mij,mrj->m", rows, q[idx], rows), rtol=1e-10, atol=0)
+
+
+def test_least_squares_rounds_start_with_the_gauss_newton_step(sim, xyz0, options):
+    """The least-squares rounds start from close to the solution, so their first Levenberg-Marquardt step is
+    (nearly) undamped (``ls_trust_region_radius``): fewer iterations than with Ceres' default radius of 1e4 (here
+    2 against 4: the damping held back the sub-block's weakly determined directions), the same rejections, and
+    orientations and points equal to well within their standard deviations (both stop at Ceres' function
+    tolerance of 1e-6)."""
+    from oblique_city.core.geometry.rotations import matrix_to_rotvec
+
+    ids = sim.block.images_by_view()["north"]
+    sub = build_problem(sim.block, sim.ties, ids, xyz0, initial=sim.true_poses)
+    opt = replace(options, screen_start=True)
+    new = adjust(sub.problem, opt)
+    old = adjust(sub.problem, replace(opt, ls_trust_region_radius=1e4))
+    assert new.iterations < old.iterations
+    assert np.array_equal(new.obs_rejected, old.obs_rejected)
+    da = np.array([matrix_to_rotvec(a.T @ b) for a, b in zip(old.r_cam_from_world, new.r_cam_from_world)])
+    assert np.nanmax(np.abs(da) / old.image_std[:, :3]) < 0.1
+    assert np.nanmax(np.abs(new.c_world - old.c_world) / old.image_std[:, 3:]) < 0.1
+    dx = (new.xyz - old.xyz) / np.sqrt(np.diagonal(old.xyz_cov, axis1=1, axis2=2))
+    assert np.nanmax(np.abs(dx)) < 0.1
+    assert abs(new.sigma0 - old.sigma0) < 1e-4
