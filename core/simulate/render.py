@@ -102,7 +102,11 @@ class _NoiseTexture:
         returns (n, 2) float32, zero mean, unit-ish variance at level 0."""
         lev = np.clip(np.log2(np.maximum(footprint, 1e-6)).astype(np.int32), 0, self.n_levels - 1)
         inv = np.ldexp(np.float32(1.0), -lev)
-        x, y = u.astype(np.float32) * inv, v.astype(np.float32) * inv
+        # texel i of level L averages level-0 texels 2^L i .. 2^L (i + 1) - 1, so its centre lies at level-0
+        # coordinate 2^L (i + 0.5) - 0.5: without the half-texel terms each level would show the texture shifted by
+        # (2^L - 1) / 2 level-0 texels, and views at different distances would see the surface in different places
+        x = (u.astype(np.float32) + np.float32(0.5)) * inv - np.float32(0.5)
+        y = (v.astype(np.float32) + np.float32(0.5)) * inv - np.float32(0.5)
         x0, y0 = np.floor(x), np.floor(y)
         fx, fy = (x - x0)[:, None], (y - y0)[:, None]
         mask, off, sh = self.masks[lev], self.offsets[lev], self.shifts[lev]

@@ -71,6 +71,25 @@ def test_supersampled_image_is_not_shifted(city):
     assert max(errs) < 0.05, errs
 
 
+def test_texture_mip_levels_show_the_surface_in_place():
+    """A coarser mip level of the surface texture is the box-filtered fine texture at the same place: the best
+    alignment along u is at zero lag for levels 1-3 (before the half-texel terms: 0.5, 1.75 and 4.0 texels, so a
+    far oblique view saw the ground texture up to 0.5 m away from where a near view saw it)."""
+    from oblique_city.core.simulate.render import _NoiseTexture
+
+    tex = _NoiseTexture()
+    u = np.arange(0.0, 400.0, 0.25)
+    v = np.full_like(u, 100.3)
+    lags = np.arange(-40, 41)                       # quarter texels
+    for level in (1, 2, 3):
+        k = 2 ** level
+        coarse = tex.sample(u, v, np.full(len(u), float(k)))[:, 0]
+        offs = np.arange(k) - (k - 1) / 2.0
+        box = sum(tex.sample(u + du, v + dv, np.ones(len(u)))[:, 0] for du in offs for dv in offs) / k ** 2
+        cc = [np.corrcoef(np.roll(coarse, lag)[50:-50], box[50:-50])[0, 1] for lag in lags]
+        assert lags[int(np.argmax(cc))] == 0 and max(cc) > 0.95, (level, lags[int(np.argmax(cc))] * 0.25)
+
+
 def test_depth_lies_on_ground_truth_surfaces(city, renderer):
     b = city.buildings[8]  # the church: gabled nave and a pyramid tower
     target = np.array([*b.center, b.ground_z + 5.0])
