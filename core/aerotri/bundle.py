@@ -850,6 +850,11 @@ def release_heap() -> None:
         pass
 
 
+def image_focals(cameras: list[CameraModel], image_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Focal lengths ``fx, fy`` in pixels, shaped like ``image_camera`` (indices into ``cameras``)."""
+    return (np.array([cm.fx for cm in cameras])[image_camera], np.array([cm.fy for cm in cameras])[image_camera])
+
+
 def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                   xyz: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray, obs_uv: np.ndarray,
                   mask: np.ndarray, iterations: int = 2) -> np.ndarray:
@@ -864,8 +869,7 @@ def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     op, oi = obs_point[idx], obs_image[idx]
     pts, local = np.unique(op, return_inverse=True)
     ok = np.bincount(local, minlength=len(pts)) >= 2
-    fx = np.array([cm.fx for cm in cameras])[image_camera]
-    fy = np.array([cm.fy for cm in cameras])[image_camera]
+    fx, fy = image_focals(cameras, image_camera)
     for _ in range(iterations):
         uv_hat = project_obs(cameras, image_camera, r, c, xyz, op, oi)
         v = obs_uv[idx] - uv_hat
@@ -904,8 +908,7 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     Returns ``xyz (n, 3)`` and ``cov (n, 3, 3)`` (NaN for points with fewer than two rays or badly conditioned),
     the rejected observations ``(m,)`` and the sigma0 used."""
     m, n = len(op_all), len(xyz_start)
-    fx = np.array([cm.fx for cm in cameras])[image_camera]
-    fy = np.array([cm.fy for cm in cameras])[image_camera]
+    fx, fy = image_focals(cameras, image_camera)
     x = np.array(xyz_start, np.float64)
     xyz = np.full((n, 3), np.nan)
     cov = np.full((n, 3, 3), np.nan)
@@ -975,8 +978,7 @@ def resect_images(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     ``(m,)``, ``obs_uv (m, 2)`` with the points ``xyz (p, 3)`` held (each image's 6 x 6 normal block: rotation
     about the world axes, centre). Returns new ``r (n, 3, 3)``, ``c (n, 3)``; images without a determined step
     keep theirs."""
-    fx = np.array([cm.fx for cm in cameras])[image_camera]
-    fy = np.array([cm.fy for cm in cameras])[image_camera]
+    fx, fy = image_focals(cameras, image_camera)
     v = obs_uv - project_obs(cameras, image_camera, r, c, xyz, obs_point, obs_image)
     good = np.all(np.isfinite(v), 1)
     op, oi, v = obs_point[good], obs_image[good], v[good]
@@ -1008,8 +1010,7 @@ def worst_per_track(w: np.ndarray, obs_point: np.ndarray, active: np.ndarray, th
 def _precision(prob: BundleProblem, opt: BundleOptions, r: np.ndarray, c: np.ndarray, xyz: np.ndarray,
                cams: list[CameraModel], active: np.ndarray, adjusted: np.ndarray):
     """Cofactor blocks of points ``(p, 3, 3)`` and images ``(n, 6, 6)`` and redundancy numbers ``(m,)``."""
-    fx = np.array([cm.fx for cm in cams])[prob.image_camera]
-    fy = np.array([cm.fy for cm in cams])[prob.image_camera]
+    fx, fy = image_focals(cams, prob.image_camera)
     op, oi = prob.obs_point, prob.obs_image
     jp, jr = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
     w_obs = np.where(active, 1.0 / opt.sigma_px**2, 0.0)

@@ -36,6 +36,7 @@ from .bundle import (
     BundleOptions,
     BundleResult,
     adjust,
+    image_focals,
     refine_points,
     release_heap,
     screen_points,
@@ -496,8 +497,7 @@ def datum_correction(block: ImageBlock, poses: dict[str, Pose]) -> np.ndarray:
     x, _ = intersect_rays(c[oi], d, op, len(gps))
     ok_obs = np.isfinite(x[op, 0])
     x = refine_points(cameras, image_camera, r, c, x, op, oi, uv, ok_obs)
-    fx = np.array([cm.fx for cm in cameras])[image_camera[oi]]
-    fy = np.array([cm.fy for cm in cameras])[image_camera[oi]]
+    fx, fy = image_focals(cameras, image_camera[oi])
     sigma_px = np.array([gp.sigma_px for gp in gps])
     jp = point_jacobians(r[oi], c[oi], fx, fy, x[op])
     q = safe_inverse(point_normals(np.nan_to_num(jp), np.where(ok_obs, sigma_px[op] ** -2.0, 0.0), op, len(gps)))

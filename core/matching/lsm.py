@@ -24,7 +24,7 @@ All positions use the core's pixel convention (origin at the centre of the top-l
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -71,19 +71,25 @@ def _grid(half: int) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], 1)
 
 
-def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear samples of ``image (h, w)`` at ``x, y`` (any equal shapes; pixel-centre origin).
-
-    Returns the values (float32, the shape of ``x``) and a mask of samples inside the image (outside samples are
-    clamped to the border)."""
-    h, w = image.shape
+def _cells(shape: tuple[int, int], x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
+    """For samples at ``x, y`` in an image of ``shape (h, w)``: the mask of those inside, and the integer cell
+    ``x0, y0`` (intp) and float32 fractions ``fx, fy`` of the positions clamped to the image."""
+    h, w = shape
     inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
     x = np.clip(x, 0, w - 1.000001)
     y = np.clip(y, 0, h - 1.000001)
     x0 = np.floor(x).astype(np.intp)
     y0 = np.floor(y).astype(np.intp)
-    fx = (x - x0).astype(np.float32)
-    fy = (y - y0).astype(np.float32)
+    return inside, x0, y0, (x - x0).astype(np.float32), (y - y0).astype(np.float32)
+
+
+def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of ``image (h, w)`` at ``x, y`` (any equal shapes; pixel-centre origin).
+
+    Returns the values (float32, the shape of ``x``) and a mask of samples inside the image (outside samples are
+    clamped to the border)."""
+    w = image.shape[1]
+    inside, x0, y0, fx, fy = _cells(image.shape, x, y)
     flat = image.reshape(-1)
     i = y0 * w + x0
     v00 = flat[i].astype(np.float32)
@@ -108,13 +114,8 @@ def sample_bicubic(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.
     towards pixel centres by a few hundredths of a pixel on sharp texture; the cubic kernel keeps that below 0.01
     px. Samples within one pixel of the border use clamped taps."""
     h, w = image.shape
-    inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
-    x = np.clip(x, 0, w - 1.000001)
-    y = np.clip(y, 0, h - 1.000001)
-    x0 = np.floor(x).astype(np.intp)
-    y0 = np.floor(y).astype(np.intp)
-    wx = _keys((x - x0).astype(np.float32))
-    wy = _keys((y - y0).astype(np.float32))
+    inside, x0, y0, fx, fy = _cells(image.shape, x, y)
+    wx, wy = _keys(fx), _keys(fy)
     flat = image.reshape(-1)
     out = np.zeros(x.shape, np.float32)
     cols = [np.clip(x0 + d, 0, w - 1) for d in (-1, 0, 1, 2)]
@@ -358,9 +359,7 @@ class RefineStats:
     mean_shift_px: float = 0.0
 
     def as_dict(self) -> dict:
-        return {"matched": self.matched, "failed": self.failed, "references": self.references,
-                "dropped_obs": self.dropped_obs, "dropped_tracks": self.dropped_tracks,
-                "mean_shift_px": self.mean_shift_px}
+        return asdict(self)
 
 
 def refine_ties(ties: TiePoints, block, read_image: Callable[[str], np.ndarray], opt: LsmOptions = LsmOptions(),
