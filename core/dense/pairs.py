@@ -117,6 +117,15 @@ def rectify(task: PairTask) -> RectifiedPair | PolarPair:
                         max_size_factor=task.max_size_factor)
 
 
+def near_is_high(pair, z_min: float, z_max: float) -> bool:
+    """Whether the high disparities of ``pair`` (a rectified or polar pair) are the near side: the disparity of
+    the master's central ray at height ``z_max`` against ``z_min``."""
+    ray = pair.master_rays(np.array([pair.width / 2.0]), np.array([pair.height / 2.0]))[0]
+    pts = np.array([pair.c_master + ray * (z - pair.c_master[2]) / ray[2] for z in (z_min, z_max)])
+    d = pair.disparity_of(pts)
+    return bool(d[1] > d[0])
+
+
 def match_pair(task: PairTask) -> PairDepth:
     """Rectify, match (padded SGM with left-right check) and convert to master depth."""
     if task.threads > 0:
@@ -131,7 +140,8 @@ def match_pair(task: PairTask) -> PairDepth:
     d_lo, d_hi = disparity_range(pair, task.z_min, task.z_max, task.cam_slave, task.pose_slave)
     rect_m, rect_s = pair.remap(img_m, img_s)
     if d_hi - d_lo > task.coarse_above:
-        d_lo, d_hi = coarse_range(rect_m, rect_s, d_lo, d_hi, task.sgm)
+        d_lo, d_hi = coarse_range(rect_m, rect_s, d_lo, d_hi, task.sgm,
+                                  near_high=near_is_high(pair, task.z_min, task.z_max))
     disp = sgm_disparity(rect_m, rect_s, d_lo, d_hi, task.sgm)
     # master grid -> rectified master pixels -> disparity (nearest, so depth edges stay sharp)
     uu, vv = master_grid(task.cam_master, task.step)

@@ -112,13 +112,17 @@ def sgm_disparity(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float,
 
 
 def coarse_range(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float, cfg: SgmConfig = SgmConfig(),
-                 levels: int = 2, margin_px: float = 12.0, quantiles: tuple[float, float] = (0.5, 99.5)
+                 levels: int = 2, margin_px: float = 12.0, quantile: float = 0.5, near_high: bool = True
                  ) -> tuple[float, float]:
-    """Narrow a wide disparity interval by matching a reduced pair first (coarse-to-fine search range).
+    """Narrow the far end of a wide disparity interval by matching a reduced pair first (coarse-to-fine search).
 
     The pair is reduced ``levels`` times by 2 (Gaussian pyramid) and matched over the prior interval; the robust
-    extremes (``quantiles`` in percent) of the coarse disparities, scaled back and widened by ``margin_px``,
-    give the full-resolution interval, clipped to the prior. With too few coarse matches the prior is kept.
+    far extreme of the coarse disparities (the ``quantile`` in percent from the far side), scaled back and widened
+    by ``margin_px``, replaces the prior's far end. The near end (the high end when ``near_high``) stays at the
+    prior: a small tall object, a tower top of a few square metres, covers too few pixels of the reduced pair to
+    be matched there or to count in its quantiles (on the demo the 99.5th percentile put the upper end of the
+    nadir pairs 5-10 m below the church tower's top, whose roof then came from the oblique views alone). With
+    too few coarse matches the prior is kept.
     """
     f = 2 ** levels
     lo_img, ro_img = left, right
@@ -128,8 +132,9 @@ def coarse_range(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float, 
     ok = np.isfinite(disp)
     if ok.sum() < 0.02 * disp.size or ok.sum() < 100:
         return d_lo, d_hi
-    q0, q1 = np.percentile(disp[ok], quantiles)
-    return max(d_lo, q0 * f - margin_px), min(d_hi, q1 * f + margin_px)
+    if near_high:
+        return max(d_lo, float(np.percentile(disp[ok], quantile)) * f - margin_px), d_hi
+    return d_lo, min(d_hi, float(np.percentile(disp[ok], 100.0 - quantile)) * f + margin_px)
 
 
 def plain_sgbm(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float,

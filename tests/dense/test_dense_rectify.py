@@ -6,6 +6,7 @@ import dense_scene
 import numpy as np
 import pytest
 
+from oblique_city.core.dense.pairs import near_is_high
 from oblique_city.core.dense.rectify import _to_rect, disparity_range, rectification_frame, rectify_pair
 from oblique_city.core.errors import ComputationError
 from oblique_city.core.geometry.projection import project
@@ -56,6 +57,8 @@ def test_rectified_rows_align_and_points_return(name):
     # the height prior gives a disparity interval holding the true disparities
     lo, hi = disparity_range(pair, O[2], O[2] + 40, CAM, ps)
     assert lo <= d.min() and d.max() <= hi
+    # high points are near: their disparity is the larger (the end coarse-to-fine matching keeps)
+    assert near_is_high(pair, O[2], O[2] + 40)
 
 
 def test_forward_motion_is_refused():

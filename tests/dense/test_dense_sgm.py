@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 from skimage.data import stereo_motorcycle
 
-from oblique_city.core.dense.sgm import SgmConfig, disparity_search, lr_consistency, plain_sgbm, sgm_disparity
+from oblique_city.core.dense.sgm import (
+    SgmConfig,
+    coarse_range,
+    disparity_search,
+    lr_consistency,
+    plain_sgbm,
+    sgm_disparity,
+)
 
 
 @pytest.fixture(scope="module")
@@ -58,3 +65,25 @@ def test_lr_consistency_keeps_consistent_and_drops_occluded():
     assert ok[:, 25].sum() == 0
     assert ok[:, 5:20].all() and ok[:, 26:].all()
     assert not ok[:, :5].any()  # these land outside the right image
+
+
+def test_coarse_range_keeps_a_small_near_object(motorcycle):
+    """A textured square of 24 x 24 pixels (0.03 % of the image) at a disparity far above the scene's: the
+    reduced pair cannot see it, so only the far end of the interval is narrowed and full-resolution matching
+    still finds the square."""
+    left, right, gt = motorcycle
+    left, right = left.copy(), right.copy()
+    rng = np.random.default_rng(3)
+    patch = rng.integers(0, 255, (24, 24, 3), dtype=np.uint8)
+    r, c, d_obj = 300, 560, 140
+    left[r:r + 24, c:c + 24] = patch
+    right[r:r + 24, c - d_obj:c - d_obj + 24] = patch
+    g = gt[np.isfinite(gt)]
+    lo, hi = coarse_range(left, right, -60.0, 180.0)
+    assert hi == 180.0
+    assert -60.0 < lo <= g.min()  # the far end narrowed, still below the scene's farthest point
+    disp = sgm_disparity(left, right, lo, hi)
+    assert np.nanmedian(disp[r + 6:r + 18, c + 6:c + 18]) == pytest.approx(d_obj, abs=1.0)
+    # with the high disparities on the far side, the low end is kept and the high end narrowed
+    lo2, hi2 = coarse_range(left, right, -60.0, 180.0, near_high=False)
+    assert lo2 == -60.0 and g.max() <= hi2 < 180.0
