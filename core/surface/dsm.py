@@ -7,8 +7,9 @@ surface. Isolated blunders (cells with almost no neighbour at their height) and 
 blunders inside roofs) are removed. Holes up to ``max_hole_m2`` (occlusions, poor texture) are filled: by a
 harmonic surface spanned by their own border cells where those are nearly level, by their border's plane in a
 sloped roof, with the low side's height where they lie between a roof and the ground; larger holes stay empty.
-Last, a cell between a much higher and a much lower neighbour sits on a wall (a facade point, a fill across the
-step) and takes the nearer of the two surfaces.
+A measured cell between a much higher and a much lower neighbour sits on a wall (a facade point): it is emptied
+before the holes are filled, so its surroundings decide between roof and ground; a fill that still bridges such a
+step takes the nearer of the two surfaces.
 """
 
 from __future__ import annotations
@@ -82,8 +83,9 @@ class DsmConfig:
         filled (0 size disables it)
     roof_hole_sides : a hole bounded by high cells on this many of its four sides is filled as an unmatched part
         of a roof (see :func:`fill_small_holes`; 5 disables it)
-    wall_step : a cell more than this many metres below one neighbour and above the opposite one takes the nearer
-        side (:func:`snap_wall_steps`; 0 disables it)
+    wall_step : a measured cell more than this many metres below one neighbour and above the opposite one is emptied
+        before the holes are filled, and a filled one takes the nearer side (:func:`wall_steps`,
+        :func:`snap_wall_steps`; 0 disables both)
     """
 
     cell: float = 0.0
@@ -449,9 +451,14 @@ def snap_wall_steps(height: np.ndarray, step: float, rounds: int = 2) -> np.ndar
 
 
 def finish_dsm(height: np.ndarray, cell: float, cfg: DsmConfig = DsmConfig()) -> np.ndarray:
-    """The DSM grid from per-cell heights ``(rows, cols)`` (NaN empty): spikes and pits removed, holes filled,
-    cells on wall steps snapped to the roof or the ground."""
+    """The DSM grid from per-cell heights ``(rows, cols)`` (NaN empty): spikes and cells on wall steps emptied,
+    pits removed, holes filled, cells on wall steps left by the filling snapped to the roof or the ground."""
     height = remove_spikes(height, cfg.spike) if cfg.spike > 0 else height
+    if cfg.wall_step > 0:
+        # a measured cell between a roof and the ground holds a point of the wall, not the top surface: its height
+        # is unknown, and the hole rules judge it from its surroundings (a roof edge enclosed by roof becomes
+        # roof, a wall foot the ground beside it) instead of the nearer of its two neighbours
+        height = np.where(wall_steps(height, cfg.wall_step), np.nan, height)
     max_cells = int(cfg.max_hole_m2 / cell ** 2)
     filled = fill_small_holes(height, max_cells, cfg.max_hole_step, cfg.hole_plane_tol, cfg.roof_hole_sides)
     size = int(round(cfg.pit_size_m / cell)) | 1

@@ -181,4 +181,4 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
-              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="10")
+              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="11")
