@@ -8,7 +8,7 @@ import dense_scene
 import numpy as np
 import pytest
 
-from oblique_city.core.dense.pairs import PairTask, baseline_view_angle, match_pair
+from oblique_city.core.dense.pairs import PairTask, baseline_view_angle, match_pair, near_is_high
 from oblique_city.core.dense.polar import polar_rectify_pair
 from oblique_city.core.dense.rectify import disparity_range
 from oblique_city.core.errors import ComputationError
@@ -63,6 +63,8 @@ def test_rows_align_disparities_positive_points_return(name):
         assert np.abs(look - uv_orig[inside]).max() < 0.05
     lo, hi = disparity_range(pair, 0.0, 40.0, CAM, ps, margin_px=0.0)
     assert lo <= d.min() + 1e-6 and d.max() <= hi + 1.0
+    # with the slave ahead or behind (either sign of the log-radius axis), high points have the larger disparity
+    assert near_is_high(pair, 0.0, 40.0)
 
 
 def test_epipole_inside_the_image_is_refused():
