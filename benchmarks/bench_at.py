@@ -312,8 +312,9 @@ def describe_runs(args) -> str:
             "HAT: nadir run with all its tie points and the datum (Cauchy round, then least-squares rounds); four "
             f"oblique runs ({args.workers} processes) tied by connection points, {thin}, starting from the nadir "
             "corrections propagated to their heads, their blunders screened there with the cameras held (one "
-            "resection step, tests again) and then least-squares rounds with data snooping (a Cauchy round only "
-            "when the screening's sigma0 is above 2); combination by error propagation, the datum shift refined "
+            "resection step, from the nadir run's robust round while the nadir run finishes; tests again with the "
+            "connection points) and then least-squares rounds with data snooping (a Cauchy round only when the "
+            "screening's sigma0 is above 2); combination by error propagation, the datum shift refined "
             "from all control measurements (the nadir run saw only the nadir ones)."
             + ("" if args.skip_stock else
                "\nStock comparison: our engine (the IAT adjustment) and pycolmap's bundle_adjustment (one Cauchy "

@@ -105,6 +105,9 @@ class BundleOptions:
         least-squares rounds follow. When the screening's sigma0 exceeds ``screen_max_sigma0`` (the start is not
         close enough for tests with the cameras held) the robust round runs as usual. ``screen_rounds`` bounds the
         screening's rejection rounds (one ray per track and round; blunders can come several to a track)
+    screen_resect : with ``screen_start``, the images are first moved to their inliers (:func:`resected_start`:
+        a screening, one resection step) and the screening that decides runs from there; without it the start is
+        taken as resected already (HAT resects its oblique runs while the nadir run finishes) and screened once
     """
 
     sigma_px: float = 0.5
@@ -131,6 +134,7 @@ class BundleOptions:
     screen_start: bool = False
     screen_max_sigma0: float = 2.0
     screen_rounds: int = 10
+    screen_resect: bool = True
 
 
 @dataclass(eq=False)
@@ -621,9 +625,12 @@ def linear_solver_kind(prob: BundleProblem, opt: BundleOptions, active: np.ndarr
 
 
 def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
-           progress: Callable[[int, int, str], None] | None = None) -> BundleResult:
+           progress: Callable[[int, int, str], None] | None = None,
+           on_robust: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None = None) -> BundleResult:
     """Adjust a bundle problem (see the module docstring). ``progress(done, total, message)`` is called per
-    round and may raise to cancel."""
+    round and may raise to cancel. ``on_robust(r (n, 3, 3), c (n, 3), xyz (p, 3))`` receives the orientations
+    and points of the robust round (control frame, copies) as soon as it is solved, before its statistics (HAT
+    starts its oblique runs from there while the nadir run goes on)."""
     import pyceres
 
     t0 = time.perf_counter()
@@ -662,21 +669,21 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             info = np.zeros((prob.n_points, 3, 3))
             info[has] = np.nan_to_num(precision.safe_inverse(prob.point_prior_cov[has]))
             pt_prior = {"prior_xyz": prob.point_prior_xyz, "prior_info": info}
-        x_s, _, bad_s, s0_s = screen_points(prob.cameras, prob.image_camera, r, c, prob.obs_point[idx],
-                                            prob.obs_image[idx], prob.obs_uv[idx], xyz, opt.sigma_px, None,
-                                            opt.blunder_threshold, opt.screen_rounds,
-                                            reject_undetermined=False, **pt_prior)
-        if s0_s <= opt.screen_max_sigma0:
-            # the images from their inliers with the points held, then the test again from the new images
-            ok = ~bad_s & np.isfinite(x_s[prob.obs_point[idx], 0])
-            r, c = resect_images(prob.cameras, prob.image_camera, r, c, x_s, prob.obs_point[idx[ok]],
-                                 prob.obs_image[idx[ok]], prob.obs_uv[idx[ok]])
-            x_s, _, bad_s, s0_s = screen_points(prob.cameras, prob.image_camera, r, c, prob.obs_point[idx],
-                                                prob.obs_image[idx], prob.obs_uv[idx],
-                                                np.where(np.isfinite(x_s[:, :1]), x_s, xyz), opt.sigma_px, None,
-                                                opt.blunder_threshold, opt.screen_rounds,
+        obs = (prob.obs_point[idx], prob.obs_image[idx], prob.obs_uv[idx])
+        start, go = xyz, True
+        if opt.screen_resect:
+            # the images moved to their inliers first; the tests that decide run from there
+            r, c, x1, s0_s = resected_start(prob.cameras, prob.image_camera, r, c, xyz, *obs, opt, **pt_prior)
+            go = s0_s <= opt.screen_max_sigma0
+            start = np.where(np.isfinite(x1[:, :1]), x1, xyz)
+        if go:
+            x_s, _, bad_s, s0_s = screen_points(prob.cameras, prob.image_camera, r, c, *obs, start, opt.sigma_px,
+                                                None, opt.blunder_threshold, opt.screen_rounds,
                                                 reject_undetermined=False, **pt_prior)
-            xyz = np.where(np.isfinite(x_s[:, :1]), x_s, xyz)
+            # a start taken as resected already is tested once: too far from the solution, the robust round runs
+            go = opt.screen_resect or s0_s <= opt.screen_max_sigma0
+        if go:
+            xyz = np.where(np.isfinite(x_s[:, :1]), x_s, start)
             rejected[idx[bad_s]] = True
             active &= ~rejected
             rnd = 1
@@ -704,6 +711,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         xyz[rd.single_points] = rd.single_x + ref
         gcp_xyz = np.where(rd.gcp_seen[:, None], rd.gcp_x + ref, gcp_xyz)
         shift = rd.sim_datum[4:7].copy()
+        if rnd == 0 and on_robust is not None:
+            on_robust(r.copy(), c + shift, xyz + shift)
         point_used = rd.point_used
         active &= point_used[prob.obs_point]
         if rnd == 0:
@@ -971,6 +980,27 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     return xyz, cov * s0**2, rejected, s0
 
 
+def resected_start(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
+                   xyz: np.ndarray, op: np.ndarray, oi: np.ndarray, uv: np.ndarray, opt: BundleOptions,
+                   prior_xyz: np.ndarray | None = None, prior_info: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """A start moved to its inliers (the first part of ``BundleOptions.screen_start``): the observations ``op``,
+    ``oi (m,)``, ``uv (m, 2)`` screened at the start ``r (n, 3, 3)``, ``c (n, 3)``, ``xyz (p, 3)`` with the cameras
+    held (:func:`screen_points`, sigma0 estimated robustly; ``prior_xyz``, ``prior_info`` as there), then one
+    resection step of the images from the inliers with the points held (:func:`resect_images`).
+
+    Returns the new ``r``, ``c`` (the given ones when the screening's sigma0 is above ``opt.screen_max_sigma0``:
+    the start is too far for tests with the cameras held), the screened points ``(p, 3)`` (NaN where undetermined)
+    and that sigma0."""
+    x_s, _, bad, s0 = screen_points(cameras, image_camera, r, c, op, oi, uv, xyz, opt.sigma_px, None,
+                                    opt.blunder_threshold, opt.screen_rounds, reject_undetermined=False,
+                                    prior_xyz=prior_xyz, prior_info=prior_info)
+    if s0 <= opt.screen_max_sigma0:
+        ok = ~bad & np.isfinite(x_s[op, 0])
+        r, c = resect_images(cameras, image_camera, r, c, x_s, op[ok], oi[ok], uv[ok])
+    return r, c, x_s, s0
+
+
 def resect_images(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                   xyz: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray, obs_uv: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -979,10 +1009,18 @@ def resect_images(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     about the world axes, centre). Returns new ``r (n, 3, 3)``, ``c (n, 3)``; images without a determined step
     keep theirs."""
     fx, fy = image_focals(cameras, image_camera)
-    v = obs_uv - project_obs(cameras, image_camera, r, c, xyz, obs_point, obs_image)
+    # the points in the cameras' frames serve the projection and the Jacobians
+    rr = np.take(r, obs_image, 0)
+    d = np.take(xyz, obs_point, 0) - np.take(c, obs_image, 0)
+    xc = (rr @ d[:, :, None])[:, :, 0]
+    v = obs_uv - pixels_from_camera(cameras, image_camera, xc, obs_image)
     good = np.all(np.isfinite(v), 1)
-    op, oi, v = obs_point[good], obs_image[good], v[good]
-    jp, jr = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
+    oi = obs_image
+    if not good.all():
+        oi, v, rr, d, xc = oi[good], v[good], rr[good], d[good], xc[good]
+    jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
+    jr = precision.rotation_jacobians(d, jp)
+    del rr, xc
     n = len(r)
     q = precision.safe_inverse(precision.image_normals(jp, jr, np.ones(len(oi)), oi, n))
     g = np.einsum("kri,kr->ki", precision.image_rows(jp, jr), v)

@@ -10,7 +10,10 @@
   held fixed). The four oblique runs are independent and go through the executor (inline, processes or Dask),
   each with its share of the threads. The oblique blocks start from the nadir corrections propagated to the
   other heads of each exposure; from there their blunders are tested at the start (``BundleOptions.screen_start``)
-  instead of by a robust solve, so each oblique run needs one least-squares solve.
+  instead of by a robust solve, so each oblique run needs one least-squares solve. The first part of that
+  screened start (a screening and one resection step, :func:`.bundle.resected_start`) needs no connection point:
+  it starts from the nadir run's robust round and runs on the executor while the nadir run finishes
+  (:class:`_EarlyStart`); the oblique runs then screen once, with their connection points.
   Optionally (``oblique_ties_per_cell``) the oblique runs adjust a thinned, regularly distributed subset of their
   tie points (a production practice); the rest are intersected afterwards with the final orientations.
   (3) Combined statistics by error propagation: a point's information is the nadir information plus each
@@ -34,11 +37,13 @@ from ..geometry.views import OBLIQUE_VIEWS
 from ..model import ImageBlock, Pose, TiePoints
 from .bundle import (
     BundleOptions,
+    BundleProblem,
     BundleResult,
     adjust,
     image_focals,
     refine_points,
     release_heap,
+    resected_start,
     screen_points,
 )
 from .precision import point_jacobians, point_normals, safe_inverse
@@ -184,6 +189,100 @@ def _adjust_unit(item: tuple[str, SubProblem, BundleOptions]) -> tuple[str, Bund
     return name, adjust(sub.problem, opt), time.perf_counter() - t0
 
 
+def _resect_units(items: list[tuple[BundleProblem, BundleOptions]]
+                  ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+    """Executor unit: :func:`.bundle.resected_start` of oblique sub-blocks, one after the other, from their start
+    values (all observations with a start point) -> per sub-block ``r (k, 3, 3)``, ``c (k, 3)``, points
+    ``(p, 3)``, the screening's sigma0. One unit, so one worker: the nadir run keeps the other core."""
+    out = []
+    for prob, opt in items:
+        idx = np.flatnonzero(np.isfinite(prob.xyz[prob.obs_point, 0]) & np.all(np.isfinite(prob.obs_uv), 1))
+        out.append(resected_start(prob.cameras, prob.image_camera, prob.r_cam_from_world, prob.c_world, prob.xyz,
+                                  prob.obs_point[idx], prob.obs_image[idx], prob.obs_uv[idx], opt))
+    return out
+
+
+@dataclass(eq=False)
+class _EarlyStart:
+    """The oblique runs moved to their inliers (:func:`.bundle.resected_start`: screening with the cameras held,
+    one resection step) from the nadir run's robust round, while the nadir run goes on.
+
+    The oblique runs need the final nadir run for their connection points only; their start (the nadir corrections
+    propagated to the other heads, the tie points intersected from there) serves the blunder tests at the start,
+    for which the robust round's orientations are as good (on the 3,000-image block they differ from the final
+    ones by 0.09-0.17 of the final standard deviations, median). Called as ``adjust``'s ``on_robust`` hook with
+    the nadir orientations and points; with a parallel executor the set-up runs in a thread and the sub-blocks one
+    after the other in one of the executor's workers (the core the nadir run leaves idle in its single-threaded
+    parts; spread over both workers of a two-core machine they slowed the nadir run down by as much as the oblique
+    runs gained), inline otherwise (when :meth:`results` is asked, with the same values). ``results()`` -> view ->
+    (image ids, tracks ``(p,)``, ``r (k, 3, 3)``, ``c (k, 3)``, points ``(p, 3)``, sigma0), and the start points
+    ``(n, 3)`` of all tracks."""
+
+    block: ImageBlock
+    ties: TiePoints
+    views: dict[str, list[str]]
+    in_runs: dict[str, np.ndarray]
+    nadir_problem: SubProblem
+    xyz0: np.ndarray
+    opt: BundleOptions
+    executor: object = None
+    before: threading.Thread | None = None
+    _start: tuple | None = field(default=None, init=False)
+    _thread: threading.Thread | None = field(default=None, init=False)
+    _out: tuple | None = field(default=None, init=False)
+    _error: BaseException | None = field(default=None, init=False)
+
+    def __call__(self, r: np.ndarray, c: np.ndarray, xyz: np.ndarray) -> None:
+        self._start = (r, c, xyz)
+        if self.executor is not None:
+            self._thread = threading.Thread(target=self._run, daemon=True)
+            self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            if self.before is not None:
+                self.before.join()
+            self._out = self._compute()
+        except BaseException as e:  # noqa: BLE001 - handed to the caller in results()
+            self._error = e
+
+    def results(self) -> tuple[dict, np.ndarray] | None:
+        """The early starts (None when the nadir run had no robust round); raises what the computation raised."""
+        if self._thread is not None:
+            self._thread.join()
+        elif self._start is not None and self._out is None:
+            self._out = self._compute()
+        if self._error is not None:
+            raise self._error
+        return self._out
+
+    def discard(self) -> None:
+        """Wait for a running early start and drop its outcome (the nadir run failed or was cancelled)."""
+        if self._thread is not None:
+            self._thread.join()
+
+    def _compute(self) -> tuple[dict, np.ndarray]:
+        r, c, xyz = self._start
+        block, ties, n = self.block, self.ties, self.ties.n_tracks
+        prob_n = self.nadir_problem.problem
+        start = nadir_propagation(block, {iid: Pose(r[k], c[k]) for k, iid in enumerate(prob_n.image_ids)})
+        x_nadir = np.full((n, 3), np.nan)
+        x_nadir[self.nadir_problem.track_index] = xyz
+        used = np.zeros(n, bool)
+        for in_run in self.in_runs.values():
+            used[ties.obs_track[in_run]] = True
+        used &= ~np.isfinite(x_nadir[:, 0])
+        x_int, _ = intersect_ties(block, ties, start, obs_mask=used[ties.obs_track], undistort_iterations=4)
+        xyz_start = np.where(np.isfinite(x_nadir[:, :1]), x_nadir, np.where(np.isfinite(x_int[:, :1]), x_int,
+                                                                             self.xyz0))
+        subs = {v: build_problem(block, ties, self.views[v], xyz_start, obs_mask=in_run, use_control=False,
+                                 initial=start) for v, in_run in self.in_runs.items()}
+        items = [(sub.problem, self.opt) for sub in subs.values()]
+        outs = self.executor.map(_resect_units, [items])[0] if self.executor is not None else _resect_units(items)
+        return ({v: (sub.problem.image_ids, sub.track_index, *out) for (v, sub), out in zip(subs.items(), outs)},
+                xyz_start)
+
+
 def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connection: str = "cba",
                  cell: float = 50.0, executor=None, progress: Callable[[int, int, str], None] | None = None,
                  xyz0: np.ndarray | None = None, connection_sigma_scale: float = 1.0,
@@ -222,11 +321,34 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         warm.start()
     # (1) nadir sub-block with the datum
     t1 = time.perf_counter()
-    sub_n = build_problem(block, ties, nadir_ids, xyz0)
-    res_n = adjust(sub_n.problem, opt, None if progress is None else
-                   (lambda d, t, m: progress(d, t * 2, "nadir: " + m)))
-    nadir = _to_run("nadir", sub_n, res_n, time.perf_counter() - t1)
+    # views as small integer codes (comparing millions of strings per view is slow): 0 nadir, 1.. obliques
+    codes = {v: k for k, v in enumerate(("nadir", *OBLIQUE_VIEWS))}
+    code_of_image = {iid: codes[v] for v, ids in views.items() if v in codes for iid in ids}
+    view_of_obs = np.array([code_of_image.get(i, -1) for i in ties.image_ids], np.int8)[ties.obs_image]
+    sub_n = build_problem(block, ties, nadir_ids, xyz0, obs_mask=view_of_obs == 0)
     n = ties.n_tracks
+    # the oblique views' observations and the thinning, which do not depend on the nadir run
+    pre_views = {}
+    for v in OBLIQUE_VIEWS:
+        ids = views.get(v, [])
+        if not ids:
+            continue
+        in_view = view_of_obs == codes[v]
+        rays_v = np.bincount(ties.obs_track[in_view], minlength=n)
+        kept = (thin_ties(block, ties, in_view, rays_v, oblique_tie_grid, oblique_ties_per_cell)
+                if oblique_ties_per_cell > 0 else None)
+        pre_views[v] = (ids, in_view, rays_v, kept)
+    early = _EarlyStart(block, ties, views, {v: in_view if kept is None else in_view & kept[ties.obs_track]
+                                             for v, (_, in_view, _, kept) in pre_views.items()},
+                        sub_n, xyz0, opt, executor if parallel else None, warm)
+    try:
+        res_n = adjust(sub_n.problem, opt, None if progress is None else
+                       (lambda d, t, m: progress(d, t * 2, "nadir: " + m)), on_robust=early if pre_views else None)
+    except BaseException:
+        early.discard()
+        raise
+    nadir = _to_run("nadir", sub_n, res_n, time.perf_counter() - t1)
+    early_out = early.results()
     xyz_nadir = np.full((n, 3), np.nan)
     cov_nadir = np.full((n, 3, 3), np.nan)
     xyz_nadir[nadir.track_index], cov_nadir[nadir.track_index] = nadir.xyz, nadir.xyz_cov
@@ -238,44 +360,48 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     # start values of the oblique blocks: each exposure's nadir correction propagated to its other heads, and
     # tie points re-intersected from those orientations (fewer iterations than from the navigation data)
     start_poses = nadir_propagation(block, nadir.poses)
-    # views as small integer codes (comparing millions of strings per view is slow): 0 nadir, 1.. obliques
-    codes = {v: k for k, v in enumerate(("nadir", *OBLIQUE_VIEWS))}
-    view_of_obs = np.array([codes.get(block.images[i].view, -1) for i in ties.image_ids], np.int8)[ties.obs_image]
     thinned_obs = np.zeros(ties.n_obs, bool)
     per_view = []
-    for v in OBLIQUE_VIEWS:
-        ids = views.get(v, [])
-        if not ids:
-            continue
-        in_view = view_of_obs == codes[v]
-        rays_v = np.bincount(ties.obs_track[in_view], minlength=n)
+    for v, (ids, in_view, rays_v, kept) in pre_views.items():
         sel = select_connections(xyz_nadir, (rays_v > 0) & cov_ok, nadir_rays + rays_v, nadir_rays, connection, cell)
-        obs_mask = None
-        if oblique_ties_per_cell > 0:
-            kept = thin_ties(block, ties, in_view, rays_v, oblique_tie_grid, oblique_ties_per_cell) | sel
-            obs_mask = kept[ties.obs_track]
-            thinned_obs |= in_view & ~obs_mask
-        per_view.append((v, ids, sel, obs_mask))
+        # the observations of the view's run: all of the view's, or those of the tracks kept by the thinning
+        in_run = in_view
+        if kept is not None:
+            in_run = in_view & (kept | sel)[ties.obs_track]
+            thinned_obs |= in_view & ~in_run
+        per_view.append((v, ids, sel, in_run))
     # start coordinates of the tracks that enter an oblique run (thinned tracks are intersected at the end): the
-    # nadir run's where it adjusted them, else intersected from the propagated orientations
-    used = np.zeros(n, bool)
-    for v, _, _, obs_mask in per_view:
-        in_run = (view_of_obs == codes[v]) if obs_mask is None else (view_of_obs == codes[v]) & obs_mask
-        used[ties.obs_track[in_run]] = True
-    used &= ~np.isfinite(xyz_nadir[:, 0])
-    xyz_start, _ = intersect_ties(block, ties, start_poses, obs_mask=used[ties.obs_track], undistort_iterations=4)
-    xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir,
-                         np.where(np.isfinite(xyz_start[:, :1]), xyz_start, xyz0))
+    # nadir run's where it adjusted them, else those of the early start (see _EarlyStart), else intersected from
+    # the propagated orientations
+    pre, xyz_pre = early_out if early_out is not None else ({}, None)
+    if xyz_pre is None:
+        used = np.zeros(n, bool)
+        for *_, in_run in per_view:
+            used[ties.obs_track[in_run]] = True
+        used &= ~np.isfinite(xyz_nadir[:, 0])
+        xyz_pre, _ = intersect_ties(block, ties, start_poses, obs_mask=used[ties.obs_track], undistort_iterations=4)
+        xyz_pre = np.where(np.isfinite(xyz_pre[:, :1]), xyz_pre, xyz0)
+    xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
     items, conn_counts, conn_masks = [], {}, {}
-    for v, ids, sel, obs_mask in per_view:
+    for v, ids, sel, in_run in per_view:
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
-        sub = build_problem(block, ties, ids, xyz_start, obs_mask=obs_mask, use_control=oblique_control,
+        opt_v = replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True)
+        initial, x_v = start_poses, xyz_start
+        if v in pre and pre[v][5] <= opt.screen_max_sigma0:
+            # moved to its inliers already: the run starts there and screens once
+            ids_e, tracks_e, r_e, c_e, x_e, _ = pre[v]
+            initial = {iid: Pose(r_e[k], c_e[k]) for k, iid in enumerate(ids_e)}
+            fin = np.isfinite(x_e[:, 0])
+            x_v = xyz_start.copy()
+            x_v[tracks_e[fin]] = x_e[fin]
+            opt_v = replace(opt_v, screen_resect=False)
+        sub = build_problem(block, ties, ids, x_v, obs_mask=in_run, use_control=oblique_control,
                             point_prior_xyz=prior_xyz, point_prior_cov=prior_cov, prior_shift=res_n.datum_shift,
-                            initial=start_poses)
+                            initial=initial)
         conn_counts[v] = int(sel.sum())
         conn_masks[v] = sel
-        items.append((v, sub, replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True)))
+        items.append((v, sub, opt_v))
     release_heap()  # what the nadir run and the set-up freed, before the oblique runs and the intersection
     # parallel units share the cores: each gets its part of the threads (the largest blocks start first)
     if warm is not None:

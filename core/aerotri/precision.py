@@ -35,14 +35,19 @@ def collinearity_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx
     j_rot : (m, 2, 3) d(uv)/d(theta) for a small rotation ``theta`` about the world axes
         (``R' = R exp([theta]x)``)
     """
-    d = xyz_world - c_world
     j_point = point_jacobians(r_cam_from_world, c_world, fx, fy, xyz_world)
-    # -(j [d]x) = d x j per row, written out per entry into the column layout
-    j_rot = stacked_rows(len(d), 2, 3)
+    return j_point, rotation_jacobians(xyz_world - c_world, j_point)
+
+
+def rotation_jacobians(d_world: np.ndarray, j_point: np.ndarray) -> np.ndarray:
+    """``d(uv)/d(theta) (m, 2, 3)`` (see :func:`collinearity_jacobians`) from the point's offset from the centre
+    ``d_world (m, 3)`` and the point Jacobians ``j_point (m, 2, 3)``: ``-(j [d]x) = d x j`` per row, written out
+    per entry into the column layout."""
+    j_rot = stacked_rows(len(d_world), 2, 3)
     for a, b, k in ((1, 2, 0), (2, 0, 1), (0, 1, 2)):
         for row in range(2):
-            np.subtract(d[:, a] * j_point[:, row, b], d[:, b] * j_point[:, row, a], out=j_rot[:, row, k])
-    return j_point, j_rot
+            np.subtract(d_world[:, a] * j_point[:, row, b], d_world[:, b] * j_point[:, row, a], out=j_rot[:, row, k])
+    return j_rot
 
 
 def stacked_rows(m: int, r: int, d: int) -> np.ndarray:

@@ -134,11 +134,11 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
     sub = np.array([index.get(i, -1) for i in image_ids])
     local = np.full(len(ties.image_ids), -1, np.int64)
     local[sub[sub >= 0]] = np.flatnonzero(sub >= 0)
-    sel = local[ties.obs_image] >= 0
-    if obs_mask is not None:
-        sel &= obs_mask
-    sel &= np.isfinite(xyz_init[ties.obs_track, 0])
-    obs_index = np.flatnonzero(sel)
+    # the tests run over the observations allowed only (a view's share of the block when a mask is given)
+    cand = np.arange(ties.n_obs) if obs_mask is None else np.flatnonzero(obs_mask)
+    in_sub = np.zeros(len(ties.image_ids), bool)
+    in_sub[local >= 0] = True
+    obs_index = cand[in_sub[ties.obs_image[cand]] & np.isfinite(xyz_init[ties.obs_track[cand], 0])]
     # the tracks used, numbered 0.. in track order (a rank table: np.unique sorted the observations, 2.5x slower)
     seen = np.zeros(ties.n_tracks, bool)
     seen[ties.obs_track[obs_index]] = True

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from oblique_city.core.aerotri.bundle import BundleOptions, adjust
+from oblique_city.core.aerotri.bundle import BundleOptions, adjust, resected_start
 from oblique_city.core.aerotri.problem import build_problem
 from oblique_city.core.evaluate.aerotri import blunder_scores, check_point_errors, rms_xy_z
 from oblique_city.core.geometry.rotations import rotation_angle
@@ -327,3 +327,27 @@ def test_least_squares_rounds_start_with_the_gauss_newton_step(sim, xyz0, option
     dx = (new.xyz - old.xyz) / np.sqrt(np.diagonal(old.xyz_cov, axis1=1, axis2=2))
     assert np.nanmax(np.abs(dx)) < 0.1
     assert abs(new.sigma0 - old.sigma0) < 1e-4
+
+
+def test_screened_start_in_two_steps_is_the_screened_start(sim, xyz0, options):
+    """HAT moves its oblique runs to their inliers early (resected_start) and adjusts them with screen_resect off:
+    the same rejections, orientations and points as the screened start in one call (to the rounding of Ceres'
+    two threads)."""
+    ids = sim.block.images_by_view()["north"]
+    p = build_problem(sim.block, sim.ties, ids, xyz0, initial=sim.true_poses).problem
+    opt = replace(options, screen_start=True)
+    one = adjust(p, opt)
+    ok = np.flatnonzero(np.isfinite(p.xyz[p.obs_point, 0]))
+    r, c, x, s0 = resected_start(p.cameras, p.image_camera, p.r_cam_from_world, p.c_world, p.xyz, p.obs_point[ok],
+                                 p.obs_image[ok], p.obs_uv[ok], opt)
+    assert s0 < opt.screen_max_sigma0
+    assert np.abs(c - p.c_world).max() > 0  # the images moved
+    resected = replace(p, r_cam_from_world=r, c_world=c, xyz=np.where(np.isfinite(x[:, :1]), x, p.xyz))
+    two = adjust(resected, replace(opt, screen_resect=False))
+    assert np.array_equal(one.obs_rejected, two.obs_rejected)
+    np.testing.assert_allclose(two.r_cam_from_world, one.r_cam_from_world, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(two.c_world, one.c_world, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(two.xyz, one.xyz, rtol=0, atol=1e-9)
+    # taken as resected, a start far from the solution (the navigation data) still falls back to the robust round
+    nav = adjust(build_problem(sim.block, sim.ties, ids, xyz0).problem, replace(opt, screen_resect=False))
+    assert "robust round" in nav.log[0] and any("cauchy" in line for line in nav.log)
