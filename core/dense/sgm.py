@@ -4,7 +4,9 @@ OpenCV's StereoSGBM only evaluates columns ``x >= minDisparity + numDisparities 
 the large disparities of aerial pairs this silently drops a wide strip of the overlap. Both images are padded on
 the left so the whole overlap is matched. The right disparity map is computed by matching the mirrored pair
 (left' = flip(right), right' = flip(left) has the same disparities), and a left-right consistency check removes
-occlusions and mismatches. Disparities keep SGBM's 1/16 pixel sub-pixel resolution.
+occlusions and mismatches. Disparities within a pixel of either end of the search interval are dropped: where the
+true disparity lies outside the interval, the best candidate sits at its end (in both maps, so the left-right check
+keeps it). Disparities keep SGBM's 1/16 pixel sub-pixel resolution.
 """
 
 from __future__ import annotations
@@ -90,17 +92,19 @@ def lr_consistency(disp_left: np.ndarray, disp_right: np.ndarray, max_diff: floa
 
 
 def sgm_disparity(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float,
-                  cfg: SgmConfig = SgmConfig()) -> np.ndarray:
+                  cfg: SgmConfig = SgmConfig(), drop_ends: bool = True) -> np.ndarray:
     """Disparity map of the left image of a rectified pair.
 
     Parameters
     ----------
     left, right : (h, w) or (h, w, 3) uint8 rectified images (same size)
     d_lo, d_hi : disparity search interval, pixels (``d = x_left - x_right``)
+    drop_ends : drop disparities within a pixel of either end of the search interval (kept by the coarse search
+        of :func:`coarse_range`, to which they say that the scene reaches beyond the interval)
 
     Returns
     -------
-    disparity : (h, w) float32, NaN where invalid, occluded or inconsistent
+    disparity : (h, w) float32, NaN where invalid, occluded, inconsistent or at an end of the search interval
     """
     d_min, num = disparity_search(d_lo, d_hi)
     disp = _raw(left, right, d_min, num, cfg)
@@ -108,6 +112,9 @@ def sgm_disparity(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float,
         disp_r = _raw(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]), d_min, num,
                       cfg)[:, ::-1]
         disp[~lr_consistency(disp, disp_r, cfg.lr_max_diff)] = np.nan
+    if drop_ends:
+        with np.errstate(invalid="ignore"):
+            disp[(disp <= d_min + 1) | (disp >= d_min + num - 2)] = np.nan
     return disp
 
 
@@ -118,17 +125,18 @@ def coarse_range(left: np.ndarray, right: np.ndarray, d_lo: float, d_hi: float, 
 
     The pair is reduced ``levels`` times by 2 (Gaussian pyramid) and matched over the prior interval; the robust
     far extreme of the coarse disparities (the ``quantile`` in percent from the far side), scaled back and widened
-    by ``margin_px``, replaces the prior's far end. The near end (the high end when ``near_high``) stays at the
-    prior: a small tall object, a tower top of a few square metres, covers too few pixels of the reduced pair to
-    be matched there or to count in its quantiles (on the demo the 99.5th percentile put the upper end of the
-    nadir pairs 5-10 m below the church tower's top, whose roof then came from the oblique views alone). With
-    too few coarse matches the prior is kept.
+    by ``margin_px``, replaces the prior's far end. Coarse disparities at the end of the interval count: where many
+    pixels saturate there, the scene reaches beyond it and the prior's end is kept. The near end (the high end when
+    ``near_high``) stays at the prior: a small tall object, a tower top of a few square metres, covers too few
+    pixels of the reduced pair to be matched there or to count in its quantiles (on the demo the 99.5th percentile
+    put the upper end of the nadir pairs 5-10 m below the church tower's top, whose roof then came from the
+    oblique views alone). With too few coarse matches the prior is kept.
     """
     f = 2 ** levels
     lo_img, ro_img = left, right
     for _ in range(levels):
         lo_img, ro_img = cv2.pyrDown(lo_img), cv2.pyrDown(ro_img)
-    disp = sgm_disparity(lo_img, ro_img, d_lo / f, d_hi / f, cfg)
+    disp = sgm_disparity(lo_img, ro_img, d_lo / f, d_hi / f, cfg, drop_ends=False)
     ok = np.isfinite(disp)
     if ok.sum() < 0.02 * disp.size or ok.sum() < 100:
         return d_lo, d_hi

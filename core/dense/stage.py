@@ -239,4 +239,4 @@ def _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted) 
 
 STAGE = Stage(name="dense", run=run, config=DenseConfig, requires=("block",),
               description="dense matching: image selection, SGM, multi-slave fusion, filtered point cloud",
-              version="5")
+              version="6")
