@@ -117,7 +117,7 @@ def rectify(task: PairTask) -> RectifiedPair | PolarPair:
                         max_size_factor=task.max_size_factor)
 
 
-def near_is_high(pair, z_min: float, z_max: float) -> bool:
+def near_is_high(pair: RectifiedPair | PolarPair, z_min: float, z_max: float) -> bool:
     """Whether the high disparities of ``pair`` (a rectified or polar pair) are the near side: the disparity of
     the master's central ray at height ``z_max`` against ``z_min``."""
     ray = pair.master_rays(np.array([pair.width / 2.0]), np.array([pair.height / 2.0]))[0]

@@ -37,8 +37,8 @@ class SurfaceConfig:
     dsm_facade_nz : points whose normal lies within this of horizontal (``|n_z|`` below it: facade points) are
         left out of the DSM, whose cells hold the top of the surface (0 keeps them)
     dsm_roof_hole_sides : holes bounded by roofs on this many sides are roof (:class:`.dsm.DsmConfig`; 5: never)
-    dsm_wall_step : a DSM cell more than this (metres) below one neighbour and above the opposite one lies on a
-        wall and takes the nearer side (:class:`.dsm.DsmConfig`; 0: off)
+    dsm_wall_step : a measured DSM cell more than this (metres) below one neighbour and above the opposite one lies
+        on a wall: it is emptied and filled from its surroundings, roof or ground (:class:`.dsm.DsmConfig`; 0: off)
     dtm_cell, se_size, erosion_rank, threshold : DTM by robust morphological opening
     building_min_height, vegetation_min_height, greenness_min : object masks
     ortho_views : views used for the true orthophoto
