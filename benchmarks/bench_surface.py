@@ -35,11 +35,13 @@ from oblique_city.core.dense.pairs import PairTask, match_pair
 from oblique_city.core.dense.sgm import SgmConfig, plain_sgbm, sgm_disparity
 from oblique_city.core.evaluate.surface import (
     classification_shares,
+    error_shares,
     filter_effect,
     height_stats,
     roof_edge_displacement,
     surface_table,
     wall_cells,
+    wall_error,
 )
 from oblique_city.core.io.geotiff import read_geotiff
 from oblique_city.core.io.native import read_block
@@ -227,6 +229,19 @@ def main() -> None:
     tol = 3 * gsd
     results["dsm"] = surface_table(dsm.data, t_dsm.data, classes, tol)
     results["dsm"]["tolerance_m"] = tol
+    # which buildings the roof and wall errors come from (a wall cell belongs to the building within 2 cells)
+    bid = t_bid.data
+    names = {b.id: b.name for b in truth.city.buildings}
+    owners = {"roofs": (dsm.data - t_dsm.data, bid),
+              "walls": (wall_error(dsm.data, t_dsm.data, walls),
+                        ndimage.grey_dilation(np.where(bid >= 0, bid, -1), size=5))}
+    results["dsm_by_building"] = {}
+    for k, (e, o) in owners.items():
+        shares = error_shares(e, classes[k], o)
+        rows_k = [{"building": names.get(b, str(b)), **v} for b, v in shares.items()]
+        rest = classes[k] & np.isfinite(e) & (o != next(iter(shares), -2))
+        results["dsm_by_building"][k] = {"buildings": rows_k,
+                                         "rmse_without_largest_m": float(np.sqrt(np.mean(e[rest] ** 2)))}
     results["dtm"] = {"all": height_stats(dtm.data, t_dtm.data, np.ones(cls.shape, bool), 0.3).as_dict(),
                       "open_ground": height_stats(dtm.data, t_dtm.data, classes["open_ground"], 0.3).as_dict()}
 
@@ -306,6 +321,12 @@ def print_table(r: dict) -> None:
         print(f"{k:12}{s['cells']:8d}{s['rmse']:8.3f}{s['rmse'] / gsd:9.2f}{s['nmad']:8.3f}{s['mean']:8.3f}"
               f"{s['completeness']:9.3f}{s['filled']:8.3f}")
     print("   targets: RMSE <= 1.5 GSD, completeness >= 0.90 of the AOI")
+    for k, by in r["dsm_by_building"].items():
+        rows = by["buildings"]
+        if rows:
+            print(f"   {k} error by building: " + ", ".join(f"{b['building']} {100 * b['share']:.0f} % (RMSE "
+                  f"{b['rmse']:.2f} m)" for b in rows[:3]) + f"; without {rows[0]['building']}: "
+                  f"{by['rmse_without_largest_m'] / gsd:.2f} GSD")
     d = r["dtm"]
     print(f"\n== DTM: RMSE {d['all']['rmse']:.3f} m over the AOI, {d['open_ground']['rmse']:.3f} m on open ground "
           "(target <= 0.3 m)")

@@ -1,5 +1,6 @@
 """Metrics of surfaces against ground truth: DSM and DTM accuracy and completeness per surface class, point
-classification shares, facade point density, mixed-pixel filter effect and true-ortho roof edge displacement.
+classification shares, facade point density, mixed-pixel filter effect and true-ortho roof edge displacement,
+and which buildings the DSM error comes from.
 
 All functions work on arrays on one grid (the evaluated raster's); building the truth on that grid (by vertical
 ray casting of the true city, with the semantic class of the hit surface) is the caller's job.
@@ -83,6 +84,24 @@ def surface_table(dsm: np.ndarray, true_dsm: np.ndarray, classes: dict[str, np.n
         else:
             out[name] = height_stats(dsm, true_dsm, mask, tol).as_dict()
     return out
+
+
+def error_shares(err: np.ndarray, mask: np.ndarray, owner: np.ndarray) -> dict[int, dict]:
+    """Where a class's error comes from: per owner id (a building, say) of the cells of ``mask`` with an error,
+    their count, RMSE and share of the class's summed squared error, largest share first.
+
+    err : (rows, cols) estimate minus truth (NaN without estimate); mask : (rows, cols) bool, the class;
+    owner : (rows, cols) int, owner of each cell (negative: none; those cells count in the total only)
+    """
+    m = mask & np.isfinite(err)
+    e2, ids = err[m] ** 2, owner[m]
+    total = float(e2.sum())
+    out = {}
+    for k in np.unique(ids[ids >= 0]):
+        sel = ids == k
+        out[int(k)] = {"cells": int(sel.sum()), "rmse": float(np.sqrt(e2[sel].mean())),
+                       "share": float(e2[sel].sum()) / total if total > 0 else 0.0}
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]["share"]))
 
 
 def classification_shares(classes: np.ndarray, is_object: np.ndarray, is_ground: np.ndarray) -> dict:
