@@ -189,6 +189,19 @@ def _adjust_unit(item: tuple[str, SubProblem, BundleOptions]) -> tuple[str, Bund
     return name, adjust(sub.problem, opt), time.perf_counter() - t0
 
 
+def _start_points(block: ImageBlock, ties: TiePoints, in_runs: list[np.ndarray], x_nadir: np.ndarray,
+                  poses: dict[str, Pose], xyz0: np.ndarray) -> np.ndarray:
+    """Start coordinates ``(n, 3)`` of the tracks of the oblique runs: the nadir run's ``x_nadir (n, 3)`` where it
+    adjusted them (finite), else intersected from ``poses`` with the observations of the runs (``in_runs``: one
+    ``(m,)`` bool observation mask per run), else ``xyz0 (n, 3)``."""
+    used = np.zeros(ties.n_tracks, bool)
+    for in_run in in_runs:
+        used[ties.obs_track[in_run]] = True
+    used &= ~np.isfinite(x_nadir[:, 0])
+    x_int, _ = intersect_ties(block, ties, poses, obs_mask=used[ties.obs_track], undistort_iterations=4)
+    return np.where(np.isfinite(x_nadir[:, :1]), x_nadir, np.where(np.isfinite(x_int[:, :1]), x_int, xyz0))
+
+
 def _resect_units(items: list[tuple[BundleProblem, BundleOptions]]
                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
     """Executor unit: :func:`.bundle.resected_start` of oblique sub-blocks, one after the other, from their start
@@ -268,13 +281,7 @@ class _EarlyStart:
         start = nadir_propagation(block, {iid: Pose(r[k], c[k]) for k, iid in enumerate(prob_n.image_ids)})
         x_nadir = np.full((n, 3), np.nan)
         x_nadir[self.nadir_problem.track_index] = xyz
-        used = np.zeros(n, bool)
-        for in_run in self.in_runs.values():
-            used[ties.obs_track[in_run]] = True
-        used &= ~np.isfinite(x_nadir[:, 0])
-        x_int, _ = intersect_ties(block, ties, start, obs_mask=used[ties.obs_track], undistort_iterations=4)
-        xyz_start = np.where(np.isfinite(x_nadir[:, :1]), x_nadir, np.where(np.isfinite(x_int[:, :1]), x_int,
-                                                                             self.xyz0))
+        xyz_start = _start_points(block, ties, list(self.in_runs.values()), x_nadir, start, self.xyz0)
         subs = {v: build_problem(block, ties, self.views[v], xyz_start, obs_mask=in_run, use_control=False,
                                  initial=start) for v, in_run in self.in_runs.items()}
         items = [(sub.problem, self.opt) for sub in subs.values()]
@@ -373,15 +380,12 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     # start coordinates of the tracks that enter an oblique run (thinned tracks are intersected at the end): the
     # nadir run's where it adjusted them, else those of the early start (see _EarlyStart), else intersected from
     # the propagated orientations
-    pre, xyz_pre = early_out if early_out is not None else ({}, None)
-    if xyz_pre is None:
-        used = np.zeros(n, bool)
-        for *_, in_run in per_view:
-            used[ties.obs_track[in_run]] = True
-        used &= ~np.isfinite(xyz_nadir[:, 0])
-        xyz_pre, _ = intersect_ties(block, ties, start_poses, obs_mask=used[ties.obs_track], undistort_iterations=4)
-        xyz_pre = np.where(np.isfinite(xyz_pre[:, :1]), xyz_pre, xyz0)
-    xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
+    if early_out is not None:
+        pre, xyz_pre = early_out
+        xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
+    else:
+        pre = {}
+        xyz_start = _start_points(block, ties, [in_run for *_, in_run in per_view], xyz_nadir, start_poses, xyz0)
     items, conn_counts, conn_masks = [], {}, {}
     for v, ids, sel, in_run in per_view:
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
