@@ -3,6 +3,7 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
 
     python benchmarks/bench_at.py                 # quick: about 500 images
     python benchmarks/bench_at.py --images 3000   # the size of the targets
+    python benchmarks/bench_at.py --boresight-sigma-deg 0.05 --mounting --connections cba  # boresight calibration
     make bench-at ARGS="--images 3000"
 
 Prints the tables and writes them as JSON (``--out``, default ``build/bench_at_<images>.json``).
@@ -35,6 +36,7 @@ from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
     nadir_propagation,
 )
 from oblique_city.core.aerotri.problem import build_problem  # noqa: E402
+from oblique_city.core.aerotri.report import mounting  # noqa: E402
 from oblique_city.core.evaluate.aerotri import (  # noqa: E402
     SPLITS,
     blunder_scores,
@@ -43,7 +45,9 @@ from oblique_city.core.evaluate.aerotri import (  # noqa: E402
     std_xy_z,
     tie_point_std,
 )
+from oblique_city.core.geometry.rotations import matrix_to_rotvec  # noqa: E402
 from oblique_city.core.pipeline import Executor  # noqa: E402
+from oblique_city.core.simulate.flight import NavErrors, perturbed_rig  # noqa: E402
 from oblique_city.core.simulate.observations import SimulationConfig, simulate_block  # noqa: E402
 
 
@@ -166,6 +170,10 @@ def stock_comparison(block, ties, xyz0, opt: BundleOptions, image_ids: list[str]
 
 def evaluate(name, block, ties, sim, poses, xyz, obs_ok, sigma0, sigma_px, wall, mem_gb, extra=None) -> dict:
     row = {"method": name, "wall_s": wall, "peak_gb": mem_gb, "sigma0": sigma0, "images": len(poses)}
+    ang = np.array([np.linalg.norm(matrix_to_rotvec(sim.true_poses[i].R.T @ p.R)) for i, p in poses.items()])
+    cen = np.array([p.C - sim.true_poses[i].C for i, p in poses.items()])
+    row["orientation"] = {"angle_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
+                          "centre_rms_m": np.sqrt(np.mean(cen**2, 0)).tolist()}
     for split in SPLITS:
         _, err = check_point_errors(block, poses, split)
         xy, z = rms_xy_z(err)
@@ -197,13 +205,17 @@ def main(argv=None) -> int:
     ap.add_argument("--oblique-tie-grid", type=int, default=6,
                     help="HAT: grid cells across an oblique image (6: 6 x 4 cells on 1200 x 900 px; on 3,000 images "
                          "it halved the oblique runs' observations against 8 with the same check point RMS)")
+    ap.add_argument("--boresight-sigma-deg", type=float, default=0.0,
+                    help="simulated per-head boresight misalignment (with a 0.01 m lever-arm error per head)")
+    ap.add_argument("--mounting", action="store_true", help="every adjustment calibrates each camera's mounting")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out")
     args = ap.parse_args(argv)
     noise = 0.3
+    lever = 0.01 if args.boresight_sigma_deg > 0 else 0.0
     cfg = SimulationConfig(n_images=args.images, tie_density=args.density, noise_px=noise, seed=args.seed,
-                           blunder_fraction=0.03)
-    opt = BundleOptions(sigma_px=noise, threads=args.threads)
+                           blunder_fraction=0.03, boresight_sigma_deg=args.boresight_sigma_deg, lever_arm_sigma=lever)
+    opt = BundleOptions(sigma_px=noise, threads=args.threads, mounting=args.mounting)
     out: dict = {"config": vars(args), "noise_px": noise, "rows": [], "timing": {}}
     t0 = time.perf_counter()
     with PeakMemory() as mem:
@@ -228,6 +240,14 @@ def main(argv=None) -> int:
 
     print(describe_runs(args))
     rows = out["rows"]
+    if args.boresight_sigma_deg > 0:  # the true mounting errors, as the simulator drew them
+        nominal = block.rigs["penta"]
+        true_rig = perturbed_rig(nominal, NavErrors(boresight_sigma_deg=args.boresight_sigma_deg,
+                                                    lever_arm_sigma=lever, seed=args.seed))
+        out["true_mounting"] = {h.camera_id: {
+            "boresight_deg": np.degrees(matrix_to_rotvec(t.sensor_from_rig @ h.sensor_from_rig.T)).tolist(),
+            "offset_m": (h.sensor_from_rig @ (t.lever_arm - h.lever_arm)).tolist()}
+            for h, t in zip(nominal.heads, true_rig.heads)}
     rows.append(evaluate("direct georeferencing", block, ties, sim, direct_georeferencing(block), None, None,
                          float("nan"), noise, 0.0, 0.0))
     iat = None
@@ -241,7 +261,8 @@ def main(argv=None) -> int:
                              wall, mem.peak_gb, {"blunders": blunder_scores(ties.obs_blunder, iat.obs_rejected),
                                                  "iterations": r.iterations, "rounds": r.rounds,
                                                  "datum_shift": r.datum_shift.tolist(), "cpu_s": cpu.seconds,
-                                                 "profile": {"iat": _run_profile(iat.runs[0])}}))
+                                                 "profile": {"iat": _run_profile(iat.runs[0])},
+                                                 "mounting": mounting(block, iat)}))
         print(f"IAT {wall:.1f} s, sigma0 {r.sigma0:.3f}, peak {mem.peak_gb:.2f} GB")
     if not args.skip_stock:
         ids = stock_sub_block(block, args.stock_images)
@@ -272,7 +293,7 @@ def main(argv=None) -> int:
                      "phases": {k: hat.extra[k] for k in ("nadir_wall_s", "setup_wall_s", "oblique_wall_s",
                                                           "combine_wall_s", "intersection_wall_s")},
                      "thinned_observations": hat.extra["thinned_observations"],
-                     "profile": {r.name: _run_profile(r) for r in hat.runs}}
+                     "profile": {r.name: _run_profile(r) for r in hat.runs}, "mounting": mounting(block, hat)}
             if iat is not None:
                 d = hat.xyz - iat.xyz
                 for k in (3, 10):
@@ -386,6 +407,27 @@ def print_tables(out: dict, sim) -> None:
                   f"iterations {p['iterations']:3d}  rounds {p['rounds']}")
         if "phases" in r:
             print(f"{r['method']:16s} phases  " + "  ".join(f"{k[:-7]} {v:.1f}" for k, v in r["phases"].items()))
+    print("\nTable 8. Orientation errors against the truth: RMS attitude angle [deg], RMS centre X Y Z [m]")
+    for r in rows:
+        o = r["orientation"]
+        print(f"{r['method']:26s} angle {o['angle_rms_deg']:.4f}  centre " + " ".join(f"{v:.4f}" for v in
+                                                                                    o["centre_rms_m"]))
+    truth = out.get("true_mounting")
+    if any(r.get("mounting") for r in rows):
+        print("\nTable 9. Mounting calibration per camera: boresight [deg] and centre offset [m] in camera axes, "
+              "estimated (- true, where simulated)")
+        for r in rows:
+            for cam, m in r.get("mounting", {}).items():
+                b, o = np.array(m["boresight_deg"]), np.array(m["offset_m"])
+                line = f"{r['method']:12s} {cam:15s} boresight {_v(b, 4)}  offset {_v(o, 3)}"
+                if truth and cam in truth:
+                    line += (f"   error {_v(b - truth[cam]['boresight_deg'], 4)}  "
+                             f"{_v(o - np.array(truth[cam]['offset_m']), 3)}")
+                print(line)
+
+
+def _v(a, nd: int) -> str:
+    return "[" + " ".join(f"{x:+.{nd}f}" for x in a) + "]"
 
 
 def targets(out: dict) -> None:

@@ -14,6 +14,14 @@ Observations and unknowns
 * Connection points (hierarchical AT): tie points with a ground observation and its full 3x3 covariance.
 * Optional self-calibration per camera: focal, principal point, radial (k1 k2 k3), tangential (p1 p2),
   through a ``SubsetManifold`` on the camera's parameter block.
+* Optional mounting calibration (``BundleOptions.mounting``): per camera model a correction ``M`` (boresight
+  rotation, lever-arm offset) common to all its images, between an image and the frame its GNSS/IMU prior
+  describes: ``cam_from_world = M frame_from_world``. The navigation data reach the images through the nominal
+  mounting, so a head's fixed misalignment is the same error in the priors of all its images; without ``M`` the
+  adjustment takes it for random and the images' weakly determined common mode (a tilt with a shift) follows its
+  mean. The EO prior of an image then compares ``M^-1 cam_from_world`` with the prior (:func:`mounted_prior_cost`,
+  written here: pycolmap's rig cost, the other way to put ``M`` in, evaluates the tie points' Jacobians by automatic
+  differentiation, 8 times slower than its plain reprojection cost), and ``M`` has a prior of zero.
 
 All costs are scaled to pixel units of ``sigma_px`` (covariances divided by ``sigma_px^2``), so the Ceres cost is
 ``sigma_px^2 / 2 * chi^2`` and ``sigma0 = sqrt(chi^2 / redundancy)``.
@@ -35,6 +43,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +71,9 @@ class BundleOptions:
     datum_shift : estimate a 3D shift between the GNSS and the control frame
     rig : constrain the heads of one exposure to their calibrated mounting (boresight ``rig_sigma_deg``,
         lever arm ``rig_sigma_m``) by relative pose priors
+    mounting : estimate a mounting correction per camera model (see the module docstring) with a prior of zero
+        and standard deviations ``mounting_sigma_deg`` (boresight, about each camera axis) and ``mounting_sigma_m``
+        (lever arm, along each camera axis); not together with ``rig``
     max_iterations, threads : Ceres settings
     function_tolerance : Ceres' relative cost change that ends the least-squares rounds
     robust_function_tolerance, robust_max_iterations : the same and an iteration limit for the robust (Cauchy)
@@ -119,6 +131,9 @@ class BundleOptions:
     rig: bool = False
     rig_sigma_deg: float = 0.002
     rig_sigma_m: float = 0.01
+    mounting: bool = False
+    mounting_sigma_deg: float = 0.2
+    mounting_sigma_m: float = 0.05
     max_iterations: int = 60
     function_tolerance: float = 1e-6
     robust_function_tolerance: float = 1e-4
@@ -207,6 +222,9 @@ class BundleResult:
     obs_used : (m,) bool, observations in the final solution (not rejected, their point determined)
     gcp_xyz : (g, 3) adjusted control points; gcp_residual : (g, 3) adjusted - given
     datum_shift : (3,) control frame - GNSS frame
+    mounting : (k, 6) per camera model its mounting correction ``M`` (``BundleOptions.mounting``): rotation vector
+        (radians, camera axes) and the camera centre's offset ``-R_M^T t_M`` from the frame's (metres, camera axes);
+        NaN rows for cameras without one
     sigma0 : a posteriori, unitless (multiply by sigma_px for pixels); redundancy : degrees of freedom
     iterations, rounds, time_s : solver work; timing : seconds spent building the problems (``build_s``),
         in Ceres (``solve_s``, of which ``jacobian_s`` evaluating and ``linear_s`` solving) and on residuals,
@@ -235,6 +253,7 @@ class BundleResult:
     prior_residual_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     prior_residual_att: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     image_std_kind: str = "conditional"
+    mounting: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     log: list[str] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)
 
@@ -304,6 +323,84 @@ def pixels_from_camera(cameras: list[CameraModel], image_camera: np.ndarray, xyz
             out[sel] = cam.normalized_to_pixel(xy[sel])
     out[xyz_cam[:, 2] <= 0] = np.nan
     return out
+
+
+def _quat_plus_jacobian(q: np.ndarray) -> np.ndarray:
+    """``(4, 3)`` Jacobian at zero of Ceres' ``EigenQuaternionManifold`` Plus, ``q' = (delta, 1) q`` for the
+    quaternion ``q = (x, y, z, w)``: the increment ``delta`` turns ``R`` into ``exp([2 delta]x) R``. Its columns are
+    orthonormal for a unit ``q``, so a Jacobian ``J`` with respect to ``delta`` is ``J P^T`` with respect to ``q``."""
+    return np.vstack([q[3] * np.eye(3) - skew(q[:3]), -q[None, :3]])
+
+
+@cache
+def _cost_classes() -> tuple[type, type]:
+    """The Python cost functions of the mounting calibration (classes made on first use: pyceres loads lazily)."""
+    import pyceres
+
+    class MountedPrior(pyceres.CostFunction):
+        """EO prior of an image through its camera's mounting correction: blocks ``cam_from_world`` (7: quaternion
+        x y z w, translation), the correction's quaternion (4) and translation (3); 6 residuals, the rotation
+        error ``log(R_prior^T R_M^T R)`` (world axes) and the centre error ``-R^T (t - t_M) - C_prior``, each
+        divided by its prior standard deviation (world axes) over ``sigma_px``. The Jacobians take
+        ``d log(A exp(x)) / dx = I`` (the errors are a few thousandths of a degree)."""
+
+        def __init__(self, r_prior: np.ndarray, c_prior: np.ndarray, w: np.ndarray) -> None:
+            pyceres.CostFunction.__init__(self)
+            self.set_num_residuals(6)
+            self.set_parameter_block_sizes([7, 4, 3])
+            self.r_prior, self.c_prior, self.w = r_prior, c_prior, w
+
+        def Evaluate(self, parameters, residuals, jacobians) -> bool:  # noqa: N802 - pyceres' name
+            pose, qm, tm = parameters
+            r, rm = _matrix_from_quat(pose[:4]), _matrix_from_quat(qm)
+            u = pose[4:] - tm
+            residuals[:3] = self.w[:3] * matrix_to_rotvec(self.r_prior.T @ rm.T @ r)
+            residuals[3:] = self.w[3:] * (-r.T @ u - self.c_prior)
+            if jacobians is None:
+                return True
+            rt = r.T
+            if jacobians[0] is not None:
+                j = np.zeros((6, 7))
+                j[:3, :4] = 2.0 * rt @ _quat_plus_jacobian(pose[:4]).T
+                j[3:, :4] = -2.0 * rt @ skew(u) @ _quat_plus_jacobian(pose[:4]).T
+                j[3:, 4:] = -rt
+                jacobians[0][:] = (self.w[:, None] * j).ravel()
+            if jacobians[1] is not None:
+                j = np.zeros((6, 4))
+                j[:3] = -2.0 * rt @ _quat_plus_jacobian(qm).T
+                jacobians[1][:] = (self.w[:, None] * j).ravel()
+            if jacobians[2] is not None:
+                j = np.zeros((6, 3))
+                j[3:] = rt
+                jacobians[2][:] = (self.w[:, None] * j).ravel()
+            return True
+
+    class MountingPrior(pyceres.CostFunction):
+        """Prior of zero on a mounting correction: blocks its quaternion (4) and translation (3); residuals its
+        rotation vector and translation divided by their standard deviations over ``sigma_px``."""
+
+        def __init__(self, w: np.ndarray) -> None:
+            pyceres.CostFunction.__init__(self)
+            self.set_num_residuals(6)
+            self.set_parameter_block_sizes([4, 3])
+            self.w = w
+
+        def Evaluate(self, parameters, residuals, jacobians) -> bool:  # noqa: N802 - pyceres' name
+            qm, tm = parameters
+            residuals[:3] = self.w[:3] * matrix_to_rotvec(_matrix_from_quat(qm))
+            residuals[3:] = self.w[3:] * tm
+            if jacobians is not None:
+                if jacobians[0] is not None:
+                    j = np.zeros((6, 4))
+                    j[:3] = 2.0 * _quat_plus_jacobian(qm).T
+                    jacobians[0][:] = (self.w[:, None] * j).ravel()
+                if jacobians[1] is not None:
+                    j = np.zeros((6, 3))
+                    j[3:] = np.eye(3)
+                    jacobians[1][:] = (self.w[:, None] * j).ravel()
+            return True
+
+    return MountedPrior, MountingPrior
 
 
 def _scratch_dir() -> str | None:
@@ -393,7 +490,7 @@ class _Model:
     observations they hold and ``point_ids (p,)`` their ids (-1 for points not in the reconstruction)."""
 
     def __init__(self, prob: BundleProblem, ref: np.ndarray, active: np.ndarray,
-                 start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+                 start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, mounting: bool = False) -> None:
         import pycolmap
 
         self.prob = prob
@@ -427,6 +524,10 @@ class _Model:
         self.frame_params = [rec.frame(rec.image(k + 1).frame_id).rig_from_world.params
                              for k in range(prob.n_images)]
         self.cam_params = {ci: rec.camera(ci + 1).params for ci in range(len(prob.cameras))}
+        # per camera its mounting correction (quaternion x y z w, translation), kept across the rounds
+        self.mount = ({ci: (np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3)) for ci in range(len(prob.cameras))}
+                      if mounting else {})
+        self.mount_used: set[int] = set()
 
     def keep_only(self, active: np.ndarray) -> None:
         """Delete the observations not in ``active (m,)`` from the reconstruction; a point left with fewer than
@@ -457,6 +558,15 @@ class _Model:
             xyz[list(self.xyz_views)] = np.array(list(self.xyz_views.values())) + ref
         for ci, p in self.cam_params.items():
             cam_params[ci] = p
+
+    def mounting(self) -> np.ndarray:
+        """The mounting corrections ``(k, 6)`` of the last round as in :class:`BundleResult`."""
+        out = np.full((len(self.prob.cameras), 6), np.nan)
+        for ci in self.mount_used:
+            q, t = self.mount[ci]
+            rm = _matrix_from_quat(q)
+            out[ci] = [*matrix_to_rotvec(rm), *(-rm.T @ t)]
+        return out
 
 
 class _Round:
@@ -510,12 +620,29 @@ class _Round:
                 if problem.has_parameter_block(p):
                     problem.set_parameter_block_variable(p)
                     problem.set_manifold(p, pyceres.SubsetManifold(12, const))
-        # 6-DoF EO priors
+        # 6-DoF EO priors, through the cameras' mounting corrections when they are estimated
+        self.costs = []  # the Python cost functions Ceres calls (kept alive with the problem)
+        mounted, mounting_prior = _cost_classes() if model.mount else (None, None)
+        model.mount_used = set()
         for k, fp in self.frame_params.items():
             s_att, s_pos = prob.prior_sigma_att[k], prob.prior_sigma_pos[k]
             if not (np.all(np.isfinite(s_att)) and np.all(np.isfinite(s_pos))):
                 continue
             rp = prob.prior_r[k]
+            if model.mount:
+                ci = int(prob.image_camera[k])
+                q, t = model.mount[ci]
+                if ci not in model.mount_used:
+                    model.mount_used.add(ci)
+                    problem.add_parameter_block(q, 4)
+                    problem.set_manifold(q, pyceres.EigenQuaternionManifold())  # wrapped: the problem owns it
+                    problem.add_parameter_block(t, 3)
+                    w = sp / np.array([np.radians(opt.mounting_sigma_deg)] * 3 + [opt.mounting_sigma_m] * 3)
+                    self.costs.append(mounting_prior(w))
+                    problem.add_residual_block(self.costs[-1], None, [q, t])
+                self.costs.append(mounted(rp, prob.prior_c[k] - ref, sp / np.concatenate([s_att, s_pos])))
+                problem.add_residual_block(self.costs[-1], None, [fp, q, t])
+                continue
             cov = np.zeros((6, 6))
             cov[:3, :3] = rp @ np.diag(s_att**2) @ rp.T
             cov[3:, 3:] = rp @ np.diag(s_pos**2) @ rp.T
@@ -637,6 +764,9 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     for g in opt.self_calibration:
         if g not in CALIBRATION_GROUPS:
             raise ComputationError(f"unknown self-calibration group '{g}' (use {', '.join(CALIBRATION_GROUPS)})")
+    if opt.mounting and opt.rig:
+        raise ComputationError("the mounting calibration and the rig constraints exclude each other (the rig's "
+                               "relative pose priors hold the nominal mounting): turn one off")
     has_prior = np.all(np.isfinite(prob.prior_c), axis=1)
     ref = np.round(prob.prior_c[has_prior].mean(0) if has_prior.any() else prob.c_world.mean(0), 0)
     r = np.array(prob.r_cam_from_world, dtype=np.float64)
@@ -691,7 +821,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         else:
             log.append(f"screening at the start: sigma0 {s0_s:.3f} above {opt.screen_max_sigma0}: robust round")
         lap("statistics_s")
-    model = _Model(prob, ref, active, (r, c, xyz))
+    model = _Model(prob, ref, active, (r, c, xyz), mounting=opt.mounting)
     solver = linear_solver_kind(prob, opt, active)
     log.append(f"linear solver {solver}")
     while True:
@@ -786,6 +916,11 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         if marginal is not None:
             image_std = np.where(adjusted[:, None], marginal * opt.sigma_px * sigma0, image_std)
             image_std_kind = "marginal"
+    mounting = model.mounting()
+    if opt.mounting:
+        log.append("mounting corrections (boresight deg, offset m, camera axes): " + "; ".join(
+            f"{prob.cameras[ci].id} {np.round(np.degrees(mounting[ci, :3]), 4).tolist()} "
+            f"{np.round(mounting[ci, 3:], 4).tolist()}" for ci in sorted(model.mount_used)))
     lap("statistics_s")
     # the reconstruction and the Ceres problem are millions of small C++ allocations: hand their pages back
     del rd, model
@@ -804,7 +939,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
         obs_w=w, gcp_xyz=gcp_out, gcp_residual=gcp_out - prob.gcp_xyz, datum_shift=shift, sigma0=sigma0,
-        image_std_kind=image_std_kind,
+        image_std_kind=image_std_kind, mounting=mounting,
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
         timing=timing)

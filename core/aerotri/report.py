@@ -2,9 +2,10 @@
 
 * Per run: sigma0 a priori and a posteriori, iterations, rejection rounds, blunder share, RMS of image residuals,
   control point residuals, EO prior residuals, datum shift, median standard deviations of orientations and
-  points, wall time, connection points.
+  points, wall time, connection points, the estimated mounting corrections.
 * For the block: check point RMS (all / nadir / oblique views), internal accuracy, the boresight of each head
-  estimated from the adjusted orientations of each exposure, and the forward intersection error of all tie
+  estimated from the adjusted orientations of each exposure, each camera's mounting correction when the adjustment
+  estimated one (``BundleOptions.mounting``), and the forward intersection error of all tie
   points before (navigation orientation) and after adjustment.
 * CBA layers over a grid: mean ray count of the tie points per cell and their intersection standard deviation
   XY and Z; and the intersection error map. Written as GeoTIFF (float32, NaN for empty cells) and as coloured
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import base64
 import html
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -102,7 +104,24 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
         "std_kind": res.image_std_kind,
         "point_std_xy_m": sxy, "point_std_z_m": sz,
         "connection_points": run.connection_count, "wall_s": run.wall_s, "log": res.log,
+        "mounting": {cam.id: {"boresight_deg": np.degrees(m[:3]).tolist(), "offset_m": m[3:].tolist()}
+                     for cam, m in zip(res.cameras, res.mounting) if np.all(np.isfinite(m))},
     }
+
+
+def mounting(block: ImageBlock, at: ATResult) -> dict:
+    """Per camera its estimated mounting correction (``BundleOptions.mounting``; boresight rotation vector in
+    degrees and centre offset in metres, camera axes) from the run holding most of its images (in HAT a head that
+    looks in two directions on crossing strips takes part in two runs), with that run's name and image count."""
+    best: dict[str, dict] = {}
+    for run in at.runs:
+        counts = Counter(block.images[iid].camera_id for iid in run.poses)
+        for cam, m in zip(run.result.cameras, run.result.mounting):
+            n = counts.get(cam.id, 0)
+            if np.all(np.isfinite(m)) and n > best.get(cam.id, {}).get("images", 0):
+                best[cam.id] = {"boresight_deg": np.degrees(m[:3]).tolist(), "offset_m": m[3:].tolist(),
+                                "run": run.name, "images": n}
+    return best
 
 
 def boresight(block: ImageBlock, poses: dict) -> dict:
@@ -148,7 +167,7 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
         internal[split] = {"points": int(np.isfinite(std[:, 0]).sum()), "std_xy_m": xy, "std_z_m": z}
     return {"mode": at.mode, "connection": at.connection, "images": len(at.poses), "sigma0": sigma0,
             "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
-            "boresight": boresight(block, at.poses), "wall_s": at.wall_s,
+            "boresight": boresight(block, at.poses), "mounting": mounting(block, at), "wall_s": at.wall_s,
             "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0}
 
 
@@ -271,6 +290,12 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
                        for h, b in report["boresight"].items())
         parts.append("<h2>Boresight from adjusted orientations [deg]</h2><table><tr><th>head</th><th>mean</th>"
                      f"<th>std</th></tr>{rows}</table>")
+    if report.get("mounting"):
+        rows = "".join(f"<tr><td>{html.escape(c)}</td><td>{_fmt(m['boresight_deg'])}</td><td>{_fmt(m['offset_m'])}"
+                       f"</td><td>{html.escape(m['run'])}</td><td>{m['images']}</td></tr>"
+                       for c, m in report["mounting"].items())
+        parts.append("<h2>Mounting calibration (camera axes)</h2><table><tr><th>camera</th><th>boresight [deg]</th>"
+                     f"<th>centre offset [m]</th><th>run</th><th>images</th></tr>{rows}</table>")
     parts.append("<h2>Image residuals</h2>" + _histogram_svg(np.linalg.norm(residuals_px, axis=1),
                                                              "|v| [px] of accepted observations"))
     parts.append("<h2>Layers</h2>")

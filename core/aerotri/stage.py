@@ -44,6 +44,9 @@ class AerotriConfig:
     datum_shift : estimate a 3D shift between the GNSS frame and the control frame
     rig, rig_sigma_deg, rig_sigma_m : constrain the heads of each exposure to the rig's boresight and lever arms
         (integrated mode; a hierarchical sub-block holds one view, so it has no head pairs)
+    mounting, mounting_sigma_deg, mounting_sigma_m : calibrate each camera's mounting: a boresight rotation and a
+        lever-arm offset common to all its images, between the images and their GNSS/IMU priors, with a prior of
+        zero and these standard deviations (degrees about, metres along each camera axis); not with ``rig``
     blunder_threshold : normalised residual rejection threshold; max_rejection_rounds : rounds after the robust one
     robust_scale : Cauchy loss scale of the first solve in sigmas
     threads : Ceres threads per adjustment
@@ -69,6 +72,9 @@ class AerotriConfig:
     rig: bool = False
     rig_sigma_deg: float = 0.002
     rig_sigma_m: float = 0.01
+    mounting: bool = False
+    mounting_sigma_deg: float = 0.2
+    mounting_sigma_m: float = 0.05
     blunder_threshold: float = 4.3
     max_rejection_rounds: int = 4
     robust_scale: float = 3.0
@@ -81,6 +87,9 @@ class AerotriConfig:
     default_sigma_attitude_deg: float = 0.05
 
     def bundle_options(self) -> BundleOptions:
+        if self.mounting and self.rig:
+            raise ConfigError("aerotri.mounting and aerotri.rig exclude each other (the rig constraints hold the "
+                              "nominal mounting): turn one off")
         for g in self.self_calibration:
             if g not in CALIBRATION_GROUPS:
                 raise ConfigError(f"aerotri.self_calibration: unknown group '{g}' "
@@ -90,7 +99,9 @@ class AerotriConfig:
                              max_rejection_rounds=self.max_rejection_rounds,
                              self_calibration=tuple(self.self_calibration), datum_shift=self.datum_shift,
                              rig=self.rig, rig_sigma_deg=self.rig_sigma_deg, rig_sigma_m=self.rig_sigma_m,
-                             threads=self.threads, marginal_max_images=self.marginal_std_max_images)
+                             mounting=self.mounting, mounting_sigma_deg=self.mounting_sigma_deg,
+                             mounting_sigma_m=self.mounting_sigma_m, threads=self.threads,
+                             marginal_max_images=self.marginal_std_max_images)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
