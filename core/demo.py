@@ -46,9 +46,13 @@ def _import_block(ws: Workspace, sim: Path) -> bool:
     return True
 
 
-def _set_area_of_interest(ws: Workspace, sim: Path) -> None:
-    """Dense matching and surfaces cover the simulated city (the planned flight area plus its inset), not the whole
-    ground under the extended strips; an AOI the user already set in ``project.toml`` is kept."""
+def _set_demo_options(ws: Workspace, sim: Path) -> None:
+    """The demo's stage options; a value the user already set in ``project.toml`` is kept.
+
+    * Dense matching and surfaces cover the simulated city (the planned flight area plus its inset), not the whole
+      ground under the extended strips.
+    * The triangulation calibrates each camera's mounting: the simulated heads are mounted off their nominal
+      boresight, as real ones are, and the imported block has one camera per head."""
     doc = json.loads((sim / "truth" / "simulation.json").read_text())
     x0, y0, x1, y1 = doc["summary"]["area"]
     m = float(doc["config"]["area_inset"])
@@ -60,6 +64,9 @@ def _set_area_of_interest(ws: Workspace, sim: Path) -> None:
         if not opts.get("aoi"):
             opts["aoi"] = aoi
             changed = True
+    if "mounting" not in stages.setdefault("aerotri", {}):
+        stages["aerotri"]["mounting"] = True
+        changed = True
     if changed:
         ws.save_project()
 
@@ -86,7 +93,7 @@ def run_demo(out: str | Path, ctx: RunContext | None = None,
     ws = Workspace.open(root) if (root / "project.toml").exists() else Workspace.create(root, crs=crs,
                                                                                         name="oblique-city-demo")
     imported = _import_block(ws, out / SIMULATION)
-    _set_area_of_interest(ws, out / SIMULATION)
+    _set_demo_options(ws, out / SIMULATION)
     records = run_stages(ws, stages, ctx)
     state = ws.read_state()
     summary = {
