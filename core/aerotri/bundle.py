@@ -930,11 +930,17 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     pt_ok = point_used & np.isfinite(xyz[:, 0])
     xyz_out = np.where(pt_ok[:, None], xyz + shift, np.nan)
     gcp_out = gcp_xyz + shift
-    # prior residuals (adjusted - prior), world frame
+    # prior residuals (adjusted - prior), world frame; with a mounting correction those of the frame it leaves
     pos_res = np.where(has_prior[:, None], c - prob.prior_c, np.nan)
     att_res = np.full((prob.n_images, 3), np.nan)
     for k in np.flatnonzero(has_prior):
-        att_res[k] = matrix_to_rotvec(prob.prior_r[k].T @ r[k])
+        m = mounting[prob.image_camera[k]]
+        r_k = r[k]
+        if np.all(np.isfinite(m)):
+            rm = rotvec_to_matrix(m[:3])
+            r_k = rm.T @ r[k]
+            pos_res[k] -= r[k].T @ rm @ m[3:]
+        att_res[k] = matrix_to_rotvec(prob.prior_r[k].T @ r_k)
     return BundleResult(
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,

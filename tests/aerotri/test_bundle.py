@@ -360,7 +360,7 @@ def test_mounting_calibration_recovers_the_boresight_hidden_in_the_priors():
     Without the mounting calibration the adjustment is pulled (sigma0 above 1.05, attitude errors of several
     hundredths of a degree); with it every head's boresight comes back within 0.005 deg per axis (largest error
     0.0029 deg when written), the lever-arm offsets within 0.03 m (0.012 m), sigma0 at the simulated noise and the
-    images' attitude within 0.006 deg RMS (0.0045)."""
+    images' attitude within 0.006 deg RMS (0.0045) and the priors' attitude residuals within twice the IMU noise."""
     from oblique_city.core.aerotri.hierarchical import initial_tie_coordinates, integrated
     from oblique_city.core.geometry.rotations import matrix_to_rotvec
     from oblique_city.core.simulate.flight import NavErrors, perturbed_rig
@@ -390,6 +390,9 @@ def test_mounting_calibration_recovers_the_boresight_hidden_in_the_priors():
         assert np.all(np.abs(m[3:] - h.sensor_from_rig @ (t.lever_arm - h.lever_arm)) < 0.03), cam.id
     assert abs(res.sigma0 - 1.0) < 0.1 and plain.runs[0].result.sigma0 > 1.05
     assert attitude_rms(cal) < 0.006 < 3 * 0.006 < attitude_rms(plain)
+    # the attitude priors' residuals (of the frames, with the correction) are the IMU noise again
+    prior_rms = np.degrees(np.sqrt(np.nanmean(res.prior_residual_att**2, 0)))
+    assert np.all(prior_rms < 2 * np.array(cfg.imu_sigma_deg)), prior_rms
     # the report lists every camera's correction, from the run that holds its images
     table = mounting(s.block, cal)
     assert set(table) == {cam.id for cam in res.cameras} and {m["run"] for m in table.values()} == {"iat"}
