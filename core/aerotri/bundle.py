@@ -19,9 +19,10 @@ Observations and unknowns
   describes: ``cam_from_world = M frame_from_world``. The navigation data reach the images through the nominal
   mounting, so a head's fixed misalignment is the same error in the priors of all its images; without ``M`` the
   adjustment takes it for random and the images' weakly determined common mode (a tilt with a shift) follows its
-  mean. The EO prior of an image then compares ``M^-1 cam_from_world`` with the prior (:func:`mounted_prior_cost`,
-  written here: pycolmap's rig cost, the other way to put ``M`` in, evaluates the tie points' Jacobians by automatic
-  differentiation, 8 times slower than its plain reprojection cost), and ``M`` has a prior of zero.
+  mean. The EO prior of an image compares ``M^-1 cam_from_world`` with the prior, rig constraints act between
+  such frames, and ``M`` has a prior of zero. These costs are Python ones with analytic Jacobians
+  (:func:`_cost_classes`): pycolmap's rig reprojection cost, the other way to put ``M`` in, evaluates every tie
+  observation's Jacobian by automatic differentiation, 8 times slower than its plain reprojection cost.
 
 All costs are scaled to pixel units of ``sigma_px`` (covariances divided by ``sigma_px^2``), so the Ceres cost is
 ``sigma_px^2 / 2 * chi^2`` and ``sigma0 = sqrt(chi^2 / redundancy)``.
@@ -73,7 +74,8 @@ class BundleOptions:
         lever arm ``rig_sigma_m``) by relative pose priors
     mounting : estimate a mounting correction per camera model (see the module docstring) with a prior of zero
         and standard deviations ``mounting_sigma_deg`` (boresight, about each camera axis) and ``mounting_sigma_m``
-        (lever arm, along each camera axis); not together with ``rig``
+        (lever arm, along each camera axis); with ``rig`` the rig constraints hold between the frames (each image's
+        correction removed), so the heads keep their calibrated, not their nominal, relative mounting
     max_iterations, threads : Ceres settings
     function_tolerance : Ceres' relative cost change that ends the least-squares rounds
     robust_function_tolerance, robust_max_iterations : the same and an iteration limit for the robust (Cauchy)
@@ -400,7 +402,53 @@ def _cost_classes() -> tuple[type, type]:
                     jacobians[1][:] = (self.w[:, None] * j).ravel()
             return True
 
-    return MountedPrior, MountingPrior
+    class MountedRelativePrior(pyceres.CostFunction):
+        """Rig constraint through the mounting corrections: the relative pose ``F_i F_j^-1`` of the frames
+        ``F = M^-1 cam_from_world`` of two heads of one exposure against the rig's ``i_from_j`` (rotation ``n_r``,
+        translation ``n_t``). Blocks: both images' ``cam_from_world`` (7 each), then quaternion (4) and translation
+        (3) of the correction of ``i``, then of ``j``; residuals ``log(R_ij n_r^T)`` and ``t_ij - n_t`` divided by
+        their standard deviations over ``sigma_px``; Jacobians as in :class:`MountedPrior`."""
+
+        def __init__(self, n_r: np.ndarray, n_t: np.ndarray, w: np.ndarray) -> None:
+            pyceres.CostFunction.__init__(self)
+            self.set_num_residuals(6)
+            self.set_parameter_block_sizes([7, 7, 4, 3, 4, 3])
+            self.n_r, self.n_t, self.w = n_r, n_t, w
+
+        def Evaluate(self, parameters, residuals, jacobians) -> bool:  # noqa: N802 - pyceres' name
+            pi, pj, qi, ti, qj, tj = parameters
+            rmi_t = _matrix_from_quat(qi).T
+            g = _matrix_from_quat(pi[:4]) @ _matrix_from_quat(pj[:4]).T
+            a, b = pi[4:] - ti, pj[4:] - tj
+            rmj = _matrix_from_quat(qj)
+            residuals[:3] = self.w[:3] * matrix_to_rotvec(rmi_t @ g @ rmj @ self.n_r.T)
+            residuals[3:] = self.w[3:] * (rmi_t @ (a - g @ b) - self.n_t)
+            if jacobians is None:
+                return True
+            # per block: d residual / d rotation increment (3 x 3 each for the rotation and the translation
+            # residual) and d residual / d translation
+            blocks = (
+                (pi, rmi_t, rmi_t @ skew(g @ b), rmi_t),
+                (pj, -rmi_t @ g, -rmi_t @ g @ skew(b), -rmi_t @ g),
+                (qi, -rmi_t, rmi_t @ skew(a - g @ b), None),
+                (ti, None, None, -rmi_t),
+                (qj, rmi_t @ g, np.zeros((3, 3)), None),
+                (tj, None, None, rmi_t @ g),
+            )
+            for jac, (x, d_rot, d_pos_rot, d_pos_t) in zip(jacobians, blocks):
+                if jac is None:
+                    continue
+                j = np.zeros((6, len(x)))
+                if d_rot is not None:  # a quaternion, alone (4) or at the head of a pose (7)
+                    p_t = 2.0 * _quat_plus_jacobian(x[:4]).T
+                    j[:3, :4] = d_rot @ p_t
+                    j[3:, :4] = d_pos_rot @ p_t
+                if d_pos_t is not None:  # a translation, alone (3) or at the tail of a pose (7)
+                    j[3:, len(x) - 3:] = d_pos_t
+                jac[:] = (self.w[:, None] * j).ravel()
+            return True
+
+    return MountedPrior, MountingPrior, MountedRelativePrior
 
 
 def _scratch_dir() -> str | None:
@@ -622,7 +670,7 @@ class _Round:
                     problem.set_manifold(p, pyceres.SubsetManifold(12, const))
         # 6-DoF EO priors, through the cameras' mounting corrections when they are estimated
         self.costs = []  # the Python cost functions Ceres calls (kept alive with the problem)
-        mounted, mounting_prior = _cost_classes() if model.mount else (None, None)
+        mounted, self._mounting_prior, mounted_relative = _cost_classes() if model.mount else (None, None, None)
         model.mount_used = set()
         for k, fp in self.frame_params.items():
             s_att, s_pos = prob.prior_sigma_att[k], prob.prior_sigma_pos[k]
@@ -630,16 +678,7 @@ class _Round:
                 continue
             rp = prob.prior_r[k]
             if model.mount:
-                ci = int(prob.image_camera[k])
-                q, t = model.mount[ci]
-                if ci not in model.mount_used:
-                    model.mount_used.add(ci)
-                    problem.add_parameter_block(q, 4)
-                    problem.set_manifold(q, pyceres.EigenQuaternionManifold())  # wrapped: the problem owns it
-                    problem.add_parameter_block(t, 3)
-                    w = sp / np.array([np.radians(opt.mounting_sigma_deg)] * 3 + [opt.mounting_sigma_m] * 3)
-                    self.costs.append(mounting_prior(w))
-                    problem.add_residual_block(self.costs[-1], None, [q, t])
+                q, t = self._mount_blocks(problem, model, int(prob.image_camera[k]), opt)
                 self.costs.append(mounted(rp, prob.prior_c[k] - ref, sp / np.concatenate([s_att, s_pos])))
                 problem.add_residual_block(self.costs[-1], None, [fp, q, t])
                 continue
@@ -651,8 +690,20 @@ class _Round:
         # rig constraints: relative pose priors between the heads of one exposure
         if opt.rig and len(prob.rig_pairs):
             cov = np.diag([np.radians(opt.rig_sigma_deg) ** 2] * 3 + [opt.rig_sigma_m**2] * 3) / sp**2
+            w = sp / np.array([np.radians(opt.rig_sigma_deg)] * 3 + [opt.rig_sigma_m] * 3)
             for (i, j), rr, tt in zip(prob.rig_pairs, prob.rig_r, prob.rig_t):
-                if int(i) in self.frame_params and int(j) in self.frame_params:
+                if int(i) not in self.frame_params or int(j) not in self.frame_params:
+                    continue
+                if model.mount:  # the frames' relative pose, each image's correction removed
+                    ci, cj = int(prob.image_camera[i]), int(prob.image_camera[j])
+                    if ci == cj:
+                        raise ComputationError(f"images {prob.image_ids[i]} and {prob.image_ids[j]} of one exposure "
+                                               "share a camera model: the mounting calibration needs one per head")
+                    self.costs.append(mounted_relative(rr, tt, w))
+                    problem.add_residual_block(self.costs[-1], None, [
+                        self.frame_params[int(i)], self.frame_params[int(j)],
+                        *self._mount_blocks(problem, model, ci, opt), *self._mount_blocks(problem, model, cj, opt)])
+                else:
                     prior = pycolmap.Rigid3d(pycolmap.Rotation3d(_quat_xyzw(rr)), tt)
                     problem.add_residual_block(cf.RelativePosePriorCost(cov, prior), None,
                                                [self.frame_params[int(i)], self.frame_params[int(j)]])
@@ -702,6 +753,22 @@ class _Round:
             else:
                 problem.set_parameter_block_constant(self.sim_datum)
         self.gcp_seen = gcp_seen
+
+    def _mount_blocks(self, problem, model: _Model, ci: int, opt: BundleOptions) -> tuple[np.ndarray, np.ndarray]:
+        """Camera ``ci``'s mounting correction (quaternion, translation) as parameter blocks of the problem, added
+        with their prior of zero on first use."""
+        import pyceres
+
+        q, t = model.mount[ci]
+        if ci not in model.mount_used:
+            model.mount_used.add(ci)
+            problem.add_parameter_block(q, 4)
+            problem.set_manifold(q, pyceres.EigenQuaternionManifold())  # wrapped: the problem owns it
+            problem.add_parameter_block(t, 3)
+            w = opt.sigma_px / np.array([np.radians(opt.mounting_sigma_deg)] * 3 + [opt.mounting_sigma_m] * 3)
+            self.costs.append(self._mounting_prior(w))
+            problem.add_residual_block(self.costs[-1], None, [q, t])
+        return q, t
 
     def solve(self, opt: BundleOptions, kind: str, robust: bool):
         import pyceres
@@ -764,9 +831,6 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     for g in opt.self_calibration:
         if g not in CALIBRATION_GROUPS:
             raise ComputationError(f"unknown self-calibration group '{g}' (use {', '.join(CALIBRATION_GROUPS)})")
-    if opt.mounting and opt.rig:
-        raise ComputationError("the mounting calibration and the rig constraints exclude each other (the rig's "
-                               "relative pose priors hold the nominal mounting): turn one off")
     has_prior = np.all(np.isfinite(prob.prior_c), axis=1)
     ref = np.round(prob.prior_c[has_prior].mean(0) if has_prior.any() else prob.c_world.mean(0), 0)
     r = np.array(prob.r_cam_from_world, dtype=np.float64)

@@ -46,7 +46,8 @@ class AerotriConfig:
         (integrated mode; a hierarchical sub-block holds one view, so it has no head pairs)
     mounting, mounting_sigma_deg, mounting_sigma_m : calibrate each camera's mounting: a boresight rotation and a
         lever-arm offset common to all its images, between the images and their GNSS/IMU priors, with a prior of
-        zero and these standard deviations (degrees about, metres along each camera axis); not with ``rig``
+        zero and these standard deviations (degrees about, metres along each camera axis); with ``rig`` the heads
+        keep their calibrated relative mounting
     blunder_threshold : normalised residual rejection threshold; max_rejection_rounds : rounds after the robust one
     robust_scale : Cauchy loss scale of the first solve in sigmas
     threads : Ceres threads per adjustment
@@ -87,9 +88,6 @@ class AerotriConfig:
     default_sigma_attitude_deg: float = 0.05
 
     def bundle_options(self) -> BundleOptions:
-        if self.mounting and self.rig:
-            raise ConfigError("aerotri.mounting and aerotri.rig exclude each other (the rig constraints hold the "
-                              "nominal mounting): turn one off")
         for g in self.self_calibration:
             if g not in CALIBRATION_GROUPS:
                 raise ConfigError(f"aerotri.self_calibration: unknown group '{g}' "

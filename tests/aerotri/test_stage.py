@@ -121,13 +121,7 @@ def test_mounting_calibration_through_the_cli_is_reported(tmp_path):
     """``oblique-city aerotri --mounting`` stores the option and runs HAT with a mounting correction per camera: the
     report (JSON and HTML) lists each camera's correction from the run holding most of its images. The simulated
     heads sit on their nominal mounting, so every boresight is near zero: within 0.03 deg (6 images per camera and
-    run on this small block, 0.015 deg at most when written; the correction's prior allows 0.2 deg). With the rig
-    constraints as well the stage refuses (they hold the nominal mounting)."""
-    import pytest
-
-    from oblique_city.core.aerotri.stage import AerotriConfig
-    from oblique_city.core.errors import ConfigError
-
+    run on this small block, 0.015 deg at most when written; the correction's prior allows 0.2 deg)."""
     s, ws = _simulated_workspace(tmp_path)
     assert main(["aerotri", str(ws.root), "--mode", "hierarchical", "--mounting"]) == 0
     ws = Workspace.open(ws.root)
@@ -139,5 +133,3 @@ def test_mounting_calibration_through_the_cli_is_reported(tmp_path):
         assert np.all(np.abs(m["boresight_deg"]) < 0.03), m
     assert abs(report["sigma0"] - 1.0) < 0.1
     assert "Mounting calibration" in ws.path("aerotri/report.html").read_text()
-    with pytest.raises(ConfigError, match="exclude each other"):
-        AerotriConfig(mounting=True, rig=True).bundle_options()
