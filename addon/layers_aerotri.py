@@ -152,7 +152,9 @@ def build_quality_layer(scene, ws: Workspace, name: str = "cba_rays", z: float |
 
 def report_summary(path: Path) -> dict:
     """Key figures of ``aerotri/report.json``: mode, connection, images, sigma0 (unitless and px), check point
-    RMS XY / Z (m) and their count, rejected observations (%). Raises :class:`InputError` naming the file."""
+    RMS XY / Z (m) and their count, rejected observations (%), and of a mounting calibration the camera with the
+    largest boresight correction and its angle in degrees (``mounting``: ``(cameras, camera, angle)`` or None).
+    Raises :class:`InputError` naming the file."""
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError:
@@ -161,7 +163,11 @@ def report_summary(path: Path) -> dict:
         raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None
     try:
         check = doc["check_points"]["all"]
-        return {"mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
+        angles = {c: float(math.sqrt(sum(float(a) ** 2 for a in m["boresight_deg"])))
+                  for c, m in (doc.get("mounting") or {}).items()}
+        largest = max(angles, key=angles.get) if angles else None
+        return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
+                "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),
                 "check_n": int(check["n"]), "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],
                 "blunder_percent": float(doc["blunder_percent"])}

@@ -310,7 +310,7 @@ def main(argv=None) -> int:
             ex.close()
     if hats:
         nadir_run = next(iter(hats.values())).runs[0]
-        prop = nadir_propagation(block, nadir_run.poses)
+        prop = {**nadir_propagation(block, nadir_run.frames), **nadir_run.poses}
         rows.append(evaluate("nadir AT + propagation", block, ties, sim, prop, None, None, nadir_run.result.sigma0,
                              noise, nadir_run.wall_s, 0.0))
     print_tables(out, sim)

@@ -213,7 +213,8 @@ def _metres(v) -> str:
 
 
 def draw_triangulation(layout, context) -> None:
-    """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders) and Open Report."""
+    """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders, the mounting
+    calibration) and Open Report."""
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return
@@ -224,6 +225,9 @@ def draw_triangulation(layout, context) -> None:
     col.label(text=f"Check points ({s['check_n']}): RMS XY {_metres(s['check_rms_xy_m'])}, "
                    f"Z {_metres(s['check_rms_z_m'])}")
     col.label(text=f"Rejected observations: {s['blunder_percent']:.2f} %")
+    if s["mounting"]:
+        n, cam, angle = s["mounting"]
+        col.label(text=f"Mounting calibrated for {n} cameras, largest boresight {angle:.4f} deg ({cam})")
     layout.operator("city.open_report", icon="URL")
 
 

@@ -823,8 +823,9 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
            on_robust: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None = None) -> BundleResult:
     """Adjust a bundle problem (see the module docstring). ``progress(done, total, message)`` is called per
     round and may raise to cancel. ``on_robust(r (n, 3, 3), c (n, 3), xyz (p, 3))`` receives the orientations
-    and points of the robust round (control frame, copies) as soon as it is solved, before its statistics (HAT
-    starts its oblique runs from there while the nadir run goes on)."""
+    and points of the robust round (control frame, copies; the orientations of the frames, see
+    :func:`frame_poses`) as soon as it is solved, before its statistics (HAT starts its oblique runs from there
+    while the nadir run goes on)."""
     import pyceres
 
     t0 = time.perf_counter()
@@ -906,7 +907,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         gcp_xyz = np.where(rd.gcp_seen[:, None], rd.gcp_x + ref, gcp_xyz)
         shift = rd.sim_datum[4:7].copy()
         if rnd == 0 and on_robust is not None:
-            on_robust(r.copy(), c + shift, xyz + shift)
+            r_f, c_f = frame_poses(r, c, prob.image_camera, model.mounting())
+            on_robust(r_f, c_f + shift, xyz + shift)
         point_used = rd.point_used
         active &= point_used[prob.obs_point]
         if rnd == 0:
@@ -995,16 +997,11 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     xyz_out = np.where(pt_ok[:, None], xyz + shift, np.nan)
     gcp_out = gcp_xyz + shift
     # prior residuals (adjusted - prior), world frame; with a mounting correction those of the frame it leaves
-    pos_res = np.where(has_prior[:, None], c - prob.prior_c, np.nan)
+    r_f, c_f = frame_poses(r, c, prob.image_camera, mounting)
+    pos_res = np.where(has_prior[:, None], c_f - prob.prior_c, np.nan)
     att_res = np.full((prob.n_images, 3), np.nan)
     for k in np.flatnonzero(has_prior):
-        m = mounting[prob.image_camera[k]]
-        r_k = r[k]
-        if np.all(np.isfinite(m)):
-            rm = rotvec_to_matrix(m[:3])
-            r_k = rm.T @ r[k]
-            pos_res[k] -= r[k].T @ rm @ m[3:]
-        att_res[k] = matrix_to_rotvec(prob.prior_r[k].T @ r_k)
+        att_res[k] = matrix_to_rotvec(prob.prior_r[k].T @ r_f[k])
     return BundleResult(
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
@@ -1013,6 +1010,22 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
         timing=timing)
+
+
+def frame_poses(r_cam_from_world: np.ndarray, c_world: np.ndarray, image_camera: np.ndarray,
+                mounting: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frames of images ``r_cam_from_world (n, 3, 3)``, ``c_world (n, 3)``: their cameras' mounting
+    corrections ``mounting (k, 6)`` (see :class:`BundleResult`) removed, ``R_F = R_M^T R`` and
+    ``C_F = C - R^T R_M o`` (a copy; an image whose camera has a NaN row is its own frame). The GNSS/IMU priors
+    describe these frames, and HAT propagates their corrections from the nadir to the other heads."""
+    r_f, c_f = np.array(r_cam_from_world, np.float64), np.array(c_world, np.float64)
+    for ci, m in enumerate(mounting):
+        sel = np.flatnonzero(image_camera == ci)
+        if len(sel) and np.all(np.isfinite(m)):
+            rm = rotvec_to_matrix(m[:3])
+            c_f[sel] -= np.einsum("kji,jl,l->ki", r_f[sel], rm, m[3:])
+            r_f[sel] = rm.T @ r_f[sel]
+    return r_f, c_f
 
 
 def marginal_image_std(rec, problem, r_cam_from_world: np.ndarray, c_local: np.ndarray,

@@ -40,6 +40,7 @@ from .bundle import (
     BundleProblem,
     BundleResult,
     adjust,
+    frame_poses,
     image_focals,
     refine_points,
     release_heap,
@@ -74,6 +75,8 @@ class Run:
     track_index : (p,) tracks adjusted; xyz (p, 3); xyz_cov (p, 3, 3)
     obs_index : (m,) observations used; obs_rejected (m,); obs_residual (m, 2)
     result : the bundle result (statistics); connection_count : connection points used (oblique runs)
+    frames : the orientations of the frames of those images: with a mounting calibration the images' corrections
+        removed (:func:`.bundle.frame_poses`), else the images' own; the navigation data describe these
     """
 
     name: str
@@ -89,6 +92,7 @@ class Run:
     connection_count: int = 0
     connection_info: np.ndarray | None = None
     wall_s: float = 0.0
+    frames: dict[str, Pose] = field(default_factory=dict)
 
 
 @dataclass(eq=False)
@@ -110,9 +114,11 @@ class ATResult:
 def _to_run(name: str, sub: SubProblem, res: BundleResult, wall: float) -> Run:
     poses = result_poses(sub, res)
     std = {iid: res.image_std[k] for k, iid in enumerate(sub.problem.image_ids) if res.image_adjusted[k]}
+    r_f, c_f = frame_poses(res.r_cam_from_world, res.c_world, sub.problem.image_camera, res.mounting)
+    frames = {iid: Pose(r_f[k], c_f[k]) for k, iid in enumerate(sub.problem.image_ids) if iid in poses}
     return Run(name=name, poses=poses, image_std=std, track_index=sub.track_index, xyz=res.xyz,
                xyz_cov=res.xyz_cov, obs_index=sub.obs_index, obs_rejected=res.obs_rejected,
-               obs_residual=res.obs_residual, result=res, wall_s=wall)
+               obs_residual=res.obs_residual, result=res, wall_s=wall, frames=frames)
 
 
 def initial_tie_coordinates(block: ImageBlock, ties: TiePoints) -> np.ndarray:
@@ -366,7 +372,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     # (2) oblique sub-blocks tied by connection points
     # start values of the oblique blocks: each exposure's nadir correction propagated to its other heads, and
     # tie points re-intersected from those orientations (fewer iterations than from the navigation data)
-    start_poses = nadir_propagation(block, nadir.poses)
+    start_poses = nadir_propagation(block, nadir.frames)
     thinned_obs = np.zeros(ties.n_obs, bool)
     per_view = []
     for v, (ids, in_view, rays_v, kept) in pre_views.items():

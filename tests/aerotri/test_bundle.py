@@ -376,8 +376,9 @@ def test_mounting_calibration_recovers_the_boresight_hidden_in_the_priors(misali
     """On the misaligned block (see the fixture), without the mounting calibration the adjustment is pulled (sigma0
     above 1.05, attitude errors of several hundredths of a degree); with it every head's boresight comes back
     within 0.005 deg per axis (largest error 0.0029 deg when written), the lever-arm offsets within 0.03 m
-    (0.012 m), sigma0 at the simulated noise, the images' attitude within 0.006 deg RMS (0.0045) and the priors'
-    attitude residuals within twice the IMU noise."""
+    (0.012 m), sigma0 at the simulated noise, the images' attitude within 0.006 deg RMS (0.0045), so are the
+    frames against the true images turned back by their head's misalignment, and the priors' attitude residuals
+    are within twice the IMU noise."""
     from oblique_city.core.aerotri.hierarchical import integrated
     from oblique_city.core.geometry.rotations import matrix_to_rotvec
 
@@ -400,6 +401,14 @@ def test_mounting_calibration_recovers_the_boresight_hidden_in_the_priors(misali
         assert np.all(np.abs(m[3:] - h.sensor_from_rig @ (t.lever_arm - h.lever_arm)) < 0.03), cam.id
     assert abs(res.sigma0 - 1.0) < 0.1 and plain.runs[0].result.sigma0 > 1.05
     assert attitude_rms(cal) < 0.006 < 3 * 0.006 < attitude_rms(plain)
+    # the frames (corrections removed) are the true images turned back by their head's true misalignment
+    heads = {h.camera_id: h for h in nominal.heads}
+    frame_err = []
+    for iid, f in cal.runs[0].frames.items():
+        h = heads[s.block.images[iid].camera_id]
+        d_true = true_rig.head(h.name).sensor_from_rig @ h.sensor_from_rig.T
+        frame_err.append(np.linalg.norm(matrix_to_rotvec((d_true.T @ s.true_poses[iid].R).T @ f.R)))
+    assert np.degrees(np.sqrt(np.mean(np.square(frame_err)))) < 0.006
     # the attitude priors' residuals (of the frames, with the correction) are the IMU noise again
     prior_rms = np.degrees(np.sqrt(np.nanmean(res.prior_residual_att**2, 0)))
     assert np.all(prior_rms < 2 * np.array(cfg.imu_sigma_deg)), prior_rms

@@ -38,7 +38,8 @@ def ws(tmp_path, utm_block):
     ties.save(str(w.stage_dir("aerotri") / "ties.npz"))
     rays = np.bincount(obs_track[~blunder], minlength=N)
     report = {"mode": "hierarchical", "connection": "5", "images": 12, "sigma0": 0.987, "sigma0_px": 0.296,
-              "check_points": {"all": {"n": 4, "rms_xy_m": 0.0312, "rms_z_m": 0.0457}}, "blunder_percent": 1.25}
+              "check_points": {"all": {"n": 4, "rms_xy_m": 0.0312, "rms_z_m": 0.0457}}, "blunder_percent": 1.25,
+              "mounting": {"nadir": {"boresight_deg": [0.01, 0.0, 0.0]}, "left": {"boresight_deg": [0.03, 0.0, -0.04]}}}
     (w.stage_dir("aerotri") / "report.json").write_text(json.dumps(report))
     (w.stage_dir("aerotri") / "report.html").write_text("<html><body>report</body></html>")
     w.write_state({"aerotri": {"status": "done"}})
@@ -143,6 +144,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Sigma0: 0.987 (0.296 px)" in labels
     assert "Check points (4): RMS XY 0.031 m, Z 0.046 m" in labels
     assert "Rejected observations: 1.25 %" in labels
+    assert "Mounting calibrated for 2 cameras, largest boresight 0.0500 deg (left)" in labels
     assert any(e[0] == "operator" and e[1] == "city.open_report" for e in log)
 
     opened = []
