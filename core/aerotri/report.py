@@ -104,23 +104,34 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
         "std_kind": res.image_std_kind,
         "point_std_xy_m": sxy, "point_std_z_m": sz,
         "connection_points": run.connection_count, "wall_s": run.wall_s, "log": res.log,
-        "mounting": {cam.id: {"boresight_deg": np.degrees(m[:3]).tolist(), "offset_m": m[3:].tolist()}
-                     for cam, m in zip(res.cameras, res.mounting) if np.all(np.isfinite(m))},
+        "mounting": {cam.id: _mounting_entry(res, ci) for ci, cam in enumerate(res.cameras)
+                     if np.all(np.isfinite(res.mounting[ci]))},
     }
+
+
+def _mounting_entry(res, ci: int) -> dict:
+    """A camera's mounting correction in a run: boresight (deg) and offset (m), with their marginal standard
+    deviations where the run computed them (None otherwise)."""
+    m = res.mounting[ci]
+    std = res.mounting_std[ci] if ci < len(res.mounting_std) else np.full(6, np.nan)
+    ok = bool(np.all(np.isfinite(std)))
+    return {"boresight_deg": np.degrees(m[:3]).tolist(), "offset_m": m[3:].tolist(),
+            "boresight_std_deg": np.degrees(std[:3]).tolist() if ok else None,
+            "offset_std_m": std[3:].tolist() if ok else None}
 
 
 def mounting(block: ImageBlock, at: ATResult) -> dict:
     """Per camera its estimated mounting correction (``BundleOptions.mounting``; boresight rotation vector in
-    degrees and centre offset in metres, camera axes) from the run holding most of its images (in HAT a head that
+    degrees and centre offset in metres, camera axes, with standard deviations where the run computed marginal
+    ones) from the run holding most of its images (in HAT a head that
     looks in two directions on crossing strips takes part in two runs), with that run's name and image count."""
     best: dict[str, dict] = {}
     for run in at.runs:
         counts = Counter(block.images[iid].camera_id for iid in run.poses)
-        for cam, m in zip(run.result.cameras, run.result.mounting):
+        for ci, cam in enumerate(run.result.cameras):
             n = counts.get(cam.id, 0)
-            if np.all(np.isfinite(m)) and n > best.get(cam.id, {}).get("images", 0):
-                best[cam.id] = {"boresight_deg": np.degrees(m[:3]).tolist(), "offset_m": m[3:].tolist(),
-                                "run": run.name, "images": n}
+            if np.all(np.isfinite(run.result.mounting[ci])) and n > best.get(cam.id, {}).get("images", 0):
+                best[cam.id] = {**_mounting_entry(run.result, ci), "run": run.name, "images": n}
     return best
 
 
@@ -291,11 +302,13 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
         parts.append("<h2>Boresight from adjusted orientations [deg]</h2><table><tr><th>head</th><th>mean</th>"
                      f"<th>std</th></tr>{rows}</table>")
     if report.get("mounting"):
-        rows = "".join(f"<tr><td>{html.escape(c)}</td><td>{_fmt(m['boresight_deg'])}</td><td>{_fmt(m['offset_m'])}"
-                       f"</td><td>{html.escape(m['run'])}</td><td>{m['images']}</td></tr>"
-                       for c, m in report["mounting"].items())
+        rows = "".join(f"<tr><td>{html.escape(c)}</td><td>{_fmt(m['boresight_deg'])}</td>"
+                       f"<td>{_fmt(m.get('boresight_std_deg'))}</td><td>{_fmt(m['offset_m'])}</td>"
+                       f"<td>{_fmt(m.get('offset_std_m'))}</td><td>{html.escape(m['run'])}</td><td>{m['images']}</td>"
+                       "</tr>" for c, m in report["mounting"].items())
         parts.append("<h2>Mounting calibration (camera axes)</h2><table><tr><th>camera</th><th>boresight [deg]</th>"
-                     f"<th>centre offset [m]</th><th>run</th><th>images</th></tr>{rows}</table>")
+                     "<th>std [deg]</th><th>centre offset [m]</th><th>std [m]</th><th>run</th><th>images</th></tr>"
+                     f"{rows}</table>")
     parts.append("<h2>Image residuals</h2>" + _histogram_svg(np.linalg.norm(residuals_px, axis=1),
                                                              "|v| [px] of accepted observations"))
     parts.append("<h2>Layers</h2>")

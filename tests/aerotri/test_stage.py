@@ -119,9 +119,10 @@ def test_self_calibrated_cameras_are_saved_with_the_adjusted_block(tmp_path):
 
 def test_mounting_calibration_through_the_cli_is_reported(tmp_path):
     """``oblique-city aerotri --mounting`` stores the option and runs HAT with a mounting correction per camera: the
-    report (JSON and HTML) lists each camera's correction from the run holding most of its images. The simulated
-    heads sit on their nominal mounting, so every boresight is near zero: within 0.03 deg (6 images per camera and
-    run on this small block, 0.015 deg at most when written; the correction's prior allows 0.2 deg)."""
+    report (JSON and HTML) lists each camera's correction, with its marginal standard deviations, from the run
+    holding most of its images. The simulated heads sit on their nominal mounting, so every boresight is near
+    zero: within 0.03 deg (6 images per camera and run on this small block, 0.015 deg at most when written; the
+    correction's prior allows 0.2 deg) and within 4 of its standard deviations."""
     s, ws = _simulated_workspace(tmp_path)
     assert main(["aerotri", str(ws.root), "--mode", "hierarchical", "--mounting"]) == 0
     ws = Workspace.open(ws.root)
@@ -131,5 +132,6 @@ def test_mounting_calibration_through_the_cli_is_reported(tmp_path):
     for m in report["mounting"].values():
         assert m["run"] in {r["name"] for r in report["runs"]} and m["images"] > 0
         assert np.all(np.abs(m["boresight_deg"]) < 0.03), m
+        assert np.all(np.abs(m["boresight_deg"]) < 4 * np.array(m["boresight_std_deg"])), m
     assert abs(report["sigma0"] - 1.0) < 0.1
     assert "Mounting calibration" in ws.path("aerotri/report.html").read_text()
