@@ -284,8 +284,41 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
             corners.append(f.p + ((mid - f.p) @ f.d) * f.d)
             corners.append(g.p + ((mid - g.p) @ g.d) * g.d)
         else:
-            corners.append(_intersect(f, g))
+            corners.extend(_corner_or_notch(f, g, mask, origin, cell))
     return _check_ring(np.asarray(corners))
+
+
+def _corner_or_notch(f: Fragment, g: Fragment, mask: np.ndarray, origin: np.ndarray, cell: float,
+                     min_gap: float = 1.5, probe: float = 1.0) -> list[np.ndarray]:
+    """The corner(s) between consecutive, non-parallel fragments ``f`` and ``g``: their lines' intersection, or a
+    notch of two walls when that corner is convex but empty.
+
+    Fragments that stop at least ``min_gap`` short of their lines' intersection leave the corner to be guessed. The
+    corner would be convex when the mask is occupied ``probe`` m back from each fragment's end and ``probe`` m
+    beside it towards the other wall's gap (the parallelogram the gaps span lies on the building side of both
+    walls; at a concave corner it lies outside). If the mask is empty ``probe`` m inside that corner along both
+    walls, the building does not reach it: two walls the facade points missed (a tower's plain wall in a nave's
+    shadow, say) cut it off. The probes are a metre, beyond the mask's outward spread (eaves, its closing). The
+    notch runs from ``f``'s end parallel to ``g``, then parallel to ``f`` to ``g``'s start."""
+    c = _intersect(f, g)
+    ends_f = (f.p + f.d * f.t0, f.p + f.d * f.t1)
+    ends_g = (g.p + g.d * g.t0, g.p + g.d * g.t1)
+    end_f = min(ends_f, key=lambda q: np.linalg.norm(q - c))
+    start_g = min(ends_g, key=lambda q: np.linalg.norm(q - c))
+    u_f, u_g = end_f - c, start_g - c
+    if np.linalg.norm(u_f) < min_gap or np.linalg.norm(u_g) < min_gap:
+        return [c]
+    u_f, u_g = u_f / np.linalg.norm(u_f), u_g / np.linalg.norm(u_g)
+
+    def occupied(xy: np.ndarray) -> bool:
+        col, row = np.floor((xy - origin) / cell).astype(int)
+        return bool(0 <= row < mask.shape[0] and 0 <= col < mask.shape[1] and mask[row, col])
+
+    convex = occupied(end_f + probe * (u_f + u_g)) and occupied(start_g + probe * (u_f + u_g))
+    if not convex or occupied(c + probe * (u_f + u_g)):
+        return [c]
+    q = end_f + (start_g - end_f) @ u_g * u_g
+    return [end_f, q, start_g]
 
 
 def _check_ring(poly: np.ndarray) -> np.ndarray:
