@@ -275,6 +275,7 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
             merged.pop()
     corners = []
     m = len(merged)
+    spread = _mask_spread(merged, mask, origin, cell)
     for i in range(m):
         f, g = merged[i], merged[(i + 1) % m]
         if abs(f.d @ g.d) > cos_par:  # parallel, offset: a short connecting wall between their ends
@@ -284,12 +285,40 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
             corners.append(f.p + ((mid - f.p) @ f.d) * f.d)
             corners.append(g.p + ((mid - g.p) @ g.d) * g.d)
         else:
-            corners.extend(_corner_or_notch(f, g, mask, origin, cell))
+            corners.extend(_corner_or_notch(f, g, mask, origin, cell, spread))
     return _check_ring(np.asarray(corners))
 
 
+def _occupied(mask: np.ndarray, origin: np.ndarray, cell: float, xy: np.ndarray) -> np.ndarray:
+    """Mask values at points ``xy (n, 2)`` (False outside the grid)."""
+    col, row = np.floor((np.atleast_2d(xy) - origin) / cell).astype(int).T
+    inside = (row >= 0) & (row < mask.shape[0]) & (col >= 0) & (col < mask.shape[1])
+    out = np.zeros(len(row), bool)
+    out[inside] = mask[row[inside], col[inside]]
+    return out
+
+
+def _mask_spread(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, cell: float,
+                 reach: float = 2.0) -> float:
+    """How far the mask reaches beyond the walls (m): over the fragments, the median distance from the wall line
+    to the mask's last occupied sample outwards (the side empty ``reach`` m away), sampled every metre along each
+    fragment. Eaves and the mask's closing make it positive."""
+    steps = np.arange(0.0, reach, cell / 4)
+    spread = []
+    for f in frags:
+        nrm = np.array([-f.d[1], f.d[0]])
+        for t in np.arange(f.t0 + 0.5, f.t1 - 0.5, 1.0):
+            p = f.p + t * f.d
+            for side in (nrm, -nrm):
+                inner, outer = _occupied(mask, origin, cell, np.array([p - side, p + side * reach]))
+                if inner and not outer:
+                    occ = _occupied(mask, origin, cell, p + steps[:, None] * side)
+                    spread.append(steps[np.flatnonzero(occ)[-1]] if occ.any() else 0.0)
+    return float(np.median(spread)) if spread else 0.0
+
+
 def _corner_or_notch(f: Fragment, g: Fragment, mask: np.ndarray, origin: np.ndarray, cell: float,
-                     min_gap: float = 1.5, probe: float = 1.0) -> list[np.ndarray]:
+                     spread: float = 0.0, min_gap: float = 1.5, probe: float = 1.0) -> list[np.ndarray]:
     """The corner(s) between consecutive, non-parallel fragments ``f`` and ``g``: their lines' intersection, or a
     notch of two walls when that corner is convex but empty.
 
@@ -299,7 +328,9 @@ def _corner_or_notch(f: Fragment, g: Fragment, mask: np.ndarray, origin: np.ndar
     walls; at a concave corner it lies outside). If the mask is empty ``probe`` m inside that corner along both
     walls, the building does not reach it: two walls the facade points missed (a tower's plain wall in a nave's
     shadow, say) cut it off. The probes are a metre, beyond the mask's outward spread (eaves, its closing). The
-    notch runs from ``f``'s end parallel to ``g``, then parallel to ``f`` to ``g``'s start."""
+    notch runs from ``f``'s end parallel to ``g``, then parallel to ``f`` to ``g``'s start, or to where the mask
+    begins across the gap plus the mask's ``spread`` beyond walls (:func:`_mask_spread`) when that is nearer to
+    the corner (the wall's first metres often have no facade points: a shadowed inner corner)."""
     c = _intersect(f, g)
     ends_f = (f.p + f.d * f.t0, f.p + f.d * f.t1)
     ends_g = (g.p + g.d * g.t0, g.p + g.d * g.t1)
@@ -311,14 +342,20 @@ def _corner_or_notch(f: Fragment, g: Fragment, mask: np.ndarray, origin: np.ndar
     u_f, u_g = u_f / np.linalg.norm(u_f), u_g / np.linalg.norm(u_g)
 
     def occupied(xy: np.ndarray) -> bool:
-        col, row = np.floor((xy - origin) / cell).astype(int)
-        return bool(0 <= row < mask.shape[0] and 0 <= col < mask.shape[1] and mask[row, col])
+        return bool(_occupied(mask, origin, cell, xy)[0])
 
     convex = occupied(end_f + probe * (u_f + u_g)) and occupied(start_g + probe * (u_f + u_g))
     if not convex or occupied(c + probe * (u_f + u_g)):
         return [c]
-    q = end_f + (start_g - end_f) @ u_g * u_g
-    return [end_f, q, start_g]
+    # the wall parallel to f: at g's start, or nearer where the mask begins, along a line across the gap a quarter
+    # of the way from g (further from f's end, whose eaves the mask spreads over)
+    reach = float((start_g - c) @ u_g)
+    line = c + 0.25 * float((end_f - c) @ u_f) * u_f
+    s = np.arange(0.0, reach, cell / 4)
+    occ = _occupied(mask, origin, cell, line + s[:, None] * u_g)
+    if occ.any():
+        reach = min(reach, float(s[np.argmax(occ)]) + spread)
+    return [end_f, end_f + reach * u_g, c + reach * u_g]
 
 
 def _check_ring(poly: np.ndarray) -> np.ndarray:

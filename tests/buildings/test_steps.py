@@ -282,19 +282,20 @@ def _walls_and_roofs(rects: list[tuple[float, float, float, float, float]], wall
 def test_contour_cuts_a_notch_where_two_walls_have_no_facade_points():
     """A church: nave 22 x 10 m (10 m high), tower 5.5 x 5.5 m (20 m) at its west end, off the nave's north side.
     The tower's north wall and the nave's west wall north of it have no facade points (plain plaster in the nave's
-    shadow), so the lines of the tower's west wall and the nave's north wall meet in empty ground; the contour cuts
-    the notch back: 8 corners, every true one within 1.2 m (the notch's inner corner sits where the nave's north
-    wall points begin), and the notch's centre outside. An L whose walls have no points for 2 m on both sides of
+    shadow), nor has the nave's north wall in its first 1.5 m, so the lines of the tower's west wall and the nave's
+    north wall meet in empty ground; the contour cuts the notch back: 8 corners, every true one within 0.3 m (the
+    notch's inner wall where the mask begins, less its spread beyond the walls; 0.05 m when written), and the
+    notch's centre outside. An L whose walls have no points for 2 m on both sides of
     its concave corner keeps that corner (within 0.3 m): there the gaps lie outside the building."""
     from oblique_city.core.buildings.geometry import points_in_polygon
 
     nave, tower = (5.5, 0.0, 27.5, 10.0, 10.0), (0.0, 2.0, 5.5, 7.5, 20.0)
-    walls = [((5.5, 0.0), (27.5, 0.0), 10.0), ((27.5, 0.0), (27.5, 10.0), 10.0), ((27.5, 10.0), (5.5, 10.0), 10.0),
+    walls = [((5.5, 0.0), (27.5, 0.0), 10.0), ((27.5, 0.0), (27.5, 10.0), 10.0), ((27.5, 10.0), (7.0, 10.0), 10.0),
              ((5.5, 0.0), (5.5, 2.0), 10.0), ((5.5, 2.0), (0.0, 2.0), 20.0), ((0.0, 2.0), (0.0, 7.5), 20.0)]
     c = extract_contour(_walls_and_roofs([nave, tower], walls, 1), 0.0)
     truth = np.array([[0, 2], [5.5, 2], [5.5, 0], [27.5, 0], [27.5, 10], [5.5, 10], [5.5, 7.5], [0, 7.5]], float)
     assert c.source == "facades" and len(c.polygon) == 8
-    assert np.linalg.norm(truth[:, None] - c.polygon[None], axis=2).min(1).max() < 1.2
+    assert np.linalg.norm(truth[:, None] - c.polygon[None], axis=2).min(1).max() < 0.3
     assert not points_in_polygon(np.array([[2.5, 9.0]]), c.polygon)[0]
     # an L (12 x 4 m and 4 x 12 m arms) with 2 m of its concave corner's walls unseen on both sides
     arms = [(0.0, 0.0, 12.0, 4.0, 8.0), (0.0, 4.0, 4.0, 12.0, 8.0)]
