@@ -336,8 +336,33 @@ def _quat_plus_jacobian(q: np.ndarray) -> np.ndarray:
     return np.vstack([q[3] * np.eye(3) - skew(q[:3]), -q[None, :3]])
 
 
+def _pose_weights(sigma_px: float, sigma_rad, sigma_m) -> np.ndarray:
+    """``(6,)`` residual weights of a rotation (radians) and position (metres) error with these standard
+    deviations (scalars or per axis), in units of ``sigma_px``."""
+    return sigma_px / np.concatenate([np.broadcast_to(sigma_rad, 3), np.broadcast_to(sigma_m, 3)])
+
+
+def _write_jacobians(jacobians, w: np.ndarray, blocks: tuple) -> None:
+    """Fill Ceres' ``jacobians`` of a 6-residual cost (rotation error, then position error, weighted by ``w (6,)``)
+    from per-block derivatives ``(x, d_rot, d_pos_rot, d_pos_t)``: ``x`` the parameter block (a quaternion (4), a
+    translation (3) or a pose (7) that is both), ``d_rot`` and ``d_pos_rot`` the rotation and position errors'
+    3 x 3 derivatives by the block's rotation increment (its quaternion's by ``2 P^T``, :func:`_quat_plus_jacobian`),
+    ``d_pos_t`` the position error's by its translation; None where the block has no such part."""
+    for jac, (x, d_rot, d_pos_rot, d_pos_t) in zip(jacobians, blocks):
+        if jac is None:
+            continue
+        j = np.zeros((6, len(x)))
+        if d_rot is not None:  # a quaternion, alone (4) or at the head of a pose (7)
+            p_t = 2.0 * _quat_plus_jacobian(x[:4]).T
+            j[:3, :4] = d_rot @ p_t
+            j[3:, :4] = d_pos_rot @ p_t
+        if d_pos_t is not None:  # a translation, alone (3) or at the tail of a pose (7)
+            j[3:, len(x) - 3:] = d_pos_t
+        jac[:] = (w[:, None] * j).ravel()
+
+
 @cache
-def _cost_classes() -> tuple[type, type]:
+def _cost_classes() -> tuple[type, type, type]:
     """The Python cost functions of the mounting calibration (classes made on first use: pyceres loads lazily)."""
     import pyceres
 
@@ -360,23 +385,10 @@ def _cost_classes() -> tuple[type, type]:
             u = pose[4:] - tm
             residuals[:3] = self.w[:3] * matrix_to_rotvec(self.r_prior.T @ rm.T @ r)
             residuals[3:] = self.w[3:] * (-r.T @ u - self.c_prior)
-            if jacobians is None:
-                return True
-            rt = r.T
-            if jacobians[0] is not None:
-                j = np.zeros((6, 7))
-                j[:3, :4] = 2.0 * rt @ _quat_plus_jacobian(pose[:4]).T
-                j[3:, :4] = -2.0 * rt @ skew(u) @ _quat_plus_jacobian(pose[:4]).T
-                j[3:, 4:] = -rt
-                jacobians[0][:] = (self.w[:, None] * j).ravel()
-            if jacobians[1] is not None:
-                j = np.zeros((6, 4))
-                j[:3] = -2.0 * rt @ _quat_plus_jacobian(qm).T
-                jacobians[1][:] = (self.w[:, None] * j).ravel()
-            if jacobians[2] is not None:
-                j = np.zeros((6, 3))
-                j[3:] = rt
-                jacobians[2][:] = (self.w[:, None] * j).ravel()
+            if jacobians is not None:
+                rt = r.T
+                _write_jacobians(jacobians, self.w, ((pose, rt, -rt @ skew(u), -rt), (qm, -rt, np.zeros((3, 3)), None),
+                                                     (tm, None, None, rt)))
             return True
 
     class MountingPrior(pyceres.CostFunction):
@@ -394,14 +406,8 @@ def _cost_classes() -> tuple[type, type]:
             residuals[:3] = self.w[:3] * matrix_to_rotvec(_matrix_from_quat(qm))
             residuals[3:] = self.w[3:] * tm
             if jacobians is not None:
-                if jacobians[0] is not None:
-                    j = np.zeros((6, 4))
-                    j[:3] = 2.0 * _quat_plus_jacobian(qm).T
-                    jacobians[0][:] = (self.w[:, None] * j).ravel()
-                if jacobians[1] is not None:
-                    j = np.zeros((6, 3))
-                    j[3:] = np.eye(3)
-                    jacobians[1][:] = (self.w[:, None] * j).ravel()
+                _write_jacobians(jacobians, self.w, ((qm, np.eye(3), np.zeros((3, 3)), None),
+                                                     (tm, None, None, np.eye(3))))
             return True
 
     class MountedRelativePrior(pyceres.CostFunction):
@@ -425,29 +431,14 @@ def _cost_classes() -> tuple[type, type]:
             rmj = _matrix_from_quat(qj)
             residuals[:3] = self.w[:3] * matrix_to_rotvec(rmi_t @ g @ rmj @ self.n_r.T)
             residuals[3:] = self.w[3:] * (rmi_t @ (a - g @ b) - self.n_t)
-            if jacobians is None:
-                return True
-            # per block: d residual / d rotation increment (3 x 3 each for the rotation and the translation
-            # residual) and d residual / d translation
-            blocks = (
-                (pi, rmi_t, rmi_t @ skew(g @ b), rmi_t),
-                (pj, -rmi_t @ g, -rmi_t @ g @ skew(b), -rmi_t @ g),
-                (qi, -rmi_t, rmi_t @ skew(a - g @ b), None),
-                (ti, None, None, -rmi_t),
-                (qj, rmi_t @ g, np.zeros((3, 3)), None),
-                (tj, None, None, rmi_t @ g),
-            )
-            for jac, (x, d_rot, d_pos_rot, d_pos_t) in zip(jacobians, blocks):
-                if jac is None:
-                    continue
-                j = np.zeros((6, len(x)))
-                if d_rot is not None:  # a quaternion, alone (4) or at the head of a pose (7)
-                    p_t = 2.0 * _quat_plus_jacobian(x[:4]).T
-                    j[:3, :4] = d_rot @ p_t
-                    j[3:, :4] = d_pos_rot @ p_t
-                if d_pos_t is not None:  # a translation, alone (3) or at the tail of a pose (7)
-                    j[3:, len(x) - 3:] = d_pos_t
-                jac[:] = (self.w[:, None] * j).ravel()
+            if jacobians is not None:
+                _write_jacobians(jacobians, self.w, (
+                    (pi, rmi_t, rmi_t @ skew(g @ b), rmi_t),
+                    (pj, -rmi_t @ g, -rmi_t @ g @ skew(b), -rmi_t @ g),
+                    (qi, -rmi_t, rmi_t @ skew(a - g @ b), None),
+                    (ti, None, None, -rmi_t),
+                    (qj, rmi_t @ g, np.zeros((3, 3)), None),
+                    (tj, None, None, rmi_t @ g)))
             return True
 
     return MountedPrior, MountingPrior, MountedRelativePrior
@@ -681,7 +672,7 @@ class _Round:
             rp = prob.prior_r[k]
             if model.mount:
                 q, t = self._mount_blocks(problem, model, int(prob.image_camera[k]), opt)
-                self.costs.append(mounted(rp, prob.prior_c[k] - ref, sp / np.concatenate([s_att, s_pos])))
+                self.costs.append(mounted(rp, prob.prior_c[k] - ref, _pose_weights(sp, s_att, s_pos)))
                 problem.add_residual_block(self.costs[-1], None, [fp, q, t])
                 continue
             cov = np.zeros((6, 6))
@@ -692,7 +683,7 @@ class _Round:
         # rig constraints: relative pose priors between the heads of one exposure
         if opt.rig and len(prob.rig_pairs):
             cov = np.diag([np.radians(opt.rig_sigma_deg) ** 2] * 3 + [opt.rig_sigma_m**2] * 3) / sp**2
-            w = sp / np.array([np.radians(opt.rig_sigma_deg)] * 3 + [opt.rig_sigma_m] * 3)
+            w = _pose_weights(sp, np.radians(opt.rig_sigma_deg), opt.rig_sigma_m)
             for (i, j), rr, tt in zip(prob.rig_pairs, prob.rig_r, prob.rig_t):
                 if int(i) not in self.frame_params or int(j) not in self.frame_params:
                     continue
@@ -767,7 +758,7 @@ class _Round:
             problem.add_parameter_block(q, 4)
             problem.set_manifold(q, pyceres.EigenQuaternionManifold())  # wrapped: the problem owns it
             problem.add_parameter_block(t, 3)
-            w = opt.sigma_px / np.array([np.radians(opt.mounting_sigma_deg)] * 3 + [opt.mounting_sigma_m] * 3)
+            w = _pose_weights(opt.sigma_px, np.radians(opt.mounting_sigma_deg), opt.mounting_sigma_m)
             self.costs.append(self._mounting_prior(w))
             problem.add_residual_block(self.costs[-1], None, [q, t])
         return q, t

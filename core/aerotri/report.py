@@ -112,8 +112,7 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
 def _mounting_entry(res, ci: int) -> dict:
     """A camera's mounting correction in a run: boresight (deg) and offset (m), with their marginal standard
     deviations where the run computed them (None otherwise)."""
-    m = res.mounting[ci]
-    std = res.mounting_std[ci] if ci < len(res.mounting_std) else np.full(6, np.nan)
+    m, std = res.mounting[ci], res.mounting_std[ci]
     ok = bool(np.all(np.isfinite(std)))
     return {"boresight_deg": np.degrees(m[:3]).tolist(), "offset_m": m[3:].tolist(),
             "boresight_std_deg": np.degrees(std[:3]).tolist() if ok else None,
