@@ -28,6 +28,56 @@ class NoiseFilterResult:
     class_width: float
 
 
+@dataclass(frozen=True)
+class VoxelBlocks:
+    """Points in cubes of edge ``a`` with a PCA plane per voxel from the points of its 3x3x3 block.
+
+    lo : (3,) grid origin (the points' minimum); keys : (v, 3) int64 voxel indices, lexicographic; inv : (n,) voxel
+    of each point; nb : (v, 27) neighbour voxels (-1: empty), itself included; count : (v,) own points;
+    n_block : (v,) points of the block; mean : (v, 3) block centroid relative to ``lo``; normal : (v, 3) unit
+    normal of the block's plane; rms : (v,) block RMS across that plane.
+    """
+
+    lo: np.ndarray
+    keys: np.ndarray
+    inv: np.ndarray
+    nb: np.ndarray
+    count: np.ndarray
+    n_block: np.ndarray
+    mean: np.ndarray
+    normal: np.ndarray
+    rms: np.ndarray
+
+
+def voxel_blocks(xyz: np.ndarray, a: float) -> VoxelBlocks:
+    """:class:`VoxelBlocks` of points ``xyz (n, 3)`` in cubes of edge ``a``, from the first and second moments of
+    each voxel summed over its 3x3x3 neighbourhood."""
+    lo = xyz.min(0)
+    keys, inv = np.unique(np.floor((xyz - lo) / a).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    nv = len(keys)
+    # neighbour table (nv, 27) by linear keys (np.unique sorts lexicographically, so ``lin`` is increasing)
+    dims = keys.max(0) + 3
+    lin = ((keys[:, 0] + 1) * dims[1] + keys[:, 1] + 1) * dims[2] + keys[:, 2] + 1
+    offsets = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
+    q = lin[:, None] + ((offsets[:, 0] * dims[1] + offsets[:, 1]) * dims[2] + offsets[:, 2])[None, :]
+    pos = np.clip(np.searchsorted(lin, q), 0, nv - 1)
+    nb = np.where(lin[pos] == q, pos, -1)
+    valid = nb >= 0
+    nbc = np.where(valid, nb, 0)
+    rel = xyz - lo
+    cnt = np.bincount(inv, minlength=nv).astype(np.float64)
+    s1 = np.stack([np.bincount(inv, rel[:, d], nv) for d in range(3)], 1)
+    s2 = np.stack([np.bincount(inv, rel[:, d] * rel[:, e], nv) for d in range(3) for e in range(3)], 1)
+    n_block = (cnt[nbc] * valid).sum(1)
+    nn = np.maximum(n_block, 1.0)
+    mean = (s1[nbc] * valid[..., None]).sum(1) / nn[:, None]
+    cov = (s2[nbc] * valid[..., None]).sum(1).reshape(nv, 3, 3) / nn[:, None, None]
+    cov -= mean[:, :, None] * mean[:, None, :]
+    val, vec = np.linalg.eigh(cov)
+    return VoxelBlocks(lo, keys, inv, nb, cnt, n_block, mean, vec[:, :, 0], np.sqrt(np.maximum(val[:, 0], 0.0)))
+
+
 def guess_voxel_size(xyz: np.ndarray, points_per_voxel: float = 10.0, sample: int = 2000,
                      seed: int = 0) -> float:
     """Sparse dry run: the cube edge that holds about ``points_per_voxel`` points of a surface.
@@ -64,34 +114,11 @@ def voxel_noise_filter(xyz: np.ndarray, a: float | None = None, min_neighbours: 
     n = len(xyz)
     if a is None:
         a = guess_voxel_size(xyz)
-    lo = xyz.min(0)
-    ijk = np.floor((xyz - lo) / a).astype(np.int64)
-    keys, inv = np.unique(ijk, axis=0, return_inverse=True)
-    inv = inv.ravel()
-    nv = len(keys)
-    # neighbour table (nv, 27) by linear keys (np.unique sorts lexicographically, so ``lin`` is increasing)
-    dims = keys.max(0) + 3
-    lin = ((keys[:, 0] + 1) * dims[1] + keys[:, 1] + 1) * dims[2] + keys[:, 2] + 1
-    offsets = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
-    q = lin[:, None] + ((offsets[:, 0] * dims[1] + offsets[:, 1]) * dims[2] + offsets[:, 2])[None, :]
-    pos = np.clip(np.searchsorted(lin, q), 0, nv - 1)
-    nb = np.where(lin[pos] == q, pos, -1)
-    valid = nb >= 0
-    nbc = np.where(valid, nb, 0)
-    # PCA plane per voxel from the first and second moments of its 3x3x3 neighbourhood
+    vb = voxel_blocks(xyz, a)
+    lo, keys, inv, nb, mean, normal = vb.lo, vb.keys, vb.inv, vb.nb, vb.mean, vb.normal
+    nv, cnt = len(keys), vb.count
     rel = xyz - lo
-    cnt = np.bincount(inv, minlength=nv).astype(np.float64)
-    s1 = np.stack([np.bincount(inv, rel[:, d], nv) for d in range(3)], 1)
-    s2 = np.stack([np.bincount(inv, rel[:, d] * rel[:, e], nv) for d in range(3) for e in range(3)], 1)
-    N = (cnt[nbc] * valid).sum(1)
-    S1 = (s1[nbc] * valid[..., None]).sum(1)
-    S2 = (s2[nbc] * valid[..., None]).sum(1)
-    has_plane = N >= min_neighbours
-    Nn = np.maximum(N, 1.0)
-    mean = S1 / Nn[:, None]
-    cov = S2.reshape(nv, 3, 3) / Nn[:, None, None] - mean[:, :, None] * mean[:, None, :]
-    _, vec = np.linalg.eigh(cov)
-    normal = vec[:, :, 0]
+    has_plane = vb.n_block >= min_neighbours
     d_own = np.abs(np.einsum("ij,ij->i", rel - mean[inv], normal[inv]))
 
     if sigma is None:

@@ -10,6 +10,7 @@ from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_fi
 from oblique_city.core.buildings.hull import build_hull
 from oblique_city.core.buildings.overhang import overhang_widths
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
+from oblique_city.core.buildings.volumetric import PlaneSegment, merge_plane_segments, voxel_planes
 
 NOISE = 0.04  # as in conftest.py
 DENSITY = 25.0
@@ -304,3 +305,44 @@ def test_contour_cuts_a_notch_where_two_walls_have_no_facade_points():
     c = extract_contour(_walls_and_roofs(arms, walls, 2), 0.0)
     assert len(c.polygon) == 6
     assert np.linalg.norm(c.polygon - [4.0, 4.0], axis=1).min() < 0.3
+
+
+def _noisy_gable(rng: np.random.Generator, noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """A 20 x 10 m gable roof with 50 degree slopes at absolute heights (eaves at 109 m), 70 points per m^2 in
+    plan with isotropic Gaussian noise -> points (n, 3), the two true planes (2, 4)."""
+    t = np.tan(np.radians(50.0))
+    n = 14000
+    xy = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-5, 5, n)])
+    z = 109.0 + t * (5.0 - np.abs(xy[:, 1]))
+    xyz = np.column_stack([xy, z]) + rng.normal(0.0, noise, (n, 3))
+    nrm = np.array([[0.0, -t, 1.0], [0.0, t, 1.0]]) / np.hypot(t, 1.0)
+    planes = np.column_stack([nrm, -nrm @ np.array([0.0, 0.0, 109.0 + 5.0 * t])])
+    return xyz, planes
+
+
+def test_volumetric_planes_of_a_noisy_steep_roof_come_whole():
+    # the noise of a matched steep roof (0.2 m, more than the noise filter's 0.09 m estimate) across 0.54 m voxels:
+    # each voxel alone has a random normal; its 3x3x3 block gives the slope's
+    xyz, planes = _noisy_gable(np.random.default_rng(5), 0.2)
+    segs = [s for s in voxel_planes(xyz, 0.54, 0.09) if abs(s.plane[2]) > 0.2]
+    assert len(segs) == 2
+    for s in segs:
+        ang = np.degrees(np.arccos(np.clip(np.abs(planes[:, :3] @ s.plane[:3]), 0, 1)))
+        assert ang.min() < 2.0
+        assert s.area > 0.5 * 100.0 / np.cos(np.radians(50.0))  # most of its 100 m^2 (plan) slope
+
+
+def test_plane_segments_far_from_the_origin_merge_by_their_centres():
+    # one 50 degree plane at 110 m seen as two segments whose normals differ by 1 degree: the planes' constants
+    # differ by metres there, their centres lie on each other's plane
+    def seg(tilt_deg: float, centre: np.ndarray) -> PlaneSegment:
+        a = np.radians(50.0 + tilt_deg)
+        n = np.array([0.0, -np.sin(a), np.cos(a)])
+        return PlaneSegment(np.append(n, -n @ centre), 500, 10.0, centre)
+
+    c1, c2 = np.array([-5.0, 2.0, 110.0]), np.array([5.0, 2.0, 110.0])
+    merged = merge_plane_segments([seg(0.0, c1), seg(1.0, c2)], 10.0, 0.5)
+    assert len(merged) == 1 and merged[0].n_points == 1000
+    assert abs(merged[0].centre @ merged[0].plane[:3] + merged[0].plane[3]) < 1e-9
+    step = c2 + np.array([0.0, 0.0, 1.0])  # a parallel roof 1 m higher stays apart
+    assert len(merge_plane_segments([seg(0.0, c1), seg(0.0, step)], 10.0, 0.5)) == 2
