@@ -23,7 +23,7 @@ from .hull import Hull, build_hull, dedupe_planes
 from .model import BuildingModel, Surface, ring_normal
 from .overhang import OverhangConfig, overhang_surfaces, overhang_widths
 from .roof import RoofConfig, _wall_plane, check_topology, plane_z, roof_labels, topology
-from .volumetric import VolumetricConfig, height_grid, voxel_planes
+from .volumetric import VolumetricConfig, eave_planes, height_grid, same_plane, voxel_planes
 
 KIND_ORDER = ("ground", "wall", "roof", "overhang_roof", "overhang_fascia", "overhang_underside")
 
@@ -87,7 +87,16 @@ def _hull_2d(polygon, roof, ground_z, walls, lo, hi) -> Hull:
 
 
 def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, cfg) -> tuple[Hull, int]:
+    H = height_grid(xyz, roof.origin, roof.cell, roof.labels.shape)
+    cr = np.floor((xyz[:, :2] - roof.origin) / roof.cell).astype(np.int64)
+    cr[:, 0] = np.clip(cr[:, 0], 0, H.shape[1] - 1)
+    cr[:, 1] = np.clip(cr[:, 1], 0, H.shape[0] - 1)
+    top = xyz[(xyz[:, 2] > H[cr[:, 1], cr[:, 0]] - 1.0) & (xyz[:, 2] > ground_z + 2.0)]
+    tol = max(3.0 * noise, 0.05)
     segs = voxel_planes(xyz[xyz[:, 2] > ground_z + 0.5], voxel, noise, cfg)
+    # faces the growing missed, rising from the outline (a found face keeps its own, better supported plane)
+    segs += [e for e in eave_planes(top, polygon, voxel, tol, cfg)
+             if not any(same_plane(e, s, cfg.angle_deg, 2 * tol) for s in segs)]
     found = []
     cos_w = np.cos(np.radians(cfg.angle_deg))
     for s in segs:
@@ -103,7 +112,6 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
     cap = hi[2] - 1.0  # where no roof plane was found above a region, the hull is closed flat there
     planes = dedupe_planes(np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray(found).reshape(-1, 4),
                                       [[0.0, 0.0, 1.0, -cap]]]))
-    H = height_grid(xyz, roof.origin, roof.cell, roof.labels.shape)
 
     def inside(P: np.ndarray) -> np.ndarray:
         xy = P[:, :2]

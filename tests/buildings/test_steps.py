@@ -10,7 +10,7 @@ from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_fi
 from oblique_city.core.buildings.hull import build_hull
 from oblique_city.core.buildings.overhang import overhang_widths
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
-from oblique_city.core.buildings.volumetric import PlaneSegment, merge_plane_segments, voxel_planes
+from oblique_city.core.buildings.volumetric import PlaneSegment, eave_planes, merge_plane_segments, voxel_planes
 
 NOISE = 0.04  # as in conftest.py
 DENSITY = 25.0
@@ -346,3 +346,27 @@ def test_plane_segments_far_from_the_origin_merge_by_their_centres():
     assert abs(merged[0].centre @ merged[0].plane[:3] + merged[0].plane[3]) < 1e-9
     step = c2 + np.array([0.0, 0.0, 1.0])  # a parallel roof 1 m higher stays apart
     assert len(merge_plane_segments([seg(0.0, c1), seg(0.0, step)], 10.0, 0.5)) == 2
+
+
+def test_eave_planes_find_a_sparse_noisy_pyramid_and_nothing_on_flat_or_gable_ends():
+    # the demo church's tower: a 6 x 6 m pyramid roof at 65 degrees, 20 points per m^2 (plan), 0.15 m noise
+    rng = np.random.default_rng(2)
+    t = np.tan(np.radians(65.0))
+    xy = rng.uniform(-3, 3, (720, 2))
+    z = 122.0 + t * (3.0 - np.abs(xy).max(1))
+    top = np.column_stack([xy, z]) + rng.normal(0, 0.15, (720, 3))
+    square = np.array([[-3.0, -3.0], [3.0, -3.0], [3.0, 3.0], [-3.0, 3.0]])
+    found = eave_planes(top, square, 0.54, 0.26)
+    assert len(found) == 4
+    for s, inward in zip(found, ([0, 1], [-1, 0], [0, -1], [1, 0])):  # one per edge, rising inwards
+        want = np.append(-np.sin(np.radians(65.0)) * np.array(inward, float), np.cos(np.radians(65.0)))
+        assert np.degrees(np.arccos(min(1.0, s.plane[:3] @ want))) < 3.0
+    # a flat roof and a gable's ends give no face; its eaves give its two slopes
+    flat = np.column_stack([rng.uniform(-3, 3, (720, 2)), rng.normal(115.0, 0.05, 720)])
+    assert eave_planes(flat, square, 0.54, 0.26) == []
+    g = np.tan(np.radians(40.0))
+    xy = rng.uniform(-3, 3, (720, 2))
+    gable = np.column_stack([xy, 115.0 + g * (3.0 - np.abs(xy[:, 1]))]) + rng.normal(0, 0.05, (720, 3))
+    slopes = eave_planes(gable, square, 0.54, 0.26)
+    assert len(slopes) == 2
+    assert all(abs(np.degrees(np.arccos(s.plane[2])) - 40.0) < 2.0 and abs(s.plane[0]) < 0.05 for s in slopes)
