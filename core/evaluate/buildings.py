@@ -23,13 +23,15 @@ class BuildingTruth:
 
     name : label; footprint : list of (m, 2) wall outline rings; planes : list of ((3,) unit normal up,
     (3,) a point on the plane inside its face); edges : list of ((2, 2) wall segment, overhang width) for the
-    exposed outline edges
+    exposed outline edges; top : (k, 3) the true top surface on a 0.5 m grid over the footprint, 0.5 m inside
+    its walls (roof installations included)
     """
 
     name: str
     footprint: list[np.ndarray]
     planes: list[tuple[np.ndarray, np.ndarray]]
     edges: list[tuple[np.ndarray, float]]
+    top: np.ndarray | None = None
 
     @classmethod
     def from_city(cls, b) -> BuildingTruth:
@@ -45,7 +47,9 @@ class BuildingTruth:
                 planes.append((n, p))
         edges = [(np.asarray(e["segment"], dtype=np.float64), float(e["width"]))
                  for e in b.overhang_edges() if e["exposed"]]
-        return cls(f"{b.id}:{b.name}", [np.asarray(r, dtype=np.float64) for r in b.footprint], planes, edges)
+        rings = [np.asarray(r, dtype=np.float64) for r in b.footprint]
+        xy = _inner_grid(rings)
+        return cls(f"{b.id}:{b.name}", rings, planes, edges, np.column_stack([xy, _top_height(b, xy)]))
 
     @classmethod
     def from_synthetic(cls, sb) -> BuildingTruth:
@@ -66,7 +70,27 @@ class BuildingTruth:
             planes.append((pl[:3], q[np.argmin(np.linalg.norm(q - np.median(q, 0), axis=1))]))
         m = len(fp)
         edges = [(np.stack([fp[i], fp[(i + 1) % m]]), float(sb.overhangs[i])) for i in range(m)]
-        return cls(sb.name, [fp], planes, edges)
+        xy = _inner_grid([fp])
+        return cls(sb.name, [fp], planes, edges, np.column_stack([xy, sb.height(xy)]))
+
+
+def _inner_grid(rings: list[np.ndarray], step: float = 0.5, margin: float = 0.5) -> np.ndarray:
+    """Grid points (k, 2) inside the footprint ``rings`` and at least ``margin`` from their walls."""
+    allp = np.concatenate(rings)
+    lo, hi = allp.min(0), allp.max(0)
+    X, Y = np.meshgrid(np.arange(lo[0] + step / 2, hi[0], step), np.arange(lo[1] + step / 2, hi[1], step))
+    xy = np.column_stack([X.ravel(), Y.ravel()])
+    inside = np.zeros(len(xy), bool)
+    for r in rings:
+        inside |= points_in_polygon(xy, r)
+    xy = xy[inside]
+    d = np.full(len(xy), np.inf)
+    for r in rings:
+        for a, b in zip(r, np.roll(r, -1, axis=0)):
+            ab = b - a
+            t = np.clip((xy - a) @ ab / max(ab @ ab, 1e-12), 0.0, 1.0)
+            d = np.minimum(d, np.linalg.norm(xy - (a + t[:, None] * ab), axis=1))
+    return xy[d >= margin]
 
 
 def _top_height(b, xy: np.ndarray) -> np.ndarray:
@@ -120,6 +144,8 @@ class BuildingScore:
     overhang_errors: list[float]
     overhang_median: float
     walls_inferred: int = 0
+    roof_rmse: float = float("nan")
+    roof_coverage: float = float("nan")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -180,10 +206,37 @@ def overhang_errors(truth: BuildingTruth, model: BuildingModel, max_offset: floa
     return np.asarray(out)
 
 
+def model_top_height(model: BuildingModel, xy: np.ndarray) -> np.ndarray:
+    """Height of the model's highest roof surface over points ``xy (n, 2)`` (NaN where no roof covers one)."""
+    top = np.full(len(xy), -np.inf)
+    for s in model.surfaces:
+        if s.kind != "roof":
+            continue
+        ring = model.vertices[list(s.ring)]
+        n = np.cross(ring - ring.mean(0), np.roll(ring, -1, axis=0) - ring.mean(0)).sum(0)
+        if abs(n[2]) < 1e-9:
+            continue
+        m = points_in_polygon(xy, ring[:, :2])
+        if m.any():
+            z = ring.mean(0)[2] - ((xy[m] - ring.mean(0)[:2]) @ n[:2]) / n[2]
+            top[m] = np.maximum(top[m], z)
+    return np.where(np.isfinite(top), top, np.nan)
+
+
+def roof_height_errors(truth: BuildingTruth, model: BuildingModel) -> np.ndarray:
+    """Model top height minus true top height (m) at the truth's grid over the footprint (NaN where the model has
+    no roof there)."""
+    if truth.top is None or not len(truth.top):
+        return np.zeros(0)
+    return model_top_height(model, truth.top[:, :2]) - truth.top[:, 2]
+
+
 def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
     c = corner_deviation(truth.footprint, model.footprint)
     ne = normal_errors(truth, model)
     oe = overhang_errors(truth, model)
+    he = roof_height_errors(truth, model)
+    seen = he[np.isfinite(he)]
 
     def med(a):
         return float(np.nanmedian(a)) if len(a) and np.isfinite(a).any() else float("nan")
@@ -192,7 +245,9 @@ def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
                          float(model.info.get("seconds", np.nan)), med(c), float(np.mean(c)), float(np.max(c)),
                          int(sum(len(r) for r in truth.footprint)), int(len(model.footprint)), med(ne),
                          float(np.nanmax(ne)) if len(ne) and np.isfinite(ne).any() else float("nan"),
-                         [float(x) for x in oe], med(oe), int(model.info.get("walls_inferred", 0)))
+                         [float(x) for x in oe], med(oe), int(model.info.get("walls_inferred", 0)),
+                         float(np.sqrt(np.mean(seen**2))) if len(seen) else float("nan"),
+                         float(len(seen) / len(he)) if len(he) else float("nan"))
 
 
 def match_truth(model: BuildingModel, truths: list[BuildingTruth]) -> int | None:
@@ -221,6 +276,7 @@ def summary(scores: list[BuildingScore], n_truth: int) -> dict:
         "corner_median_of_medians": float(np.median(cm)) if len(cm) else None,
         "corner_mean_of_means": float(np.mean(pool("corner_mean"))) if len(cm) else None,
         "normal_median_deg": float(np.median(nm)) if len(nm) else None,
+        "roof_rmse_median": float(np.median(pool("roof_rmse"))) if len(pool("roof_rmse")) else None,
         "overhang_median_error": float(np.median(oh)) if len(oh) else None,
         "overhang_p90_error": float(np.percentile(oh, 90)) if len(oh) else None,
         "closed_share": float(np.mean([s.closed for s in scores])) if scores else 0.0,

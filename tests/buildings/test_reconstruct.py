@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from oblique_city.core.buildings.model import load_buildings, save_buildings
 from oblique_city.core.buildings.reconstruct import reconstruct_building, solid_check
 from oblique_city.core.errors import InputError
-from oblique_city.core.evaluate.buildings import BuildingTruth, score_building
+from oblique_city.core.evaluate.buildings import BuildingTruth, roof_height_errors, score_building
 
 
 def _volume(b) -> float:
@@ -53,6 +55,19 @@ def test_scores_against_truth(models, synthetic):
         s = score_building(BuildingTruth.from_synthetic(synthetic[name][0]), models[name])
         assert s.corner_median < 0.1 and s.normal_median_deg < 1.0
         assert max(s.overhang_errors) <= 0.2
+        assert s.roof_rmse < 0.05 and s.roof_coverage == 1.0  # the top surface to the 4 cm noise
+
+
+def test_roof_height_error_sees_a_raised_roof_and_a_missing_one(models, synthetic):
+    truth = BuildingTruth.from_synthetic(synthetic["stepped_flat"][0])
+    m = models["stepped_flat"]
+    e0 = roof_height_errors(truth, m)
+    raised = replace(m, vertices=m.vertices + np.array([0.0, 0.0, 0.5]))
+    assert np.sqrt(np.nanmean((roof_height_errors(truth, raised) - e0 - 0.5) ** 2)) < 1e-9
+    low = max((s for s in m.surfaces if s.kind == "roof"), key=lambda s: -m.vertices[list(s.ring), 2].mean())
+    gone = replace(m, surfaces=[s for s in m.surfaces if s is not low])
+    share = np.isnan(roof_height_errors(truth, gone)).mean()
+    assert 0.2 < share < 0.8  # the lower roof's part of the footprint has no roof over it
 
 
 def test_overhang_surfaces_and_semantics(models):
