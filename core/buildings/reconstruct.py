@@ -86,6 +86,32 @@ def _hull_2d(polygon, roof, ground_z, walls, lo, hi) -> Hull:
     return build_hull(planes, lo, hi, inside)
 
 
+def snap_heights(H: np.ndarray, top: np.ndarray, roofs: list[np.ndarray], origin: np.ndarray, cell: float,
+                  tol: float) -> np.ndarray:
+    """The top surface grid ``H (rows, cols)`` on the roof planes: a cell whose roof points ``top (n, 3)`` lie on
+    one of ``roofs`` (mean vertical distance, clipped at 1 m, below ``tol``) takes that plane's height at its
+    centre. The percentile height of a noisy matched roof stands above it by about twice the noise, and the
+    hull's cells between the roof plane and that height would count as inside."""
+    if not roofs or not len(top):
+        return H
+    rows, cols = H.shape
+    cr = np.floor((top[:, :2] - origin) / cell).astype(np.int64)
+    ok = (cr[:, 0] >= 0) & (cr[:, 0] < cols) & (cr[:, 1] >= 0) & (cr[:, 1] < rows)
+    flat = cr[ok, 1] * cols + cr[ok, 0]
+    n = np.bincount(flat, minlength=rows * cols)
+    P = np.asarray(roofs)
+    res = np.minimum(np.abs(top[ok, 2:3] - np.stack([plane_z(p, top[ok, :2]) for p in P], 1)), 1.0)
+    cost = np.stack([np.bincount(flat, res[:, k], rows * cols) for k in range(len(P))], 1) / np.maximum(n, 1)[:, None]
+    best = np.argmin(cost, 1)
+    snap = (n >= 3) & (cost[np.arange(rows * cols), best] < tol)
+    X, Y = np.meshgrid(origin[0] + (np.arange(cols) + 0.5) * cell, origin[1] + (np.arange(rows) + 0.5) * cell)
+    xy = np.column_stack([X.ravel(), Y.ravel()])
+    z = np.array([plane_z(P[k], xy[i:i + 1])[0] for i, k in zip(np.flatnonzero(snap), best[snap])])
+    out = H.ravel().copy()
+    out[snap] = z
+    return out.reshape(rows, cols)
+
+
 def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, cfg) -> tuple[Hull, int]:
     H = height_grid(xyz, roof.origin, roof.cell, roof.labels.shape)
     cr = np.floor((xyz[:, :2] - roof.origin) / roof.cell).astype(np.int64)
@@ -109,6 +135,7 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
         elif abs(p[:3] @ [0, 0, 1]) > 0.995 and abs(-p[3] / p[2] - ground_z) < 0.5:
             continue
         found.append(p)
+    H = snap_heights(H, top, [p for p in found if abs(p[2]) >= 0.2], roof.origin, roof.cell, 2 * tol)
     cap = hi[2] - 1.0  # where no roof plane was found above a region, the hull is closed flat there
     planes = dedupe_planes(np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray(found).reshape(-1, 4),
                                       [[0.0, 0.0, 1.0, -cap]]]))

@@ -9,6 +9,7 @@ from oblique_city.core.buildings.contour import ContourConfig, extract_contour, 
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
 from oblique_city.core.buildings.hull import build_hull
 from oblique_city.core.buildings.overhang import overhang_widths
+from oblique_city.core.buildings.reconstruct import snap_heights
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
 from oblique_city.core.buildings.volumetric import PlaneSegment, eave_planes, merge_plane_segments, voxel_planes
 
@@ -370,3 +371,20 @@ def test_eave_planes_find_a_sparse_noisy_pyramid_and_nothing_on_flat_or_gable_en
     slopes = eave_planes(gable, square, 0.54, 0.26)
     assert len(slopes) == 2
     assert all(abs(np.degrees(np.arccos(s.plane[2])) - 40.0) < 2.0 and abs(s.plane[0]) < 0.05 for s in slopes)
+
+
+def test_top_grid_snaps_to_the_roof_plane_it_holds_and_keeps_the_rest():
+    # a 40 degree slope with 0.2 m noise: its 95th percentile stands ~0.35 m above it; the snapped grid is the plane
+    rng = np.random.default_rng(4)
+    t = np.tan(np.radians(40.0))
+    plane = np.array([0.0, -t, 1.0, -110.0]) / np.hypot(t, 1.0)  # z = 110 + t y
+    xy = rng.uniform(0, 10, (8000, 2))
+    top = np.column_stack([xy, 110.0 + t * xy[:, 1] + rng.normal(0, 0.2, len(xy))])
+    H = np.full((20, 20), 200.0)
+    out = snap_heights(H, top, [plane], np.zeros(2), 0.5, 0.5)
+    yc = (np.arange(20) + 0.5) * 0.5
+    assert np.allclose(out, (110.0 + t * yc)[:, None] * np.ones((1, 20)))
+    # a cell whose points lie 2 m off every plane keeps its height
+    top[(xy[:, 0] < 0.5) & (xy[:, 1] < 0.5), 2] += 2.0
+    out = snap_heights(H, top, [plane], np.zeros(2), 0.5, 0.5)
+    assert out[0, 0] == 200.0 and np.isclose(out[0, 1], 110.0 + t * 0.25)
