@@ -10,7 +10,9 @@ Pipeline per building (:func:`.reconstruct.reconstruct_building`):
 4. :mod:`.roof`: cell planes, smoothness, normal groups, region growing, 2x2-window topology (edges, nodes), arrises
    along the contour, group planes, edges and nodes from plane intersections, and the agreement check.
 5. :mod:`.hull`: the closed body from the plane arrangement (2D path: contour walls + roof planes + ground, occupancy
-   from the label grid); :mod:`.volumetric`: the fallback's planes from 3D voxels when the check fails.
+   from the label grid); :mod:`.volumetric`: the fallback's planes when the check fails (region growing over
+   voxels with their 3x3x3 blocks' planes, faces rising from the outline's edges by a vote), occupancy from the top
+   surface snapped to those planes.
 6. :mod:`.overhang`: eave offsets on the DSM (zero crossing of the second directional derivative), overhang slabs.
 7. :mod:`.model`: the building model and ``buildings/buildings.json``; :mod:`.stage`: the ``buildings`` stage.
 """
