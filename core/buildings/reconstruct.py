@@ -112,7 +112,43 @@ def snap_heights(H: np.ndarray, top: np.ndarray, roofs: list[np.ndarray], origin
     return out.reshape(rows, cols)
 
 
-def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, cfg) -> tuple[Hull, int]:
+def step_walls(boundaries: list[np.ndarray], tol: float = 0.35, min_points: int = 4, max_lines: int = 3,
+               hypotheses: int = 300) -> list[np.ndarray]:
+    """Vertical planes (4,) along the label boundaries of roof steps (each ``(k, 2)``: the window centres between
+    two labels whose planes do not meet there): up to ``max_lines`` straight runs per boundary, each the line
+    with most points within ``tol`` among ``hypotheses`` lines through two of them (fixed seed), refitted, kept
+    with ``min_points`` points. The step wall between a tower's roof and the lower roof beside it, or between the
+    two heights of a split gable, stands above the lower roof only and often holds too few facade points for a
+    plane of its own."""
+    rng = np.random.default_rng(0)
+    out = []
+    for pts in boundaries:
+        left = np.asarray(pts, dtype=np.float64)
+        for _ in range(max_lines):
+            if len(left) < min_points:
+                break
+            i, j = rng.integers(0, len(left), (2, hypotheses))
+            d = left[j] - left[i]
+            ok = np.linalg.norm(d, axis=1) > 1e-9
+            if not ok.any():
+                break
+            d = d[ok] / np.linalg.norm(d[ok], axis=1)[:, None]
+            nrm = np.column_stack([-d[:, 1], d[:, 0]])
+            dist = np.abs(nrm @ left.T - np.einsum("hk,hk->h", nrm, left[i[ok]])[:, None])
+            inl = dist[int(np.argmax((dist < tol).sum(1)))] < tol
+            if inl.sum() < min_points:
+                break
+            q = left[inl]
+            c = q.mean(0)
+            _, _, vt = np.linalg.svd(q - c)
+            n2 = np.array([-vt[0, 1], vt[0, 0]])
+            out.append(np.array([n2[0], n2[1], 0.0, -n2 @ c]))
+            left = left[~inl]
+    return out
+
+
+def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, cfg,
+                     steps: list[np.ndarray] = ()) -> tuple[Hull, int]:
     H = height_grid(xyz, roof.origin, roof.cell, roof.labels.shape)
     cr = np.floor((xyz[:, :2] - roof.origin) / roof.cell).astype(np.int64)
     cr[:, 0] = np.clip(cr[:, 0], 0, H.shape[1] - 1)
@@ -135,6 +171,11 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
         elif abs(p[:3] @ [0, 0, 1]) > 0.995 and abs(-p[3] / p[2] - ground_z) < 0.5:
             continue
         found.append(p)
+    # a step wall of the labels where no wall stands within 1 m of it yet (the found ones are better placed)
+    verticals = [w for w in list(walls) + found if abs(w[2]) < 1e-9]
+    found += [st for st in steps if not any(abs(st[:3] @ w[:3]) > cos_w
+                                            and abs(st[3] - np.sign(st[:3] @ w[:3]) * w[3]) < 1.0
+                                            for w in verticals)]
     H = snap_heights(H, top, [p for p in found if abs(p[2]) >= 0.2], roof.origin, roof.cell, 2 * tol)
     cap = hi[2] - 1.0  # where no roof plane was found above a region, the hull is closed flat there
     planes = dedupe_planes(np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray(found).reshape(-1, 4),
@@ -209,7 +250,9 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
         # about half the filter's cube, but large enough to hold a plane's worth of points on a surface
         density = _surface_density(xl)
         vvox = cfg.volumetric.voxel or max(voxel / 2, float(np.sqrt(2.0 * cfg.volumetric.min_points / density)))
-        hull, n_found = _hull_volumetric(xl, polygon, roof, ground_z, walls, lo, hi, vvox, noise, cfg.volumetric)
+        steps = step_walls([np.asarray(roof.edges[e]) for e in check.step_edges if e in roof.edges])
+        hull, n_found = _hull_volumetric(xl, polygon, roof, ground_z, walls, lo, hi, vvox, noise, cfg.volumetric,
+                                         steps)
         info.update(volumetric_planes=n_found, volumetric_voxel=vvox)
     info.update(cells=hull.n_cells, cells_inside=hull.n_inside)
     all_planes = {}

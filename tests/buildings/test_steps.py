@@ -9,7 +9,7 @@ from oblique_city.core.buildings.contour import ContourConfig, extract_contour, 
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
 from oblique_city.core.buildings.hull import build_hull
 from oblique_city.core.buildings.overhang import overhang_widths
-from oblique_city.core.buildings.reconstruct import snap_heights
+from oblique_city.core.buildings.reconstruct import snap_heights, step_walls
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
 from oblique_city.core.buildings.volumetric import PlaneSegment, eave_planes, merge_plane_segments, voxel_planes
 
@@ -388,3 +388,18 @@ def test_top_grid_snaps_to_the_roof_plane_it_holds_and_keeps_the_rest():
     top[(xy[:, 0] < 0.5) & (xy[:, 1] < 0.5), 2] += 2.0
     out = snap_heights(H, top, [plane], np.zeros(2), 0.5, 0.5)
     assert out[0, 0] == 200.0 and np.isclose(out[0, 1], 110.0 + t * 0.25)
+
+
+def test_step_walls_follow_an_l_shaped_step_boundary():
+    # a tower's corner inside a lower roof: the label boundary runs 6 m along x = 2, then 4 m along y = 5
+    rng = np.random.default_rng(6)
+    a = np.column_stack([np.full(25, 2.0), np.linspace(-1, 5, 25)])
+    b = np.column_stack([np.linspace(2, 6, 17), np.full(17, 5.0)])
+    pts = np.vstack([a, b]) + rng.normal(0, 0.1, (42, 2))
+    planes = step_walls([pts])
+    assert len(planes) == 2
+    for normal, mid in (([1.0, 0.0, 0.0], [2.0, 2.0, 0.0]), ([0.0, 1.0, 0.0], [4.0, 5.0, 0.0])):
+        p = max(planes, key=lambda q: abs(q[:3] @ normal))
+        assert p[2] == 0.0 and abs(p[:3] @ normal) > np.cos(np.radians(3.0))
+        assert abs(p[:3] @ mid + p[3]) < 0.1  # through the run's middle
+    assert step_walls([pts[:3]]) == []  # too short for a wall
