@@ -250,7 +250,11 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
         # about half the filter's cube, but large enough to hold a plane's worth of points on a surface
         density = _surface_density(xl)
         vvox = cfg.volumetric.voxel or max(voxel / 2, float(np.sqrt(2.0 * cfg.volumetric.min_points / density)))
-        steps = step_walls([np.asarray(roof.edges[e]) for e in check.step_edges if e in roof.edges])
+        # steps between parallel roofs only (within half the coplanarity angle): other planes would meet, and a
+        # step found between them is as likely a labelling error (a tower's faces beside a nave)
+        cos_p = np.cos(np.radians(cfg.volumetric.angle_deg / 2))
+        steps = step_walls([np.asarray(roof.edges[(a, b)]) for a, b in check.step_edges if (a, b) in roof.edges
+                            and abs(roof.planes[a][:3] @ roof.planes[b][:3]) > cos_p])
         hull, n_found = _hull_volumetric(xl, polygon, roof, ground_z, walls, lo, hi, vvox, noise, cfg.volumetric,
                                          steps)
         info.update(volumetric_planes=n_found, volumetric_voxel=vvox)
