@@ -116,7 +116,7 @@ def eave_planes(top: np.ndarray, polygon: np.ndarray, voxel: float, tol: float,
     each slope's heights ``h = z - tan(slope) v`` (``v`` inward distance) are counted in a window of ``tol``
     across the plane, and the best pair kept when its points run along most of the edge at the eave (60 % of
     it within 1.5 m of the wall, so that a band along a ridge is no roof face), cover ``min_area``, and refit
-    within ``angle_deg`` of it.
+    within half ``angle_deg`` of it (a flat roof's band under a 10 degree vote refits flat).
 
     For faces whose points are too few and noisy for region growing: the pyramid roof of the demo church's
     tower holds 12-28 points per m^2 at 0.15-0.2 m noise, and every 3x3x3 block on it straddles a hip.
