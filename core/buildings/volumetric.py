@@ -18,6 +18,7 @@ import numpy as np
 
 from .denoise import voxel_blocks
 from .geometry import fit_plane
+from .roof import plane_z
 
 
 @dataclass(frozen=True)
@@ -190,6 +191,65 @@ def merge_plane_segments(segs: list[PlaneSegment], angle_deg: float, offset: flo
                 break
         else:
             out.append(s)
+    return out
+
+
+def snap_heights(H: np.ndarray, top: np.ndarray, roofs: list[np.ndarray], origin: np.ndarray, cell: float,
+                  tol: float) -> np.ndarray:
+    """The top surface grid ``H (rows, cols)`` on the roof planes: a cell whose roof points ``top (n, 3)`` lie on
+    one of ``roofs`` (mean vertical distance, clipped at 1 m, below ``tol``) takes that plane's height at its
+    centre. The percentile height of a noisy matched roof stands above it by about twice the noise, and the
+    hull's cells between the roof plane and that height would count as inside."""
+    if not roofs or not len(top):
+        return H
+    rows, cols = H.shape
+    cr = np.floor((top[:, :2] - origin) / cell).astype(np.int64)
+    ok = (cr[:, 0] >= 0) & (cr[:, 0] < cols) & (cr[:, 1] >= 0) & (cr[:, 1] < rows)
+    flat = cr[ok, 1] * cols + cr[ok, 0]
+    n = np.bincount(flat, minlength=rows * cols)
+    P = np.asarray(roofs)
+    res = np.minimum(np.abs(top[ok, 2:3] - np.stack([plane_z(p, top[ok, :2]) for p in P], 1)), 1.0)
+    cost = np.stack([np.bincount(flat, res[:, k], rows * cols) for k in range(len(P))], 1) / np.maximum(n, 1)[:, None]
+    best = np.argmin(cost, 1)
+    snap = (n >= 3) & (cost[np.arange(rows * cols), best] < tol)
+    X, Y = np.meshgrid(origin[0] + (np.arange(cols) + 0.5) * cell, origin[1] + (np.arange(rows) + 0.5) * cell)
+    xy = np.column_stack([X.ravel(), Y.ravel()])
+    z = np.stack([plane_z(p, xy) for p in P], 1)[np.arange(rows * cols), best]
+    return np.where(snap, z, H.ravel()).reshape(rows, cols)
+
+
+def step_walls(boundaries: list[np.ndarray], tol: float = 0.35, min_points: int = 4, max_lines: int = 3,
+               hypotheses: int = 300) -> list[np.ndarray]:
+    """Vertical planes (4,) along the label boundaries of roof steps (each ``(k, 2)``: the window centres between
+    two labels whose planes do not meet there): up to ``max_lines`` straight runs per boundary, each the line
+    with most points within ``tol`` among ``hypotheses`` lines through two of them (fixed seed), refitted, kept
+    with ``min_points`` points. The step wall between a tower's roof and the lower roof beside it, or between the
+    two heights of a split gable, stands above the lower roof only and often holds too few facade points for a
+    plane of its own."""
+    rng = np.random.default_rng(0)
+    out = []
+    for pts in boundaries:
+        left = np.asarray(pts, dtype=np.float64)
+        for _ in range(max_lines):
+            if len(left) < min_points:
+                break
+            i, j = rng.integers(0, len(left), (2, hypotheses))
+            d = left[j] - left[i]
+            ok = np.linalg.norm(d, axis=1) > 1e-9
+            if not ok.any():
+                break
+            d = d[ok] / np.linalg.norm(d[ok], axis=1)[:, None]
+            nrm = np.column_stack([-d[:, 1], d[:, 0]])
+            dist = np.abs(nrm @ left.T - np.einsum("hk,hk->h", nrm, left[i[ok]])[:, None])
+            inl = dist[int(np.argmax((dist < tol).sum(1)))] < tol
+            if inl.sum() < min_points:
+                break
+            q = left[inl]
+            c = q.mean(0)
+            _, _, vt = np.linalg.svd(q - c)
+            n2 = np.array([-vt[0, 1], vt[0, 0]])
+            out.append(np.array([n2[0], n2[1], 0.0, -n2 @ c]))
+            left = left[~inl]
     return out
 
 

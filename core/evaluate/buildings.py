@@ -14,7 +14,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..buildings.geometry import points_in_polygon
-from ..buildings.model import BuildingModel
+from ..buildings.model import BuildingModel, ring_normal
+from ..matching.features import segment_distance
 
 
 @dataclass(frozen=True)
@@ -87,9 +88,7 @@ def _inner_grid(rings: list[np.ndarray], step: float = 0.5, margin: float = 0.5)
     d = np.full(len(xy), np.inf)
     for r in rings:
         for a, b in zip(r, np.roll(r, -1, axis=0)):
-            ab = b - a
-            t = np.clip((xy - a) @ ab / max(ab @ ab, 1e-12), 0.0, 1.0)
-            d = np.minimum(d, np.linalg.norm(xy - (a + t[:, None] * ab), axis=1))
+            d = np.minimum(d, segment_distance(xy, np.broadcast_to(a, xy.shape), np.broadcast_to(b, xy.shape)))
     return xy[d >= margin]
 
 
@@ -213,7 +212,7 @@ def model_top_height(model: BuildingModel, xy: np.ndarray) -> np.ndarray:
         if s.kind != "roof":
             continue
         ring = model.vertices[list(s.ring)]
-        n = np.cross(ring - ring.mean(0), np.roll(ring, -1, axis=0) - ring.mean(0)).sum(0)
+        n = ring_normal(ring)
         if abs(n[2]) < 1e-9:
             continue
         m = points_in_polygon(xy, ring[:, :2])

@@ -9,9 +9,15 @@ from oblique_city.core.buildings.contour import ContourConfig, extract_contour, 
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
 from oblique_city.core.buildings.hull import build_hull
 from oblique_city.core.buildings.overhang import overhang_widths
-from oblique_city.core.buildings.reconstruct import snap_heights, step_walls
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
-from oblique_city.core.buildings.volumetric import PlaneSegment, eave_planes, merge_plane_segments, voxel_planes
+from oblique_city.core.buildings.volumetric import (
+    PlaneSegment,
+    eave_planes,
+    merge_plane_segments,
+    snap_heights,
+    step_walls,
+    voxel_planes,
+)
 
 NOISE = 0.04  # as in conftest.py
 DENSITY = 25.0
