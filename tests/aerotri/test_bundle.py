@@ -487,6 +487,39 @@ def test_mounting_costs_jacobians_match_finite_differences():
           [cam, cam_j, qm, tm, _quat_xyzw(rot(5e-4)), rng.normal(0, 0.02, 3)])
 
 
+def test_point_prior_blocks_carry_the_full_information_of_a_ground_observation():
+    """A ground observation with a full covariance, split into two 2-row blocks (:func:`_prior_rows`), has the
+    information ``cov^-1`` and the chi-square of the 3-row form; the blocks' Jacobians (point and datum shift) are
+    their rows, so the shifted residual is ``A (x + s - x_prior)`` exactly."""
+    from oblique_city.core.aerotri.bundle import _point_prior_class, _prior_rows
+
+    rng = np.random.default_rng(7)
+    m = rng.normal(size=(3, 3))
+    cov = m @ m.T + 0.1 * np.eye(3)
+    a1, a2 = _prior_rows(cov)
+    np.testing.assert_allclose(a1.T @ a1 + a2.T @ a2, np.linalg.inv(cov), rtol=1e-10, atol=1e-10)
+    x, s, x0 = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
+    d = x + s - x0
+    chi2 = 0.0
+    for a in (a1, a2):
+        cost = _point_prior_class()(a, x0, True)
+        res, jac = np.zeros(2), [np.zeros(6), np.zeros(6)]
+        assert cost.Evaluate([x.copy(), s.copy()], res, jac)
+        np.testing.assert_allclose(res, a @ d, atol=1e-12)
+        np.testing.assert_allclose(jac[0].reshape(2, 3), a)
+        np.testing.assert_allclose(jac[1].reshape(2, 3), a)
+        chi2 += res @ res
+    assert chi2 == pytest.approx(d @ np.linalg.solve(cov, d), rel=1e-10)
+
+
+def test_iat_rounds_use_the_specialised_schur_eliminator(iat):
+    """Every residual block on a point is two rows high (control points' ground observations included), so Ceres
+    specialises its Schur eliminator for 2-row blocks on 3-vector points; the image blocks stay dynamic ("d") as
+    the datum shift (3) sits beside the images (6)."""
+    rounds = [line for line in iat.runs[0].result.log if line.startswith("round") and "iterations" in line]
+    assert rounds and all("Schur structure 2,3,d" in line for line in rounds)
+
+
 def test_rig_constraints_with_mounting_calibration_hold_the_true_relative_mounting(misaligned):
     """Rig constraints tie the heads of an exposure to their nominal relative mounting; with the mounting
     calibration the constraint holds between the frames (corrections removed), so the heads' relative orientation
