@@ -16,7 +16,9 @@ Observations and unknowns
   row, :func:`_prior_rows`), not one of three: with every block on a point two rows high Ceres runs its Schur
   eliminator specialised for 2-row blocks on 3-vector points. One 3-row block makes it fall back to dynamic sizes
   for the whole problem; on 3,000 images that made the integrated adjustment's linear solves a third slower. The
-  zero rows are left out of the redundancy.
+  zero rows are left out of the redundancy. These blocks are Python costs: connection points numerous enough for
+  their callbacks to cost more than the specialisation saves go in as pycolmap's 3-row cost
+  (:data:`PRIOR_SPLIT_SHARE`).
 * Optional self-calibration per camera: focal, principal point, radial (k1 k2 k3), tangential (p1 p2),
   through a ``SubsetManifold`` on the camera's parameter block.
 * Optional mounting calibration (``BundleOptions.mounting``): per camera model a correction ``M`` (boresight
@@ -61,6 +63,13 @@ from . import precision
 
 CALIBRATION_GROUPS = {"focal": (0, 1), "principal_point": (2, 3), "radial": (4, 5, 8), "tangential": (6, 7)}
 """Self-calibration groups -> indices in COLMAP's FULL_OPENCV parameter vector."""
+
+PRIOR_SPLIT_SHARE = 0.01
+"""Connection points go in as 2-row blocks (:func:`_prior_rows`, Ceres' specialised Schur eliminator) when they
+number at most this share of the tie observations, else as one 3-row block of pycolmap's (dynamic eliminator). The
+2-row blocks are Python costs: Ceres calls back into Python for each one at every evaluation, which on 3,000
+images with the CBA's 224 points per oblique run is nothing, but with the ">= 3 rays" selection (40,000 points per
+run) doubled the oblique runs' time (7.8 -> 14.9 s) where the specialisation saves 0.1-0.3 s."""
 
 
 @dataclass(frozen=True)
@@ -744,18 +753,24 @@ class _Round:
                     prior = pycolmap.Rigid3d(pycolmap.Rotation3d(_quat_xyzw(rr)), tt)
                     problem.add_residual_block(cf.RelativePosePriorCost(cov, prior), None,
                                                [self.frame_params[int(i)], self.frame_params[int(j)]])
-        # connection points: ground observations with their covariance
+        # connection points: ground observations with their covariance, in 2-row blocks when they are few (see
+        # PRIOR_SPLIT_SHARE), else pycolmap's 3-row alignment cost through an identity similarity held constant
         point_prior = _point_prior_class()
         self.padded_rows = 0  # zero rows that pad the priors' blocks to two residuals (out of the redundancy)
-        self.no_shift = np.zeros(3)
+        self.sim_const = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+        conn_in_rec = np.flatnonzero(has_prior_pt & (model.point_ids >= 0))
+        split = len(conn_in_rec) + len(single_obs) <= PRIOR_SPLIT_SHARE * int(model.in_rec.sum())
 
         def add_prior(x: np.ndarray, cov: np.ndarray, x_prior: np.ndarray, shift_block: np.ndarray | None) -> None:
+            if shift_block is None and not split:
+                problem.add_residual_block(cf.Point3DAlignmentCost(cov, x_prior), None, [x, self.sim_const])
+                problem.set_parameter_block_constant(self.sim_const)
+                return
             for rows in _prior_rows(cov):
                 self.costs.append(point_prior(rows, x_prior, shift_block is not None))
                 problem.add_residual_block(self.costs[-1], None, [x] if shift_block is None else [x, shift_block])
                 self.padded_rows += int(not rows[1].any())
 
-        conn_in_rec = np.flatnonzero(has_prior_pt & (model.point_ids >= 0))
         self.point_views = []  # the parameter blocks Ceres holds pointers to (views into the reconstruction)
         for p in conn_in_rec:
             xv = model.xyz_views[p]
