@@ -3,7 +3,9 @@
 Voxels of about half the noise filter's size; a PCA plane per voxel from the points of its 3x3x3 block;
 neighbouring voxels with coplanar planes merged by region growing into plane segments, and segments that lie on
 the same plane merged into one infinite plane; roof faces too small and noisy for the growing (a tower's pyramid)
-found by a vote over the outline's edges (:func:`eave_planes`). The planes, the contour walls and the ground then
+found by a vote over the outline's edges (:func:`eave_planes`); walls that rise inside the outline (a tower's wall
+above the nave) found on their own facade points (:func:`interior_walls`), whose points are then kept out of the
+top grid the occupancy is judged on. The planes, the contour walls and the ground then
 go to :func:`.hull.build_hull`, whose arrangement intersects every plane triplet inside the building's box,
 consolidates the vertices into k-nodes and keeps the hull of the occupied cells with its structural breaks (step
 walls between roofs of different heights).
@@ -17,19 +19,21 @@ from dataclasses import dataclass
 import numpy as np
 
 from .denoise import voxel_blocks
-from .geometry import fit_plane
+from .geometry import fit_plane, points_in_polygon
 from .roof import plane_z
 
 
 @dataclass(frozen=True)
 class VolumetricConfig:
     """voxel : voxel edge (m, 0 = half the noise filter's voxel); angle_deg : coplanarity of neighbours;
-    min_points : points of a voxel with a plane; min_area : smallest plane segment (m^2)."""
+    min_points : points of a voxel with a plane; min_area : smallest plane segment (m^2); min_wall_points : facade
+    points of a wall inside the outline (:func:`interior_facade_points`)."""
 
     voxel: float = 0.0
     angle_deg: float = 10.0
     min_points: int = 6
     min_area: float = 3.0
+    min_wall_points: int = 40
 
 
 @dataclass(frozen=True)
@@ -251,6 +255,48 @@ def step_walls(boundaries: list[np.ndarray], tol: float = 0.35, min_points: int 
             out.append(np.array([n2[0], n2[1], 0.0, -n2 @ c]))
             left = left[~inl]
     return out
+
+
+def interior_facade_points(xyz: np.ndarray, polygon: np.ndarray, voxel: float, margin: float = 1.0,
+                           max_nz: float = 0.15, min_block: int = 12) -> np.ndarray:
+    """``(n,) bool``: the points of ``xyz (n, 3)`` that lie on vertical surfaces (their 3x3x3 block's plane within
+    ``asin(max_nz)`` of vertical, from at least ``min_block`` points) more than ``margin`` inside the outline
+    ``polygon (m, 2)``: the walls that rise inside the footprint above a lower roof, a tower's wall above the nave.
+    In plan they gather on the walls' lines (:func:`step_walls` finds those)."""
+    from ..matching.features import segment_distance
+
+    vb = voxel_blocks(xyz, voxel)
+    out = ((np.abs(vb.normal[:, 2]) < max_nz) & (vb.n_block >= min_block))[vb.inv]
+    xy = xyz[out, :2]
+    m = len(polygon)
+    d = np.min([segment_distance(xy, np.broadcast_to(polygon[i], xy.shape),
+                                 np.broadcast_to(polygon[(i + 1) % m], xy.shape)) for i in range(m)], axis=0)
+    out[np.flatnonzero(out)] = (d > margin) & points_in_polygon(xy, polygon)
+    return out
+
+
+def interior_walls(xyz: np.ndarray, polygon: np.ndarray, ground_z: float, voxel: float, min_points: int,
+                   tol: float = 0.35) -> tuple[list[np.ndarray], np.ndarray]:
+    """Walls that rise inside the outline ``polygon (m, 2)``, from their own facade points among ``xyz (n, 3)``
+    (:func:`interior_facade_points` in ``voxel`` cubes, then up to four straight runs of ``min_points`` points by
+    :func:`step_walls`).
+
+    Returns
+    -------
+    walls : vertical planes (4,); on_wall : (n,) bool, every point more than 2 m above the ground within ``tol``
+        of a wall along its facade points' run (0.5 m beyond either end): the blocks at a wall's foot mix wall
+        and roof, so the run, not the block normals, says which points are the wall's.
+    """
+    facade = xyz[:, 2] > ground_z + 0.5
+    facade[facade] = interior_facade_points(xyz[facade], polygon, voxel)
+    walls = step_walls([xyz[facade, :2]], tol=tol, min_points=min_points, max_lines=4)
+    on_wall = np.zeros(len(xyz), bool)
+    for w in walls:
+        d = np.abs(xyz[:, :2] @ w[:2] + w[3])
+        t = xyz[:, :2] @ np.array([-w[1], w[0]])
+        run = t[facade & (d < tol)]
+        on_wall |= (d < tol) & (t > run.min() - 0.5) & (t < run.max() + 0.5) & (xyz[:, 2] > ground_z + 2.0)
+    return walls, on_wall
 
 
 def height_grid(xyz: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:

@@ -13,6 +13,9 @@ from oblique_city.core.buildings.roof import check_topology, roof_labels, topolo
 from oblique_city.core.buildings.volumetric import (
     PlaneSegment,
     eave_planes,
+    height_grid,
+    interior_facade_points,
+    interior_walls,
     merge_plane_segments,
     snap_heights,
     step_walls,
@@ -409,3 +412,51 @@ def test_step_walls_follow_an_l_shaped_step_boundary():
         assert p[2] == 0.0 and abs(p[:3] @ normal) > np.cos(np.radians(3.0))
         assert abs(p[:3] @ mid + p[3]) < 0.1  # through the run's middle
     assert step_walls([pts[:3]]) == []  # too short for a wall
+
+
+def _stepped_cloud(noise: float, seed: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 12 x 10 m building: a 16 m high part over x < 5, a flat roof at 8 m beyond; its wall x = 5 rises inside
+    the outline from 8 to 16 m. Points at 20 per m^2 (the interior wall at 10: matched facades are sparser),
+    Gaussian noise. Returns the points, the wall's mask and the outline."""
+    rng = np.random.default_rng(seed)
+
+    def patch(n, x, y, z):
+        return np.column_stack([rng.uniform(*x, n) if isinstance(x, tuple) else np.full(n, x),
+                                rng.uniform(*y, n) if isinstance(y, tuple) else np.full(n, y),
+                                rng.uniform(*z, n) if isinstance(z, tuple) else np.full(n, z)])
+
+    parts = [patch(1000, (0, 5), (0, 10), 16.0), patch(1400, (5, 12), (0, 10), 8.0),  # roofs
+             patch(800, 5.0, (0, 10), (8, 16)),  # the interior wall
+             patch(3200, 0.0, (0, 10), (0, 16)), patch(2400, 12.0, (0, 10), (0, 8)),  # outer walls
+             patch(1000, (0, 5), 0.0, (0, 16)), patch(1400, (5, 12), 0.0, (0, 8)),
+             patch(1000, (0, 5), 10.0, (0, 16)), patch(1400, (5, 12), 10.0, (0, 8))]
+    wall = np.concatenate([np.full(len(q), k == 2) for k, q in enumerate(parts)])
+    xyz = np.vstack(parts) + rng.normal(0, noise, (len(wall), 3))
+    return xyz, wall, np.array([[0.0, 0.0], [12.0, 0.0], [12.0, 10.0], [0.0, 10.0]])
+
+
+def test_interior_wall_found_on_its_facade_points_and_kept_out_of_the_roof():
+    """With matched-cloud noise (0.15 m) the wall inside the outline is found through its points within 0.1 m and
+    2 deg; the outer walls and the roofs give none; its points (and only a sliver of roof beside it) are the
+    wall's, so the top grid beside it keeps the lower roof's height."""
+    xyz, wall, polygon = _stepped_cloud(0.15)
+    facade = interior_facade_points(xyz, polygon, 0.55)
+    assert facade[wall].mean() > 0.5 and facade[~wall].mean() < 0.01
+    walls, on_wall = interior_walls(xyz, polygon, 0.0, 0.55, 40)
+    assert len(walls) == 1
+    w = walls[0]
+    assert w[2] == 0.0 and abs(w[0]) > np.cos(np.radians(2.0)) and abs(w[3] / w[0] + 5.0) < 0.1
+    assert on_wall[wall].mean() > 0.8  # within 0.35 m of the line along the run: 0.15 m noise
+    # besides the wall's points only roof points within its 0.35 m band: the upper roof's edge, the lower one's
+    stray = xyz[on_wall & ~wall]
+    assert len(stray) < 0.25 * wall.sum() and np.all(np.abs(stray[:, 0] - 5.0) < 0.35 + 0.1)
+    grid = height_grid(xyz[~on_wall], np.array([0.0, 0.0]), 0.5, (20, 24))
+    assert np.all(np.abs(grid[2:18, 11:13] - 8.0) < 0.5)  # the cells x 5.5-6.5 m beside the wall: the 8 m roof
+    grid_all = height_grid(xyz, np.array([0.0, 0.0]), 0.5, (20, 24))
+    assert np.median(grid_all[2:18, 10]) > 10.0  # the wall's points would raise the cells at its foot
+
+
+def test_no_interior_wall_on_a_building_without_one():
+    xyz, wall, polygon = _stepped_cloud(0.15)
+    walls, on_wall = interior_walls(xyz[~wall], polygon, 0.0, 0.55, 40)
+    assert walls == [] and not on_wall.any()
