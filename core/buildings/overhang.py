@@ -111,8 +111,12 @@ def overhang_widths(polygon: np.ndarray, dsm: Raster, cfg: OverhangConfig = Over
 
 
 def _offset_corners(polygon: np.ndarray, widths: np.ndarray) -> np.ndarray:
-    """Mitred corners of the outline offset outward by a width per edge (m, 2)."""
+    """Mitred corners of the outline offset outward by a width per edge (m, 2). A two-corner ``polygon`` is an open
+    run (a wall inside the outline): both ends move straight out by the first edge's width."""
     m = len(polygon)
+    if m == 2:
+        d = (polygon[1] - polygon[0]) / np.linalg.norm(polygon[1] - polygon[0])
+        return polygon + widths[0] * np.array([d[1], -d[0]])
     out = np.zeros_like(polygon)
     for i in range(m):
         a0, a1 = polygon[i - 1], polygon[i]
@@ -176,12 +180,18 @@ def overhang_surfaces(vertices: np.ndarray, faces: list[tuple[str, list[int]]], 
         nrm = np.array([d[1], -d[0]])
         outer = np.append(nrm, -(nrm @ p0) - w)  # vertical plane of the eave line
         outer = np.array([outer[0], outer[1], 0.0, outer[2]])
+        length = float(np.linalg.norm(p1 - p0))
         for wf in wall_of_edge.get(i, []):
             ring = faces[wf][1]
+            t_ring = (vertices[ring, :2] - p0) @ d
+            if t_ring.min() < -1e-3 or t_ring.max() > length + 1e-3:
+                continue  # on the edge's plane beyond its ends: a wall inside the outline (above a lower roof)
             for a, b in zip(ring, ring[1:] + ring[:1]):
                 rf = edge_owner.get((b, a))
                 if rf is None or rf not in roof_plane_of_face:
                     continue
+                if (vertices[faces[rf][1], :2].mean(0) - p0) @ nrm > 0:
+                    continue  # a roof in front of the wall (the lower roof at an interior wall's foot)
                 qs = []
                 for v in (a, b):
                     pv = vertices[v]
@@ -190,12 +200,12 @@ def overhang_surfaces(vertices: np.ndarray, faces: list[tuple[str, list[int]]], 
                                    if x == v and f in roof_plane_of_face]
                     if abs(t) < 1e-3:
                         xy = mitre[i]
-                    elif abs(t - np.linalg.norm(p1 - p0)) < 1e-3:
+                    elif abs(t - length) < 1e-3:
                         xy = mitre[(i + 1) % m]
                     else:
                         xy = pv[:2] + w * nrm
                     q = None
-                    if len(planes_here) >= 2 and abs(t) > 1e-3 and abs(t - np.linalg.norm(p1 - p0)) > 1e-3:
+                    if len(planes_here) >= 2 and abs(t) > 1e-3 and abs(t - length) > 1e-3:
                         ln = plane_line(planes_here[0], planes_here[1])
                         if ln is not None and abs(ln[1] @ outer[:3]) > 1e-6:
                             s = -(outer[:3] @ ln[0] + outer[3]) / (outer[:3] @ ln[1])

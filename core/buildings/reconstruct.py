@@ -198,6 +198,7 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
         if not ok and cfg.force_path != "2d":
             path, reason = "volumetric", f"2D hull {why}"
     n_found = 0
+    steps: list[np.ndarray] = []
     if path == "volumetric":
         # about half the filter's cube, but large enough to hold a plane's worth of points on a surface
         density = _surface_density(xl)
@@ -249,10 +250,47 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     roof_of_face = {fi: pl for fi, pl in enumerate(face_plane) if pl is not None}
     verts, extra = overhang_surfaces(hull.vertices, faces, polygon, widths, wall_of_edge, roof_of_face,
                                      cfg.overhang.thickness)
+    if dsm is not None:  # the upper roof over an interior wall overhangs the lower one as at the outline
+        for seg, group in _interior_wall_runs(hull, faces, m, steps):
+            w = overhang_widths(seg + offset[:2], dsm, cfg.overhang)[0]
+            if np.isfinite(w) and w > 0:
+                verts, more = overhang_surfaces(verts, faces, seg, np.array([w, 0.0]), {0: group}, roof_of_face,
+                                                cfg.overhang.thickness)
+                extra += more
     model = _assemble(bid, verts + offset, faces, extra, path, reason, polygon + offset[:2], widths,
                       [_to_world(p, offset) for p in all_planes.values()], info)
     model.info["seconds"] = time.perf_counter() - t0
     return model
+
+
+def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], n_outline: int,
+                        roof_edges: list[np.ndarray]) -> list[tuple[np.ndarray, list[int]]]:
+    """The walls inside the outline that stand on facade points: the hull's vertical wall faces on planes other
+    than the ``n_outline`` outline walls' and the ``roof_edges`` (step walls along the roof labels' boundaries: at
+    the roof's edge, overhang included), grouped by plane and by the side they face (the lower roof's), each group
+    with its run as a segment ``(2, 2)`` whose right-hand side is that side (as an outline edge's outward side, for
+    :func:`.overhang.overhang_widths` and :func:`.overhang.overhang_surfaces`)."""
+    groups: dict[tuple[int, bool], list[int]] = {}
+    normals: dict[tuple[int, bool], np.ndarray] = {}
+    for fi, ((kind, ring), (pid, _)) in enumerate(zip(faces, hull.faces)):
+        if kind != "wall" or pid < n_outline:
+            continue
+        P = hull.vertices[ring]
+        n = ring_normal(P)
+        if abs(n[2]) > 1e-6 or any(np.abs(P @ e[:3] + e[3]).max() < 1e-6 for e in roof_edges):
+            continue
+        key = (pid, bool(n[0] > 0 or (n[0] == 0 and n[1] > 0)))
+        groups.setdefault(key, []).append(fi)
+        normals[key] = n[:2] / np.linalg.norm(n[:2])
+    out = []
+    for key, group in groups.items():
+        n_out = normals[key]
+        d = np.array([-n_out[1], n_out[0]])
+        P = np.vstack([hull.vertices[faces[fi][1], :2] for fi in group])
+        t = P @ d
+        base = P[0] - (P[0] @ d) * d
+        out.append((np.array([base + t.min() * d, base + t.max() * d]), group))
+    return out
 
 
 def _surface_density(xyz: np.ndarray, sample: int = 2000) -> float:

@@ -206,10 +206,11 @@ def overhang_errors(truth: BuildingTruth, model: BuildingModel, max_offset: floa
 
 
 def model_top_height(model: BuildingModel, xy: np.ndarray) -> np.ndarray:
-    """Height of the model's highest roof surface over points ``xy (n, 2)`` (NaN where no roof covers one)."""
+    """Height of the model's highest roof surface over points ``xy (n, 2)`` (NaN where no roof covers one); the
+    roof overhangs count (an upper roof's overhang over a lower one is the top surface there)."""
     top = np.full(len(xy), -np.inf)
     for s in model.surfaces:
-        if s.kind != "roof":
+        if s.kind not in ("roof", "overhang_roof"):
             continue
         ring = model.vertices[list(s.ring)]
         n = ring_normal(ring)

@@ -70,6 +70,30 @@ def test_roof_height_error_sees_a_raised_roof_and_a_missing_one(models, syntheti
     assert 0.2 < share < 0.8  # the lower roof's part of the footprint has no roof over it
 
 
+def test_upper_roof_overhangs_the_lower_one_at_a_step():
+    """A 10 m flat part beside a 5 m one, each with a 0.4 m overhang: the upper roof reaches 0.4 m over the lower one
+    past the step wall (an overhang slab, as at the outline), measured in the DSM like the outline's; the top
+    surface then matches the truth's to the noise, overhang band included."""
+    from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
+    from oblique_city.core.evaluate.buildings import model_top_height
+
+    b = SyntheticBuilding("overhang_step", (Part(0, 0, 9, 10, 10, 10, "flat", 0.4),
+                                            Part(9, 0, 18, 10, 5, 5, "flat", 0.4)),
+                          ((0, 0), (18, 0), (18, 10), (0, 10)), (0.4,) * 4, origin=(60.0, 170.0), angle_deg=25.0,
+                          stepped=True)
+    rng = np.random.default_rng(7)
+    xyz = b.sample(25.0, 0.04, rng)
+    dsm, _ = b.dsm(0.1, 0.03, rng)
+    m = reconstruct_building(xyz, 0.0, dsm, "B0001")
+    assert m.path == "volumetric" and m.info["closed"]
+    v = np.linspace(0.5, 9.5, 10)
+    under = model_top_height(m, b.to_world(np.column_stack([np.full(10, 9.25), v])))
+    beyond = model_top_height(m, b.to_world(np.column_stack([np.full(10, 9.6), v])))
+    assert np.all(np.abs(under - 10.0) < 0.1) and np.all(np.abs(beyond - 5.0) < 0.1)
+    s = score_building(BuildingTruth.from_synthetic(b), m)
+    assert s.roof_rmse < 0.05 and s.roof_coverage == 1.0
+
+
 def test_overhang_surfaces_and_semantics(models):
     m = models["gabled"]
     kinds = {s.kind for s in m.surfaces}
