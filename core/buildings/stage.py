@@ -125,4 +125,4 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="buildings", run=run, config=BuildingsConfig, requires=("surface",),
-              description="LOD2 buildings with discontinuities and roof overhangs", version="8")
+              description="LOD2 buildings with discontinuities and roof overhangs", version="9")
