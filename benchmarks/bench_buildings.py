@@ -15,11 +15,11 @@ orientation (so the figures isolate dense matching and reconstruction from aeria
 on every ``--dense-step``-th pixel and the surface rasters at that step times the GSD.
 
 Per building and overall: outline corner deviation against the true footprint (median and mean, m and GSD), roof
-plane normal error, roof height RMSE (the model's top surface against the true one on a 0.5 m grid 0.5 m inside the
-walls, m), overhang width error (m and DSM pixels), closed valid solid, path (2D or volumetric) and why,
-time per building, and the walls no facade point showed ('walls inf.': placed by the building's median measured
-overhang, an assumption). Buildings that failed or were not detected are listed with the reason. Tables are printed
-and written as JSON (``--out``, default ``build/bench_buildings.json``).
+plane normal error, roof height RMSE (the model's top surface, roofs and their overhangs, against the true one on a
+0.5 m grid 0.5 m inside the walls, m), overhang width error (m and DSM pixels), closed valid solid, path (2D or
+volumetric) and why, time per building, and the walls no facade point showed ('walls inf.': placed by the building's
+median measured overhang, an assumption). Buildings that failed or were not detected are listed with the reason.
+Tables are printed and written as JSON (``--out``, default ``build/bench_buildings.json``).
 """
 
 from __future__ import annotations
