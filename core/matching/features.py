@@ -86,11 +86,12 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
     tree = cKDTree(uv_b)
     ia = np.flatnonzero(ok)
     lists = tree.query_ball_point(mid[ia], half[ia] + opt.band_px)
-    counts = np.fromiter((len(c) for c in lists), np.int64, len(lists))
+    counts = np.fromiter(map(len, lists), np.int64, len(lists))
     if counts.sum() == 0:
         return np.zeros((0, 2), np.int64)
     a_idx = np.repeat(ia, counts)
-    b_idx = np.fromiter((j for c in lists for j in c), np.int64, int(counts.sum()))
+    # flattened list by list in C (a generator over every candidate took a fifth of the demo's match stage)
+    b_idx = np.concatenate([np.asarray(c, np.int64) for c in lists if c])
     inside = segment_distance(uv_b[b_idx], s0[a_idx], s1[a_idx]) <= opt.band_px
     a_idx, b_idx = a_idx[inside], b_idx[inside]
     d = np.empty(len(a_idx), np.float32)
