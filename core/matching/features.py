@@ -81,17 +81,21 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
         return np.zeros((0, 2), np.int64)
     s0, s1 = epipolar_segments(uv_a, cam_a, pose_a, cam_b, pose_b, opt.z_lo, opt.z_hi)
     ok = np.all(np.isfinite(s0), 1) & np.all(np.isfinite(s1), 1)
-    mid = (s0 + s1) / 2
     half = np.linalg.norm(s1 - s0, axis=1) / 2
     tree = cKDTree(uv_b)
     ia = np.flatnonzero(ok)
-    lists = tree.query_ball_point(mid[ia], half[ia] + opt.band_px)
+    # each segment queried in pieces about four band widths long: one ball around a long segment holds mostly
+    # points far outside its band (every point within the band lies within its piece's ball)
+    n_piece = np.maximum(1, np.ceil(2 * half[ia] / (4 * max(opt.band_px, 0.5)))).astype(np.int64)
+    rep = np.repeat(ia, n_piece)
+    n_rep = np.repeat(n_piece, n_piece)
+    t = (np.arange(len(rep)) - np.repeat(np.cumsum(n_piece) - n_piece, n_piece) + 0.5) / n_rep
+    lists = tree.query_ball_point(s0[rep] + t[:, None] * (s1[rep] - s0[rep]), half[rep] / n_rep + opt.band_px)
     counts = np.fromiter(map(len, lists), np.int64, len(lists))
     if counts.sum() == 0:
         return np.zeros((0, 2), np.int64)
-    a_idx = np.repeat(ia, counts)
-    # flattened list by list in C (a generator over every candidate took a fifth of the demo's match stage)
-    b_idx = np.concatenate([np.asarray(c, np.int64) for c in lists if c])
+    key = np.unique(np.repeat(rep, counts) * len(uv_b) + np.concatenate([np.asarray(c, np.int64) for c in lists if c]))
+    a_idx, b_idx = key // len(uv_b), key % len(uv_b)
     inside = segment_distance(uv_b[b_idx], s0[a_idx], s1[a_idx]) <= opt.band_px
     a_idx, b_idx = a_idx[inside], b_idx[inside]
     d = np.empty(len(a_idx), np.float32)
