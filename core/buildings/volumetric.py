@@ -27,7 +27,7 @@ from .roof import plane_z
 class VolumetricConfig:
     """voxel : voxel edge (m, 0 = half the noise filter's voxel); angle_deg : coplanarity of neighbours;
     min_points : points of a voxel with a plane; min_area : smallest plane segment (m^2); min_wall_points : facade
-    points of a wall inside the outline (:func:`interior_facade_points`)."""
+    points of a wall inside the outline (:func:`interior_walls`)."""
 
     voxel: float = 0.0
     angle_deg: float = 10.0
