@@ -89,6 +89,8 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                  ("volumetric", "Volumetric", "Volumetric reconstruction for every building"))},
         "max_overhang": {"min": 0.0, "description": "Widest roof overhang searched (m)"},
         "overhang_thickness": {"min": 0.0, "description": "Thickness of the overhang slab (m)"},
+        "dormers": {"description": "Model dormers on the sloped roofs (blocks of points above their slope)"},
+        "dormer_min_rise": {"min": 0.0, "description": "Height above its slope that marks a dormer (m)"},
     },
     "dense": {
         "sgm_mode": {"items": (("sgbm_3way", "SGBM 3-way", "OpenCV's fast 3-way SGBM"),

@@ -1,4 +1,4 @@
-"""LOD2 buildings with discontinuities and roof overhangs from the oblique point cloud and the DSM.
+"""LOD2 buildings with discontinuities, roof overhangs and dormers from the oblique point cloud and the DSM.
 
 Pipeline per building (:func:`.reconstruct.reconstruct_building`):
 
@@ -9,10 +9,11 @@ Pipeline per building (:func:`.reconstruct.reconstruct_building`):
    (roof-outline fallback when there are no facade points).
 4. :mod:`.roof`: cell planes, smoothness, normal groups, region growing, 2x2-window topology (edges, nodes), arrises
    along the contour, group planes, edges and nodes from plane intersections, and the agreement check.
-5. :mod:`.hull`: the closed body from the plane arrangement (2D path: contour walls + roof planes + ground, occupancy
-   from the label grid); :mod:`.volumetric`: the fallback's planes when the check fails (region growing over
-   voxels with their 3x3x3 blocks' planes, faces rising from the outline's edges by a vote), occupancy from the top
-   surface snapped to those planes.
+5. :mod:`.dormers`: blocks of points above a sloped roof plane, modelled as gabled or shed dormers (2D path).
+   :mod:`.hull`: the closed body from the plane arrangement (2D path: contour walls + roof planes + ground + the
+   dormers' planes, occupancy from the label grid joined with the dormers'); :mod:`.volumetric`: the fallback's
+   planes when the check fails (region growing over voxels with their 3x3x3 blocks' planes, faces rising from the
+   outline's edges by a vote), occupancy from the top surface snapped to those planes.
 6. :mod:`.overhang`: eave offsets on the DSM (zero crossing of the second directional derivative), overhang slabs.
 7. :mod:`.model`: the building model and ``buildings/buildings.json``; :mod:`.stage`: the ``buildings`` stage.
 """

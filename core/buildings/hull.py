@@ -219,70 +219,64 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     return Hull(vertices[used], [(fid, [remap[v] for v in r]) for fid, r in faces], len(cells), int(keep.sum()))
 
 
+def _single_loop(rings: list[list[int]], members: list[int]) -> list[int] | None:
+    """The boundary of the union of facets ``members`` (rings of one plane) as one loop, or None when it is not
+    one simple loop (a hole, a pinched vertex, an open chain)."""
+    edges = {(a, b) for i in members for a, b in zip(rings[i], rings[i][1:] + rings[i][:1])}
+    nxt: dict[int, int] = {}
+    for a, b in edges:
+        if (b, a) in edges:
+            continue
+        if a in nxt:
+            return None
+        nxt[a] = b
+    if not nxt:
+        return None
+    start = next(iter(nxt))
+    loop, v = [start], nxt[start]
+    while v != start:
+        if v not in nxt or len(loop) > len(nxt):
+            return None
+        loop.append(v)
+        v = nxt[v]
+    return loop if len(loop) == len(nxt) else None
+
+
 def _merge_coplanar(facets: list[tuple[int, list[int]]]) -> list[tuple[int, list[int]]]:
-    """Merge boundary facets of one plane into polygons (kept apart where a merged region would have holes)."""
+    """Merge boundary facets of one plane into polygons without holes: facets sharing an edge are joined as long
+    as the union stays one simple loop (a plane's region around a hole, such as a roof around a dormer, ends up
+    in a few pieces)."""
     by_plane: dict[int, list[list[int]]] = {}
     for fid, ring in facets:
         by_plane.setdefault(fid, []).append(ring)
     out = []
     for fid, rings in by_plane.items():
-        # components of facets sharing an edge
-        n = len(rings)
-        parent = list(range(n))
-
-        def find(i: int, parent: list[int] = parent) -> int:
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
         edge_owner: dict[tuple[int, int], int] = {}
         for i, r in enumerate(rings):
             for a, b in zip(r, r[1:] + r[:1]):
                 edge_owner[(a, b)] = i
-        for (a, b), i in edge_owner.items():
-            j = edge_owner.get((b, a))
-            if j is not None:
-                parent[find(i)] = find(j)
-        comps: dict[int, list[int]] = {}
-        for i in range(n):
-            comps.setdefault(find(i), []).append(i)
-        for members in comps.values():
-            if len(members) == 1:
-                out.append((fid, rings[members[0]]))
-                continue
-            edges = {}
-            for i in members:
-                r = rings[i]
-                for a, b in zip(r, r[1:] + r[:1]):
-                    edges[(a, b)] = True
-            outer = [(a, b) for (a, b) in edges if (b, a) not in edges]
-            nxt: dict[int, int] = {}
-            ok = True
-            for a, b in outer:
-                if a in nxt:
-                    ok = False
-                    break
-                nxt[a] = b
-            loops = []
-            if ok:
-                seen: set[int] = set()
-                for start in nxt:
-                    if start in seen:
-                        continue
-                    loop, v = [], start
-                    while v not in seen:
-                        seen.add(v)
-                        loop.append(v)
-                        v = nxt.get(v)
-                        if v is None:
-                            ok = False
-                            break
-                    loops.append(loop)
-            if ok and len(loops) == 1:
-                out.append((fid, loops[0]))
-            else:
-                out.extend((fid, rings[i]) for i in members)
+        pairs = sorted({(min(i, j), max(i, j)) for (a, b), i in edge_owner.items()
+                        if (j := edge_owner.get((b, a))) is not None and j != i})
+        region = list(range(len(rings)))  # facet -> region id (a member facet)
+        members = {i: [i] for i in range(len(rings))}
+        loops = {i: r for i, r in enumerate(rings)}
+        changed = True
+        while changed:
+            changed = False
+            for i, j in pairs:
+                ri, rj = region[i], region[j]
+                if ri == rj:
+                    continue
+                loop = _single_loop(rings, members[ri] + members[rj])
+                if loop is None:
+                    continue
+                for k in members[rj]:
+                    region[k] = ri
+                members[ri] += members.pop(rj)
+                loops[ri] = loop
+                loops.pop(rj)
+                changed = True
+        out.extend((fid, loops[r]) for r in sorted(loops))
     return out
 
 

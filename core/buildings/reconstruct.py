@@ -9,15 +9,17 @@ building records which path it took and why.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import trimesh
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ..model.raster import Raster
 from .contour import ContourConfig, extract_contour
 from .denoise import voxel_noise_filter
+from .dormers import Dormer, DormerConfig, find_dormers
 from .geometry import points_in_polygon
 from .hull import Hull, build_hull, dedupe_planes
 from .model import BuildingModel, Surface, ring_normal
@@ -48,6 +50,7 @@ class ReconstructionConfig:
     roof: RoofConfig = field(default_factory=RoofConfig)
     volumetric: VolumetricConfig = field(default_factory=VolumetricConfig)
     overhang: OverhangConfig = field(default_factory=OverhangConfig)
+    dormers: DormerConfig = field(default_factory=DormerConfig)
 
 
 def solid_check(vertices: np.ndarray, rings: list[list[int]]) -> tuple[bool, float, str]:
@@ -76,21 +79,30 @@ def solid_check(vertices: np.ndarray, rings: list[list[int]]) -> tuple[bool, flo
     return True, float(m.volume), ""
 
 
-def _hull_2d(polygon, roof, ground_z, walls, lo, hi) -> Hull:
+def _hull_2d(polygon, roof, ground_z, walls, lo, hi, dormers: list[Dormer] = ()) -> Hull:
     cap = hi[2] - 1.0  # a roof plane extrapolated above the highest point is clipped flat there
+    # a dormer's planes but its last, the roof plane it stands on (among the roof planes already)
     planes = np.vstack([walls, [[0.0, 0.0, 1.0, -ground_z]], np.asarray([roof.planes[k] for k in sorted(roof.planes)]),
-                        [[0.0, 0.0, 1.0, -cap]]])
+                        *[d.planes[:-1] for d in dormers], [[0.0, 0.0, 1.0, -cap]]])
     labs = sorted(roof.planes)
+    # cells without a roof label (unresolved, or outside the contour on the grid but inside the outline) take their
+    # nearest label's roof: else the hull would be notched there wherever the planes cut small cells
+    L = roof.labels
+    near = ndimage.distance_transform_edt(~np.isin(L, labs), return_distances=False, return_indices=True)
+    filled = replace(roof, labels=L[near[0], near[1]])
 
     def inside(P: np.ndarray) -> np.ndarray:
         xy = P[:, :2]
         ok = points_in_polygon(xy, polygon) & (P[:, 2] > ground_z) & (P[:, 2] < cap)
-        lab = roof.label_at(xy)
+        lab = filled.label_at(xy)
         zr = np.full(len(P), -np.inf)
         for k in labs:
             m = lab == k
             zr[m] = plane_z(roof.planes[k], xy[m])
-        return ok & (P[:, 2] < zr)
+        ok &= P[:, 2] < zr
+        for d in dormers:
+            ok |= d.inside(P)
+        return ok
 
     return build_hull(planes, lo, hi, inside)
 
@@ -190,10 +202,13 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     path = "2d"
     reason = check.reason
     hull = None
+    dormers: list[Dormer] = []
     if cfg.force_path == "volumetric" or (not check.agree and cfg.force_path != "2d"):
         path = "volumetric"
     else:
-        hull = _hull_2d(polygon, roof, ground_z, walls, lo, hi)
+        dormers, not_dormers = find_dormers(xl, roof, polygon, cfg.dormers) if cfg.dormers.enabled else ([], [])
+        info.update(dormers=[d.kind for d in dormers], dormer_candidates_rejected=not_dormers)
+        hull = _hull_2d(polygon, roof, ground_z, walls, lo, hi, dormers)
         ok, _, why = solid_check(hull.vertices, [r for _, r in hull.faces])
         if not ok and cfg.force_path != "2d":
             path, reason = "volumetric", f"2D hull {why}"
@@ -251,7 +266,9 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     verts, extra = overhang_surfaces(hull.vertices, faces, polygon, widths, wall_of_edge, roof_of_face,
                                      cfg.overhang.thickness)
     if dsm is not None:  # the upper roof over an interior wall overhangs the lower one as at the outline
-        for seg, group in _interior_wall_runs(hull, faces, m, steps):
+        # not on the dormers' walls: the slope their DSM shows in front is the roof below them
+        dormer_walls = [pl for d in dormers for pl in d.planes if abs(pl[2]) < 1e-9]
+        for seg, group in _interior_wall_runs(hull, faces, m, steps + dormer_walls):
             w = overhang_widths(seg + offset[:2], dsm, cfg.overhang)[0]
             if np.isfinite(w) and w > 0:
                 verts, more = overhang_surfaces(verts, faces, seg, np.array([w, 0.0]), {0: group}, roof_of_face,
@@ -264,12 +281,12 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
 
 
 def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], n_outline: int,
-                        roof_edges: list[np.ndarray]) -> list[tuple[np.ndarray, list[int]]]:
+                        excluded: list[np.ndarray]) -> list[tuple[np.ndarray, list[int]]]:
     """The walls inside the outline that stand on facade points: the hull's vertical wall faces on planes other
-    than the ``n_outline`` outline walls' and the ``roof_edges`` (step walls along the roof labels' boundaries: at
-    the roof's edge, overhang included), grouped by plane and by the side they face (the lower roof's), each group
-    with its run as a segment ``(2, 2)`` whose right-hand side is that side (as an outline edge's outward side, for
-    :func:`.overhang.overhang_widths` and :func:`.overhang.overhang_surfaces`)."""
+    than the ``n_outline`` outline walls' and the ``excluded`` ones (step walls along the roof labels' boundaries:
+    at the roof's edge, overhang included; dormer walls), grouped by plane and by the side they face (the lower
+    roof's), each group with its run as a segment ``(2, 2)`` whose right-hand side is that side (as an outline
+    edge's outward side, for :func:`.overhang.overhang_widths` and :func:`.overhang.overhang_surfaces`)."""
     groups: dict[tuple[int, bool], list[int]] = {}
     normals: dict[tuple[int, bool], np.ndarray] = {}
     for fi, ((kind, ring), (pid, _)) in enumerate(zip(faces, hull.faces)):
@@ -277,7 +294,7 @@ def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], n_outlin
             continue
         P = hull.vertices[ring]
         n = ring_normal(P)
-        if abs(n[2]) > 1e-6 or any(np.abs(P @ e[:3] + e[3]).max() < 1e-6 for e in roof_edges):
+        if abs(n[2]) > 1e-6 or any(np.abs(P @ e[:3] + e[3]).max() < 1e-6 for e in excluded):
             continue
         key = (pid, bool(n[0] > 0 or (n[0] == 0 and n[1] > 0)))
         groups.setdefault(key, []).append(fi)

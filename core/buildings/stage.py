@@ -1,10 +1,10 @@
-"""The ``buildings`` stage: LOD2 buildings with discontinuities and roof overhangs.
+"""The ``buildings`` stage: LOD2 buildings with discontinuities, roof overhangs and dormers.
 
 Reads ``dense/points.npz`` (the kept dense points) and ``surface/dsm.tif``, ``dtm.tif``, ``buildings.tif`` and
 ``vegetation.tif``; detects the buildings (or takes user footprints from a GeoJSON file), reconstructs each one
 through the executor (in-process, processes or Dask) and writes ``buildings/buildings.json`` (the models, see
-:mod:`.model`) and ``buildings/report.json`` (per building: path, reason, closed solid, timings; failures with
-their reason).
+:mod:`.model`) and ``buildings/report.json`` (per building: path, reason, closed solid, timings, dormers and the
+candidates not taken with why; failures with their reason).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from ..model.raster import Raster
 from ..pipeline.atomic import write_json
 from ..pipeline.stage import Stage, StageResult
 from .detect import DetectConfig, building_labels, points_per_building, points_per_footprint, read_footprints
+from .dormers import DormerConfig
 from .model import BuildingModel, save_buildings
 from .overhang import OverhangConfig
 from .reconstruct import ReconstructionConfig, reconstruct_building
@@ -32,7 +33,8 @@ class BuildingsConfig:
     min_height, min_area : detection on the nDSM (m, m^2); use_masks : use the surface stage's building and
     vegetation masks (else roughness rejects vegetation); footprints : GeoJSON file of user footprints (empty:
     detect); voxel : noise filter cube (m, 0 = guessed); force_path : '' (automatic), '2d' or 'volumetric';
-    max_overhang, overhang_thickness : overhang search range and slab thickness (m)
+    max_overhang, overhang_thickness : overhang search range and slab thickness (m); dormers : model dormers
+    on the sloped roofs (:mod:`.dormers`); dormer_min_rise : height above its slope that marks a dormer (m)
     """
 
     min_height: float = 2.5
@@ -43,6 +45,8 @@ class BuildingsConfig:
     force_path: str = ""
     max_overhang: float = 1.5
     overhang_thickness: float = 0.2
+    dormers: bool = True
+    dormer_min_rise: float = 0.4
 
 
 def _window(r: Raster, xy: np.ndarray, margin: float) -> Raster:
@@ -96,7 +100,8 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
         labels, n, stats = building_labels(dsm, dtm, dcfg, bmask, vmask)
         dets = points_per_building(xyz, labels, dsm, dtm, dcfg)
     rcfg = ReconstructionConfig(voxel=cfg.voxel, force_path=cfg.force_path,
-                                overhang=OverhangConfig(max_width=cfg.max_overhang, thickness=cfg.overhang_thickness))
+                                overhang=OverhangConfig(max_width=cfg.max_overhang, thickness=cfg.overhang_thickness),
+                                dormers=DormerConfig(enabled=cfg.dormers, min_rise=cfg.dormer_min_rise))
     units = [(f"B{d.label:04d}", xyz[d.indices], d.ground_z, _window(dsm, xyz[d.indices, :2], 5.0), rcfg)
              for d in dets if len(d.indices) >= 50]
     skipped = [{"id": f"B{d.label:04d}", "reason": f"only {len(d.indices)} points"} for d in dets
@@ -112,12 +117,14 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
         "buildings": [{"id": m.id, "path": m.path, "reason": m.reason, "closed": m.info.get("closed"),
                        "solid_problem": m.info.get("solid_problem"), "seconds": m.info.get("seconds"),
                        "corners": len(m.footprint), "roof_planes": len(m.roof_planes),
-                       "overhangs": m.overhangs.tolist()} for m in models],
+                       "overhangs": m.overhangs.tolist(), "dormers": m.info.get("dormers", []),
+                       "dormer_candidates_rejected": m.info.get("dormer_candidates_rejected", [])} for m in models],
         "failures": failures,
     }
     write_json(out / "report.json", report)
     closed = sum(bool(m.info.get("closed")) for m in models)
     metrics = {"buildings": len(models), "closed": closed, "failures": len(failures),
+               "dormers": sum(len(m.info.get("dormers", [])) for m in models),
                "path_2d": sum(m.path == "2d" for m in models),
                "path_volumetric": sum(m.path == "volumetric" for m in models)}
     return StageResult(("buildings/buildings.json", "buildings/report.json"), metrics,
@@ -125,4 +132,4 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="buildings", run=run, config=BuildingsConfig, requires=("surface",),
-              description="LOD2 buildings with discontinuities and roof overhangs", version="9")
+              description="LOD2 buildings with discontinuities, roof overhangs and dormers", version="10")

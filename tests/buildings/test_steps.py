@@ -125,6 +125,37 @@ def test_hull_of_a_gabled_box_is_exact():
     assert vol == pytest.approx(10 * 6 * 4 + 10 * 6 * 2 / 2, abs=1e-6)
 
 
+def test_hull_roof_around_a_block_on_it_comes_in_two_pieces():
+    """A 10 x 10 x 5 m box with a 2 x 2 m block standing 2 m above the middle of its roof: the roof's facets
+    (eight, cut by the block's planes) cannot be one polygon (it has a hole), so they are joined into two, which
+    cover the roof exactly; the solid is closed with the box's and the block's volume."""
+    from oblique_city.core.buildings.model import ring_normal
+    from oblique_city.core.buildings.reconstruct import solid_check
+
+    planes = np.array([[1, 0, 0, 0], [-1, 0, 0, 10], [0, 1, 0, 0], [0, -1, 0, 10], [0, 0, 1, 0.0], [0, 0, 1, -5.0],
+                       [1, 0, 0, -4], [1, 0, 0, -6], [0, 1, 0, -4], [0, 1, 0, -6], [0, 0, 1, -7.0]])
+
+    def inside(p):
+        x, y, z = p.T
+        box = (x > 0) & (x < 10) & (y > 0) & (y < 10) & (z > 0) & (z < 5)
+        return box | ((x > 4) & (x < 6) & (y > 4) & (y < 6) & (z > 0) & (z < 7))
+
+    h = build_hull(planes, np.array([-2, -2, -2.0]), np.array([12, 12, 9.0]), inside)
+    roof = [r for pid, r in h.faces if pid == 5]
+    assert len(roof) == 2
+
+    def area(r):
+        p = h.vertices[r]
+        c = p - p.mean(0)
+        return float(np.linalg.norm(np.cross(c, np.roll(c, -1, 0)).sum(0)) / 2)
+
+    assert sum(area(r) for r in roof) == pytest.approx(96.0, abs=1e-6)
+    assert all(ring_normal(h.vertices[r])[2] > 0.99 for r in roof)
+    ok, vol, why = solid_check(h.vertices, [r for _, r in h.faces])
+    assert ok, why
+    assert vol == pytest.approx(500.0 + 8.0, abs=1e-6)
+
+
 def test_roof_outline_moves_onto_sparse_facades():
     """A 10 m x 8 m house with a 0.6 m overhang: the roof outline (what nadir points show) moves onto the walls
     where about one facade point per square metre shows them; corners within 0.1 m of the true footprint."""
