@@ -212,7 +212,7 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
         if not flips:
             break
         keep[list(flips)] = True
-    faces = _merge_coplanar(boundary)
+    faces = _merge_coplanar(vertices, boundary)
     faces = _drop_straight_vertices(vertices, faces)
     used = sorted({v for _, r in faces for v in r})
     remap = {v: i for i, v in enumerate(used)}
@@ -242,10 +242,10 @@ def _single_loop(rings: list[list[int]], members: list[int]) -> list[int] | None
     return loop if len(loop) == len(nxt) else None
 
 
-def _merge_coplanar(facets: list[tuple[int, list[int]]]) -> list[tuple[int, list[int]]]:
-    """Merge boundary facets of one plane into polygons without holes: facets sharing an edge are joined as long
-    as the union stays one simple loop (a plane's region around a hole, such as a roof around a dormer, ends up
-    in a few pieces)."""
+def _merge_coplanar(vertices: np.ndarray, facets: list[tuple[int, list[int]]]) -> list[tuple[int, list[int]]]:
+    """Merge boundary facets (rings into ``vertices (n, 3)``) of one plane into polygons without holes: facets
+    sharing an edge are joined as long as the union stays one simple loop (a plane's region around a hole, such as
+    a roof around a dormer, ends up in a few pieces)."""
     by_plane: dict[int, list[list[int]]] = {}
     for fid, ring in facets:
         by_plane.setdefault(fid, []).append(ring)
@@ -255,8 +255,13 @@ def _merge_coplanar(facets: list[tuple[int, list[int]]]) -> list[tuple[int, list
         for i, r in enumerate(rings):
             for a, b in zip(r, r[1:] + r[:1]):
                 edge_owner[(a, b)] = i
-        pairs = sorted({(min(i, j), max(i, j)) for (a, b), i in edge_owner.items()
-                        if (j := edge_owner.get((b, a))) is not None and j != i})
+        shared: dict[tuple[int, int], float] = {}
+        for (a, b), i in edge_owner.items():
+            j = edge_owner.get((b, a))
+            if j is not None and i < j:
+                shared[(i, j)] = shared.get((i, j), 0.0) + float(np.linalg.norm(vertices[a] - vertices[b]))
+        # the longest shared boundaries first: the cuts left where a hole forbids a merge are short ones
+        pairs = sorted(shared, key=lambda ij: (-shared[ij], ij))
         region = list(range(len(rings)))  # facet -> region id (a member facet)
         members = {i: [i] for i in range(len(rings))}
         loops = {i: r for i, r in enumerate(rings)}
