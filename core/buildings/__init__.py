@@ -14,6 +14,7 @@ Pipeline per building (:func:`.reconstruct.reconstruct_building`):
    dormers' planes, occupancy from the label grid joined with the dormers'); :mod:`.volumetric`: the fallback's
    planes when the check fails (region growing over voxels with their 3x3x3 blocks' planes, faces rising from the
    outline's edges by a vote), occupancy from the top surface snapped to those planes.
-6. :mod:`.overhang`: eave offsets on the DSM (zero crossing of the second directional derivative), overhang slabs.
+6. :mod:`.overhang`: eave offsets on the DSM (zero crossing of the second directional derivative, placed by a
+   two-line step fit, less the DSM's half-cell outward shift), overhang slabs.
 7. :mod:`.model`: the building model and ``buildings/buildings.json``; :mod:`.stage`: the ``buildings`` stage.
 """

@@ -1,10 +1,13 @@
 """Roof overhangs from the ortho DSM.
 
 The wall outline (from the facade points) is projected onto the DSM; each outline edge is moved along its
-outward normal to the sub-pixel zero crossing of the second directional derivative of the height map taken in
-the gradient direction (the eave: where the height drops fastest), measured on profiles across the edge and
-reduced by the median. The offset is the overhang width of that edge; :func:`overhang_surfaces` extends the roof
-polygons over it and closes the underside.
+outward normal to the eave, measured on profiles across the edge and reduced by the median: on each profile the
+sub-pixel zero crossing of the second directional derivative of the smoothed height map taken in the gradient
+direction (where the height drops fastest) finds the step, and a fit of a straight run on either side of it in
+the unsmoothed heights places it (the smoothed inflection is drawn towards a steep roof behind the eave). A DSM
+cell holds its highest point, which puts a step half a cell outward on average: that is taken off. The offset
+is the overhang width of that edge; :func:`overhang_surfaces` extends the roof polygons over it and closes the
+underside.
 """
 
 from __future__ import annotations
@@ -21,12 +24,16 @@ from .geometry import plane_line
 @dataclass(frozen=True)
 class OverhangConfig:
     """max_width : search range beyond the wall (m); smooth_px : Gaussian sigma (px) before derivatives;
-    min_width : narrower overhangs are set to 0 (m); thickness : overhang slab thickness (m)."""
+    min_width : narrower overhangs are set to 0 (m); thickness : overhang slab thickness (m); edge_shift_px :
+    how far outward the DSM puts a step edge (px), taken off the measured width: a cell of the surface stage's DSM
+    holds its highest supported point, so the eave's step lies at the outer side of the cell the eave crosses,
+    half a cell outward on average (without it the simulated city's widths came out 0.117 m = 0.75 px too wide)."""
 
     max_width: float = 1.5
     smooth_px: float = 1.0
     min_width: float = 0.15
     thickness: float = 0.2
+    edge_shift_px: float = 0.5
 
 
 def _derivatives(z: np.ndarray, cell: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -49,7 +56,8 @@ def edge_offsets(polygon: np.ndarray, dsm: Raster, start: float, stop: float,
     """Signed offset (m, outward positive) of the DSM's eave from each edge of a counter-clockwise
     ``polygon (m, 2)``: on profiles across the edge (every DSM cell along its middle 70 %, sampled from ``start``
     to ``stop`` metres outward), the sub-pixel zero crossing of the second derivative along the gradient next to
-    the steepest drop, reduced by the median over the profiles. NaN where no profile finds one."""
+    the steepest drop, placed by :func:`_step_fit`, reduced by the median over the profiles. NaN where no profile
+    finds one."""
     lo = polygon.min(0) - max(abs(start), abs(stop)) - 5 * dsm.cell
     hi = polygon.max(0) + max(abs(start), abs(stop)) + 5 * dsm.cell
     c0, r0 = np.floor(dsm.world_to_cell(np.array([[lo[0], hi[1]]]))[0]).astype(int)
@@ -85,8 +93,9 @@ def edge_offsets(polygon: np.ndarray, dsm: Raster, start: float, stop: float,
         pts = p0 + ts[:, None, None] * d + s[None, :, None] * nrm  # (profiles, samples, 2)
         g = gw.sample(pts.reshape(-1, 2)).reshape(len(ts), len(s))
         dd = dw.sample(pts.reshape(-1, 2)).reshape(len(ts), len(s))
+        zr = win.sample(pts.reshape(-1, 2)).reshape(len(ts), len(s))
         found = []
-        for gp, dp in zip(g, dd):
+        for gp, dp, zp in zip(g, dd, zr):
             if np.isnan(gp).all():
                 continue
             k = int(np.nanargmax(gp))
@@ -97,16 +106,36 @@ def edge_offsets(polygon: np.ndarray, dsm: Raster, start: float, stop: float,
                 den = dp[hit] - dp[hit + 1]
                 frac = np.where(den != 0, dp[hit] / np.where(den != 0, den, 1.0), 0.0)
                 cand = s[hit] + frac * step
-                found.append(cand[np.argmin(np.abs(cand - s[k]))])
+                found.append(_step_fit(s, zp, float(cand[np.argmin(np.abs(cand - s[k]))]), dsm.cell))
         if found:
             out[i] = float(np.median(found))
     return out
+
+
+def _step_fit(s: np.ndarray, z: np.ndarray, guess: float, cell: float, reach: float = 1.0) -> float:
+    """Where a height profile ``z`` over ``s (k,)`` steps: the position within two cells of ``guess`` that best
+    splits it into a straight run on either side (each ``reach`` long, least squares). Unlike the smoothed
+    profile's inflection it is not drawn towards a steep roof behind the eave."""
+    best, best_e = np.inf, guess
+    for e in s[(s > guess - 2 * cell) & (s < guess + 2 * cell)]:
+        sse = 0.0
+        for m in ((s >= e - reach) & (s < e), (s > e) & (s <= e + reach)):
+            if m.sum() < 3 or np.isnan(z[m]).any():
+                sse = np.inf
+                break
+            A = np.column_stack([np.ones(int(m.sum())), s[m]])
+            r = z[m] - A @ np.linalg.lstsq(A, z[m], rcond=None)[0]
+            sse += float(r @ r)
+        if sse < best:
+            best, best_e = sse, float(e)
+    return best_e
 
 
 def overhang_widths(polygon: np.ndarray, dsm: Raster, cfg: OverhangConfig = OverhangConfig()) -> np.ndarray:
     """Overhang width (m) of each outline edge (edge i from corner i to i+1 of the counter-clockwise
     ``polygon (m, 2)``); NaN where no eave was found."""
     w = edge_offsets(polygon, dsm, -2 * dsm.cell, cfg.max_width + 2 * dsm.cell, cfg.smooth_px)
+    w = w - cfg.edge_shift_px * dsm.cell
     return np.where(np.isnan(w), np.nan, np.where(w < cfg.min_width, 0.0, np.minimum(w, cfg.max_width)))
 
 

@@ -268,8 +268,8 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     if dsm is not None:  # the upper roof over an interior wall overhangs the lower one as at the outline
         # not on the dormers' walls: the slope their DSM shows in front is the roof below them
         dormer_walls = [pl for d in dormers for pl in d.planes if abs(pl[2]) < 1e-9]
-        for seg, group in _interior_wall_runs(hull, faces, m, steps + dormer_walls):
-            w = overhang_widths(seg + offset[:2], dsm, cfg.overhang)[0]
+        for seg, measured, group in _interior_wall_runs(hull, faces, m, steps + dormer_walls):
+            w = overhang_widths(measured + offset[:2], dsm, cfg.overhang)[0]
             if np.isfinite(w) and w > 0:
                 verts, more = overhang_surfaces(verts, faces, seg, np.array([w, 0.0]), {0: group}, roof_of_face,
                                                 cfg.overhang.thickness)
@@ -281,12 +281,14 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
 
 
 def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], n_outline: int,
-                        excluded: list[np.ndarray]) -> list[tuple[np.ndarray, list[int]]]:
+                        excluded: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, list[int]]]:
     """The walls inside the outline that stand on facade points: the hull's vertical wall faces on planes other
     than the ``n_outline`` outline walls' and the ``excluded`` ones (step walls along the roof labels' boundaries:
     at the roof's edge, overhang included; dormer walls), grouped by plane and by the side they face (the lower
-    roof's), each group with its run as a segment ``(2, 2)`` whose right-hand side is that side (as an outline
-    edge's outward side, for :func:`.overhang.overhang_widths` and :func:`.overhang.overhang_surfaces`)."""
+    roof's). Each group comes with its run as a segment ``(2, 2)`` whose right-hand side is that side (as an
+    outline edge's outward side, for :func:`.overhang.overhang_surfaces`), the part of the run where the wall
+    reaches the upper roof as a segment ``(2, 2)`` (where :func:`.overhang.overhang_widths` measures), and the
+    face indices."""
     groups: dict[tuple[int, bool], list[int]] = {}
     normals: dict[tuple[int, bool], np.ndarray] = {}
     for fi, ((kind, ring), (pid, _)) in enumerate(zip(faces, hull.faces)):
@@ -306,8 +308,29 @@ def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], n_outlin
         P = np.vstack([hull.vertices[faces[fi][1], :2] for fi in group])
         t = P @ d
         base = P[0] - (P[0] @ d) * d
-        out.append((np.array([base + t.min() * d, base + t.max() * d]), group))
+        # the overhang is measured where the wall reaches the upper roof (its top within 1 m of the highest): the
+        # plane also holds lower wall pieces beyond it (the demo church's tower wall runs on past the tower)
+        ts = np.arange(t.min(), t.max() + 0.05, 0.1)
+        top = np.max([_ring_top(hull.vertices[faces[fi][1]] @ np.append(d, 0.0), hull.vertices[faces[fi][1], 2], ts)
+                      for fi in group], axis=0)
+        high = ts[top >= np.nanmax(top) - 1.0]
+        out.append((np.array([base + t.min() * d, base + t.max() * d]),
+                    np.array([base + high.min() * d, base + high.max() * d]), group))
     return out
+
+
+def _ring_top(t: np.ndarray, z: np.ndarray, ts: np.ndarray) -> np.ndarray:
+    """Top height ``(k,)`` of a polygon given by its vertices' coordinates along a line ``t (n,)`` and heights
+    ``z (n,)`` at the positions ``ts (k,)`` (-inf where it does not reach)."""
+    top = np.full(len(ts), -np.inf)
+    for a, b in zip(range(len(t)), list(range(1, len(t))) + [0]):
+        lo, hi = min(t[a], t[b]), max(t[a], t[b])
+        m = (ts >= lo) & (ts <= hi)
+        if not m.any():
+            continue
+        f = (ts[m] - t[a]) / (t[b] - t[a]) if t[b] != t[a] else np.ones(int(m.sum()))
+        top[m] = np.maximum(top[m], np.where(t[b] != t[a], z[a] + f * (z[b] - z[a]), max(z[a], z[b])))
+    return top
 
 
 def _surface_density(xyz: np.ndarray, sample: int = 2000) -> float:

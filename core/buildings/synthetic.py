@@ -207,7 +207,8 @@ class SyntheticBuilding:
 
     def dsm(self, cell: float, noise: float, rng: np.random.Generator, margin: float = 4.0,
             crs: str = "EPSG:25832") -> tuple[Raster, Raster]:
-        """Ortho DSM and DTM over the building (max height per cell centre plus noise)."""
+        """Ortho DSM and DTM over the building: per cell the highest of 4 x 4 samples of the top surface inside it
+        (as the surface stage's DSM holds each cell's highest point), plus noise."""
         fp = np.concatenate([self.footprint, self.to_world(np.array([[p.u0, p.v0] for p in self.parts])),
                              self.to_world(np.array([[p.u1, p.v1] for p in self.parts]))])
         lo = np.floor((fp.min(0) - margin) / cell) * cell
@@ -216,7 +217,10 @@ class SyntheticBuilding:
         r = Raster(np.zeros((rows, cols)), float(lo[0]), float(hi[1]), cell, crs)
         xc, yc = r.cell_centers()
         X, Y = np.meshgrid(xc, yc)
-        z = self.height(np.column_stack([X.ravel(), Y.ravel()])).reshape(rows, cols)
+        z = np.full((rows, cols), -np.inf)
+        for dx in (np.arange(4) - 1.5) * cell / 4:
+            for dy in (np.arange(4) - 1.5) * cell / 4:
+                z = np.maximum(z, self.height(np.column_stack([X.ravel() + dx, Y.ravel() + dy])).reshape(rows, cols))
         z = z + rng.normal(0, noise, z.shape)
         dtm = Raster(np.full((rows, cols), self.ground), r.x0, r.y0, cell, crs)
         return Raster(z, r.x0, r.y0, cell, crs), dtm

@@ -74,7 +74,7 @@ def test_roof_height_error_sees_a_raised_roof_and_a_missing_one(models, syntheti
 def test_upper_roof_overhangs_the_lower_one_at_a_step():
     """A 10 m flat part beside a 5 m one, each with a 0.4 m overhang: the upper roof reaches 0.4 m over the lower one
     past the step wall (an overhang slab, as at the outline), measured in the DSM like the outline's; the top
-    surface then matches the truth's to the noise, overhang band included."""
+    surface then matches the truth's to the noise, overhang band included (but for samples on its very edge)."""
     from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
     from oblique_city.core.evaluate.buildings import model_top_height
 
@@ -91,8 +91,12 @@ def test_upper_roof_overhangs_the_lower_one_at_a_step():
     under = model_top_height(m, b.to_world(np.column_stack([np.full(10, 9.25), v])))
     beyond = model_top_height(m, b.to_world(np.column_stack([np.full(10, 9.6), v])))
     assert np.all(np.abs(under - 10.0) < 0.1) and np.all(np.abs(beyond - 5.0) < 0.1)
-    s = score_building(BuildingTruth.from_synthetic(b), m)
-    assert s.roof_rmse < 0.05 and s.roof_coverage == 1.0
+    truth = BuildingTruth.from_synthetic(b)
+    s = score_building(truth, m)
+    assert s.roof_coverage == 1.0
+    # the top surface away from the overhang's edge (a sample on the edge itself is 5 m off for 1 cm)
+    far = np.abs(b.to_local(truth.top[:, :2])[:, 0] - 9.4) > 0.05
+    assert np.sqrt(np.mean(roof_height_errors(truth, m)[far] ** 2)) < 0.05
 
 
 def test_overhang_surfaces_and_semantics(models):
