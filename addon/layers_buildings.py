@@ -115,7 +115,7 @@ def build_buildings(scene, ws: Workspace) -> str:
 
 def fill_building_list(scene, ws: Workspace, buildings: list[BuildingModel] | None = None) -> int:
     """Fill ``scene.oblique_city.building_list`` from ``buildings/report.json`` (path, closed solid, solid
-    problem, seconds; failures with their reason) and the models (``buildings``, else ``buildings.json``) for
+    problem, seconds, dormers; failures with their reason) and the models (``buildings``, else ``buildings.json``) for
     the surface counts; models the report does not list (or all, without a readable report) are added from the
     models alone. The active index is reset (nothing selected). Returns the number of items."""
     if buildings is None:
@@ -129,7 +129,8 @@ def fill_building_list(scene, ws: Workspace, buildings: list[BuildingModel] | No
     rows = [dict(r) for r in report.get("buildings", [])]
     listed = {r.get("id") for r in rows}
     rows += [{"id": b.id, "path": b.path, "closed": b.info.get("closed"), "solid_problem": b.info.get("solid_problem"),
-              "seconds": b.info.get("seconds")} for b in buildings if b.id not in listed]
+              "seconds": b.info.get("seconds"), "dormers": b.info.get("dormers", [])}
+             for b in buildings if b.id not in listed]
     settings = scene.oblique_city
     settings.building_index = -1
     items = settings.building_list
@@ -140,6 +141,7 @@ def fill_building_list(scene, ws: Workspace, buildings: list[BuildingModel] | No
         item.status = "closed solid" if item.closed else f"open: {r.get('solid_problem') or 'not checked'}"
         item.seconds = float(r["seconds"]) if isinstance(r.get("seconds"), (int, float)) else 0.0
         item.surfaces = len(models[item.name].surfaces) if item.name in models else 0
+        item.dormers = len(r.get("dormers") or [])
     for f in report.get("failures", []):
         item = items.add()
         item.name, item.failed, item.status = str(f["id"]), True, f"failed: {f.get('reason') or '?'}"

@@ -248,6 +248,7 @@ class CityBuildingItem(bpy.types.PropertyGroup):
     status: StringProperty(name="Status", description="closed solid, open: <problem> or failed: <reason>")
     seconds: FloatProperty(name="Seconds", description="Reconstruction time")
     surfaces: IntProperty(name="Surfaces", description="Number of surfaces of the model")
+    dormers: IntProperty(name="Dormers", description="Dormers modelled on the building's roofs")
 
 
 def _select_active_building(self, context) -> None:

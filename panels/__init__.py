@@ -294,7 +294,8 @@ def draw_buildings(layout, context) -> None:
             box = layout.box()
             box.label(text=f"{item.name}: {item.status}"[:80], icon="CANCEL" if item.failed else "OBJECT_DATA")
             if not item.failed:
-                box.label(text=f"{item.path} path, {item.surfaces} surfaces, {item.seconds:.1f} s")
+                dormers = f", {item.dormers} dormers" if item.dormers else ""
+                box.label(text=f"{item.path} path, {item.surfaces} surfaces{dormers}, {item.seconds:.1f} s")
         return
     attention = [(b["id"], f"open solid: {b.get('solid_problem') or '?'}", "ERROR") for b in done
                  if not b.get("closed")] + [(f["id"], f"failed: {f.get('reason', '?')}", "CANCEL") for f in failed]

@@ -27,7 +27,7 @@ pytestmark = pytest.mark.xdist_group("bpy")
 REPORT = {
     "detection": {},
     "buildings": [{"id": "B0001", "path": "2d", "reason": "test", "closed": True, "solid_problem": None,
-                   "seconds": 1.25},
+                   "seconds": 1.25, "dormers": ["gabled", "shed"]},
                   {"id": "B0002", "path": "volumetric", "reason": "test", "closed": False,
                    "solid_problem": "2 open edges", "seconds": 3.5}],
     "failures": [{"id": "B0007", "reason": "only 12 points"},
@@ -70,11 +70,11 @@ def built_scene(bpy, w: Workspace):
 def test_list_holds_buildings_and_failures(addon, ws):
     scene = built_scene(addon, ws)
     items = scene.oblique_city.building_list
-    rows = [(i.name, i.path, i.closed, i.failed, i.status, i.seconds, i.surfaces) for i in items]
-    assert rows == [("B0001", "2d", True, False, "closed solid", 1.25, 8),
-                    ("B0002", "volumetric", False, False, "open: 2 open edges", 3.5, 8),
-                    ("B0007", "", False, True, "failed: only 12 points", 0.0, 0),
-                    ("B0009", "", False, True, "failed: roof: no roof plane found", 0.0, 0)]
+    rows = [(i.name, i.path, i.closed, i.failed, i.status, i.seconds, i.surfaces, i.dormers) for i in items]
+    assert rows == [("B0001", "2d", True, False, "closed solid", 1.25, 8, 2),
+                    ("B0002", "volumetric", False, False, "open: 2 open edges", 3.5, 8, 0),
+                    ("B0007", "", False, True, "failed: only 12 points", 0.0, 0, 0),
+                    ("B0009", "", False, True, "failed: roof: no roof plane found", 0.0, 0, 0)]
     assert scene.oblique_city.building_index == -1
 
 
@@ -137,7 +137,12 @@ def test_panel_draws_the_list_and_the_options(addon, ws):
     assert [e[1] for e in log if e[0] == "operator"] == ["city.run_stages", "city.refresh_buildings"]
     assert [e[1] for e in log if e[0] == "prop"] == option_fields("buildings")
     assert option_fields("buildings") == ["min_height", "min_area", "use_masks", "footprints", "voxel",
-                                          "force_path", "max_overhang", "overhang_thickness"]
+                                          "force_path", "max_overhang", "overhang_thickness", "dormers",
+                                          "dormer_min_rise"]
+    settings.building_index = 0
+    layout = ListLayout()
+    panel.draw(SimpleNamespace(layout=layout), bpy.context)
+    assert "2d path, 8 surfaces, 2 dormers, 1.2 s" in [e[1] for e in layout.log if e[0] == "label"]
 
     rows = []
     for item in settings.building_list:
