@@ -1,5 +1,6 @@
 """The ``match`` stage: connectivity graph, SIFT features, guided matching along graph edges, tracks, and
-(option ``lsm_refine``) least-squares matching refinement of the track observations.
+(option ``lsm_refine``) least-squares matching refinement of the track observations. SIFT (one image a unit) and
+the pair matching (:data:`PAIRS_PER_UNIT` consecutive edges a unit) go through the run's executor.
 
 Writes ``matching/graph.json`` (nodes, edges with overlap and match counts; weak pairs dropped),
 ``matching/ties.npz`` (tracks with their image observations) and ``matching/features/<n>.npz`` (keypoints and
@@ -8,12 +9,16 @@ descriptors per image, reused when the stage reruns with the same feature count)
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ConfigError, InputError, WorkspaceError
+from ..io.validate import resolve_image
+from ..model import CameraModel, ImageBlock, Pose
 from ..pipeline.atomic import atomic_path, write_json
 from ..pipeline.stage import Stage, StageResult
 from .features import MatchOptions, guided_match, sift_features, verify
@@ -59,19 +64,117 @@ def _ground_height(block, cfg: MatchConfig) -> float:
     return float(np.median(z)) if z else 0.0
 
 
-def _read_grey(block, iid: str) -> np.ndarray:
-    import cv2
-
+def _image_path(block, iid: str) -> str:
     img = block.images[iid]
     if img.file is None:
         raise InputError(f"image '{iid}' has no file", field="file")
-    p = Path(img.file)
-    if not p.is_absolute() and block.image_root:
-        p = Path(block.image_root) / p
-    grey = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+    return str(resolve_image(block, img.file))
+
+
+def _read_grey(path: str, iid: str) -> np.ndarray:
+    import cv2
+
+    grey = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
     if grey is None:
-        raise InputError(f"cannot read image '{iid}'", path=str(p), field="file")
+        raise InputError(f"cannot read image '{iid}'", path=path, field="file")
     return grey
+
+
+def _cached(path: Path, iid: str, max_features: int) -> bool:
+    """Whether ``path`` holds this image's features at this feature count and version."""
+    if not path.exists():
+        return False
+    with np.load(path) as z:
+        return (str(z["image"]) == iid and int(z["max_features"]) == max_features
+                and "version" in z.files and int(z["version"]) == FEATURES_VERSION)
+
+
+@dataclass(frozen=True)
+class FeatureTask:
+    """One image whose SIFT features :func:`extract_features` writes to ``out`` (``threads``: OpenCV threads of the
+    worker, 0 = OpenCV's default, 1 when images run in parallel processes)."""
+
+    image_id: str
+    path: str
+    out: str
+    max_features: int
+    threads: int = 0
+
+
+@contextmanager
+def _opencv_threads(n: int) -> Iterator[None]:
+    """OpenCV uses ``n`` threads inside the block (0: leave them as they are)."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    if n > 0:
+        cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
+def extract_features(task: FeatureTask) -> None:
+    """Executor unit of the ``match`` stage: SIFT of one image, written to its feature cache file."""
+    with _opencv_threads(task.threads):
+        u, d = sift_features(_read_grey(task.path, task.image_id), task.max_features)
+    with atomic_path(Path(task.out), suffix=".npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, uv=u, des=d, image=task.image_id, max_features=task.max_features, version=FEATURES_VERSION)
+
+
+PAIRS_PER_UNIT = 12
+"""Graph edges per executor unit of the pair matching. The edges of an image with its neighbours follow each other
+in the graph, so a unit of consecutive edges reads about as many feature files as it has edges."""
+
+
+@dataclass(frozen=True)
+class PairBatch:
+    """Consecutive graph edges matched by one executor unit (:func:`match_pairs`).
+
+    edges : ``(k, 2)`` image indices; features, cameras, poses : the feature cache file, camera and approximate
+    pose of each image index the edges use; threads : OpenCV threads of the worker (0 = OpenCV's default)
+    """
+
+    edges: np.ndarray
+    features: dict[int, str]
+    cameras: dict[int, CameraModel]
+    poses: dict[int, Pose]
+    opt: MatchOptions
+    threads: int = 0
+
+
+def match_pairs(batch: PairBatch) -> list[np.ndarray]:
+    """Executor unit of the ``match`` stage: guided matching and verification of a few graph edges, each image's
+    keypoints and descriptors read once from its feature cache file (nothing large is pickled to the worker).
+    Returns the verified ``(k, 2)`` index pairs of each edge, in edge order."""
+    feats = {}
+    for k, path in batch.features.items():
+        with np.load(path) as z:
+            feats[k] = z["uv"], z["des"]
+    out = []
+    with _opencv_threads(batch.threads):
+        for a, b in batch.edges:
+            (uv_a, des_a), (uv_b, des_b) = feats[a], feats[b]
+            ca, cb = batch.cameras[a], batch.cameras[b]
+            m = guided_match(uv_a, des_a, uv_b, des_b, ca, batch.poses[a], cb, batch.poses[b], batch.opt)
+            if len(m):
+                m = m[verify(uv_a[m[:, 0]], uv_b[m[:, 1]], ca, cb, batch.opt.ransac_px)]
+            out.append(m)
+    return out
+
+
+def pair_batches(block: ImageBlock, ids: list[str], edges: np.ndarray, feature_files: list[str], opt: MatchOptions,
+                 threads: int = 0, size: int = PAIRS_PER_UNIT) -> list[PairBatch]:
+    """The edges cut into units of ``size`` consecutive edges (their order kept), with what each unit needs."""
+    out = []
+    for k in range(0, len(edges), size):
+        e = edges[k:k + size]
+        used = [int(i) for i in np.unique(e)]
+        imgs = {i: block.images[ids[i]] for i in used}
+        out.append(PairBatch(e, {i: feature_files[i] for i in used}, {i: block.camera_of(imgs[i]) for i in used},
+                             {i: imgs[i].pose_approx for i in used}, opt, threads))
+    return out
 
 
 def run(ws, cfg: MatchConfig, ctx) -> StageResult:
@@ -87,33 +190,26 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
         raise ConfigError(f"match.tie_source '{cfg.tie_source}' unknown (use images or file)")
     feat_dir = out / "features"
     feat_dir.mkdir(parents=True, exist_ok=True)
-    uv, des = [], []
-    for k, iid in enumerate(ids):
-        ctx.progress(k, len(ids) * 2, f"features {iid}")
-        f = feat_dir / f"{k:06d}.npz"
-        if f.exists():
-            with np.load(f) as z:
-                if (str(z["image"]) == iid and int(z["max_features"]) == cfg.max_features
-                        and "version" in z.files and int(z["version"]) == FEATURES_VERSION):
-                    uv.append(z["uv"])
-                    des.append(z["des"])
-                    continue
-        u, d = sift_features(_read_grey(block, iid), cfg.max_features)
-        with atomic_path(f, suffix=".npz") as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, uv=u, des=d, image=iid, max_features=cfg.max_features, version=FEATURES_VERSION)
-        uv.append(u)
-        des.append(d)
+    executor = ctx.get_executor()
+    threads = 1 if getattr(executor, "mode", "inline") != "inline" else 0  # one OpenCV thread per process
+    files = [str(feat_dir / f"{k:06d}.npz") for k in range(len(ids))]
+    todo = [FeatureTask(iid, _image_path(block, iid), files[k], cfg.max_features, threads)
+            for k, iid in enumerate(ids) if not _cached(Path(files[k]), iid, cfg.max_features)]
+    total = 2 * len(ids)
+    ctx.progress(len(ids) - len(todo), total, f"features: {len(todo)} images to extract")
+    executor.map(extract_features, todo,
+                 on_done=lambda d, t: ctx.progress(len(ids) - t + d, total, f"features {d}/{t}"))
+    uv = []
+    for f in files:
+        with np.load(f) as z:
+            uv.append(z["uv"])
     opt = MatchOptions(max_features=cfg.max_features, ratio=cfg.ratio, band_px=cfg.band_px, z_lo=z0 - 5.0,
                        z_hi=z0 + cfg.height_range, ransac_px=cfg.ransac_px, min_matches=cfg.min_matches)
+    batches = pair_batches(block, ids, graph.edges, files, opt, threads)
+    found = executor.map(match_pairs, batches, on_done=lambda d, t: ctx.progress(
+        len(ids) + d * len(ids) // t, total, f"matched {d}/{t} units of {PAIRS_PER_UNIT} pairs"))
     matches = {}
-    for e, (a, b) in enumerate(graph.edges):
-        ctx.progress(len(ids) + e * len(ids) // max(len(graph.edges), 1), len(ids) * 2, "matching")
-        ia, ib = ids[a], ids[b]
-        ca, cb = block.camera_of(ia), block.camera_of(ib)
-        pa, pb = block.images[ia].pose_approx, block.images[ib].pose_approx
-        m = guided_match(uv[a], des[a], uv[b], des[b], ca, pa, cb, pb, opt)
-        if len(m):
-            m = m[verify(uv[a][m[:, 0]], uv[b][m[:, 1]], ca, cb, opt.ransac_px)]
+    for e, ((a, b), m) in enumerate(zip(graph.edges, [m for ms in found for m in ms], strict=True)):
         graph.matches[e] = len(m)
         if len(m) >= opt.min_matches:
             matches[(int(a), int(b))] = m
@@ -123,7 +219,8 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     if cfg.lsm_refine and ties.n_obs:
         from .lsm import refine_ties
 
-        ties, st = refine_ties(ties, block, lambda iid: _read_grey(block, iid), progress=ctx.progress)
+        ties, st = refine_ties(ties, block, lambda iid: _read_grey(_image_path(block, iid), iid),
+                               progress=ctx.progress)
         lsm_metrics = {"lsm_" + k: v for k, v in st.as_dict().items()}
     ties.save(str(out / "ties.npz"))
     write_json(out / "graph.json", graph.to_dict(block))

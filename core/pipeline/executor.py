@@ -1,8 +1,8 @@
 """One executor for independent units of work: in-process, local processes, or a Dask cluster.
 
-Stages hand their independent units (oblique sub-block adjustments, dense pairs, buildings, atlases) to
-:meth:`Executor.map`; the run's configuration decides where they run. Functions and arguments must be picklable
-(module-level functions) for the ``processes`` and ``dask`` modes.
+Stages hand their independent units (SIFT and pair matching, oblique sub-block adjustments, dense pairs,
+buildings, atlases) to :meth:`Executor.map`; the run's configuration decides where they run. Functions and
+arguments must be picklable (module-level functions) for the ``processes`` and ``dask`` modes.
 """
 
 from __future__ import annotations

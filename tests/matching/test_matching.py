@@ -1,6 +1,9 @@
-"""Connectivity graph, guided matching, verification, tracks and SIFT on rendered views of a textured plane."""
+"""Connectivity graph, guided matching, verification, tracks and SIFT on rendered views of a textured plane; the
+stage's pair matching in worker processes."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
@@ -8,9 +11,11 @@ import pytest
 from oblique_city.core.geometry.projection import intersect_with_plane_z, project
 from oblique_city.core.matching.features import MatchOptions, guided_match, sift_features, verify
 from oblique_city.core.matching.graph import GraphOptions, build_graph, convex_overlap, footprints
-from oblique_city.core.matching.stage import pair_counts
+from oblique_city.core.matching.stage import FEATURES_VERSION, PAIRS_PER_UNIT, MatchConfig, pair_counts, run
 from oblique_city.core.matching.tracks import build_tracks
-from oblique_city.core.model import CameraModel, Pose
+from oblique_city.core.model import CameraModel, Image, ImageBlock, Pose, TiePoints
+from oblique_city.core.pipeline import RunContext, Workspace
+from oblique_city.core.pipeline.executor import Executor
 from oblique_city.core.simulate.observations import SimulationConfig, look_rotation, simulate_block
 
 
@@ -153,3 +158,68 @@ def test_sift_keypoints_use_the_pixel_centre_origin():
     close = d < 1.0
     assert close.sum() > 500
     assert np.all(np.abs(np.median(ua[close] - ub[i[close]], axis=0)) < 0.05)
+
+
+def _feature_workspace(path) -> tuple[Workspace, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """A workspace with a 4 x 5 grid of nadir views and their feature cache files: noisy projections of 3000 points
+    (descriptors of their point plus noise) among 300 random keypoints, in shuffled order. Returns the workspace and
+    each image's keypoints and descriptors."""
+    rng = np.random.default_rng(7)
+    cam = CameraModel(id="c", width=1200, height=900, fx=1500.0, fy=1500.0, cx=599.5, cy=449.5, k1=-0.03)
+    block = ImageBlock(crs="EPSG:25832")
+    block.add_camera(cam)
+    xyz = np.column_stack([rng.uniform(-250, 550, 3000), rng.uniform(-200, 650, 3000), rng.uniform(0, 30, 3000)])
+    des = rng.normal(size=(3000, 128)).astype(np.float32)
+    feats = {}
+    for k in range(20):
+        tilt = rng.normal(0, 0.02, 3) + [0.0, 0.0, -1.0]
+        pose = Pose(look_rotation(tilt, np.array([0.0, -1.0, 0.0])), [100.0 * (k % 4), 120.0 * (k // 4), 500.0])
+        block.add_image(Image(id=f"i{k:02d}", camera_id="c", pose_approx=pose))
+        uv, _ = project(cam, pose, xyz)
+        seen = np.flatnonzero(cam.contains(uv))
+        uv = np.vstack([uv[seen] + rng.normal(0, 0.3, (len(seen), 2)), rng.uniform([0, 0], [1199, 899], (300, 2))])
+        d = np.vstack([des[seen] + rng.normal(0, 0.3, (len(seen), 128)), rng.normal(size=(300, 128))])
+        order = rng.permutation(len(uv))
+        feats[f"i{k:02d}"] = uv[order], d[order].astype(np.float32)
+    ws = Workspace.create(path, "EPSG:25832")
+    ws.save_block(block)
+    (path / "matching" / "features").mkdir(parents=True)
+    for k, iid in enumerate(ws.load_block(adjusted=False).images):
+        np.savez(path / "matching" / "features" / f"{k:06d}.npz", uv=feats[iid][0], des=feats[iid][1], image=iid,
+                 max_features=6000, version=FEATURES_VERSION)
+    return ws, feats
+
+
+def test_match_stage_in_worker_processes_gives_the_tie_points_of_pairs_matched_one_by_one(tmp_path):
+    """The stage's pair matching, cut into executor units, gives in worker processes and inline the matches of
+    the graph edges matched one after the other: the same graph counts and tie point arrays."""
+    ws, feats = _feature_workspace(tmp_path / "ws")
+    cfg = MatchConfig(z_ref=0.0, height_range=40.0, lsm_refine=False, max_features=6000)
+    got = {}
+    for mode in ("inline", "processes"):
+        with Executor(mode, workers=2) as ex:
+            run(ws, cfg, RunContext(executor=ex))
+        graph = json.loads(ws.path("matching", "graph.json").read_text())
+        got[mode] = graph, TiePoints.load(str(ws.path("matching", "ties.npz")))
+    block = ws.load_block(adjusted=False)
+    g = build_graph(block, GraphOptions(min_overlap=cfg.min_overlap, max_axis_angle_deg=cfg.max_axis_angle_deg,
+                                        z_ref=0.0, max_neighbours=cfg.max_neighbours))
+    assert len(g.edges) > 3 * PAIRS_PER_UNIT  # several units, finishing in any order in the processes
+    opt = MatchOptions(ratio=cfg.ratio, band_px=cfg.band_px, z_lo=-5.0, z_hi=40.0, ransac_px=cfg.ransac_px)
+    ids, matches, counts = g.image_ids, {}, {}
+    for a, b in g.edges:
+        (ua, da), (ub, db) = feats[ids[a]], feats[ids[b]]
+        ca, pa, pb = block.camera_of(ids[a]), block.images[ids[a]].pose_approx, block.images[ids[b]].pose_approx
+        m = guided_match(ua, da, ub, db, ca, pa, ca, pb, opt)
+        m = m[verify(ua[m[:, 0]], ub[m[:, 1]], ca, ca, opt.ransac_px)]
+        counts[(int(a), int(b))] = len(m)
+        if len(m) >= cfg.min_matches:
+            matches[(int(a), int(b))] = m
+    ref = build_tracks([feats[i][0] for i in ids], matches, ids, min_rays=cfg.min_rays)
+    assert ref.n_tracks > 1000
+    for graph, ties in got.values():
+        assert {(e["a"], e["b"]): e["matches"] for e in graph["edges"]} == {
+            k: n for k, n in counts.items() if n >= cfg.min_matches}
+        for name in ("xyz", "obs_track", "obs_image", "obs_uv"):
+            np.testing.assert_array_equal(getattr(ties, name), getattr(ref, name))
+        assert ties.image_ids == ref.image_ids
