@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -135,8 +136,9 @@ def add_commands(subparsers) -> None:
     s = subparsers.add_parser("demo", help="simulate the default block, import it and run every stage into OUT")
     s.add_argument("out", nargs="?", default="demo", help="output folder (default: demo)")
     s.add_argument("--stages", help="comma-separated stages (default: all)")
-    s.add_argument("--executor", choices=("inline", "processes", "dask"), default="inline")
-    s.add_argument("--workers", type=int, default=2)
+    # the demo uses the machine: a local process pool, a worker per core (at most four)
+    s.add_argument("--executor", choices=("inline", "processes", "dask"), default="processes")
+    s.add_argument("--workers", type=int, default=max(1, min(4, os.cpu_count() or 1)))
     s.add_argument("--scheduler", help="Dask scheduler address")
     s.add_argument("--json-progress", action="store_true", help="progress as JSON lines on stdout")
     s.set_defaults(func=cmd_demo)

@@ -362,18 +362,50 @@ class RefineStats:
         return asdict(self)
 
 
+@dataclass(frozen=True, eq=False)
+class LsmUnit:
+    """The observations of one target image for :func:`lsm_unit`: ``read_image(image_id)`` gives the image (a
+    picklable callable when units run in worker processes); ``templates (n, p, p)``, ``start (n, 2)``,
+    ``affine (n, 2, 2)`` as :func:`lsm_match` takes them."""
+
+    read_image: Callable[[str], np.ndarray]
+    image_id: str
+    templates: np.ndarray
+    start: np.ndarray
+    affine: np.ndarray
+    opt: LsmOptions
+
+
+def lsm_unit(unit: LsmUnit) -> LsmResult:
+    """Executor unit of :func:`refine_ties`: the reference patches matched into one target image."""
+    return lsm_match(unit.templates.astype(np.float32), unit.read_image(unit.image_id), unit.start, unit.affine,
+                     unit.opt)
+
+
+def template_unit(item: tuple[Callable[[str], np.ndarray], str, np.ndarray, LsmOptions]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Executor unit of :func:`refine_ties`: the reference patches ``(n, p, p)`` (uint8 for uint8 images) of one
+    reference image ``(read_image, image_id, centres (n, 2) on whole pixels, options)`` and their inside mask."""
+    read_image, iid, centres, opt = item
+    img = read_image(iid)
+    patch, ok = extract_patches(img, centres, opt.half, opt.interpolation)
+    return (np.rint(patch).astype(np.uint8) if img.dtype == np.uint8 else patch), ok
+
+
 def refine_ties(ties: TiePoints, block, read_image: Callable[[str], np.ndarray], opt: LsmOptions = LsmOptions(),
                 progress: Callable[[int, int, str], None] | None = None,
-                drop_failed: bool = True) -> tuple[TiePoints, RefineStats]:
+                drop_failed: bool = True, executor=None) -> tuple[TiePoints, RefineStats]:
     """Refine every non-reference observation of ``ties`` by LSM (module docstring); the reference patches are
     cut on whole pixels around the rounded reference position and the fraction is carried by the affine map.
 
     ``read_image(image_id)`` returns the grey image ``(h, w)``; each image is read twice (once as a reference,
-    once as a target), so memory holds one image plus the templates ``(n_tracks, p, p)`` (uint8 for uint8
-    images). Returns new tie points (refined ``obs_uv``) and the counts. ``drop_failed`` removes the
-    observations LSM could not confirm (on the demo block most of them are mismatches: 2.5% of the tracks miss
-    their true point by 1.5 px afterwards against 6.5% when they keep their SIFT position) and the tracks left
-    with one ray; else they keep their position."""
+    once as a target). The reference images (:func:`template_unit`) and then the target images (:class:`LsmUnit`
+    items for :func:`lsm_unit`) go through ``executor`` (``map(fn, items, on_done)``, see pipeline.executor) when
+    one is given, one after the other here otherwise; memory holds an image per worker and the templates
+    ``(n_tracks, p, p)`` (uint8 for uint8 images) twice while the units exist. Returns new tie points (refined
+    ``obs_uv``) and the counts. ``drop_failed`` removes the observations LSM could not confirm (on the demo block
+    most of them are mismatches: 2.5% of the tracks miss their true point by 1.5 px afterwards against 6.5% when
+    they keep their SIFT position) and the tracks left with one ray; else they keep their position."""
     ids = ties.image_ids
     ref = choose_references(ties, block)
     aff = initial_affines(ties, block, ref)
@@ -389,31 +421,41 @@ def refine_ties(ties: TiePoints, block, read_image: Callable[[str], np.ndarray],
     centre[has] = np.round(ties.obs_uv[ref[has]])
     frac = np.zeros((ties.n_tracks, 2))
     frac[has] = ties.obs_uv[ref[has]] - centre[has]
-    for k, iid in enumerate(ids):
-        if progress:
-            progress(k, total, f"LSM templates {iid}")
-        tr = np.flatnonzero(ref_img == k)
-        if len(tr) == 0:
-            continue
-        img = read_image(iid)
+    def run(fn: Callable, items: list, offset: int, what: str) -> list:
+        def done(d: int, t: int) -> None:
+            if progress:
+                progress(offset + d * len(ids) // max(t, 1), total, f"LSM {what} {d}/{t} images")
+
+        if executor is not None:
+            return executor.map(fn, items, on_done=done)
+        out = []
+        for it in items:
+            out.append(fn(it))
+            done(len(out), len(items))
+        return out
+
+    refs = [(k, np.flatnonzero(ref_img == k)) for k in range(len(ids))]
+    refs = [(k, tr) for k, tr in refs if len(tr)]
+    for (_, tr), (patch, ok) in zip(refs, run(template_unit, [(read_image, ids[k], centre[tr], opt)
+                                                               for k, tr in refs], 0, "templates"), strict=True):
         if templates is None:
-            templates = np.zeros((ties.n_tracks, p, p), np.uint8 if img.dtype == np.uint8 else np.float32)
-        patch, tmpl_ok[tr] = extract_patches(img, centre[tr], opt.half, opt.interpolation)
-        templates[tr] = np.rint(patch) if templates.dtype == np.uint8 else patch
+            templates = np.zeros((ties.n_tracks, p, p), patch.dtype)
+        templates[tr], tmpl_ok[tr] = patch, ok
     uv = ties.obs_uv.copy()
     ref_obs = ref[ties.obs_track]
     is_ref = np.arange(ties.n_obs) == ref_obs
     accepted = np.zeros(ties.n_obs, bool)
+    sels, units = [], []
     for k, iid in enumerate(ids):
-        if progress:
-            progress(len(ids) + k, total, f"LSM {iid}")
         sel = np.flatnonzero((ties.obs_image == k) & ~is_ref & tmpl_ok[ties.obs_track])
         if len(sel) == 0:
             continue
-        img = read_image(iid)
+        start = uv[sel] - np.einsum("kij,kj->ki", aff[sel], frac[ties.obs_track[sel]])
+        sels.append(sel)
+        units.append(LsmUnit(read_image, iid, templates[ties.obs_track[sel]], start, aff[sel], opt))
+
+    for sel, res in zip(sels, run(lsm_unit, units, len(ids), "matching"), strict=True):
         d = frac[ties.obs_track[sel]]
-        start = uv[sel] - np.einsum("kij,kj->ki", aff[sel], d)
-        res = lsm_match(templates[ties.obs_track[sel]].astype(np.float32), img, start, aff[sel], opt)
         ok = res.ok
         uv[sel[ok]] = res.uv[ok] + np.einsum("kij,kj->ki", res.affine[ok], d[ok])
         accepted[sel] = ok

@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +79,11 @@ def _read_grey(path: str, iid: str) -> np.ndarray:
     if grey is None:
         raise InputError(f"cannot read image '{iid}'", path=path, field="file")
     return grey
+
+
+def _read_image_of(paths: dict[str, str], iid: str) -> np.ndarray:
+    """The grey image ``iid`` from its file in ``paths`` (picklable with :func:`functools.partial`: LSM units)."""
+    return _read_grey(paths[iid], iid)
 
 
 def _cached(path: Path, iid: str, max_features: int) -> bool:
@@ -219,8 +225,9 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     if cfg.lsm_refine and ties.n_obs:
         from .lsm import refine_ties
 
-        ties, st = refine_ties(ties, block, lambda iid: _read_grey(_image_path(block, iid), iid),
-                               progress=ctx.progress)
+        paths = {iid: _image_path(block, iid) for iid in ids}
+        ties, st = refine_ties(ties, block, partial(_read_image_of, paths), progress=ctx.progress,
+                               executor=executor)
         lsm_metrics = {"lsm_" + k: v for k, v in st.as_dict().items()}
     ties.save(str(out / "ties.npz"))
     write_json(out / "graph.json", graph.to_dict(block))

@@ -141,3 +141,13 @@ def test_refine_ties_on_rendered_views_of_a_textured_plane():
         assert np.median(err) < 0.01 and err.max() < 0.05, (k, err.max())
     before = np.abs(obs_uv[:, 1] - project(cam, poses[1], intersect_with_plane_z(cam, poses[0], obs_uv[:, 0], 0.0))[0])
     assert np.median(before) > 0.2
+    # the target images as units in two worker processes: the same tie points, progress to the end
+    from oblique_city.core.pipeline.executor import Executor
+
+    done.clear()
+    with Executor("processes", workers=2) as ex:
+        par, par_stats = refine_ties(ties, block, images.__getitem__, progress=lambda a, b, m: done.append((a, b)),
+                                     executor=ex)
+    assert done[-1][0] == done[-1][1] and par_stats == stats
+    for f in ("obs_track", "obs_image", "obs_uv"):
+        assert np.array_equal(getattr(par, f), getattr(out, f))
