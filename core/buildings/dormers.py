@@ -129,6 +129,9 @@ def find_dormers(xyz: np.ndarray, roof: RoofTopology, polygon: np.ndarray,
         k = int(labels[np.argmax(votes)])
         if k not in roof.planes:
             continue
+        if votes.max() < 0.9 * votes.sum():  # across a ridge or a step: its slope would not be its bottom
+            rejected.append(f"{area:.1f} m^2 on roofs {labels.tolist()}: on more than one roof plane")
+            continue
         d = _dormer(xyz, cell_id, mask, roof.planes[k], k, c, cfg)
         if isinstance(d, Dormer):
             out.append(d)
