@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .geometry import points_in_polygon
+from .geometry import distance_to_edges, points_in_polygon
 from .roof import RoofTopology, plane_z
 
 
@@ -116,7 +116,8 @@ def find_dormers(xyz: np.ndarray, roof: RoofTopology, polygon: np.ndarray,
     # away from the outline: the cell centres at least edge_margin inside
     yc, xc = np.mgrid[0:rows, 0:cols]
     centres = roof.origin + (np.column_stack([xc.ravel(), yc.ravel()]) + 0.5) * c
-    inner = _inside_by(centres, polygon, cfg.edge_margin).reshape(rows, cols)
+    inner = (points_in_polygon(centres, polygon) & (distance_to_edges(centres, polygon) >= cfg.edge_margin)
+             ).reshape(rows, cols)
     blobs, n_blobs = ndimage.label(high, structure=np.ones((3, 3)))
     out: list[Dormer] = []
     rejected: list[str] = []
@@ -138,17 +139,6 @@ def find_dormers(xyz: np.ndarray, roof: RoofTopology, polygon: np.ndarray,
         else:
             rejected.append(f"{area:.1f} m^2 on roof {k}: {d}")
     return out, rejected
-
-
-def _inside_by(xy: np.ndarray, polygon: np.ndarray, margin: float) -> np.ndarray:
-    """Points (n, 2) inside ``polygon`` and at least ``margin`` from its edges."""
-    from ..matching.features import segment_distance
-
-    inside = points_in_polygon(xy, polygon)
-    dist = np.full(len(xy), np.inf)
-    for a, b in zip(polygon, np.roll(polygon, -1, axis=0)):
-        dist = np.minimum(dist, segment_distance(xy, np.broadcast_to(a, xy.shape), np.broadcast_to(b, xy.shape)))
-    return inside & (dist >= margin)
 
 
 def _roof_z(coef: np.ndarray, gabled: bool, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -195,6 +185,10 @@ def _dormer(xyz: np.ndarray, cell_id: np.ndarray, mask: np.ndarray, plane: np.nd
     du = n[:2] / np.linalg.norm(n[:2])  # downslope
     dv = np.array([-du[1], du[0]])
     tan_s = np.tan(np.radians(slope))
+
+    def slope_z(u_pos: float) -> float:  # the slope's height at u (constant across v)
+        return float(plane_z(plane, (u_pos * du)[None])[0])
+
     grown = ndimage.binary_dilation(mask, np.ones((5, 5)))  # the slope around it too, for the edges
     sel = np.isin(cell_id, np.flatnonzero(grown.ravel()))
     pts = xyz[sel]
@@ -220,9 +214,8 @@ def _dormer(xyz: np.ndarray, cell_id: np.ndarray, mask: np.ndarray, plane: np.nd
         # (the strip where the eaves stand at least 0.3 m above the slope: behind, the roof runs into the slope
         # and a wider block would look the same)
         vc = 0.5 * (v0 + v1)
-        z_f = float(plane_z(plane, (u_f * du + vc * dv)[None])[0])
         eave = float(min(_roof_z(coef, gabled, np.array([u_f]), np.array([w]))[0] for w in (v0, v1)))
-        st = (u > u_f - max((eave - z_f - 0.3) / tan_s, 0.5)) & (u < u_f - 0.15)
+        st = (u > u_f - max((eave - slope_z(u_f) - 0.3) / tan_s, 0.5)) & (u < u_f - 0.15)
         band = (v > v0 + 0.3) & (v < v1 - 0.3)
         # candidates from the inside out: where the costs tie (the roof has come down to the slope), the innermost
         left, right = np.arange(vc, v0 - 1.0, -0.05), np.arange(vc, v1 + 1.0, 0.05)
@@ -231,8 +224,7 @@ def _dormer(xyz: np.ndarray, cell_id: np.ndarray, mask: np.ndarray, plane: np.nd
         fronts = np.arange(u_f - 1.0, u_f + 1.0, 0.05)  # from the inside out
         u_f = float(fronts[np.argmin(_edge_costs(u[band], rise[band], r_model[band], fronts, 1))])
     vc = coef[2] if gabled else 0.5 * (v0 + v1)
-    # the slope's height along u (constant across v): z = z_main_f + tan_s * (u_f - u)
-    z_main_f = float(plane_z(plane, (u_f * du + vc * dv)[None])[0])
+    z_main_f = slope_z(u_f)  # the slope rises behind: z = z_main_f + tan_s * (u_f - u)
     roofs = []
     if gabled:
         a, s, _ = coef

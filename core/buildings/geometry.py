@@ -1,4 +1,4 @@
-"""Small geometric helpers of the building reconstruction: planes, lines, point-in-polygon."""
+"""Small geometric helpers of the building reconstruction: planes, lines, point-in-polygon, edge distance."""
 
 from __future__ import annotations
 
@@ -68,6 +68,16 @@ def points_in_polygon(xy: np.ndarray, polygon: np.ndarray) -> np.ndarray:
             xi = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
         inside ^= cond & (x < xi)
     return inside
+
+
+def distance_to_edges(xy: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Distance ``(n,)`` of points ``xy (n, 2)`` to the nearest edge of the closed polygon ``polygon (m, 2)``."""
+    from ..matching.features import segment_distance
+
+    d = np.full(len(xy), np.inf)
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0)):
+        d = np.minimum(d, segment_distance(xy, np.broadcast_to(a, xy.shape), np.broadcast_to(b, xy.shape)))
+    return d
 
 
 def polygon_area(polygon: np.ndarray) -> float:

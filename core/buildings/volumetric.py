@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .denoise import voxel_blocks
-from .geometry import fit_plane, points_in_polygon
+from .geometry import distance_to_edges, fit_plane, points_in_polygon
 from .roof import plane_z
 
 
@@ -263,15 +263,10 @@ def interior_facade_points(xyz: np.ndarray, polygon: np.ndarray, voxel: float, m
     ``asin(max_nz)`` of vertical, from at least ``min_block`` points) more than ``margin`` inside the outline
     ``polygon (m, 2)``: the walls that rise inside the footprint above a lower roof, a tower's wall above the nave.
     In plan they gather on the walls' lines (:func:`step_walls` finds those)."""
-    from ..matching.features import segment_distance
-
     vb = voxel_blocks(xyz, voxel)
     out = ((np.abs(vb.normal[:, 2]) < max_nz) & (vb.n_block >= min_block))[vb.inv]
     xy = xyz[out, :2]
-    m = len(polygon)
-    d = np.min([segment_distance(xy, np.broadcast_to(polygon[i], xy.shape),
-                                 np.broadcast_to(polygon[(i + 1) % m], xy.shape)) for i in range(m)], axis=0)
-    out[np.flatnonzero(out)] = (d > margin) & points_in_polygon(xy, polygon)
+    out[np.flatnonzero(out)] = (distance_to_edges(xy, polygon) > margin) & points_in_polygon(xy, polygon)
     return out
 
 
