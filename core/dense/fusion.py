@@ -208,7 +208,8 @@ def master_points(camera: CameraModel, pose: Pose, depth: np.ndarray, step: int,
                         inc[valid].astype(np.float32), uv[valid], mixed[valid])
 
 
-def local_outliers(xyz: np.ndarray, neighbours: int = 16, ratio: float = 2.0, chunk: int = 500_000) -> np.ndarray:
+def local_outliers(xyz: np.ndarray, neighbours: int = 16, ratio: float = 2.0, chunk: int = 500_000,
+                   max_index_bytes: int = 1 << 30) -> np.ndarray:
     """Mask ``(n,)`` of isolated points: a point whose mean distance to its ``neighbours`` nearest points exceeds
     ``ratio`` times the median of the same distance over those neighbours (a local density ratio, the idea of the
     local outlier factor).
@@ -219,8 +220,10 @@ def local_outliers(xyz: np.ndarray, neighbours: int = 16, ratio: float = 2.0, ch
     on true walls (2.5 % of all points, half of them on the true surface); this test removes 0.5 % of the
     points, 84 % of them off the surface, and keeps the walls.
 
-    xyz : (n, 3) float64 points; chunk : points queried at a time (memory: the tree, one float per point and
-    the neighbours of one chunk)
+    xyz : (n, 3) float64 points; chunk : points queried at a time. The neighbour lists of the first pass are kept
+    (int32) when they fit in ``max_index_bytes``; otherwise a second query pass finds them again, so that the
+    memory stays at the tree, one float per point and the neighbours of one chunk (on the demo's 7.6 million
+    points the lists take 0.5 GB and save the second pass, half of the filter's 33 s).
     """
     from scipy.spatial import cKDTree
 
@@ -229,60 +232,67 @@ def local_outliers(xyz: np.ndarray, neighbours: int = 16, ratio: float = 2.0, ch
     if n <= neighbours:
         return np.zeros(n, bool)
     local = xyz - xyz.mean(axis=0)
-    tree = cKDTree(local)
-    # two passes over chunks keep the memory at one float per point (the neighbour lists are not stored)
+    tree = cKDTree(local, balanced_tree=False, compact_nodes=False)  # builds in half the time, queries as fast
+    keep = n * neighbours * 4 <= max_index_bytes and n < 2**31
+    index = np.empty((n, neighbours), np.int32) if keep else None
     mean_d = np.empty(n)
     for s in range(0, n, chunk):
-        d, _ = tree.query(local[s:s + chunk], k=neighbours + 1, workers=-1)
+        d, i = tree.query(local[s:s + chunk], k=neighbours + 1, workers=-1)
         mean_d[s:s + chunk] = d[:, 1:].mean(axis=1)
+        if keep:
+            index[s:s + chunk] = i[:, 1:]
     out = np.empty(n, bool)
     for s in range(0, n, chunk):
-        _, i = tree.query(local[s:s + chunk], k=neighbours + 1, workers=-1)
-        out[s:s + chunk] = mean_d[s:s + chunk] > ratio * np.median(mean_d[i[:, 1:]], axis=1)
+        i = index[s:s + chunk] if keep else tree.query(local[s:s + chunk], k=neighbours + 1, workers=-1)[1][:, 1:]
+        out[s:s + chunk] = mean_d[s:s + chunk] > ratio * np.median(mean_d[i], axis=1)
     return out
 
 
 def intersection_errors(uv_master: np.ndarray, cam_master: CameraModel, pose_master_used: Pose,
-                        pose_master_eval: Pose, slaves: list[tuple[CameraModel, Pose, Pose, np.ndarray]]
-                        ) -> np.ndarray:
-    """Forward intersection error of dense points under an orientation (quality maps).
+                        slaves: list[tuple[Pose, np.ndarray]],
+                        evaluations: list[tuple[Pose, list[Pose]]]) -> list[np.ndarray]:
+    """Forward intersection error of dense points under one or more orientations (quality maps).
 
     The correspondences are the matches themselves: for every agreeing slave, the point of that pair alone (the
-    master ray at the pair's depth, with the orientation used for matching) projected into the slave. Then the
-    master ray and the slave rays are intersected with the orientation being assessed, and the RMS distance of
-    the rays to their intersection is returned.
+    master ray at the pair's depth, with the orientation used for matching) seen from that slave. Then the
+    master ray and the slave rays are intersected with each orientation being assessed, and the RMS distance of
+    the rays to their intersection is returned. The correspondences are found once for all orientations, and a
+    slave's ray is taken from the normalised coordinates of its point (the same ray as through its distorted
+    pixel, without inverting the distortion).
 
     Parameters
     ----------
     uv_master : (n, 2) master pixels of the points
-    pose_master_used, pose_master_eval : master orientation used for matching, and the one assessed
-    slaves : per slave ``(camera, pose_used, pose_eval, depth (n,))`` with the pair's master depth, NaN where the
-        slave does not agree
+    pose_master_used : master orientation used for matching
+    slaves : per slave ``(pose_used, depth (n,))`` with the pair's master depth, NaN where the slave does not
+        agree (no camera model needed: a slave's ray is fixed by its point)
+    evaluations : per orientation to assess, ``(master pose, [pose of each slave, in the order of slaves])``
 
     Returns
     -------
-    rms : (n,) float64 metres (NaN for points with fewer than two rays)
+    rms : per evaluation, (n,) float64 metres (NaN for points with fewer than two rays)
     """
     from ..geometry.intersection import intersect_tracks
-    from ..geometry.projection import backproject_depth, pixel_rays, project
 
     n = len(uv_master)
-    origins = [np.broadcast_to(pose_master_eval.C, (n, 3))]
-    dirs = [pixel_rays(cam_master, pose_master_eval, uv_master)]
-    track = [np.arange(n)]
-    for cam, pose_used, pose_eval, depth in slaves:
+    ray_m = np.column_stack([cam_master.pixel_to_normalized(uv_master), np.ones(n)])
+    matches = []  # per slave: the master points it agrees on, and their normalised coordinates in the slave
+    for pose_used, depth in slaves:
         idx = np.flatnonzero(np.isfinite(depth))
-        xyz = backproject_depth(cam_master, pose_master_used, uv_master[idx], depth[idx])
-        uv, _ = project(cam, pose_used, xyz)
-        ok = np.isfinite(uv[:, 0])
-        idx, uv = idx[ok], uv[ok]
-        origins.append(np.broadcast_to(pose_eval.C, (len(idx), 3)))
-        dirs.append(pixel_rays(cam, pose_eval, uv))
-        track.append(idx)
-    track_all = np.concatenate(track)
-    _, dist = intersect_tracks(np.concatenate(origins), np.concatenate(dirs), track_all, n)
-    counts = np.bincount(track_all, minlength=n)
-    with np.errstate(invalid="ignore"):
-        rms = np.sqrt(np.bincount(track_all, weights=dist ** 2, minlength=n) / counts)
-    rms[counts < 2] = np.nan
-    return rms
+        xyz = (ray_m[idx] * depth[idx, None]) @ pose_master_used.R + pose_master_used.C
+        xc = pose_used.transform(xyz)
+        ahead = xc[:, 2] > 0
+        matches.append((idx[ahead], xc[ahead] / xc[ahead, 2:3]))
+    track = np.concatenate([np.arange(n)] + [idx for idx, _ in matches])
+    counts = np.bincount(track, minlength=n)
+    out = []
+    for pose_m, poses_s in evaluations:
+        origins = np.concatenate([np.broadcast_to(pose_m.C, (n, 3))]
+                                 + [np.broadcast_to(p.C, (len(idx), 3)) for p, (idx, _) in zip(poses_s, matches)])
+        dirs = np.concatenate([ray_m @ pose_m.R] + [ray @ p.R for p, (_, ray) in zip(poses_s, matches)])
+        _, dist = intersect_tracks(origins, dirs, track, n)
+        with np.errstate(invalid="ignore"):
+            rms = np.sqrt(np.bincount(track, weights=dist ** 2, minlength=n) / counts)
+        rms[counts < 2] = np.nan
+        out.append(rms)
+    return out

@@ -24,6 +24,8 @@ from ..geometry.views import VIEWS
 from ..io.pointcloud import PointCloud, write_las, write_ply
 from ..io.validate import resolve_image
 from ..model.block import ImageBlock
+from ..model.camera import CameraModel
+from ..model.pose import Pose
 from ..model.tiepoints import TiePoints
 from ..pipeline.atomic import atomic_path, write_json
 from ..pipeline.stage import Stage, StageResult
@@ -127,6 +129,48 @@ def height_prior(ws, block: ImageBlock, cfg: DenseConfig) -> tuple[float, float,
     raise ConfigError("dense: no height prior (no tie points, no ground points): set [stages.dense] z_min and z_max")
 
 
+@dataclass(frozen=True)
+class FuseTask:
+    """One master's fusion (:func:`fuse_master`): its camera, orientation, image file and grid step, its view and
+    index (stored with its points), the depth maps ``(k, h, w)`` and ``f B`` ``(k,)`` of its ``k`` pairs, the
+    slaves' orientations, optionally the approximate orientations of master and slaves (their quality map)."""
+
+    camera: CameraModel
+    pose: Pose
+    image_path: str
+    step: int
+    view_index: int
+    master_index: int
+    depths: np.ndarray
+    focal_baselines: np.ndarray
+    slave_poses: tuple[Pose, ...]
+    approx: tuple[Pose, tuple[Pose, ...]] | None
+    fusion: FusionConfig
+
+
+def fuse_master(task: FuseTask) -> dict[str, np.ndarray]:
+    """Executor unit: fuse one master's depth maps, smooth, make its points with colour, normal, incidence and
+    mixed-pixel flag, and the forward intersection error of each point under the orientations used (and the
+    approximate ones when given; else the same values). Returns arrays by name, ``(n, ...)`` per point."""
+    fcfg = task.fusion
+    fused, agree = fuse_depths(task.depths, task.focal_baselines, fcfg)
+    fused = erode_far_edges(fused, task.step, fcfg)
+    valid_before = np.isfinite(fused)
+    depth = smooth_depth(fused, fcfg)
+    pts = master_points(task.camera, task.pose, depth, task.step, read_image(task.image_path), fcfg)
+    slave_depths = [np.where(a, d, np.nan)[valid_before] for d, a in zip(task.depths, agree)]
+    evaluations = [(task.pose, list(task.slave_poses))]
+    if task.approx is not None:
+        evaluations.append((task.approx[0], list(task.approx[1])))
+    errors = intersection_errors(pts.uv_px, task.camera, task.pose, list(zip(task.slave_poses, slave_depths)),
+                                 evaluations)
+    n = len(pts.xyz)
+    return {"xyz": pts.xyz, "rgb": pts.rgb, "normal": pts.normal,
+            "view": np.full(n, task.view_index, np.uint8), "master": np.full(n, task.master_index, np.uint16),
+            "incidence": pts.incidence, "mixed": pts.mixed, "err_used": errors[0].astype(np.float32),
+            "err_approx": errors[-1].astype(np.float32)}
+
+
 def run(ws, cfg: DenseConfig, ctx) -> StageResult:
     block = ws.load_block()
     for v in cfg.views:
@@ -163,39 +207,25 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
     fcfg = FusionConfig(min_agree=cfg.min_agree, tol_px=cfg.tol_px, bilateral=cfg.bilateral,
                         bilateral_sigma_m=cfg.bilateral_sigma_m, max_incidence_deg=cfg.max_incidence_deg,
                         edge_radius_px=cfg.edge_radius_px, near_edge_radius_px=cfg.near_edge_radius_px)
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("xyz", "rgb", "normal", "view", "master", "incidence",
-                                                          "mixed", "err_used", "err_approx")}
     masters = [s.master for s in selection]
     adjusted = any(img.pose_adjusted is not None for img in block.images.values())
+    fuse_tasks = []
     for mi, sel in enumerate(selection):
         img = block.images[sel.master]
-        cam = block.camera_of(img)
         res = by_master[sel.master]
-        fused, agree = fuse_depths(np.stack([r.depth for r in res]), np.array([r.focal_baseline for r in res]),
-                                   fcfg)
-        fused = erode_far_edges(fused, master_step(cfg, sel.view), fcfg)
-        valid_before = np.isfinite(fused)
-        depth = smooth_depth(fused, fcfg)
-        pts = master_points(cam, img.pose, depth, master_step(cfg, sel.view),
-                            read_image(str(resolve_image(block, img.file))), fcfg)
-        slave_depths = [np.where(a, r.depth, np.nan)[valid_before] for r, a in zip(res, agree)]
-        slave_poses = [block.images[r.slave] for r in res]
-        err_used = intersection_errors(pts.uv_px, cam, img.pose, img.pose, [
-            (block.camera_of(s), s.pose, s.pose, d) for s, d in zip(slave_poses, slave_depths)])
-        if adjusted and img.pose_approx is not None and all(s.pose_approx is not None for s in slave_poses):
-            err_approx = intersection_errors(pts.uv_px, cam, img.pose, img.pose_approx, [
-                (block.camera_of(s), s.pose, s.pose_approx, d) for s, d in zip(slave_poses, slave_depths)])
-        else:
-            err_approx = err_used
-        n = len(pts.xyz)
-        err_used, err_approx = err_used.astype(np.float32), err_approx.astype(np.float32)
-        for k, v in (("xyz", pts.xyz), ("rgb", pts.rgb), ("normal", pts.normal),
-                     ("view", np.full(n, VIEWS.index(sel.view), np.uint8)), ("master", np.full(n, mi, np.uint16)),
-                     ("incidence", pts.incidence), ("mixed", pts.mixed), ("err_used", err_used),
-                     ("err_approx", err_approx)):
-            parts[k].append(v)
-        ctx.progress(len(tasks) + mi + 1, total, f"fused master {sel.master} ({n} points)")
-    arr = {k: np.concatenate(v) for k, v in parts.items()}
+        slaves = [block.images[r.slave] for r in res]
+        approx = (adjusted and img.pose_approx is not None and all(s.pose_approx is not None for s in slaves))
+        fuse_tasks.append(FuseTask(
+            block.camera_of(img), img.pose, str(resolve_image(block, img.file)), master_step(cfg, sel.view),
+            VIEWS.index(sel.view), mi, np.stack([r.depth for r in res]), np.array([r.focal_baseline for r in res]),
+            tuple(s.pose for s in slaves),
+            (img.pose_approx, tuple(s.pose_approx for s in slaves)) if approx else None, fcfg))
+    done_pairs = len(tasks)
+    fused = executor.map(fuse_master, fuse_tasks, on_done=lambda d, t: ctx.progress(
+        done_pairs + d, total, f"fused {d}/{t} masters"))
+    del fuse_tasks
+    arr = {k: np.concatenate([f[k] for f in fused]) for k in fused[0]}
+    del fused
     removed = np.where(arr.pop("mixed"), MIXED, KEPT).astype(np.uint8)
     if cfg.outlier_neighbours > 0:
         cand = np.flatnonzero(removed == KEPT)

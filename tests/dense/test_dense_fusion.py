@@ -132,11 +132,11 @@ def test_intersection_error_grows_with_orientation_error(nadir_oblique_block):
     rng = np.random.default_rng(3)
     uv = np.column_stack([rng.uniform(50, 350, 200), rng.uniform(50, 250, 200)])
     depth = np.full(200, 160.0)
-    slaves = [(cam, block.images[s].pose, block.images[s].pose, depth) for s in ("img00", "img02")]
-    exact = intersection_errors(uv, cam, m.pose, m.pose, slaves)
+    slaves = [(block.images[s].pose, depth) for s in ("img00", "img02")]
+    used = [p for p, _ in slaves]
+    shifted = [Pose(p.R, p.C + [0.3, -0.2, 0.0]) for p in used]
+    exact, worse = intersection_errors(uv, cam, m.pose, slaves, [(m.pose, used), (m.pose, shifted)])
     assert np.nanmax(exact) < 1e-6
-    shifted = [(c, pu, Pose(pu.R, pu.C + [0.3, -0.2, 0.0]), d) for c, pu, _, d in slaves]
-    worse = intersection_errors(uv, cam, m.pose, m.pose, shifted)
     assert 0.05 < np.nanmean(worse) < 0.4
 
 
