@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,6 +72,40 @@ def segment_distance(p: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> np.ndarra
     return np.linalg.norm(p - (s0 + t[:, None] * d), axis=1)
 
 
+def descriptor_distances(des_a: np.ndarray, des_b: np.ndarray, a_idx: np.ndarray, b_idx: np.ndarray,
+                         rows: int = 1024) -> np.ndarray:
+    """Euclidean distances ``(k,) float32`` between descriptors ``des_a[a_idx]`` and ``des_b[b_idx]``
+    (``des_a (n, d)``, ``des_b (m, d)`` float32; ``a_idx`` ascending, as the guided search gives them).
+
+    OpenCV's SIFT descriptors hold whole numbers up to a few hundred. Then every term of
+    ``|a|^2 + |b|^2 - 2 a.b`` is a whole number below 2^24, which float32 arithmetic adds exactly in any order, and
+    the squared distances come from one matrix product per ``rows`` rows of A: the same values as the rows'
+    differences, about ten times faster than gathering two 128-float rows per candidate (a demo pair has 0.7
+    million candidates). Other descriptors take the differences, in chunks of 200,000 candidates."""
+    d = np.empty(len(a_idx), np.float32)
+    if len(a_idx) == 0:
+        return d
+    na = np.einsum("ij,ij->i", des_a, des_a, dtype=np.float64)
+    nb = np.einsum("ij,ij->i", des_b, des_b, dtype=np.float64)
+    whole = (np.array_equal(des_a, np.round(des_a)) and np.array_equal(des_b, np.round(des_b))
+             and 2.0 * (na.max(initial=0.0) + nb.max(initial=0.0)) < 2.0**24)
+    if not whole:
+        for k in range(0, len(a_idx), 200000):
+            sl = slice(k, k + 200000)
+            d[sl] = np.linalg.norm(des_a[a_idx[sl]] - des_b[b_idx[sl]], axis=1)
+        return d
+    na32, nb32 = na.astype(np.float32), nb.astype(np.float32)
+    cuts = np.searchsorted(a_idx, np.arange(0, len(des_a) + rows, rows))
+    for r0, (k0, k1) in enumerate(zip(cuts[:-1], cuts[1:])):
+        if k1 == k0:
+            continue
+        lo = r0 * rows
+        dots = des_a[lo:lo + rows] @ des_b.T
+        a_k, b_k = a_idx[k0:k1] - lo, b_idx[k0:k1]
+        d[k0:k1] = na32[a_idx[k0:k1]] + nb32[b_k] - 2.0 * dots[a_k, b_k]
+    return np.sqrt(np.maximum(d, 0.0, out=d), out=d)
+
+
 def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: np.ndarray,
                  cam_a: CameraModel, pose_a: Pose, cam_b: CameraModel, pose_b: Pose,
                  opt: MatchOptions = MatchOptions()) -> np.ndarray:
@@ -90,18 +125,17 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
     rep = np.repeat(ia, n_piece)
     n_rep = np.repeat(n_piece, n_piece)
     t = (np.arange(len(rep)) - np.repeat(np.cumsum(n_piece) - n_piece, n_piece) + 0.5) / n_rep
-    lists = tree.query_ball_point(s0[rep] + t[:, None] * (s1[rep] - s0[rep]), half[rep] / n_rep + opt.band_px)
+    lists = tree.query_ball_point(s0[rep] + t[:, None] * (s1[rep] - s0[rep]), half[rep] / n_rep + opt.band_px,
+                                  return_sorted=False)
     counts = np.fromiter(map(len, lists), np.int64, len(lists))
     if counts.sum() == 0:
         return np.zeros((0, 2), np.int64)
-    key = np.unique(np.repeat(rep, counts) * len(uv_b) + np.concatenate([np.asarray(c, np.int64) for c in lists if c]))
+    hits = np.fromiter(itertools.chain.from_iterable(lists), np.int64, int(counts.sum()))
+    key = np.unique(np.repeat(rep, counts) * len(uv_b) + hits)
     a_idx, b_idx = key // len(uv_b), key % len(uv_b)
     inside = segment_distance(uv_b[b_idx], s0[a_idx], s1[a_idx]) <= opt.band_px
     a_idx, b_idx = a_idx[inside], b_idx[inside]
-    d = np.empty(len(a_idx), np.float32)
-    for k in range(0, len(a_idx), 200000):  # descriptor distances in chunks (memory)
-        sl = slice(k, k + 200000)
-        d[sl] = np.linalg.norm(des_a[a_idx[sl]] - des_b[b_idx[sl]], axis=1)
+    d = descriptor_distances(des_a, des_b, a_idx, b_idx)
     order = np.lexsort((d, a_idx))
     a_idx, b_idx, d = a_idx[order], b_idx[order], d[order]
     first = np.r_[True, a_idx[1:] != a_idx[:-1]]

@@ -51,6 +51,15 @@ def _double(x: int) -> int:
     return 2 * x
 
 
+def _blas_threads(_: int) -> tuple[list[int], str | None]:
+    import os
+
+    import scipy.linalg  # noqa: F401 - loads scipy's own BLAS after the worker started
+    from threadpoolctl import threadpool_info
+
+    return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"], os.environ.get("OMP_NUM_THREADS")
+
+
 @pytest.fixture
 def square_stage():
     st = Stage("square", _square_run, SquareConfig, requires=("block",), description="test stage")
@@ -181,6 +190,16 @@ def test_executor_local(mode: str) -> None:
         done = []
         assert ex.map(_double, range(7), on_done=lambda d, t: done.append(d)) == [0, 2, 4, 6, 8, 10, 12]
         assert done[-1] == 7
+
+
+def test_process_workers_share_the_cores() -> None:
+    """Each local worker gets its part of the cores for BLAS and OpenMP (loaded before or after it started), not
+    a thread per core that the other workers' threads then compete with."""
+    with Executor("processes", workers=2) as ex:
+        out = ex.map(_blas_threads, range(2))
+    for threads, omp in out:
+        assert threads and all(t == ex.threads_per_worker for t in threads)
+        assert omp == str(ex.threads_per_worker)
 
 
 @pytest.mark.xdist_group("dask")

@@ -3,6 +3,8 @@ and the tie point refinement on rendered views of a textured plane."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -148,6 +150,10 @@ def test_refine_ties_on_rendered_views_of_a_textured_plane():
     with Executor("processes", workers=2) as ex:
         par, par_stats = refine_ties(ties, block, images.__getitem__, progress=lambda a, b, m: done.append((a, b)),
                                      executor=ex)
-    assert done[-1][0] == done[-1][1] and par_stats == stats
-    for f in ("obs_track", "obs_image", "obs_uv"):
+    # the same up to rounding: the workers' BLAS runs one thread, which sums the normal equations in another order
+    assert done[-1][0] == done[-1][1]
+    assert replace(par_stats, mean_shift_px=0.0) == replace(stats, mean_shift_px=0.0)
+    assert par_stats.mean_shift_px == pytest.approx(stats.mean_shift_px, rel=1e-9)
+    for f in ("obs_track", "obs_image"):
         assert np.array_equal(getattr(par, f), getattr(out, f))
+    assert np.abs(par.obs_uv - out.obs_uv).max() < 1e-6
