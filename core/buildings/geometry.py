@@ -84,3 +84,19 @@ def polygon_area(polygon: np.ndarray) -> float:
     """Signed area of a 2D polygon (m, 2): positive when counter-clockwise."""
     x, y = polygon[:, 0], polygon[:, 1]
     return float(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def top_of_rings(vertices: np.ndarray, rings: list[list[int]], xy: np.ndarray) -> np.ndarray:
+    """Height ``(n,)`` of the highest of the planar ``rings`` (indices into ``vertices (v, 3)``) above points
+    ``xy (n, 2)``, NaN where none covers a point; vertical rings are skipped."""
+    top = np.full(len(xy), -np.inf)
+    for ring in rings:
+        r = vertices[list(ring)]
+        n = np.cross(r[1:-1] - r[0], r[2:] - r[0]).sum(0)
+        if abs(n[2]) < 1e-9 * max(np.linalg.norm(n), 1e-300):
+            continue
+        m = points_in_polygon(xy, r[:, :2])
+        if m.any():
+            c = r.mean(0)
+            top[m] = np.maximum(top[m], c[2] - ((xy[m] - c[:2]) @ n[:2]) / n[2])
+    return np.where(np.isfinite(top), top, np.nan)

@@ -20,7 +20,7 @@ from ..model.raster import Raster
 from .contour import ContourConfig, extract_contour
 from .denoise import voxel_noise_filter
 from .dormers import Dormer, DormerConfig, find_dormers
-from .geometry import points_in_polygon
+from .geometry import points_in_polygon, top_of_rings
 from .hull import Hull, build_hull, dedupe_planes
 from .model import BuildingModel, Surface, ring_normal
 from .overhang import OverhangConfig, overhang_surfaces, overhang_widths
@@ -28,11 +28,11 @@ from .roof import RoofConfig, _wall_plane, check_topology, plane_z, roof_labels,
 from .volumetric import (
     VolumetricConfig,
     eave_planes,
-    height_grid,
     interior_walls,
     same_plane,
     snap_heights,
     step_walls,
+    top_points,
     voxel_planes,
 )
 
@@ -112,13 +112,12 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
                      wall_points: np.ndarray | None = None) -> tuple[Hull, int]:
     # the top grid from the roof points: an interior wall's points would raise the lower roof beside it
     roofish = xyz if wall_points is None else xyz[~wall_points]
-    H = height_grid(roofish, roof.origin, roof.cell, roof.labels.shape)
+    top, H = top_points(roofish, roof.origin, roof.cell, roof.labels.shape, ground_z)
 
     def height_at(xy: np.ndarray) -> np.ndarray:
         cr = np.floor((xy - roof.origin) / roof.cell).astype(np.int64)
         return H[np.clip(cr[:, 1], 0, H.shape[0] - 1), np.clip(cr[:, 0], 0, H.shape[1] - 1)]
 
-    top = roofish[(roofish[:, 2] > height_at(roofish[:, :2]) - 1.0) & (roofish[:, 2] > ground_z + 2.0)]
     tol = max(3.0 * noise, 0.05)
     segs = voxel_planes(xyz[xyz[:, 2] > ground_z + 0.5], voxel, noise, cfg)
     # faces the growing missed, rising from the outline (a found face keeps its own, better supported plane)
@@ -203,17 +202,19 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     reason = check.reason
     hull = None
     dormers: list[Dormer] = []
-    if cfg.force_path == "volumetric" or (not check.agree and cfg.force_path != "2d"):
-        path = "volumetric"
-    else:
+    hull_2d_ok = False
+    if cfg.force_path != "volumetric":
         dormers, not_dormers = find_dormers(xl, roof, polygon, cfg.dormers) if cfg.dormers.enabled else ([], [])
         info.update(dormers=[d.kind for d in dormers], dormer_candidates_rejected=not_dormers)
         hull = _hull_2d(polygon, roof, ground_z, walls, lo, hi, dormers)
-        ok, _, why = solid_check(hull.vertices, [r for _, r in hull.faces])
-        if not ok and cfg.force_path != "2d":
+        hull_2d_ok, _, why = solid_check(hull.vertices, [r for _, r in hull.faces])
+        if not hull_2d_ok and check.agree and cfg.force_path != "2d":
             path, reason = "volumetric", f"2D hull {why}"
+    if cfg.force_path == "volumetric" or (not check.agree and cfg.force_path != "2d"):
+        path = "volumetric"
     n_found = 0
     steps: list[np.ndarray] = []
+    hull_2d = hull
     if path == "volumetric":
         # about half the filter's cube, but large enough to hold a plane's worth of points on a surface
         density = _surface_density(xl)
@@ -227,6 +228,21 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
         hull, n_found = _hull_volumetric(xl, polygon, roof, ground_z, walls, lo, hi, vvox, noise, cfg.volumetric,
                                          steps, inner, on_wall)
         info.update(volumetric_planes=n_found, volumetric_voxel=vvox)
+        if hull_2d_ok and not check.agree and cfg.force_path == "":
+            # the topology check failed: the 2D hull is still taken when it fits the roof points better by more
+            # than half the noise level (a patch of one roof face that the matching lowered by a step's height is
+            # no discontinuity; at real steps the two fit alike, and the volumetric hull has the step walls)
+            top, _ = top_points(xl, roof.origin, roof.cell, roof.labels.shape, ground_z)
+            top = top[points_in_polygon(top[:, :2], polygon)]
+            fit_2d, fit_vol = _roof_fit(hull_2d, m, top), _roof_fit(hull, m, top)
+            info.update(roof_fit_2d=fit_2d, roof_fit_volumetric=fit_vol)
+            if fit_2d < fit_vol - 0.5 * noise:
+                path, hull, steps = "2d", hull_2d, []
+                reason = (f"{check.reason}, but the 2D hull fits the roof points better ({fit_2d:.3f} m against "
+                          f"{fit_vol:.3f} m mean deviation)")
+        if path == "volumetric" and dormers:  # the 2D candidate's dormers are not part of this model
+            dormers = []
+            info["dormers"] = []
     info.update(cells=hull.n_cells, cells_inside=hull.n_inside)
     all_planes = {}
     faces: list[tuple[str, list[int]]] = []
@@ -278,6 +294,14 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
                       [_to_world(p, offset) for p in all_planes.values()], info)
     model.info["seconds"] = time.perf_counter() - t0
     return model
+
+
+def _roof_fit(hull: Hull, n_outline: int, top: np.ndarray) -> float:
+    """Mean vertical deviation (m) of the roof points ``top (k, 3)`` from the hull's upward faces other than its
+    walls, each capped at 1 m (a point without a face over it counts 1 m)."""
+    rings = [ring for pid, ring in hull.faces if pid >= n_outline and ring_normal(hull.vertices[ring])[2] > 0.2]
+    dz = np.abs(top_of_rings(hull.vertices, rings, top[:, :2]) - top[:, 2])
+    return float(np.mean(np.minimum(np.nan_to_num(dz, nan=1.0), 1.0))) if len(top) else float("inf")
 
 
 def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], n_outline: int,

@@ -318,3 +318,13 @@ def height_grid(xyz: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[i
     _, (ri, ci) = ndimage.distance_transform_edt(miss, return_indices=True)
     H = H[ri, ci]
     return ndimage.median_filter(H, size=3)
+
+
+def top_points(xyz: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, int], ground_z: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The roof points of ``xyz (n, 3)``: within 1 m of the top surface grid (:func:`height_grid` on ``origin``,
+    ``cell``, ``shape``) and over 2 m above the ground. Returns them ``(k, 3)`` and the grid."""
+    H = height_grid(xyz, origin, cell, shape)
+    cr = np.floor((xyz[:, :2] - origin) / cell).astype(np.int64)
+    z_top = H[np.clip(cr[:, 1], 0, H.shape[0] - 1), np.clip(cr[:, 0], 0, H.shape[1] - 1)]
+    return xyz[(xyz[:, 2] > z_top - 1.0) & (xyz[:, 2] > ground_z + 2.0)], H

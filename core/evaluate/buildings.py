@@ -13,8 +13,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..buildings.geometry import points_in_polygon
-from ..buildings.model import BuildingModel, ring_normal
+from ..buildings.geometry import points_in_polygon, top_of_rings
+from ..buildings.model import BuildingModel
 from ..matching.features import segment_distance
 
 
@@ -208,19 +208,8 @@ def overhang_errors(truth: BuildingTruth, model: BuildingModel, max_offset: floa
 def model_top_height(model: BuildingModel, xy: np.ndarray) -> np.ndarray:
     """Height of the model's highest roof surface over points ``xy (n, 2)`` (NaN where no roof covers one); the
     roof overhangs count (an upper roof's overhang over a lower one is the top surface there)."""
-    top = np.full(len(xy), -np.inf)
-    for s in model.surfaces:
-        if s.kind not in ("roof", "overhang_roof"):
-            continue
-        ring = model.vertices[list(s.ring)]
-        n = ring_normal(ring)
-        if abs(n[2]) < 1e-9:
-            continue
-        m = points_in_polygon(xy, ring[:, :2])
-        if m.any():
-            z = ring.mean(0)[2] - ((xy[m] - ring.mean(0)[:2]) @ n[:2]) / n[2]
-            top[m] = np.maximum(top[m], z)
-    return np.where(np.isfinite(top), top, np.nan)
+    return top_of_rings(model.vertices, [list(s.ring) for s in model.surfaces if s.kind in ("roof", "overhang_roof")],
+                        xy)
 
 
 def roof_height_errors(truth: BuildingTruth, model: BuildingModel) -> np.ndarray:
