@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 
 from oblique_city.core.geometry.projection import intersect_with_plane_z, project
-from oblique_city.core.matching.features import MatchOptions, guided_match, sift_features, verify
+from oblique_city.core.matching.features import (
+    MatchOptions,
+    band_candidates,
+    descriptor_distances,
+    guided_match,
+    segment_distance,
+    sift_features,
+    verify,
+)
 from oblique_city.core.matching.graph import GraphOptions, build_graph, convex_overlap, footprints
 from oblique_city.core.matching.stage import FEATURES_VERSION, PAIRS_PER_UNIT, MatchConfig, pair_counts, run
 from oblique_city.core.matching.tracks import build_tracks
@@ -223,3 +231,30 @@ def test_match_stage_in_worker_processes_gives_the_tie_points_of_pairs_matched_o
         for name in ("xyz", "obs_track", "obs_image", "obs_uv"):
             np.testing.assert_array_equal(getattr(ties, name), getattr(ref, name))
         assert ties.image_ids == ref.image_ids
+
+
+def test_band_candidates_hold_every_keypoint_in_the_band_once_and_descriptor_distances_are_exact():
+    """Against brute force on random keypoints and segments (short, long, degenerate, some not searched): every
+    keypoint within the band is a candidate, none twice, ordered by segment then keypoint. The matrix-product
+    descriptor distances equal the rows' differences exactly for whole-number descriptors (as OpenCV's SIFT gives)
+    and closely for others."""
+    rng = np.random.default_rng(5)
+    uv_b = rng.uniform(0, 1200, (3000, 2))
+    s0 = rng.uniform(-50, 1250, (400, 2))
+    s1 = s0 + rng.normal(0, 1, (400, 2)) * rng.choice([0.0, 10.0, 150.0, 600.0], (400, 1))
+    ia = np.flatnonzero(rng.random(400) < 0.8)
+    band = 25.0
+    a, b = band_candidates(uv_b, s0, s1, ia, band)
+    key = a * len(uv_b) + b
+    assert np.all(np.diff(key) > 0)  # ordered, no repeats
+    assert set(np.unique(a)) <= set(ia)
+    aa, bb = np.repeat(ia, len(uv_b)), np.tile(np.arange(len(uv_b)), len(ia))
+    within = segment_distance(uv_b[bb], s0[aa], s1[aa]) <= band
+    assert np.isin(aa[within] * len(uv_b) + bb[within], key).all()
+    assert len(key) < 3 * within.sum()  # cells, not the whole image
+    des_a = np.round(rng.uniform(0, 60, (400, 128))).astype(np.float32)  # |d|^2 < 2^22, as SIFT
+    des_b = np.round(rng.uniform(0, 60, (3000, 128))).astype(np.float32)
+    ref = np.linalg.norm(des_a[a] - des_b[b], axis=1)
+    assert np.array_equal(descriptor_distances(des_a, des_b, a, b, rows=64), ref)
+    frac = des_a + 0.25
+    assert np.allclose(descriptor_distances(frac, des_b, a, b), np.linalg.norm(frac[a] - des_b[b], axis=1))
