@@ -159,10 +159,11 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
     # share candidates (descriptor_distances); for a given keypoint the candidates stay ordered by B's index
     mid = np.where(ok[:, None], (s0 + s1) / 2, 0.0) // 64.0
     perm = np.lexsort((mid[:, 0], mid[:, 1]))
-    a_idx, b_idx = band_candidates(uv_b, s0[perm], s1[perm], np.flatnonzero(ok[perm]), max(opt.band_px, 0.5))
+    s0, s1 = s0[perm], s1[perm]
+    a_idx, b_idx = band_candidates(uv_b, s0, s1, np.flatnonzero(ok[perm]), max(opt.band_px, 0.5))
     if len(a_idx) == 0:
         return np.zeros((0, 2), np.int64)
-    inside = segment_distance(uv_b[b_idx], s0[perm][a_idx], s1[perm][a_idx]) <= opt.band_px
+    inside = segment_distance(uv_b[b_idx], s0[a_idx], s1[a_idx]) <= opt.band_px
     a_idx, b_idx = a_idx[inside], b_idx[inside]
     d = descriptor_distances(des_a[perm], des_b, a_idx, b_idx)
     a_idx = perm[a_idx]
