@@ -318,16 +318,21 @@ def _mask_spread(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, ce
 
 
 def _corner_or_notch(f: Fragment, g: Fragment, mask: np.ndarray, origin: np.ndarray, cell: float,
-                     spread: float = 0.0, min_gap: float = 1.5, probe: float = 1.0) -> list[np.ndarray]:
+                     spread: float = 0.0, min_gap: float = 1.5, probe: float = 1.0,
+                     empty_share: float = 1 / 3) -> list[np.ndarray]:
     """The corner(s) between consecutive, non-parallel fragments ``f`` and ``g``: their lines' intersection, or a
     notch of two walls when that corner is convex but empty.
 
     Fragments that stop at least ``min_gap`` short of their lines' intersection leave the corner to be guessed. The
     corner would be convex when the mask is occupied ``probe`` m back from each fragment's end and ``probe`` m
     beside it towards the other wall's gap (the parallelogram the gaps span lies on the building side of both
-    walls; at a concave corner it lies outside). If the mask is empty ``probe`` m inside that corner along both
-    walls, the building does not reach it: two walls the facade points missed (a tower's plain wall in a nave's
-    shadow, say) cut it off. The probes are a metre, beyond the mask's outward spread (eaves, its closing). The
+    walls; at a concave corner it lies outside). If the mask is empty over at least ``empty_share`` of that
+    parallelogram without its strips ``probe`` m wide along the two fragments' ends, the building does not reach
+    the corner: two walls the facade points missed (a tower's plain wall in a nave's shadow, say) cut it off. The
+    strips and probes are a metre, beyond the mask's usual outward spread (eaves, its closing); the share, not one
+    probe, decides because a tall wall's top edge widens the mask by about that (the demo church tower's eave
+    points reach 0.64 m beyond its north wall and the mask's cells 0.82 m: the probe, 2 m from that wall, fell in
+    its last cell). The
     notch runs from ``f``'s end parallel to ``g``, then parallel to ``f`` to ``g``'s start, or to where the mask
     begins across the gap plus the mask's ``spread`` beyond walls (:func:`_mask_spread`) when that is nearer to
     the corner (the wall's first metres often have no facade points: a shadowed inner corner)."""
@@ -339,13 +344,18 @@ def _corner_or_notch(f: Fragment, g: Fragment, mask: np.ndarray, origin: np.ndar
     u_f, u_g = end_f - c, start_g - c
     if np.linalg.norm(u_f) < min_gap or np.linalg.norm(u_g) < min_gap:
         return [c]
-    u_f, u_g = u_f / np.linalg.norm(u_f), u_g / np.linalg.norm(u_g)
+    gap_f, gap_g = np.linalg.norm(u_f), np.linalg.norm(u_g)
+    u_f, u_g = u_f / gap_f, u_g / gap_g
 
     def occupied(xy: np.ndarray) -> bool:
         return bool(_occupied(mask, origin, cell, xy)[0])
 
     convex = occupied(end_f + probe * (u_f + u_g)) and occupied(start_g + probe * (u_f + u_g))
-    if not convex or occupied(c + probe * (u_f + u_g)):
+    if not convex:
+        return [c]
+    a, b = np.meshgrid(np.arange(cell / 4, gap_f - probe, cell / 2), np.arange(cell / 4, gap_g - probe, cell / 2))
+    inner = c + a.reshape(-1, 1) * u_f + b.reshape(-1, 1) * u_g
+    if not len(inner) or _occupied(mask, origin, cell, inner).mean() > 1.0 - empty_share:
         return [c]
     # the wall parallel to f: at g's start, or nearer where the mask begins, along a line across the gap a quarter
     # of the way from g (further from f's end, whose eaves the mask spreads over)

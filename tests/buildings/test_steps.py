@@ -334,8 +334,9 @@ def test_contour_cuts_a_notch_where_two_walls_have_no_facade_points():
     shadow), nor has the nave's north wall in its first 1.5 m, so the lines of the tower's west wall and the nave's
     north wall meet in empty ground; the contour cuts the notch back: 8 corners, every true one within 0.3 m (the
     notch's inner wall where the mask begins, less its spread beyond the walls; 0.05 m when written), and the
-    notch's centre outside. An L whose walls have no points for 2 m on both sides of
-    its concave corner keeps that corner (within 0.3 m): there the gaps lie outside the building."""
+    notch's centre outside; also when the tower's top edge is fattened beyond its wall. An L whose walls have no
+    points for 2 m on both sides of its concave corner keeps that corner (within 0.3 m): there the gaps lie outside
+    the building."""
     from oblique_city.core.buildings.geometry import points_in_polygon
 
     nave, tower = (5.5, 0.0, 27.5, 10.0, 10.0), (0.0, 2.0, 5.5, 7.5, 20.0)
@@ -346,6 +347,17 @@ def test_contour_cuts_a_notch_where_two_walls_have_no_facade_points():
     assert c.source == "facades" and len(c.polygon) == 8
     assert np.linalg.norm(truth[:, None] - c.polygon[None], axis=2).min(1).max() < 0.3
     assert not points_in_polygon(np.array([[2.5, 9.0]]), c.polygon)[0]
+    # the demo church's case: the tower's north wall 2 m inside the nave's wall line, its top edge fattened in the
+    # dense cloud by 1.1-1.4 m (points at the tower's height beyond its wall), over the 1 m probe from the corner
+    for fat in (1.1, 1.4):
+        rects = [(6.0, 0.0, 28.0, 10.0, 10.0), (0.0, 2.0, 6.0, 8.0, 20.0), (0.0, 8.0, 6.0, 8.0 + fat, 20.0)]
+        walls = [((6.0, 0.0), (28.0, 0.0), 10.0), ((28.0, 0.0), (28.0, 10.0), 10.0),
+                 ((28.0, 10.0), (7.5, 10.0), 10.0), ((6.0, 0.0), (6.0, 2.0), 10.0), ((6.0, 2.0), (0.0, 2.0), 20.0),
+                 ((0.0, 2.0), (0.0, 8.0), 20.0)]
+        c = extract_contour(_walls_and_roofs(rects, walls, 1), 0.0)
+        truth = np.array([[0, 2], [6, 2], [6, 0], [28, 0], [28, 10], [6, 10], [6, 8], [0, 8]], float)
+        assert len(c.polygon) == 8
+        assert np.linalg.norm(truth[:, None] - c.polygon[None], axis=2).min(1).max() < 0.3
     # an L (12 x 4 m and 4 x 12 m arms) with 2 m of its concave corner's walls unseen on both sides
     arms = [(0.0, 0.0, 12.0, 4.0, 8.0), (0.0, 4.0, 4.0, 12.0, 8.0)]
     walls = [((0, 0), (12, 0), 8.0), ((12, 0), (12, 4), 8.0), ((12, 4), (6, 4), 8.0), ((4, 6), (4, 12), 8.0),
