@@ -115,20 +115,24 @@ def edge_offsets(polygon: np.ndarray, dsm: Raster, start: float, stop: float,
 def _step_fit(s: np.ndarray, z: np.ndarray, guess: float, cell: float, reach: float = 1.0) -> float:
     """Where a height profile ``z`` over ``s (k,)`` steps: the position within two cells of ``guess`` that best
     splits it into a straight run on either side (each ``reach`` long, least squares). Unlike the smoothed
-    profile's inflection it is not drawn towards a steep roof behind the eave."""
-    best, best_e = np.inf, guess
-    for e in s[(s > guess - 2 * cell) & (s < guess + 2 * cell)]:
-        sse = 0.0
-        for m in ((s >= e - reach) & (s < e), (s > e) & (s <= e + reach)):
-            if m.sum() < 3 or np.isnan(z[m]).any():
-                sse = np.inf
-                break
-            A = np.column_stack([np.ones(int(m.sum())), s[m]])
-            r = z[m] - A @ np.linalg.lstsq(A, z[m], rcond=None)[0]
-            sse += float(r @ r)
-        if sse < best:
-            best, best_e = sse, float(e)
-    return best_e
+    profile's inflection it is not drawn towards a steep roof behind the eave. The candidates are scored at once:
+    a line's squared residuals are ``S_zz - S_sz^2 / S_ss`` from its window's centred sums."""
+    cand = s[(s > guess - 2 * cell) & (s < guess + 2 * cell)]
+    if not len(cand):
+        return guess
+    e = cand[:, None]
+    sse = np.zeros(len(cand))
+    for w in ((s >= e - reach) & (s < e), (s > e) & (s <= e + reach)):  # (candidates, samples) windows
+        n = w.sum(1)
+        bad = (n < 3) | (w & np.isnan(z)).any(1)
+        zw = np.where(w, np.nan_to_num(z), 0.0)
+        nn = np.maximum(n, 1)
+        ds = np.where(w, s - (w @ s / nn)[:, None], 0.0)
+        dz = np.where(w, zw - (zw.sum(1) / nn)[:, None], 0.0)
+        s_ss, s_sz, s_zz = (ds * ds).sum(1), (ds * dz).sum(1), (dz * dz).sum(1)
+        sse += np.where(bad, np.inf, s_zz - s_sz**2 / np.where(s_ss > 0, s_ss, 1.0))
+    k = int(np.argmin(sse))
+    return float(cand[k]) if np.isfinite(sse[k]) else guess
 
 
 def overhang_widths(polygon: np.ndarray, dsm: Raster, cfg: OverhangConfig = OverhangConfig()) -> np.ndarray:
