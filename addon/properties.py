@@ -91,6 +91,8 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
         "overhang_thickness": {"min": 0.0, "description": "Thickness of the overhang slab (m)"},
         "dormers": {"description": "Model dormers on the sloped roofs (blocks of points above their slope)"},
         "dormer_min_rise": {"min": 0.0, "description": "Height above its slope that marks a dormer (m)"},
+        "max_roof_fit": {"min": 0.0, "description": "Models that miss their roof points by more than this on "
+                                                    "average are refused as no building (m, 0 = keep all)"},
     },
     "dense": {
         "sgm_mode": {"items": (("sgbm_3way", "SGBM 3-way", "OpenCV's fast 3-way SGBM"),

@@ -3,8 +3,8 @@
 Reads ``dense/points.npz`` (the kept dense points) and ``surface/dsm.tif``, ``dtm.tif``, ``buildings.tif`` and
 ``vegetation.tif``; detects the buildings (or takes user footprints from a GeoJSON file), reconstructs each one
 through the executor (in-process, processes or Dask) and writes ``buildings/buildings.json`` (the models, see
-:mod:`.model`) and ``buildings/report.json`` (per building: path, reason, closed solid, timings, dormers and the
-candidates not taken with why; failures with their reason).
+:mod:`.model`) and ``buildings/report.json`` (per building: path, reason, closed solid, mean miss of its roof points,
+timings, dormers and the candidates not taken with why; failures with their reason).
 """
 
 from __future__ import annotations
@@ -34,7 +34,9 @@ class BuildingsConfig:
     vegetation masks (else roughness rejects vegetation); footprints : GeoJSON file of user footprints (empty:
     detect); voxel : noise filter cube (m, 0 = guessed); force_path : '' (automatic), '2d' or 'volumetric';
     max_overhang, overhang_thickness : overhang search range and slab thickness (m); dormers : model dormers
-    on the sloped roofs (:mod:`.dormers`); dormer_min_rise : height above its slope that marks a dormer (m)
+    on the sloped roofs (:mod:`.dormers`); dormer_min_rise : height above its slope that marks a dormer (m);
+    max_roof_fit : models that miss their roof points by more than this on average are refused as no building
+    (m, 0 = keep all; :class:`.reconstruct.ReconstructionConfig`)
     """
 
     min_height: float = 2.5
@@ -47,6 +49,7 @@ class BuildingsConfig:
     overhang_thickness: float = 0.2
     dormers: bool = True
     dormer_min_rise: float = 0.4
+    max_roof_fit: float = 0.5
 
 
 def _window(r: Raster, xy: np.ndarray, margin: float) -> Raster:
@@ -99,7 +102,7 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
     else:
         labels, n, stats = building_labels(dsm, dtm, dcfg, bmask, vmask)
         dets = points_per_building(xyz, labels, dsm, dtm, dcfg)
-    rcfg = ReconstructionConfig(voxel=cfg.voxel, force_path=cfg.force_path,
+    rcfg = ReconstructionConfig(voxel=cfg.voxel, force_path=cfg.force_path, max_roof_fit=cfg.max_roof_fit,
                                 overhang=OverhangConfig(max_width=cfg.max_overhang, thickness=cfg.overhang_thickness),
                                 dormers=DormerConfig(enabled=cfg.dormers, min_rise=cfg.dormer_min_rise))
     units = [(f"B{d.label:04d}", xyz[d.indices], d.ground_z, _window(dsm, xyz[d.indices, :2], 5.0), rcfg)
@@ -115,7 +118,8 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
     report = {
         "detection": stats,
         "buildings": [{"id": m.id, "path": m.path, "reason": m.reason, "closed": m.info.get("closed"),
-                       "solid_problem": m.info.get("solid_problem"), "seconds": m.info.get("seconds"),
+                       "solid_problem": m.info.get("solid_problem"), "roof_fit": m.info.get("roof_fit"),
+                       "seconds": m.info.get("seconds"),
                        "corners": len(m.footprint), "roof_planes": len(m.roof_planes),
                        "overhangs": m.overhangs.tolist(), "dormers": m.info.get("dormers", []),
                        "dormer_candidates_rejected": m.info.get("dormer_candidates_rejected", [])} for m in models],
@@ -132,4 +136,4 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="buildings", run=run, config=BuildingsConfig, requires=("surface",),
-              description="LOD2 buildings with discontinuities, roof overhangs and dormers", version="12")
+              description="LOD2 buildings with discontinuities, roof overhangs and dormers", version="13")

@@ -221,3 +221,23 @@ def test_a_spurious_step_on_a_dormer_house_keeps_the_2d_model_and_its_dormers():
     assert m.info["roof_fit_2d"] < m.info["roof_fit_volumetric"] - 0.5 * m.info["noise"]
     forced = reconstruct_building(xyz, gz, None, "B0002", replace(ReconstructionConfig(), force_path="volumetric"))
     assert forced.path == "volumetric" and forced.info.get("dormers", []) == []
+
+
+def test_tree_crowns_are_refused_and_buildings_fit_their_roof_points(models):
+    """Tree crowns of the simulator's city (seed 2) that the roughness test let through as one blob in case (a) of
+    the benchmark (``tests/data/tree_crowns_sampled.npz``: every second point of B0001, float32 about an offset):
+    the model the reconstruction gets misses the crowns by 1 m on average (each miss capped at 1 m; the demo's
+    buildings miss their roof points by 0.07-0.26 m) and is refused with the reason; with the gate off it is
+    kept. The parametric buildings (4 cm noise) miss theirs by 0.11-0.18 m: the roof points include the top metre of
+    the walls inside the outline."""
+    from pathlib import Path
+
+    d = np.load(Path(__file__).parents[1] / "data" / "tree_crowns_sampled.npz")
+    gz = float(d["ground_z"])
+    xyz = np.column_stack([d["xyz"][:, :2] + d["offset"], d["xyz"][:, 2] + gz]).astype(np.float64)
+    with pytest.raises(ValueError, match="not a building"):
+        reconstruct_building(xyz, gz, None, "B0001")
+    kept = reconstruct_building(xyz, gz, None, "B0001", ReconstructionConfig(max_roof_fit=0.0))
+    assert kept.info["roof_fit"] > 0.9
+    for m in models.values():
+        assert m.info["roof_fit"] < 0.2
