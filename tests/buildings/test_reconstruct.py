@@ -71,6 +71,21 @@ def test_roof_height_error_sees_a_raised_roof_and_a_missing_one(models, syntheti
     assert 0.2 < share < 0.8  # the lower roof's part of the footprint has no roof over it
 
 
+def test_samples_near_steps_are_found_and_roof_slopes_are_not():
+    """A 0.5 m grid over a flat roof at 5 m and one at 10 m beside it (a step at x = 10) and a 65 degree slope (a
+    tower's spire): only the samples within 0.75 m of the step are near it; the roof RMSE off steps leaves them
+    out."""
+    from oblique_city.core.evaluate.buildings import near_steps
+
+    X, Y = np.meshgrid(np.arange(0.25, 20.0, 0.5), np.arange(0.25, 6.0, 0.5))
+    xy = np.column_stack([X.ravel(), Y.ravel()])
+    flat = np.column_stack([xy, np.where(xy[:, 0] < 10.0, 5.0, 10.0)])
+    near = near_steps(flat)
+    assert np.array_equal(near, np.abs(xy[:, 0] - 10.0) < 0.75)
+    slope = np.column_stack([xy, 20.0 + np.tan(np.radians(65.0)) * xy[:, 0]])
+    assert not near_steps(slope).any()
+
+
 def test_upper_roof_overhangs_the_lower_one_at_a_step():
     """A 10 m flat part beside a 5 m one, each with a 0.4 m overhang: the upper roof reaches 0.4 m over the lower one
     past the step wall (an overhang slab, as at the outline), measured in the DSM like the outline's; the top
