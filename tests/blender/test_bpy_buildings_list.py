@@ -138,7 +138,7 @@ def test_panel_draws_the_list_and_the_options(addon, ws):
     assert [e[1] for e in log if e[0] == "prop"] == option_fields("buildings")
     assert option_fields("buildings") == ["min_height", "min_area", "use_masks", "footprints", "voxel",
                                           "force_path", "max_overhang", "overhang_thickness", "dormers",
-                                          "dormer_min_rise"]
+                                          "dormer_min_rise", "max_roof_fit"]
     settings.building_index = 0
     layout = ListLayout()
     panel.draw(SimpleNamespace(layout=layout), bpy.context)
