@@ -109,8 +109,9 @@ def descriptor_distances(des_a: np.ndarray, des_b: np.ndarray, a_idx: np.ndarray
 def band_candidates(uv_b: np.ndarray, s0: np.ndarray, s1: np.ndarray, ia: np.ndarray, band: float
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints of image B that may lie within ``band`` of the segments ``s0[ia] -> s1[ia]`` (``(n, 2)`` end
-    points, ``ia (k,)`` the segments to search): index pairs ``(a, b)``, ordered by ``a`` then ``b``, without
-    repeats; a superset of the pairs within the band (the caller tests the distance).
+    points, ``ia (k,)`` the segments to search): index pairs ``(a, b)``, ``a`` ascending (each segment's
+    keypoints by cell, then by index), without repeats; a superset of the pairs within the band (the caller tests
+    the distance).
 
     B's keypoints are binned in square cells of ``4/3 band``; each segment is sampled every half cell, and the 3 x 3
     cells around each sample are taken. A point within the band lies within ``band`` of the segment, so within
@@ -143,8 +144,7 @@ def band_candidates(uv_b: np.ndarray, s0: np.ndarray, s1: np.ndarray, ia: np.nda
     k = counts_b[cell]
     a_idx = np.repeat(a_cell, k)
     pos = np.repeat(first_b[cell] - (np.cumsum(k) - k), k) + np.arange(int(k.sum()))
-    pair = np.sort(a_idx * len(uv_b) + order_b[pos])
-    return pair // len(uv_b), pair % len(uv_b)
+    return a_idx, order_b[pos]
 
 
 def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: np.ndarray,
@@ -156,7 +156,7 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
     s0, s1 = epipolar_segments(uv_a, cam_a, pose_a, cam_b, pose_b, opt.z_lo, opt.z_hi)
     ok = np.all(np.isfinite(s0), 1) & np.all(np.isfinite(s1), 1)
     # A's keypoints numbered by where their segments lie in B (rows of 64 px cells), so that consecutive ones
-    # share candidates (descriptor_distances); for a given keypoint the candidates stay ordered by B's index
+    # share candidates (descriptor_distances)
     mid = np.where(ok[:, None], (s0 + s1) / 2, 0.0) // 64.0
     perm = np.lexsort((mid[:, 0], mid[:, 1]))
     s0, s1 = s0[perm], s1[perm]
@@ -166,20 +166,20 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
     inside = segment_distance(uv_b[b_idx], s0[a_idx], s1[a_idx]) <= opt.band_px
     a_idx, b_idx = a_idx[inside], b_idx[inside]
     d = descriptor_distances(des_a[perm], des_b, a_idx, b_idx)
-    a_idx = perm[a_idx]
-    order = np.lexsort((d, a_idx))
-    a_idx, b_idx, d = a_idx[order], b_idx[order], d[order]
+    # per keypoint of A (its candidates are consecutive): the nearest candidate (the lowest index of B among equal
+    # distances) and the next distance, for the ratio test; group minima instead of sorting every candidate
     first = np.r_[True, a_idx[1:] != a_idx[:-1]]
     pos = np.flatnonzero(first)
-    nxt = pos + 1
-    has_second = np.r_[nxt[:-1] < pos[1:], nxt[-1:] < len(a_idx)]
-    second = np.full(len(pos), np.inf, np.float32)
-    second[has_second] = d[nxt[has_second]]
-    passed = d[pos] <= opt.ratio * second
+    group = np.cumsum(first) - 1
+    near = np.minimum.reduceat(d, pos)
+    near_b = np.minimum.reduceat(np.where(d == near[group], b_idx, len(uv_b)), pos)
+    second = np.minimum.reduceat(np.where((d == near[group]) & (b_idx == near_b[group]), np.inf, d), pos)
+    passed = near <= opt.ratio * second
+    a_pass = perm[a_idx[pos[passed]]]
     best = np.full(len(uv_a), -1, np.int64)
     best_d = np.full(len(uv_a), np.inf)
-    best[a_idx[pos[passed]]] = b_idx[pos[passed]]
-    best_d[a_idx[pos[passed]]] = d[pos[passed]]
+    best[a_pass] = near_b[passed]
+    best_d[a_pass] = near[passed]
     pairs = np.stack([np.flatnonzero(best >= 0), best[best >= 0]], 1)
     if len(pairs) == 0:
         return pairs
