@@ -65,10 +65,13 @@ def epipolar_segments(uv_a: np.ndarray, cam_a: CameraModel, pose_a: Pose, cam_b:
 
 
 def segment_distance(p: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> np.ndarray:
-    """Distance of points ``p (k, 2)`` to segments ``s0, s1 (k, 2)`` (row-wise)."""
-    d = s1 - s0
-    t = np.clip(np.einsum("ij,ij->i", p - s0, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0, 1)
-    return np.linalg.norm(p - (s0 + t[:, None] * d), axis=1)
+    """Distance of points ``p (k, 2)`` to segments ``s0, s1 (k, 2)`` (row-wise), by columns (no (k, 2)
+    temporaries beyond the differences)."""
+    dx, dy = s1[:, 0] - s0[:, 0], s1[:, 1] - s0[:, 1]
+    px, py = p[:, 0] - s0[:, 0], p[:, 1] - s0[:, 1]
+    t = np.clip((px * dx + py * dy) / np.maximum(dx * dx + dy * dy, 1e-12), 0, 1)
+    ex, ey = p[:, 0] - (s0[:, 0] + t * dx), p[:, 1] - (s0[:, 1] + t * dy)
+    return np.sqrt(ex * ex + ey * ey)
 
 
 def descriptor_distances(des_a: np.ndarray, des_b: np.ndarray, a_idx: np.ndarray, b_idx: np.ndarray,
