@@ -99,11 +99,15 @@ def descriptor_distances(des_a: np.ndarray, des_b: np.ndarray, a_idx: np.ndarray
         return d
     na32, nb32 = na.astype(np.float32), nb.astype(np.float32)
     cuts = np.searchsorted(a_idx, np.arange(0, len(des_a) + rows, rows))
+    need = np.zeros(len(des_b), bool)
     for r0, (k0, k1) in enumerate(zip(cuts[:-1], cuts[1:])):
         if k1 == k0:
             continue
         lo = r0 * rows
-        cols, b_k = np.unique(b_idx[k0:k1], return_inverse=True)  # the columns these rows need
+        need[:] = False
+        need[b_idx[k0:k1]] = True  # the columns these rows need, and each candidate's among them
+        cols = np.flatnonzero(need)
+        b_k = (np.cumsum(need) - 1)[b_idx[k0:k1]]
         dots = des_a[lo:lo + rows] @ des_b[cols].T
         d[k0:k1] = na32[a_idx[k0:k1]] + nb32[b_idx[k0:k1]] - 2.0 * dots[a_idx[k0:k1] - lo, b_k]
     return np.sqrt(np.maximum(d, 0.0, out=d), out=d)
