@@ -138,6 +138,8 @@ def band_candidates(uv_b: np.ndarray, s0: np.ndarray, s1: np.ndarray, ia: np.nda
     rep = np.repeat(ia, n_s)
     t = (np.arange(len(rep)) - np.repeat(np.cumsum(n_s) - n_s, n_s)) / np.repeat(np.maximum(n_s - 1, 1), n_s)
     cs = np.floor((s0[rep] + t[:, None] * (s1[rep] - s0[rep]) - lo) / c).astype(np.int64)
+    again = np.r_[False, (rep[1:] == rep[:-1]) & np.all(cs[1:] == cs[:-1], axis=1)]  # the cell of the last sample
+    rep, cs = rep[~again], cs[~again]
     keys = []
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
