@@ -325,26 +325,25 @@ def _corner_or_notch(f: Fragment, g: Fragment, mask: np.ndarray, origin: np.ndar
 
     Fragments that stop at least ``min_gap`` short of their lines' intersection leave the corner to be guessed. The
     corner would be convex when the mask is occupied ``probe`` m back from each fragment's end and ``probe`` m
-    beside it towards the other wall's gap (the parallelogram the gaps span lies on the building side of both
-    walls; at a concave corner it lies outside). If the mask is empty over at least ``empty_share`` of that
-    parallelogram without its strips ``probe`` m wide along the two fragments' ends, the building does not reach
-    the corner: two walls the facade points missed (a tower's plain wall in a nave's shadow, say) cut it off. The
-    strips and probes are a metre, beyond the mask's usual outward spread (eaves, its closing); the share, not one
-    probe, decides because a tall wall's top edge widens the mask by about that (the demo church tower's eave
-    points reach 0.64 m beyond its north wall and the mask's cells 0.82 m: the probe, 2 m from that wall, fell in
-    its last cell). The
+    beside it towards the other wall's gap (the parallelogram the gaps span lies on the building side of both walls;
+    at a concave corner it lies outside). If the mask is empty over at least ``empty_share`` of that parallelogram
+    without its strips ``probe`` m wide along the two fragments' ends, the building does not reach the corner: two
+    walls the facade points missed (a tower's plain wall in a nave's shadow, say) cut it off. The strips and probes
+    are a metre, beyond the mask's usual outward spread (eaves, its closing); the share, not one probe, decides
+    because a tall wall's top edge widens the mask by about that (the demo church tower's eave points reach 0.64 m
+    beyond its north wall and the mask's cells 0.82 m: the probe, 2 m from that wall, fell in its last cell). The
     notch runs from ``f``'s end parallel to ``g``, then parallel to ``f`` to ``g``'s start, or to where the mask
-    begins across the gap plus the mask's ``spread`` beyond walls (:func:`_mask_spread`) when that is nearer to
-    the corner (the wall's first metres often have no facade points: a shadowed inner corner)."""
+    begins across the gap plus the mask's ``spread`` beyond walls (:func:`_mask_spread`) when that is nearer to the
+    corner (the wall's first metres often have no facade points: a shadowed inner corner)."""
     c = _intersect(f, g)
     ends_f = (f.p + f.d * f.t0, f.p + f.d * f.t1)
     ends_g = (g.p + g.d * g.t0, g.p + g.d * g.t1)
     end_f = min(ends_f, key=lambda q: np.linalg.norm(q - c))
     start_g = min(ends_g, key=lambda q: np.linalg.norm(q - c))
     u_f, u_g = end_f - c, start_g - c
-    if np.linalg.norm(u_f) < min_gap or np.linalg.norm(u_g) < min_gap:
-        return [c]
     gap_f, gap_g = np.linalg.norm(u_f), np.linalg.norm(u_g)
+    if gap_f < min_gap or gap_g < min_gap:
+        return [c]
     u_f, u_g = u_f / gap_f, u_g / gap_g
 
     def occupied(xy: np.ndarray) -> bool:

@@ -252,14 +252,15 @@ def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
     def med(a):
         return float(np.nanmedian(a)) if len(a) and np.isfinite(a).any() else float("nan")
 
+    def rms(a):
+        return float(np.sqrt(np.mean(a**2))) if len(a) else float("nan")
+
     return BuildingScore(truth.name, model.id, model.path, model.reason, bool(model.info.get("closed", False)),
                          float(model.info.get("seconds", np.nan)), med(c), float(np.mean(c)), float(np.max(c)),
                          int(sum(len(r) for r in truth.footprint)), int(len(model.footprint)), med(ne),
                          float(np.nanmax(ne)) if len(ne) and np.isfinite(ne).any() else float("nan"),
                          [float(x) for x in oe], med(oe), int(model.info.get("walls_inferred", 0)),
-                         float(np.sqrt(np.mean(seen**2))) if len(seen) else float("nan"),
-                         float(len(seen) / len(he)) if len(he) else float("nan"),
-                         float(np.sqrt(np.mean(off**2))) if len(off) else float("nan"))
+                         rms(seen), float(len(seen) / len(he)) if len(he) else float("nan"), rms(off))
 
 
 def match_truth(model: BuildingModel, truths: list[BuildingTruth]) -> int | None:

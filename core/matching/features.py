@@ -181,8 +181,9 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
     pos = np.flatnonzero(first)
     group = np.cumsum(first) - 1
     near = np.minimum.reduceat(d, pos)
-    near_b = np.minimum.reduceat(np.where(d == near[group], b_idx, len(uv_b)), pos)
-    second = np.minimum.reduceat(np.where((d == near[group]) & (b_idx == near_b[group]), np.inf, d), pos)
+    is_near = d == near[group]
+    near_b = np.minimum.reduceat(np.where(is_near, b_idx, len(uv_b)), pos)
+    second = np.minimum.reduceat(np.where(is_near & (b_idx == near_b[group]), np.inf, d), pos)
     passed = near <= opt.ratio * second
     a_pass = perm[a_idx[pos[passed]]]
     best = np.full(len(uv_a), -1, np.int64)
