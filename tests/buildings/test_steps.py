@@ -10,6 +10,7 @@ from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_fi
 from oblique_city.core.buildings.hull import build_hull
 from oblique_city.core.buildings.overhang import overhang_widths
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
+from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
 from oblique_city.core.buildings.volumetric import (
     PlaneSegment,
     eave_planes,
@@ -510,3 +511,37 @@ def test_no_interior_wall_on_a_building_without_one():
     xyz, wall, polygon = _stepped_cloud(0.15)
     walls, on_wall = interior_walls(xyz[~wall], polygon, 0.0, 0.55, 40)
     assert walls == [] and not on_wall.any()
+
+
+def _jogged(angle_deg: float, jog: float) -> SyntheticBuilding:
+    """Two flat parts side by side, the second shifted by ``jog`` m across: a step in both long walls."""
+    return SyntheticBuilding("jogged", (Part(0, 0, 10, 9, 9, 9, "flat", 0.0),
+                                        Part(10, jog, 20, 9 + jog, 6, 6, "flat", 0.0)),
+                             ((0, 0), (10, 0), (10, jog), (20, jog), (20, 9 + jog), (10, 9 + jog), (10, 9), (0, 9)),
+                             (0.0,) * 8, origin=(30.0, 40.0), angle_deg=angle_deg, stepped=True)
+
+
+@pytest.mark.parametrize("angle", [6.0, 20.0, 33.0])
+def test_half_metre_steps_in_both_long_walls_are_kept(angle):
+    b = _jogged(angle, 0.5)
+    # 8 cm noise: at 20 degrees the cells of the jog's corner chained the north wall's two parts into one line
+    xyz = b.sample(DENSITY, 2 * NOISE, np.random.default_rng(0))
+    c = extract_contour(xyz, 0.0)
+    assert c.source == "facades"
+    d = np.linalg.norm(b.footprint[:, None] - c.polygon[None], axis=2)
+    assert d.min(1).max() < 0.6  # all 8 corners found (a lost step leaves its corners metres away)
+    assert np.median(d.min(1)) < 0.2
+
+
+def test_wall_without_facade_points_between_parallel_walls_closes_at_the_building_end():
+    b = _jogged(6.0, 1.0)
+    xyz = b.sample(DENSITY, NOISE, np.random.default_rng(12))
+    # the west wall (u = 0) hidden below its eave, as behind a neighbour: only the roof shows where it is
+    uv = b.to_local(xyz[:, :2])
+    xyz = xyz[~((uv[:, 0] < 0.4) & (xyz[:, 2] < 8.5))]
+    c = extract_contour(xyz, 0.0)
+    assert c.source == "facades"
+    d = np.linalg.norm(b.footprint[:, None] - c.polygon[None], axis=2)
+    west = [0, 7]  # the corners at u = 0
+    assert d.min(1)[west].max() < 0.5  # the building is not cut at its inner fragments' ends
+    assert d.min(1).max() < 0.6
