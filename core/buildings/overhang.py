@@ -239,10 +239,14 @@ def overhang_surfaces(vertices: np.ndarray, faces: list[tuple[str, list[int]]], 
                         xy = pv[:2] + w * nrm
                     q = None
                     if len(planes_here) >= 2 and abs(t) > 1e-3 and abs(t - length) > 1e-3:
+                        # the roofs' meeting line (a hip, a valley) carried out to the eave line; one running
+                        # nearly along the eave (two roofs sloping the same way) meets it far off, or never
                         ln = plane_line(planes_here[0], planes_here[1])
                         if ln is not None and abs(ln[1] @ outer[:3]) > 1e-6:
                             s = -(outer[:3] @ ln[0] + outer[3]) / (outer[:3] @ ln[1])
                             q = ln[0] + s * ln[1]
+                            if np.linalg.norm(q[:2] - xy) > 2 * w + 0.1:
+                                q = None
                     if q is None:
                         pl = roof_plane_of_face[rf]
                         q = np.array([xy[0], xy[1], -(pl[0] * xy[0] + pl[1] * xy[1] + pl[3]) / pl[2]])

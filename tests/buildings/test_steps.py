@@ -8,7 +8,7 @@ import pytest
 from oblique_city.core.buildings.contour import ContourConfig, extract_contour, walls_under_roof_outline
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
 from oblique_city.core.buildings.hull import build_hull
-from oblique_city.core.buildings.overhang import overhang_widths
+from oblique_city.core.buildings.overhang import overhang_surfaces, overhang_widths
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
 from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
 from oblique_city.core.buildings.volumetric import (
@@ -545,3 +545,22 @@ def test_wall_without_facade_points_between_parallel_walls_closes_at_the_buildin
     west = [0, 7]  # the corners at u = 0
     assert d.min(1)[west].max() < 0.5  # the building is not cut at its inner fragments' ends
     assert d.min(1).max() < 0.6
+
+
+def test_overhang_corner_between_roofs_sloping_the_same_way_stays_at_the_eave():
+    # a south wall with two roofs above it meeting at its middle: 40 and 20 degrees, both down to the south, their
+    # meeting line running almost along the eave (as a main roof beside a lean-to's spurious plane)
+    t40, t20 = np.tan(np.radians(40.0)), np.tan(np.radians(20.0))
+    plane_a = np.array([0.0, -t40, 1.0, -3.0])
+    plane_b = np.array([-0.001 * t20, -t20, 1.0, -3.01])
+    V = np.array([[0, 0, 0], [10, 0, 0], [10, 0, 3], [5, 0, 3], [0, 0, 3], [10, 4, 4.5], [5, 4, 4.5], [0, 4, 6.4]],
+                 dtype=np.float64)
+    faces = [("wall", [0, 1, 2, 3, 4]), ("roof", [3, 2, 5, 6]), ("roof", [4, 3, 6, 7])]
+    polygon = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 6.0], [0.0, 6.0]])
+    verts, new = overhang_surfaces(V, faces, polygon, np.array([0.5, 0.0, 0.0, 0.0]), {0: [0]},
+                                   {1: plane_b / np.linalg.norm(plane_b[:3]), 2: plane_a / np.linalg.norm(plane_a[:3])},
+                                   0.2)
+    assert {k for k, _ in new} == {"overhang_roof", "overhang_fascia", "overhang_underside"}
+    added = verts[len(V):]
+    assert np.all(added[:, 1] >= -0.5 - 1e-9) and np.all(added[:, 1] <= 0.0 + 1e-9)  # within the 0.5 m overhang
+    assert np.all((added[:, 0] >= -1e-9) & (added[:, 0] <= 10.0 + 1e-9))  # not kilometres along the eave
