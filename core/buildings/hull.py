@@ -128,6 +128,32 @@ def dedupe_planes(planes: np.ndarray, angle_deg: float = 1.0, offset: float = 0.
     return np.asarray(out).reshape(-1, 4)
 
 
+def _volume_samples(cells: list[Cell]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Samples of the convex ``cells`` weighted by the volume they stand for: each cell cut into tetrahedra from
+    its centroid over its faces (fan-triangulated), four samples per tetrahedron (halfway between its centroid
+    and each corner), a quarter of its volume each. Samples spread over the corners instead (the centroid and
+    points towards each vertex) out-voted the bulk of a wedge with their many samples near its thick end: the
+    part of a lower roof's cell under an upper roof's overhang kept the whole wedge up to where the upper roof's
+    plane, carried on, met the lower roof 2 m further out.
+
+    Returns the samples (s, 3), their weights (s,) and the index of their cell (s,)."""
+    tris, own = [], []
+    centroids = np.empty((len(cells), 3))
+    for ci, cell in enumerate(cells):
+        centroids[ci] = np.concatenate([f for _, f in cell]).mean(0)
+        for _, poly in cell:
+            k = len(poly) - 2
+            tris.append(np.stack([np.repeat(poly[:1], k, axis=0), poly[1:-1], poly[2:]], 1))
+            own.append(np.full(k, ci))
+    t = np.concatenate(tris)  # (q, 3 corners, 3)
+    cell_of = np.concatenate(own)
+    c = centroids[cell_of]
+    vol = np.abs(np.einsum("ij,ij->i", t[:, 0] - c, np.cross(t[:, 1] - c, t[:, 2] - c))) / 6.0
+    g = (t.sum(1) + c) / 4.0
+    corners = np.concatenate([t[:, 0], t[:, 1], t[:, 2], c])
+    return (np.tile(g, (4, 1)) + corners) / 2.0, np.tile(vol / 4.0, 4), np.tile(cell_of, 4)
+
+
 def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                inside: Callable[[np.ndarray], np.ndarray], merge_tol: float = 1e-5) -> Hull:
     """The closed surface of the occupied cells of the arrangement of ``planes (k, 4)`` in the box [lo, hi].
@@ -135,7 +161,7 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     Parameters
     ----------
     inside : ``inside(xyz (n, 3)) -> (n,) bool`` occupancy of sample points; a cell is kept when most of its
-        samples (the centroid and points between it and each vertex) are inside
+        volume is inside (:func:`_volume_samples`)
     """
     cells: list[Cell] = [_box(np.asarray(lo, float), np.asarray(hi, float))]
     for pid, pl in enumerate(planes):
@@ -147,18 +173,11 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
             else:
                 nxt.extend(r)
         cells = nxt
-    # occupancy by majority of samples per cell
-    samples, owner = [], []
-    for ci, cell in enumerate(cells):
-        v = np.concatenate([f for _, f in cell])  # repeated corners only weight the samples
-        c = v.mean(0)
-        s = np.vstack([c[None], c + 0.6 * (v - c), c + 0.3 * (v - c)])
-        samples.append(s)
-        owner.append(np.full(len(s), ci))
-    S = np.concatenate(samples)
-    own = np.concatenate(owner)
+    # occupancy: the share of each cell's volume whose samples are inside
+    S, weight, own = _volume_samples(cells)
     occ = inside(S).astype(np.float64)
-    frac = np.bincount(own, occ, minlength=len(cells)) / np.bincount(own, minlength=len(cells))
+    frac = np.bincount(own, weight * occ, minlength=len(cells)) / np.maximum(
+        np.bincount(own, weight, minlength=len(cells)), 1e-300)
     keep = frac > 0.5
     # facets of all cells; vertices consolidated by distance
     facets = [(ci, fid, poly) for ci, cell in enumerate(cells) for fid, poly in cell]

@@ -85,6 +85,8 @@ def edge_offsets(polygon: np.ndarray, dsm: Raster, start: float, stop: float,
         p0, p1 = polygon[i], polygon[(i + 1) % m]
         d = p1 - p0
         length = float(np.linalg.norm(d))
+        if length < 1e-9:  # a repeated vertex: no edge to measure
+            continue
         d /= length
         nrm = np.array([d[1], -d[0]])  # outward for a counter-clockwise outline
         ts = np.arange(0.15 * length, 0.85 * length + 1e-9, dsm.cell)

@@ -564,3 +564,13 @@ def test_overhang_corner_between_roofs_sloping_the_same_way_stays_at_the_eave():
     added = verts[len(V):]
     assert np.all(added[:, 1] >= -0.5 - 1e-9) and np.all(added[:, 1] <= 0.0 + 1e-9)  # within the 0.5 m overhang
     assert np.all((added[:, 0] >= -1e-9) & (added[:, 0] <= 10.0 + 1e-9))  # not kilometres along the eave
+
+
+@pytest.mark.parametrize("occupied, kept", [(0.8, False), (1.0, True)])
+def test_hull_cell_kept_by_the_share_of_its_volume_inside(occupied, kept):
+    # one plane, y + z = 3, cuts a wedge (3 m thick at y = 0, none at y = 3) out of the box; the occupancy fills
+    # it from its thick end to y = occupied: 46 % of its volume for 0.8 m, 56 % for 1 m
+    s2 = np.sqrt(2.0)
+    hull = build_hull(np.array([[0.0, 1.0 / s2, 1.0 / s2, -3.0 / s2]]), np.zeros(3), np.array([10.0, 4.0, 5.0]),
+                      lambda P: (P[:, 1] < occupied) & (P[:, 1] + P[:, 2] < 3.0))
+    assert (hull.n_inside == 1) == kept
