@@ -344,9 +344,11 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
 
     The ends joined are those where the boundary leaves ``f`` and reaches ``g`` (for opposite walls the ends
     nearest to the other fragment are no guide: both are about as far). A step between offset walls (at most
-    ``reach`` apart) gets its short connecting wall halfway between these ends (where the facade points change
-    from one wall to the other was measured worse: the lower part's facade is often hidden next to the step).
-    Farther apart, a wall no
+    ``reach`` apart) gets its short connecting wall where the eaves step (:func:`_step_change` on the roof
+    points of ``points``), kept within the gap between these ends (an upper part's eave reaching past its wall
+    over the lower roof shifts the eaves' step), else halfway between the ends: the lower part's facade is often
+    hidden next to the step, and the fragments stopped 1.5-4 m short of it on simulated split gables (where the
+    facade points change from one wall to the other placed it worse still). Farther apart, a wall no
     fragment shows lies between them: the boundary points of the gap (farther than ``reach`` from both fragments)
     trace it. It is placed square to the fragments' mean direction (a regression line through the boundary
     cells' staircase tilted a 6 degree wall the wrong way), at the gap points' median position along that
@@ -358,6 +360,16 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
     end_f, start_g = _ring_end(f, bxy[f_last]), _ring_end(g, bxy[g_first])
     mid = (end_f + start_g) / 2
     offset = abs(float((g.p - f.p) @ np.array([-f.d[1], f.d[0]])))
+    if points is not None and offset <= reach:
+        start_f = 2 * f.p + f.d * (f.t0 + f.t1) - end_f  # f's other end
+        lf = float(np.linalg.norm(end_f - start_f))
+        top = points[0][points[0][:, 2] > points[1] + 2.0, :2]
+        d = (end_f - start_f) / max(lf, 1e-9)
+        ts = _step_change(start_f, d, lf, start_g, top, cell, reach,
+                          1.0 if polygon_area(bxy) > 0 else -1.0, walls=True) if lf > 0 else None
+        if ts is not None:  # the step lies between the walls' facade points, whatever the eaves say
+            gap = sorted((lf, float((start_g - start_f) @ d)))
+            mid = start_f + float(np.clip(ts, gap[0] - cell / 2, gap[1] + cell / 2)) * d
     n = len(bxy)
     gap = bxy[(f_last + 1 + np.arange((g_first - f_last - 1) % n)) % n]
     if offset > reach and len(gap) >= 2:
@@ -565,11 +577,8 @@ def roof_outline_polygon(xyz: np.ndarray, ground_z: float, cfg: ContourConfig, o
 def _place_steps(lines: list[tuple[np.ndarray, np.ndarray, float]], top: np.ndarray, cos_par: float,
                  cell: float, reach: float = 3.0) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """Put the step between two consecutive parallel, offset lines ``(start (2,), unit direction (2,),
-    length)`` where the roof points ``top (n, 2)`` change from one line to the other.
-
-    Along the pair (``reach`` metres either side of their meeting), the outermost point of every ``cell``-long
-    slice is nearer to one line or the other; the change point is the slice boundary with the fewest slices on
-    the wrong side. The simplified mask's corners otherwise place the step up to a metre off.
+    length)`` of a counter-clockwise ring where the roof points ``top (n, 2)`` change from one line to the other
+    (:func:`_step_change`). The simplified mask's corners otherwise place the step up to a metre off.
     """
     out = list(lines)
     k = len(out)
@@ -577,32 +586,66 @@ def _place_steps(lines: list[tuple[np.ndarray, np.ndarray, float]], top: np.ndar
         (p, d, lp), (q, e, lq) = out[i], out[(i + 1) % k]
         if d @ e <= cos_par:  # consecutive walls of a ring only run the same way when they are offset
             continue
-        nrm = np.array([d[1], -d[0]])
-        end = p + lp * d
-        t0 = float(((end + q) / 2 - p) @ d)
-        t = (top - p) @ d
-        o = (top - p) @ nrm
-        oi, oj = 0.0, float((q - p) @ nrm)
-        band = (np.abs(t - t0) < reach) & (o > min(oi, oj) - 1.0) & (o < max(oi, oj) + 1.0)
-        if band.sum() < 6:
+        ts = _step_change(p, d, lp, q, top, cell, reach)
+        if ts is None:
             continue
-        sl = np.floor((t[band] - t0 + reach) / cell).astype(np.int64)
-        n = int(np.ceil(2 * reach / cell))
-        outer = np.full(n, -np.inf)
-        np.maximum.at(outer, np.clip(sl, 0, n - 1), o[band])
-        has = np.isfinite(outer)
-        if has.sum() < 4:
-            continue
-        near_j = np.abs(outer - oj) < np.abs(outer - oi)
-        # errors for a change before slice b: slices < b nearer j, slices >= b nearer i
-        wrong_before = np.concatenate([[0], np.cumsum(has & near_j)])
-        wrong_after = np.concatenate([np.cumsum((has & ~near_j)[::-1])[::-1], [0]])
-        b = int(np.argmin(wrong_before + wrong_after))
-        ts = t0 - reach + b * cell
         out[i] = (p, d, ts)
         sq = float((q - p) @ d)
         out[(i + 1) % k] = (q + (ts - sq) * e, e, lq - (ts - sq) * float(d @ e))
     return out
+
+
+def _step_change(p: np.ndarray, d: np.ndarray, lp: float, q: np.ndarray, top: np.ndarray, cell: float,
+                 reach: float = 3.0, out_sign: float = 1.0, walls: bool = False) -> float | None:
+    """Where, along a line from ``p (2,)`` in direction ``d (2,)`` that ends at ``p + lp d``, the step to the
+    parallel, offset line that starts at ``q (2,)`` lies, from the roof points ``top (n, 2)``; None when too few
+    show it. ``out_sign``: +1 when the building lies left of the travel direction (a counter-clockwise ring),
+    -1 when right.
+
+    Along the pair (``reach`` metres either side of their meeting), the outermost roof point of every
+    ``cell``-long slice (the eave) is nearer to one line or the other; the change point is the slice boundary
+    with the fewest slices on the wrong side. With ``walls`` the lines are the walls below the eaves, which
+    overhang them: the change point is instead where two levels fit the eaves of half-cell slices best (least
+    squares), moved half a slice towards the outer side (the slice the step crosses holds outer eave points),
+    provided the outer level is the outer wall's side and the levels differ by half the walls' offset (else
+    None). Returns its position along ``d`` from ``p``."""
+    nrm = out_sign * np.array([d[1], -d[0]])
+    end = p + lp * d
+    cell = cell / 2 if walls else cell
+    t0 = float(((end + q) / 2 - p) @ d)
+    t = (top - p) @ d
+    o = (top - p) @ nrm
+    oi, oj = 0.0, float((q - p) @ nrm)
+    band = (np.abs(t - t0) < reach) & (o > min(oi, oj) - 1.0) & (o < max(oi, oj) + 1.0)
+    if band.sum() < 6:
+        return None
+    sl = np.floor((t[band] - t0 + reach) / cell).astype(np.int64)
+    n = int(np.ceil(2 * reach / cell))
+    outer = np.full(n, -np.inf)
+    np.maximum.at(outer, np.clip(sl, 0, n - 1), o[band])
+    has = np.isfinite(outer)
+    if has.sum() < 4:
+        return None
+    if walls:
+        k = np.flatnonzero(has)
+        v = outer[k]
+        c1, c2 = np.cumsum(v), np.cumsum(v**2)
+        m = np.arange(1, len(v))  # slices before the split
+        left = c2[m - 1] - c1[m - 1] ** 2 / m
+        right = (c2[-1] - c2[m - 1]) - (c1[-1] - c1[m - 1]) ** 2 / (len(v) - m)
+        j = int(np.argmin(left + right))
+        jump = (c1[-1] - c1[j]) / (len(v) - j - 1) - c1[j] / (j + 1)
+        if jump * (oj - oi) <= 0 or abs(jump) < 0.5 * abs(oj - oi):
+            return None
+        # the slice the step crosses holds outer eave points: it joins the outer side, and the step lies
+        # within it, half a slice in on average
+        return t0 - reach + (0.5 * (k[j] + k[j + 1] + 1) + (0.5 if oj > oi else -0.5)) * cell
+    near_j = np.abs(outer - oj) < np.abs(outer - oi)
+    # errors for a change before slice b: slices < b nearer j, slices >= b nearer i
+    wrong_before = np.concatenate([[0], np.cumsum(has & near_j)])
+    wrong_after = np.concatenate([np.cumsum((has & ~near_j)[::-1])[::-1], [0]])
+    b = int(np.argmin(wrong_before + wrong_after))
+    return t0 - reach + b * cell
 
 
 def _square_lines(lines: list[tuple[np.ndarray, np.ndarray, float]], tol_deg: float,

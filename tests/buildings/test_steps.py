@@ -574,3 +574,19 @@ def test_hull_cell_kept_by_the_share_of_its_volume_inside(occupied, kept):
     hull = build_hull(np.array([[0.0, 1.0 / s2, 1.0 / s2, -3.0 / s2]]), np.zeros(3), np.array([10.0, 4.0, 5.0]),
                       lambda P: (P[:, 1] < occupied) & (P[:, 1] + P[:, 2] < 3.0))
     assert (hull.n_inside == 1) == kept
+
+
+def test_step_placed_where_the_eaves_step_when_the_facade_beside_it_is_hidden():
+    # a terrace of two flat-roofed houses of one height, the second set back by 0.6 m
+    b = SyntheticBuilding("terrace", (Part(0, 0, 10, 9, 9, 9, "flat", 0.0), Part(10, 0.6, 20, 9.6, 9, 9, "flat", 0.0)),
+                          ((0, 0), (10, 0), (10, 0.6), (20, 0.6), (20, 9.6), (10, 9.6), (10, 9), (0, 9)), (0.0,) * 8,
+                          origin=(30.0, 40.0), angle_deg=6.0)
+    xyz = b.sample(DENSITY, NOISE, np.random.default_rng(13))
+    # the first house's long walls hidden below the eave for 3.5 m before the step at u = 10 (a neighbour, a
+    # tree), and the party wall between the houses: halfway between the wall fragments' ends is 1.6 m off
+    uv = b.to_local(xyz[:, :2])
+    hidden = (uv[:, 0] > 6.5) & (uv[:, 0] < 10.0) & ((uv[:, 1] < 0.4) | (uv[:, 1] > 8.6)) & (xyz[:, 2] < 8.5)
+    hidden |= (np.abs(uv[:, 0] - 10.0) < 0.3) & (xyz[:, 2] < 8.8)
+    c = extract_contour(xyz[~hidden], 0.0)
+    d = np.linalg.norm(b.footprint[:, None] - c.polygon[None], axis=2).min(1)
+    assert d.max() < 0.25  # the steps' corners included
