@@ -293,6 +293,8 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
     cos_par = np.cos(np.radians(20.0))
     tol = 2 * cfg.line_tol
     ring = [(frags[k], b0, b1) for k, b0, b1 in seq]
+    if len(ring) > 3:
+        ring = [r for i, r in enumerate(ring) if i not in set(_step_pieces([f for f, _, _ in ring], cos_par))]
     if len(ring) < 3:
         raise ValueError("fewer than three wall fragments around the building")
 
@@ -320,6 +322,22 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
         else:
             corners.extend(_corner_or_notch(f, g, mask, origin, cell, spread))
     return _check_ring(np.asarray(corners))
+
+
+def _step_pieces(ring: list[Fragment], cos_par: float, short: float = 2.5, square_deg: float = 70.0) -> list[int]:
+    """Positions in the cyclic sequence ``ring`` of short fragments (under ``short`` m) running obliquely (more
+    than ``acos(cos_par)``, less than ``square_deg`` degrees) between two parallel neighbours: pieces fitted to
+    the corner points of a step (part of each wall and of the short wall between them), which left in make the
+    step a diagonal. A square one is the step's own wall and stays; :func:`square_fragments` drops the other
+    short oblique pieces, but not those near 45 degrees (chamfers), which is where a 1 m step's piece runs."""
+    out = []
+    k = len(ring)
+    cos_sq = np.cos(np.radians(square_deg))
+    for i in range(k):
+        f, s, g = ring[i - 1], ring[i], ring[(i + 1) % k]
+        if s.t1 - s.t0 < short and abs(f.d @ g.d) > cos_par and cos_sq < abs(s.d @ f.d) <= cos_par:
+            out.append(i)
+    return out
 
 
 def _ring_end(f: Fragment, at: np.ndarray) -> np.ndarray:

@@ -5,8 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oblique_city.core.buildings.contour import ContourConfig, extract_contour, walls_under_roof_outline
+from oblique_city.core.buildings.contour import (
+    ContourConfig,
+    Fragment,
+    close_contour,
+    extract_contour,
+    walls_under_roof_outline,
+)
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
+from oblique_city.core.buildings.geometry import points_in_polygon
 from oblique_city.core.buildings.hull import build_hull
 from oblique_city.core.buildings.overhang import overhang_surfaces, overhang_widths
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
@@ -590,3 +597,25 @@ def test_step_placed_where_the_eaves_step_when_the_facade_beside_it_is_hidden():
     c = extract_contour(xyz[~hidden], 0.0)
     d = np.linalg.norm(b.footprint[:, None] - c.polygon[None], axis=2).min(1)
     assert d.max() < 0.25  # the steps' corners included
+
+
+def test_piece_across_a_step_between_parallel_walls_is_dropped_and_the_step_stays_square():
+    def frag(a, b, support=100):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        d = (b - a) / np.linalg.norm(b - a)
+        return Fragment(a, d, 0.0, float(np.linalg.norm(b - a)), support)
+
+    # a 20 x 10 m block whose north wall steps out by 1 m at x = 10; the fragments of its walls stop short of
+    # the step, where a 1.2 m piece fitted to the step's corner points runs across it at 40 degrees
+    truth = np.array([[0, 0], [20, 0], [20, 11], [10, 11], [10, 10], [0, 10]], float)
+    frags = [frag((0.3, 0), (19.7, 0)), frag((20, 0.3), (20, 10.7)), frag((19.7, 11), (11.2, 11)),
+             frag((10.9, 10.8), (9.98, 10.03)), frag((9.5, 10), (0.3, 10)), frag((0, 9.7), (0, 0.3))]
+    cell = 0.5
+    origin = np.array([-2.0, -2.0])
+    cols, rows = np.meshgrid(np.arange(48), np.arange(30))
+    centres = origin + (np.column_stack([cols.ravel(), rows.ravel()]) + 0.5) * cell
+    mask = points_in_polygon(centres, truth).reshape(rows.shape)
+    poly = close_contour(frags, mask, origin, cell, ContourConfig())
+    d = np.linalg.norm(truth[:, None] - poly[None], axis=2)
+    assert len(poly) == 6
+    assert d.min(1).max() < 0.4  # the step's corners at x = 10, square (the piece made them 1 m apart)
