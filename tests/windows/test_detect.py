@@ -95,7 +95,35 @@ def test_boxes_to_world_lie_on_the_wall_plane_counter_clockwise():
 
 @pytest.mark.parametrize("texel", [0.1, 0.2])
 def test_window_size_limits_in_metres(texel):
-    """Windows smaller than ``min_width`` are not reported, whatever the texel size."""
+    """Windows smaller than ``min_width`` are not reported, whatever the texel size (by the darkness cue: the
+    colour cue measures these 0.35 m windows, under two 0.2 m texels, 0.51-0.54 m wide)."""
     wins = window_grid(w=0.35, h=0.5, missing=())
     img = render_facade(wins, W, H, texel, noise=4.0)
-    assert detect_windows(img, np.ones(img.shape[:2], bool), texel, WindowOptions(grow_m=0.0)) == []
+    assert detect_windows(img, np.ones(img.shape[:2], bool), texel, WindowOptions(grow_m=0.0, polarity="dark")) == []
+
+
+def test_blue_glass_on_dark_red_brick_is_found_by_its_colour():
+    # the glass is only 12 % darker than the brick, under the darkness threshold, but far from it in colour
+    wins = window_grid()
+    img = render_facade(wins, W, H, TEXEL, noise=8.0, wall=np.array([120.0, 35.0, 25.0]),
+                        glass=np.array([35.0, 50.0, 110.0]))
+    seen = np.ones(img.shape[:2], bool)
+    assert detect_windows(img, seen, TEXEL, WindowOptions(grow_m=0.0, polarity="dark")) == []
+    dets = detect_windows(img, seen, TEXEL, WindowOptions(grow_m=0.0))
+    s = window_scores(to_world(np.array([d.box for d in dets])), truth_world(wins))
+    assert s.precision == 1.0 and s.recall == 1.0 and s.iou_mean > 0.8
+
+
+def test_light_windows_on_a_dark_wall_are_found_in_the_negative():
+    wins = window_grid()
+    img = render_facade(wins, W, H, TEXEL, noise=6.0, wall=np.array([60.0, 55.0, 50.0]),
+                        glass=np.array([190.0, 195.0, 200.0]))
+    dets = detect_windows(img, np.ones(img.shape[:2], bool), TEXEL, WindowOptions(grow_m=0.0, polarity="bright"))
+    s = window_scores(to_world(np.array([d.box for d in dets])), truth_world(wins))
+    assert s.precision == 1.0 and s.recall == 1.0
+
+
+def test_unknown_polarity_is_refused():
+    img = render_facade(window_grid(), W, H, TEXEL)
+    with pytest.raises(ValueError, match="polarity"):
+        detect_windows(img, np.ones(img.shape[:2], bool), TEXEL, WindowOptions(polarity="light"))
