@@ -72,7 +72,7 @@ class CityPreferences(bpy.types.AddonPreferences):
         row.prop(self, "scheduler")
 
 
-OPTION_STAGES = ("dense", "surface", "buildings")
+OPTION_STAGES = ("dense", "surface", "buildings", "windows")
 """The stages whose options their panel edits (``Scene.oblique_city.stage_options.<stage>``)."""
 
 OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
@@ -93,6 +93,15 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
         "dormer_min_rise": {"min": 0.0, "description": "Height above its slope that marks a dormer (m)"},
         "max_roof_fit": {"min": 0.0, "description": "Models that miss their roof points by more than this on "
                                                     "average are refused as no building (m, 0 = keep all)"},
+    },
+    "windows": {
+        "polarity": {"items": (("auto", "Automatic", "Per facade, the cue that finds clearly more windows"),
+                               ("dark", "Darker", "Windows darker than the wall"),
+                               ("bright", "Lighter", "Windows lighter than the wall"),
+                               ("colour", "Colour", "Windows of another colour than the wall (glass on brick)"))},
+        "min_score": {"min": 0.0, "max": 1.0, "description": "Least score of a written window"},
+        "k_sigma": {"min": 0.0, "description": "Threshold in robust standard deviations of the wall's contrast"},
+        "min_contrast": {"min": 0.0, "description": "Least relative contrast of a window texel"},
     },
     "dense": {
         "sgm_mode": {"items": (("sgbm_3way", "SGBM 3-way", "OpenCV's fast 3-way SGBM"),

@@ -189,3 +189,17 @@ def test_options_round_trip_through_project_toml(addon, ws):
     w.project["stages"]["buildings"]["min_area"] = 40
     w.save_project()
     assert opts.min_area == 40.0 and opts.min_height == pytest.approx(2.7)
+
+
+def test_window_cue_round_trips_through_project_toml(addon, ws):
+    from oblique_city.addon.properties import option_fields  # bpy is loaded by the addon fixture
+
+    bpy = addon
+    scene = bpy.context.scene
+    scene.oblique_city.workspace = str(ws.root)
+    opts = scene.oblique_city.stage_options.windows
+    assert opts.polarity == "auto" and "polarity" in option_fields("windows")
+    opts.polarity = "colour"
+    doc = tomllib.loads((ws.root / "project.toml").read_text(encoding="utf-8"))
+    assert doc["stages"]["windows"]["polarity"] == "colour"
+    assert get_stage("windows").make_config(Workspace.open(ws.root).stage_options("windows")).polarity == "colour"
