@@ -315,10 +315,12 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
     corners = []
     m = len(merged)
     spread = _mask_spread([f for f, _, _ in merged], mask, origin, cell)
+    top = None if points is None else points[0][points[0][:, 2] > points[1] + 2.0, :2]  # roof points
+    out_sign = 1.0 if polygon_area(bxy) > 0 else -1.0
     for i in range(m):
         (f, _, f1), (g, g0, _) = merged[i], merged[(i + 1) % m]
         if abs(f.d @ g.d) > cos_par:  # parallel: a step between offset walls, or a wall no fragment shows
-            corners.extend(_parallel_link(f, g, bxy, f1, g0, cell, max_dist, points))
+            corners.extend(_parallel_link(f, g, bxy, f1, g0, cell, max_dist, out_sign, points, top))
         else:
             corners.extend(_corner_or_notch(f, g, mask, origin, cell, spread))
     return _check_ring(np.asarray(corners))
@@ -356,14 +358,16 @@ def _gap_offset(f: Fragment, g: Fragment, f_at: np.ndarray, g_at: np.ndarray) ->
 
 
 def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_first: int, cell: float,
-                   reach: float, points: tuple[np.ndarray, float] | None = None) -> list[np.ndarray]:
+                   reach: float, out_sign: float, points: tuple[np.ndarray, float] | None = None,
+                   top: np.ndarray | None = None) -> list[np.ndarray]:
     """The two corners joining consecutive parallel fragments ``f`` and ``g`` of a ring traced along the mask
-    boundary ``bxy (n, 2)``, where ``f``'s boundary run ends at index ``f_last`` and ``g``'s starts at ``g_first``.
+    boundary ``bxy (n, 2)`` (``out_sign`` +1 when it runs counter-clockwise), where ``f``'s boundary run ends at
+    index ``f_last`` and ``g``'s starts at ``g_first``.
 
     The ends joined are those where the boundary leaves ``f`` and reaches ``g`` (for opposite walls the ends
     nearest to the other fragment are no guide: both are about as far). A step between offset walls (at most
     ``reach`` apart) gets its short connecting wall where the eaves step (:func:`_step_change` on the roof
-    points of ``points``), kept within the gap between these ends (an upper part's eave reaching past its wall
+    points ``top (k, 2)``), kept within the gap between these ends (an upper part's eave reaching past its wall
     over the lower roof shifts the eaves' step), else halfway between the ends: the lower part's facade is often
     hidden next to the step, and the fragments stopped 1.5-4 m short of it on simulated split gables (where the
     facade points change from one wall to the other placed it worse still). Farther apart, a wall no
@@ -378,30 +382,28 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
     end_f, start_g = _ring_end(f, bxy[f_last]), _ring_end(g, bxy[g_first])
     mid = (end_f + start_g) / 2
     offset = abs(float((g.p - f.p) @ np.array([-f.d[1], f.d[0]])))
-    if points is not None and offset <= reach:
+    lf = f.t1 - f.t0
+    if top is not None and offset <= reach and lf > 0:
         start_f = 2 * f.p + f.d * (f.t0 + f.t1) - end_f  # f's other end
-        lf = float(np.linalg.norm(end_f - start_f))
-        top = points[0][points[0][:, 2] > points[1] + 2.0, :2]
-        d = (end_f - start_f) / max(lf, 1e-9)
-        ts = _step_change(start_f, d, lf, start_g, top, cell, reach,
-                          1.0 if polygon_area(bxy) > 0 else -1.0, walls=True) if lf > 0 else None
+        d = (end_f - start_f) / lf
+        ts = _step_change(start_f, d, lf, start_g, top, cell, reach, out_sign, walls=True)
         if ts is not None:  # the step lies between the walls' facade points, whatever the eaves say
             gap = sorted((lf, float((start_g - start_f) @ d)))
             mid = start_f + float(np.clip(ts, gap[0] - cell / 2, gap[1] + cell / 2)) * d
-    n = len(bxy)
-    gap = bxy[(f_last + 1 + np.arange((g_first - f_last - 1) % n)) % n]
+    k = len(bxy)
+    gap = bxy[(f_last + 1 + np.arange((g_first - f_last - 1) % k)) % k]
     if offset > reach and len(gap) >= 2:
         # across the fragments' mean direction, pointing out of the building at f's end
-        n = f.d + (g.d if g.d @ f.d > 0 else -g.d)
-        n /= np.linalg.norm(n)
-        n = n if (end_f - f.p) @ n >= 0.5 * (f.t0 + f.t1) * float(f.d @ n) else -n
-        c = float(np.median(gap @ n)) + cell / 2
+        out = f.d + (g.d if g.d @ f.d > 0 else -g.d)
+        out /= np.linalg.norm(out)
+        out = out if (end_f - f.p) @ out >= 0.5 * (f.t0 + f.t1) * float(f.d @ out) else -out
+        c = float(np.median(gap @ out)) + cell / 2
 
         def ends(c: float) -> list[np.ndarray]:
-            return [f.p + (c - f.p @ n) / float(f.d @ n) * f.d, g.p + (c - g.p @ n) / float(g.d @ n) * g.d]
+            return [f.p + (c - f.p @ out) / float(f.d @ out) * f.d, g.p + (c - g.p @ out) / float(g.d @ out) * g.d]
 
         if points is not None:
-            depth = wall_depth(*ends(c), n, *points)
+            depth = wall_depth(*ends(c), out, *points)
             c -= depth if 0.0 < depth < 2.0 else 0.0
         return ends(c)
     return [f.p + ((mid - f.p) @ f.d) * f.d, g.p + ((mid - g.p) @ g.d) * g.d]

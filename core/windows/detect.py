@@ -93,18 +93,24 @@ def darkness_map(rgb: np.ndarray, seen: np.ndarray, texel: float, background_m: 
 
     Returns ``(bg - L) / bg`` (0 outside ``seen``), positive where darker than the wall.
     """
-    import cv2
-
     lum = luminance(rgb)
     if not seen.any():
         return np.zeros(lum.shape, np.float32)
-    fill = float(np.median(lum[seen]))
-    work = np.where(seen, lum, fill)
-    k = max(3, int(round(background_m / texel)) | 1)
-    k = min(k, 2 * (min(work.shape) // 2) + 1) if min(work.shape) >= 3 else 1
-    bg = cv2.medianBlur(np.clip(work, 0, 255).astype(np.uint8), k).astype(np.float32) if k >= 3 else work
+    bg = _wall_level(lum, seen, texel, background_m)
     c = (bg - lum) / np.maximum(bg, 8.0)
     return np.where(seen, c, 0.0).astype(np.float32)
+
+
+def _wall_level(values: np.ndarray, seen: np.ndarray, texel: float, background_m: float) -> np.ndarray:
+    """The wall's local level ``(h, w)`` of one 0-255 channel ``values (h, w)``: a median over ``background_m``
+    metres (odd, at least 3 texels, at most the texture's size), unseen texels filled with the seen ones' median
+    first (``seen`` must hold one)."""
+    import cv2
+
+    work = np.where(seen, values, float(np.median(values[seen])))
+    k = max(3, int(round(background_m / texel)) | 1)
+    k = min(k, 2 * (min(work.shape) // 2) + 1) if min(work.shape) >= 3 else 1
+    return cv2.medianBlur(np.clip(work, 0, 255).astype(np.uint8), k).astype(np.float32) if k >= 3 else work
 
 
 def colour_difference_map(rgb: np.ndarray, seen: np.ndarray, texel: float, background_m: float = 3.0) -> np.ndarray:
@@ -118,13 +124,9 @@ def colour_difference_map(rgb: np.ndarray, seen: np.ndarray, texel: float, backg
     lab = cv2.cvtColor(img, cv2.COLOR_RGB2LAB).astype(np.float32)
     if not seen.any():
         return np.zeros(seen.shape, np.float32)
-    k = max(3, int(round(background_m / texel)) | 1)
-    k = min(k, 2 * (min(seen.shape) // 2) + 1) if min(seen.shape) >= 3 else 1
     diff = np.zeros(seen.shape, np.float32)
     for ch, scale in ((0, 100.0 / 255.0), (1, 1.0), (2, 1.0)):
-        work = np.where(seen, lab[..., ch], float(np.median(lab[..., ch][seen])))
-        bg = cv2.medianBlur(work.astype(np.uint8), k).astype(np.float32) if k >= 3 else work
-        diff += ((lab[..., ch] - bg) * scale) ** 2
+        diff += ((lab[..., ch] - _wall_level(lab[..., ch], seen, texel, background_m)) * scale) ** 2
     de = np.sqrt(diff)
     # a norm of noisy differences sits above zero on the plain wall: its median is taken off, so that the box
     # refinement integrates the windows' profiles from a zero wall level (else boxes grow by half a texel)
