@@ -95,13 +95,15 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                                     "average are refused as no building (m, 0 = keep all)"},
     },
     "windows": {
-        "polarity": {"items": (("auto", "Automatic", "Per facade, the cue that finds clearly more windows"),
+        "polarity": {"items": (("auto", "Automatic", "Per facade, the cue that finds clearly more window area"),
                                ("dark", "Darker", "Windows darker than the wall"),
                                ("bright", "Lighter", "Windows lighter than the wall"),
                                ("colour", "Colour", "Windows of another colour than the wall (glass on brick)"))},
         "min_score": {"min": 0.0, "max": 1.0, "description": "Least score of a written window"},
         "k_sigma": {"min": 0.0, "description": "Threshold in robust standard deviations of the wall's contrast"},
         "min_contrast": {"min": 0.0, "description": "Least relative contrast of a window texel"},
+        "bar_m": {"min": 0.0, "description": "Glazing bars up to this width are bridged: one window, not two "
+                                             "panes (m, 0 = off)"},
     },
     "dense": {
         "sgm_mode": {"items": (("sgbm_3way", "SGBM 3-way", "OpenCV's fast 3-way SGBM"),

@@ -2,9 +2,10 @@
 
 Patches are packed as axis-aligned rectangles (never rotated or scaled, so one texel stays one texel) with a gutter
 of ``gutter`` texels on every side, tallest first, in shelves across pages of at most ``page_size`` texels; a page
-is then trimmed to the smallest power-of-two size that holds its shelves. Every atlas pixel that no surface texel
-covers (gutters, free space, ring texels no image sees) takes the colour of the nearest covered texel, so bilinear
-filtering and mip-mapping never pull in background colour.
+is then trimmed to the smallest power-of-two size that holds its shelves. Ring texels no image sees take the
+wall's local colour (:func:`hole_colours`); every other atlas pixel that no surface texel covers (gutters,
+free space) takes the colour of the nearest covered texel, so bilinear filtering and mip-mapping never pull in
+background colour. A grey page beside each (``seen``) marks the texels an image saw.
 
 UVs follow OBJ / CityGML / CityJSON: ``u`` to the right and ``v`` up, both in [0, 1] of the page, texel centres at
 half-texel positions (``u = x / width``, ``v = 1 - y / height`` with ``x, y`` continuous texel coordinates).
@@ -83,6 +84,30 @@ def fill_empty(rgb: np.ndarray, covered: np.ndarray) -> np.ndarray:
         return rgb
     _, (iy, ix) = distance_transform_edt(~covered, return_indices=True)
     return rgb[iy, ix]
+
+
+def hole_colours(col: np.ndarray, has: np.ndarray, rows: np.ndarray, cols: np.ndarray, texel: float,
+                 size_m: float = 3.0) -> np.ndarray:
+    """Colours ``(n, 3)`` for the texels of one surface that no image sees: the local wall colour, a median over
+    ``size_m`` metres of the texture with every unseen texel first given its nearest seen colour. The nearest
+    colour alone would stretch a window under an eave up to the roof; the median keeps the shade of the wall
+    around the hole and drops the windows (they cover less than half of a wall).
+
+    col : (n, 3) float32 texel colours; has : (n,) bool seen by an image (one at least); rows, cols : (n,) int
+    texel positions in the surface's grid; texel : texel size (m)
+    """
+    import cv2
+
+    h, w = int(rows.max()) + 1, int(cols.max()) + 1
+    img = np.zeros((h, w, 3), np.float32)
+    seen = np.zeros((h, w), bool)
+    img[rows[has], cols[has]] = col[has]
+    seen[rows[has], cols[has]] = True
+    filled = np.clip(np.rint(fill_empty(img, seen)), 0, 255).astype(np.uint8)
+    k = max(3, int(round(size_m / texel)) | 1)
+    k = min(k, 2 * ((min(h, w) - 1) // 2) + 1)
+    out = cv2.medianBlur(filled, k) if k >= 3 else filled
+    return out[rows, cols].astype(np.float32)
 
 
 def ring_uv(ring_xy: np.ndarray, place: Placement, page_size: tuple[int, int]) -> np.ndarray:

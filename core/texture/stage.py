@@ -2,8 +2,9 @@
 
 Reads ``buildings/buildings.json``, the oriented block (the adjusted poses when aerial triangulation ran) with
 its images, and ``surface/dsm.tif`` / ``dtm.tif`` when present (terrain and vegetation occlude); writes
-``texture/atlas_NNN.png`` (RGB pages) and ``texture/textures.json``: per surface the page, the UV of every ring
-vertex (ring order), the texel size, the contributing images with their shares and the share of texels seen;
+``texture/atlas_NNN.png`` (RGB pages), ``texture/atlas_NNN_seen.png`` (255 where an image gave the texel, 0 where
+no image sees it and the colour is filled in) and ``texture/textures.json``: per surface the page, the UV of every
+ring vertex (ring order), the texel size, the contributing images with their shares and the share of texels seen;
 per image the radiometric gains; surfaces without texture with the reason.
 """
 
@@ -17,7 +18,7 @@ import numpy as np
 from ..buildings.model import load_buildings
 from ..errors import WorkspaceError
 from ..pipeline.stage import Stage, StageResult
-from .atlas import fill_empty, pack_shelves, ring_uv, write_textures_json
+from .atlas import fill_empty, hole_colours, pack_shelves, ring_uv, write_textures_json
 from .compose import ComposeOptions, SurfacePatch, choose_texel, solve_gains, texture_surface
 from .occlusion import OcclusionScene, grid_mesh, terrain_without_buildings
 from .plane import plane_frame
@@ -108,17 +109,25 @@ def texture_buildings(buildings, sources, occluder, cfg: TextureConfig, ctx) -> 
     return patches, skipped
 
 
-def build_atlas(patches: list[SurfacePatch], gains: dict, cfg: TextureConfig) -> tuple[list[np.ndarray], dict]:
-    """Pack the patches into pages ``(h, w, 3) uint8`` and compute the per-surface records of textures.json."""
+def build_atlas(patches: list[SurfacePatch], gains: dict, cfg: TextureConfig
+                ) -> tuple[list[np.ndarray], list[np.ndarray], dict]:
+    """Pack the patches into pages ``(h, w, 3) uint8`` with their seen masks ``(h, w) uint8`` (255 where an image
+    gave the texel's colour) and compute the per-surface records of textures.json. Ring texels no image sees take
+    the wall's local colour (:func:`.atlas.hole_colours`)."""
     places, sizes = pack_shelves([p.grid.shape for p in patches], cfg.page_size, cfg.gutter)
     pages = [np.zeros((h, w, 3), np.float32) for w, h in sizes]
     covered = [np.zeros((h, w), bool) for w, h in sizes]
+    seen = [np.zeros((h, w), np.uint8) for w, h in sizes]
     records = {}
     for p, pl in zip(patches, places, strict=True):
         has = p.weights.sum(0) > 0
         col = p.colours(gains)
-        pages[pl.page][pl.y + p.rows[has], pl.x + p.cols[has]] = col[has]
-        covered[pl.page][pl.y + p.rows[has], pl.x + p.cols[has]] = True
+        seen[pl.page][pl.y + p.rows[has], pl.x + p.cols[has]] = 255
+        fill = has | p.in_ring
+        if (fill & ~has).any():
+            col[fill & ~has] = hole_colours(col, has, p.rows, p.cols, p.grid.texel)[fill & ~has]
+        pages[pl.page][pl.y + p.rows[fill], pl.x + p.cols[fill]] = col[fill]
+        covered[pl.page][pl.y + p.rows[fill], pl.x + p.cols[fill]] = True
         rows, cols = p.grid.shape
         records[p.surface_id] = {
             "building": p.building_id, "page": pl.page, "rect": [pl.x, pl.y, cols, rows],
@@ -129,7 +138,7 @@ def build_atlas(patches: list[SurfacePatch], gains: dict, cfg: TextureConfig) ->
         }
     out = [np.clip(np.rint(fill_empty(pg, cv)), 0, 255).astype(np.uint8) for pg, cv in zip(pages, covered,
                                                                                             strict=True)]
-    return out, records
+    return out, seen, records
 
 
 def run(ws, cfg: TextureConfig, ctx) -> StageResult:
@@ -148,14 +157,17 @@ def run(ws, cfg: TextureConfig, ctx) -> StageResult:
     patches, skipped = texture_buildings(buildings, sources, occluder, cfg, ctx)
     pairs = [pr for p in patches for pr in p.pairs]
     gains = solve_gains(pairs) if cfg.radiometric else {}
-    pages, records = build_atlas(patches, gains, cfg)
+    pages, seen_pages, records = build_atlas(patches, gains, cfg)
     out = ws.stage_dir("texture")
     files = []
-    for i, page in enumerate(pages):
+    for i, (page, seen_page) in enumerate(zip(pages, seen_pages, strict=True)):
         write_png(out / f"atlas_{i:03d}.png", page)
-        files.append({"file": f"atlas_{i:03d}.png", "width": page.shape[1], "height": page.shape[0]})
+        write_png(out / f"atlas_{i:03d}_seen.png", seen_page)
+        files.append({"file": f"atlas_{i:03d}.png", "seen": f"atlas_{i:03d}_seen.png", "width": page.shape[1],
+                      "height": page.shape[0]})
+    kept = {f[k] for f in files for k in ("file", "seen")}
     for stale in out.glob("atlas_*.png"):
-        if stale.name not in {f["file"] for f in files}:
+        if stale.name not in kept:
             stale.unlink()
     ring_texels = sum(int(p.in_ring.sum()) for p in patches)
     seen = sum(int(((p.weights.sum(0) > 0) & p.in_ring).sum()) for p in patches)
@@ -168,10 +180,11 @@ def run(ws, cfg: TextureConfig, ctx) -> StageResult:
         "gains": {k: np.round(v, 5).tolist() for k, v in sorted(gains.items())},
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()}, "stats": stats})
     metrics = {k: v for k, v in stats.items() if k != "seconds_per_building"}
-    return StageResult(("texture/textures.json", *(f"texture/{f['file']}" for f in files)), metrics,
+    return StageResult(("texture/textures.json", *(f"texture/{f[k]}" for f in files for k in ("file", "seen"))),
+                       metrics,
                        f"{len(records)} surfaces textured on {len(pages)} atlas pages "
                        f"({100 * stats['share_with_source']:.1f}% of texels seen), {len(skipped)} without texture")
 
 
 STAGE = Stage(name="texture", run=run, config=TextureConfig, requires=("buildings",),
-              description="perspective-correct multi-source texture atlases of the buildings", version="2")
+              description="perspective-correct multi-source texture atlases of the buildings", version="3")

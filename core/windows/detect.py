@@ -8,8 +8,9 @@ texture stage samples it: walls upright). Windows of the kind we model are darke
    local level ``bg`` (a median over ``background_m`` metres of the seen texels, so seams between source images,
    shading gradients and dirt do not count as windows).
 2. :func:`candidate_boxes`: adaptive threshold (``k_sigma`` robust standard deviations of the wall's darkness,
-   at least ``min_contrast``), connected components, filtered by size in metres, aspect and fill; each box is
-   refined to sub-texel edges from the integrals of its row and column profiles (:func:`refine_box`).
+   at least ``min_contrast``), glazing bars closed (``bar_m``), connected components, filtered by size in metres,
+   aspect and fill; each box is refined to sub-texel edges from the integrals of its row and column profiles
+   (:func:`refine_box`).
 3. :func:`regularise`: facade grammar. Box centres are clustered into rows (floors) and columns; tops and bottoms
    snap to their row's median, left and right edges to their column's median. Boxes much fainter than the
    facade's windows, boxes of a very different size that no row and column can correct, and boxes with neither a
@@ -42,7 +43,9 @@ class WindowOptions:
     isolated_score : least score a lone window on a facade of fewer than three candidates needs;
     min_seen : least share of seen texels in a box; polarity : ``dark`` (windows darker than the wall), ``bright``
     (lighter), ``colour`` (a different colour, :func:`colour_difference_map`) or ``auto`` (per facade, whichever
-    finds the larger sum of window scores, see :func:`detect_windows`)
+    finds the larger score-weighted window area, see :func:`detect_windows`); bar_m : glazing bars (mullions,
+    transoms) up to this width (m) are bridged, so a window with a bar is one box and not two panes too narrow
+    to count
     """
 
     min_width: float = 0.5
@@ -64,6 +67,7 @@ class WindowOptions:
     isolated_score: float = 0.8
     min_seen: float = 0.6
     polarity: str = "auto"
+    bar_m: float = 0.2
 
 
 @dataclass(frozen=True)
@@ -147,18 +151,21 @@ def _extent(profile: np.ndarray, lo: int, hi: int, level: float) -> tuple[float,
     return centre - half, centre + half
 
 
-def refine_box(dark: np.ndarray, label: np.ndarray, k: int, bbox: tuple[int, int, int, int]
-               ) -> tuple[tuple[float, float, float, float], float]:
+def refine_box(dark: np.ndarray, label: np.ndarray, k: int, bbox: tuple[int, int, int, int],
+               bars: np.ndarray | None = None) -> tuple[tuple[float, float, float, float], float]:
     """Sub-texel box of component ``k`` and its plateau darkness.
 
     dark : (h, w) float32 darkness; label : (h, w) int32 component labels; bbox : ``(x, y, w, h)`` integer
     bounding box of the component. The plateau is the median darkness of the component; the extents come from
     the mean column profile over the box's inner rows and the mean row profile over its inner columns
-    (:func:`_extent`).
+    (:func:`_extent`). ``bars`` : (h, w) bool texels the mask's closing added (glazing bars); the component's
+    ones count at the plateau.
     """
     x, y, w, h = bbox
-    inside = dark[y:y + h, x:x + w][label[y:y + h, x:x + w] == k]
-    level = float(np.median(inside))
+    comp = label == k
+    level = float(np.median(dark[comp]))
+    if bars is not None:
+        dark = np.where(comp & bars, np.maximum(dark, level), dark)
     ry = slice(y + 1, y + h - 1) if h > 2 else slice(y, y + h)
     rx = slice(x + 1, x + w - 1) if w > 2 else slice(x, x + w)
     x0, x1 = _extent(dark[ry, :].mean(0), x, x + w - 1, level)
@@ -180,13 +187,21 @@ def candidate_boxes(dark: np.ndarray, seen: np.ndarray, texel: float, opt: Windo
     sigma = 1.4826 * float(np.median(np.abs(vals - med)))
     thr = max(opt.min_contrast, med + opt.k_sigma * sigma)
     mask = ((dark >= thr) & seen).astype(np.uint8)
+    bars = None
+    if opt.bar_m > 0:  # glazing bars: one window, not two narrow panes
+        # closings along rows and along columns fill the gaps between dark texels of up to ``size - 1`` texels,
+        # not the notches of an outline
+        size = 2 * int(np.ceil(opt.bar_m / (2 * texel))) + 1
+        closed = (cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((1, size), np.uint8))
+                  | cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((size, 1), np.uint8))) & seen.astype(np.uint8)
+        bars, mask = (closed > mask), closed
     n, label, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=4)
-    out = []
+    out, cut = [], []
     for k in range(1, n):
         x, y, w, h, area = (int(v) for v in stats[k])
         if w * texel > opt.max_width * 1.3 or h * texel > opt.max_height * 1.3 or area < 4:
             continue
-        box, level = refine_box(dark, label, k, (x, y, w, h))
+        box, level = refine_box(dark, label, k, (x, y, w, h), bars)
         g = opt.grow_m / texel
         box = (box[0] - g, box[1] - g, box[2] + g, box[3] + g)
         bw, bh = (box[2] - box[0]) * texel, (box[3] - box[1]) * texel
@@ -202,6 +217,26 @@ def candidate_boxes(dark: np.ndarray, seen: np.ndarray, texel: float, opt: Windo
             continue
         score = float(np.clip(fill, 0, 1) * np.clip(level / (2.0 * thr), 0, 1))
         out.append(Detection(box, score, level))
+        # an edge against texels no image saw (the top under an eave): the window may go on beyond it
+        cut.append((y == 0 or seen[y - 1, x:x + w].mean() < 0.5,
+                    y + h == seen.shape[0] or seen[y + h, x:x + w].mean() < 0.5))
+    return _complete_cut(out, np.array(cut, bool).reshape(-1, 2))
+
+
+def _complete_cut(dets: list[Detection], cut: np.ndarray) -> list[Detection]:
+    """Windows cut by unseen texels (``cut (n, 2)`` bool: top, bottom edge) made as tall as the facade's whole
+    windows (the median height of the candidates cut on neither edge, when there are at least two), keeping the
+    edge that was seen."""
+    whole = ~cut.any(1)
+    if whole.sum() < 2:
+        return dets
+    full = float(np.median([dets[i].box[3] - dets[i].box[1] for i in np.flatnonzero(whole)]))
+    out = []
+    for d, (top, bottom) in zip(dets, cut, strict=True):
+        x0, y0, x1, y1 = d.box
+        if y1 - y0 < full and top != bottom:
+            y0, y1 = (y1 - full, y1) if top else (y0, y0 + full)
+        out.append(Detection((x0, y0, x1, y1), d.score, d.contrast, d.source))
     return out
 
 
@@ -281,6 +316,12 @@ def regularise(dets: list[Detection], dark: np.ndarray, seen: np.ndarray, texel:
     return out
 
 
+def _mass(dets: list[Detection]) -> float:
+    """Score-weighted window area (texels) of a cue's detections: whole windows outweigh the parts of them (a
+    frame, one pane) that a weaker cue finds."""
+    return sum(d.score * (d.box[2] - d.box[0]) * (d.box[3] - d.box[1]) for d in dets)
+
+
 def detect_windows(rgb: np.ndarray, seen: np.ndarray, texel: float,
                    opt: WindowOptions = WindowOptions()) -> list[Detection]:
     """Windows of one facade texture.
@@ -291,7 +332,8 @@ def detect_windows(rgb: np.ndarray, seen: np.ndarray, texel: float,
     that an image saw; texel : texel size (m)
 
     With ``opt.polarity`` ``auto`` the facade is searched for dark windows, in its negative (``255 - rgb``) for
-    light ones and in its colour difference from the wall, and the set with the larger sum of scores is kept: on
+    light ones and in its colour difference from the wall, and the set with the larger score-weighted area is kept
+    (:func:`_mass`): on
     dark red brick the dark blue glass differs from the wall in colour far more than in luminance (four of the
     fifteen buildings of the seed-3 city, where the darkness alone found 1 of 153 windows).
     """
@@ -309,7 +351,7 @@ def detect_windows(rgb: np.ndarray, seen: np.ndarray, texel: float,
         found = regularise(candidate_boxes(dark, seen, texel, opt), dark, seen, texel, opt)
         # another cue replaces the darkness only when it finds clearly more (a few extra blobs on a light wall
         # are no reason to)
-        if sum(d.score for d in found) > (1.0 if not out or polarity == "dark" else 1.5) * sum(d.score for d in out):
+        if _mass(found) > (1.0 if not out or polarity == "dark" else 1.5) * _mass(out):
             out = found
     return out
 

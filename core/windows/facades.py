@@ -3,7 +3,9 @@
 The texture stage samples every planar surface on its own texel grid (:mod:`..texture.plane`: ``e1`` along the
 wall, ``e2`` up, row 0 at the top) and packs the grid unchanged into an atlas page at ``rect``; ``textures.json``
 keeps the frame (``origin``, ``e1``, ``e2``, ``s0``, ``t1``) and the texel size. Cutting ``rect`` out of the page
-therefore gives back the rectified facade, and the frame maps texel coordinates to the wall plane exactly.
+therefore gives back the rectified facade, and the frame maps texel coordinates to the wall plane exactly. The
+page's seen mask limits the search to the texels an image saw (the texture stage fills the others, e.g. under an
+eave, with the wall's colour).
 """
 
 from __future__ import annotations
@@ -24,8 +26,8 @@ class Facade:
     """One rectified wall.
 
     surface_id, building_id : ids; rgb : (h, w, 3) uint8 texture (row 0 at the top); seen : (h, w) bool texels
-    inside the wall ring; texel : texel size (m); origin, e1, e2 : (3,) float64 plane frame (``e1`` along the wall,
-    ``e2`` up); s0, t1 : plane coordinates of the grid's top-left corner
+    inside the wall ring that an image saw; texel : texel size (m); origin, e1, e2 : (3,) float64 plane frame
+    (``e1`` along the wall, ``e2`` up); s0, t1 : plane coordinates of the grid's top-left corner
     """
 
     surface_id: str
@@ -58,7 +60,7 @@ def workspace_facades(textures_json: str | Path, buildings, kinds: tuple[str, ..
 
     path = Path(textures_json)
     doc = read_json(path, "no textures file (run the 'texture' stage first)")
-    pages: dict[int, np.ndarray] = {}
+    pages: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     out = []
     for b in buildings:
         for s in b.surfaces:
@@ -70,20 +72,28 @@ def workspace_facades(textures_json: str | Path, buildings, kinds: tuple[str, ..
                 fr = rec["frame"]
                 origin, e1, e2 = (np.asarray(fr[k], np.float64) for k in ("origin", "e1", "e2"))
                 texel, s0, t1, page = float(rec["texel"]), float(fr["s0"]), float(fr["t1"]), int(rec["page"])
-                page_file = path.parent / doc["pages"][page]["file"]
+                files = doc["pages"][page]
+                page_file, seen_file = path.parent / files["file"], path.parent / files["seen"]
             except (KeyError, TypeError, ValueError, IndexError) as e:
-                raise InputError(f"malformed surface record {s.id} ({e})", path, field="surfaces") from None
+                raise InputError(f"malformed surface record {s.id} ({e}; rerun the 'texture' stage if the atlas "
+                                 "predates seen masks)", path, field="surfaces") from None
             if abs(e2[2]) < np.cos(np.radians(10.0)):
                 continue
             if page not in pages:
                 img = cv2.imread(str(page_file), cv2.IMREAD_COLOR)
-                if img is None:
-                    raise InputError("atlas page missing or unreadable (rerun the 'texture' stage)", page_file)
-                pages[page] = img[:, :, ::-1]
+                seen = cv2.imread(str(seen_file), cv2.IMREAD_GRAYSCALE)
+                for f, a in ((page_file, img), (seen_file, seen)):
+                    if a is None:
+                        raise InputError("atlas page missing or unreadable (rerun the 'texture' stage)", f)
+                if seen.shape != img.shape[:2]:
+                    raise InputError(f"seen mask {seen.shape} does not match its page {img.shape[:2]} (rerun the "
+                                     "'texture' stage)", seen_file)
+                pages[page] = (img[:, :, ::-1], seen > 0)
             grid = texel_grid(b.vertices[list(s.ring)], texel)
             if grid.shape != (h, w):
                 raise InputError(f"surface {s.id}: texel grid {grid.shape} does not match its atlas rect {h}x{w} "
                                  "(buildings changed after texturing: rerun the 'texture' stage)", path, field="rect")
-            out.append(Facade(s.id, b.id, np.ascontiguousarray(pages[page][y:y + h, x:x + w]), grid.mask, texel,
-                              origin, e1, e2, s0, t1))
+            rgb, seen = pages[page]
+            out.append(Facade(s.id, b.id, np.ascontiguousarray(rgb[y:y + h, x:x + w]),
+                              grid.mask & seen[y:y + h, x:x + w], texel, origin, e1, e2, s0, t1))
     return out

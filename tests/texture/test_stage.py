@@ -24,7 +24,7 @@ def test_stage_writes_atlas_and_textures(workspace):
     cfg = stage.make_config({"texel": 0.05, "page_size": 1024})
     seen = []
     res = stage.run(workspace, cfg, RunContext(on_progress=lambda s, d, t, m: seen.append((d, t))))
-    assert "texture/textures.json" in res.outputs and "texture/atlas_000.png" in res.outputs
+    assert {"texture/textures.json", "texture/atlas_000.png", "texture/atlas_000_seen.png"} <= set(res.outputs)
     assert res.metrics["surfaces_textured"] >= 5 and res.metrics["share_with_source"] > 0.95
     assert seen and seen[-1][0] == seen[-1][1]
     tex = load_textures(workspace.path("texture", "textures.json"))

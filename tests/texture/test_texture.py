@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from oblique_city.core.pipeline.context import RunContext
-from oblique_city.core.texture.atlas import pack_shelves
+from oblique_city.core.texture.atlas import fill_empty, hole_colours, pack_shelves
 from oblique_city.core.texture.compose import solve_gains
 from oblique_city.core.texture.occlusion import OcclusionScene
 from oblique_city.core.texture.plane import plane_frame, texel_grid
@@ -75,8 +75,8 @@ def textured(tmp_path_factory):
     from oblique_city.core.texture.compose import solve_gains as sg
 
     gains = sg([pr for p in patches for pr in p.pairs])
-    pages, records = build_atlas(patches, gains, cfg)
-    return {p.surface_id: p for p in patches}, pages, records, skipped, gains
+    pages, seen, records = build_atlas(patches, gains, cfg)
+    return {p.surface_id: p for p in patches}, pages, records, skipped, gains, seen
 
 
 def _atlas_at(pages, rec, xyz):
@@ -95,7 +95,7 @@ def _atlas_at(pages, rec, xyz):
 
 
 def test_atlas_reproduces_the_pattern(textured):
-    patches, pages, records, skipped, gains = textured
+    patches, pages, records, skipped, gains, _ = textured
     assert "B0001_ground_0" not in records  # never textured: it faces the terrain
     assert skipped["B0001_wall_3"] == "no image sees it"  # the north wall: every camera is south of it
     rng = np.random.default_rng(0)
@@ -130,7 +130,7 @@ def test_atlas_reproduces_the_pattern(textured):
 
 
 def test_occluded_part_comes_from_the_other_image(textured):
-    patches, pages, records, _, gains = textured
+    patches, pages, records, _, gains, _ = textured
     p = patches["B0001_wall_1"]
     k_south, k_sw = p.source_ids.index("south"), p.source_ids.index("southwest")
     # the south camera sees the occluder in front of x 1.6..5 m, z < 2.6 m of the south wall; the south-west
@@ -151,7 +151,40 @@ def test_occluded_part_comes_from_the_other_image(textured):
 def test_stored_texel_rebuilds_every_rect(textured):
     """The texel size stored for a surface rebuilds its texel grid at exactly the atlas rect's size (the windows
     stage reads the facades back that way; a rounded texel flips ceil() at a grid boundary)."""
-    _, _, records, _, _ = textured
+    _, _, records, _, _, _ = textured
     rings = {s.id: b.vertices[list(s.ring)] for b in buildings() for s in b.surfaces}
     for sid, rec in records.items():
         assert texel_grid(rings[sid], rec["texel"]).shape == (rec["rect"][3], rec["rect"][2]), sid
+
+
+def test_texels_no_image_sees_are_marked_in_the_seen_mask(textured):
+    """x 4.3..5 m, z < 2.5 m of the south wall is hidden from both cameras that face it: the seen mask is 0 there,
+    255 on the texels an image gave."""
+    patches, pages, records, _, gains, seen = textured
+    p, rec = patches["B0001_wall_1"], records["B0001_wall_1"]
+    has = p.weights.sum(0) > 0
+    hole = p.in_ring & ~has
+    assert hole.sum() > 100
+    mask = seen[rec["page"]]
+    r, c = rec["rect"][1] + p.rows, rec["rect"][0] + p.cols
+    assert np.all(mask[r[has], c[has]] == 255) and np.all(mask[r[hole], c[hole]] == 0)
+
+
+def test_unseen_band_under_an_eave_takes_the_local_wall_colour():
+    """A 12 x 8 m wall at 0.2 m texels, shaded darker towards its top, with rows of dark 1.2 x 1.5 m windows; no
+    image saw the top 1 m, which cuts the top row's windows. The fill is the wall's colour at that height (within
+    12 DN), where the nearest seen colour would carry the glass up to the roof."""
+    texel, h, w = 0.2, 40, 60
+    rows, cols = np.mgrid[0:h, 0:w]
+    z = 8.0 - (rows + 0.5) * texel
+    wall = np.stack([200 - 6 * (8 - z)] * 3, -1)  # 200 DN at the top, 152 at the bottom
+    x = (cols + 0.5) * texel
+    glass = ((x % 3.0) > 0.9) & ((x % 3.0) < 2.1) & (((z - 0.5) % 3.0) < 1.5)
+    img = np.where(glass[..., None], 50.0, wall).astype(np.float32)
+    has = z < 7.0
+    assert (glass & ~has).any()  # the top row is cut
+    got = hole_colours(img.reshape(-1, 3), has.ravel(), rows.ravel(), cols.ravel(), texel).reshape(h, w, 3)
+    band = ~has
+    assert np.all(np.abs(got[band] - wall[band]) < 12)
+    nearest = fill_empty(np.where(has[..., None], img, 0), has)
+    assert np.abs(nearest[band] - wall[band]).max() > 100

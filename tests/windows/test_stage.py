@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from oblique_city.core.buildings.model import BuildingModel, Surface, save_buildings
-from oblique_city.core.errors import Cancelled, WorkspaceError
+from oblique_city.core.errors import Cancelled, InputError, WorkspaceError
 from oblique_city.core.evaluate.windows import window_scores
 from oblique_city.core.export.command import export_buildings
 from oblique_city.core.export.obj import read_obj
@@ -40,7 +40,9 @@ def box() -> BuildingModel:
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
-    """Buildings plus a textures.json whose south wall ``B0001_wall_1`` shows the 4 x 3 grid (one missing)."""
+    """Buildings plus a textures.json whose south wall ``B0001_wall_1`` shows the 4 x 3 grid (one missing). No
+    image saw the wall above 7.7 m (an eave), 0.8 m of the top row's windows: there the atlas repeats the last seen
+    row upwards, as a nearest-colour fill would, and the seen mask says so."""
     ws = Workspace.create(tmp_path_factory.mktemp("ws") / "ws", crs="EPSG:25832")
     b = box()
     save_buildings(ws.path("buildings", "buildings.json"), [b], ws.crs)
@@ -48,12 +50,18 @@ def workspace(tmp_path_factory):
     grid = texel_grid(b.vertices[list(wall.ring)], TEXEL)
     img = render_facade(window_grid(), L, H, TEXEL, noise=6.0)
     assert img.shape[:2] == grid.shape
+    hidden = int(round((H - 7.7) / TEXEL))
+    img[:hidden] = img[hidden]
     page = np.full((256, 256, 3), 128, np.uint8)
     page[4:4 + grid.shape[0], 4:4 + grid.shape[1]] = img
+    seen = np.zeros((256, 256), np.uint8)
+    seen[4 + hidden:4 + grid.shape[0], 4:4 + grid.shape[1]] = 255
     write_png(ws.stage_dir("texture") / "atlas_000.png", page)
+    write_png(ws.stage_dir("texture") / "atlas_000_seen.png", seen)
     f = grid.frame
     write_textures_json(ws.path("texture", "textures.json"), {
-        "crs": ws.crs, "pages": [{"file": "atlas_000.png", "width": 256, "height": 256}],
+        "crs": ws.crs, "pages": [{"file": "atlas_000.png", "seen": "atlas_000_seen.png", "width": 256,
+                                  "height": 256}],
         "surfaces": {wall.id: {"building": b.id, "page": 0, "rect": [4, 4, grid.shape[1], grid.shape[0]],
                                "uv": [[0.1, 0.1]] * 4, "texel": TEXEL, "coverage": 1.0, "sources": {"x": 1.0},
                                "frame": {"origin": f.origin.tolist(), "e1": f.e1.tolist(), "e2": f.e2.tolist(),
@@ -85,9 +93,20 @@ def test_stage_finds_the_grid_on_the_wall_plane(workspace):
     corners = [w.corners for w in wins]
     assert np.allclose([c[:, 1] for c in corners], OFFSET[1], atol=1e-6)  # on the wall plane y = y0
     s = window_scores(corners, truth())
+    # the top row, cut by the unseen band, as tall as the others: not up to the wall's top, not cut at 7.7 m
     assert s.precision == 1.0 and s.recall == 1.0 and s.corner_rmse_m < TEXEL
     doc = json.loads(workspace.path("windows", "windows.json").read_text())
     assert doc["stats"]["windows"] == 11 and doc["config"]["grow_m"] == 0.0
+
+
+def test_stage_needs_the_seen_masks(workspace, tmp_path):
+    import shutil
+
+    ws = Workspace.open(shutil.copytree(workspace.root, tmp_path / "ws"))
+    ws.path("texture", "atlas_000_seen.png").unlink()
+    stage = get_stage("windows")
+    with pytest.raises(InputError, match="atlas_000_seen.png"):
+        stage.run(ws, stage.make_config({}), RunContext())
 
 
 def test_exports_carry_the_windows(workspace, tmp_path):
