@@ -28,6 +28,7 @@ from .roof import RoofConfig, _wall_plane, check_topology, plane_z, roof_labels,
 from .volumetric import (
     VolumetricConfig,
     eave_planes,
+    grid_normals,
     interior_walls,
     same_plane,
     snap_heights,
@@ -121,14 +122,18 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
     roofish = xyz if wall_points is None else xyz[~wall_points]
     top, H = top_points(roofish, roof.origin, roof.cell, roof.labels.shape, ground_z)
 
-    def height_at(xy: np.ndarray) -> np.ndarray:
+    def cell_of(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cr = np.floor((xy - roof.origin) / roof.cell).astype(np.int64)
-        return H[np.clip(cr[:, 1], 0, H.shape[0] - 1), np.clip(cr[:, 0], 0, H.shape[1] - 1)]
+        return np.clip(cr[:, 1], 0, H.shape[0] - 1), np.clip(cr[:, 0], 0, H.shape[1] - 1)
+
+    def height_at(xy: np.ndarray) -> np.ndarray:
+        return H[cell_of(xy)]
 
     tol = max(3.0 * noise, 0.05)
     segs = voxel_planes(xyz[xyz[:, 2] > ground_z + 0.5], voxel, noise, cfg)
     # faces the growing missed, rising from the outline (a found face keeps its own, better supported plane)
-    segs += [e for e in eave_planes(top, polygon, voxel, tol, cfg)
+    normals = grid_normals(H, roof.cell)[cell_of(top[:, :2])]
+    segs += [e for e in eave_planes(top, polygon, voxel, tol, cfg, normals=normals)
              if not any(same_plane(e, s, cfg.angle_deg, 2 * tol) for s in segs)]
     found = []
     cos_w = np.cos(np.radians(cfg.angle_deg))
