@@ -20,6 +20,7 @@ from oblique_city.core.buildings.roof import check_topology, roof_labels, topolo
 from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
 from oblique_city.core.buildings.volumetric import (
     PlaneSegment,
+    clip_overhang_of_walls,
     eave_planes,
     grid_normals,
     height_grid,
@@ -467,6 +468,24 @@ def test_eave_vote_by_agreeing_normals_finds_the_sparse_north_face_of_a_church_s
         normals = grid_normals(height_grid(xyz, origin, cell, shape), cell)[cr[:, 1], cr[:, 0]]
         found = eave_planes(xyz, outline, 0.483, 0.216, normals=normals)
         assert all(off_deg(found, n) < 4.0 for n in faces.values()), cell
+
+
+def test_an_upper_roof_spilled_over_an_interior_wall_is_clipped():
+    """A tower (22 m) west of an interior wall at x = 0, a nave sloping down eastwards (from 12 m) east of it,
+    and, as dense matching fattens the tower's top edge, 1.5 m of tower height over the nave. The spill goes;
+    the half metre next to the wall (its own uncertainty), the tower and the nave beyond stay."""
+    cell, origin = 0.25, np.array([-6.0, -5.0])
+    cy, cx = np.mgrid[0:40, 0:48]
+    x = origin[0] + (cx + 0.5) * cell
+    H = np.where(x < 0, 22.0, 12.0 - 0.2 * x)
+    H[(x > 0) & (x < 1.5)] = 22.0
+    wall = np.array([-1.0, 0.0, 0.0, 0.0])  # -x + 0 = 0: x = 0
+    out = clip_overhang_of_walls(H, origin, cell, [wall])
+    spill = (x > 0.5) & (x < 1.5)
+    assert np.allclose(out[spill], 12.0 - 0.2 * (x[spill] + 2.0), atol=1e-9)  # the nave 2 m further out
+    assert np.array_equal(out[~spill], H[~spill])
+    assert np.array_equal(clip_overhang_of_walls(np.where(x < 0, 12.5, 12.0), origin, cell, [wall]),
+                          np.where(x < 0, 12.5, 12.0))  # a 0.5 m step: no upper roof
 
 
 def test_facade_points_along_a_flat_roof_do_not_outvote_it():
