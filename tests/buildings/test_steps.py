@@ -173,17 +173,27 @@ def test_hull_roof_around_a_block_on_it_comes_in_two_pieces():
     assert vol == pytest.approx(500.0 + 8.0, abs=1e-6)
 
 
+def _house(rng: np.random.Generator, roof_z: float, per_m: float, wall_lo: tuple[float, ...], wall_hi: float
+           ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """A 10 m x 8 m flat-roofed house with a 0.6 m overhang: roof points on a 0.15 m grid at ``roof_z``, and
+    ``per_m`` facade points per metre of each wall (south, east, north, west) from ``wall_lo[k]`` to
+    ``wall_hi``."""
+    gx, gy = np.meshgrid(np.arange(-0.6, 10.6, 0.15), np.arange(-0.6, 8.6, 0.15))
+    roof = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, roof_z)])
+    walls = []
+    corners = ((0, 0), (10, 0), (10, 8), (0, 8))
+    for k, ((x0, y0), (x1, y1)) in enumerate(zip(corners, corners[1:] + corners[:1])):
+        n = int(np.hypot(x1 - x0, y1 - y0) * per_m)
+        s = rng.uniform(0, 1, n)
+        walls.append(np.column_stack([x0 + s * (x1 - x0), y0 + s * (y1 - y0), rng.uniform(wall_lo[k], wall_hi, n)]))
+    return roof, walls
+
+
 def test_roof_outline_moves_onto_sparse_facades():
     """A 10 m x 8 m house with a 0.6 m overhang: the roof outline (what nadir points show) moves onto the walls
     where about one facade point per square metre shows them; corners within 0.1 m of the true footprint."""
     rng = np.random.default_rng(5)
-    gx, gy = np.meshgrid(np.arange(-0.6, 10.6, 0.15), np.arange(-0.6, 8.6, 0.15))
-    roof = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 106.0)])
-    walls = []
-    for (x0, y0), (x1, y1) in (((0, 0), (10, 0)), ((10, 0), (10, 8)), ((10, 8), (0, 8)), ((0, 8), (0, 0))):
-        n = int(np.hypot(x1 - x0, y1 - y0) * 5.0)      # about 1 point per m2 over 5 m of wall height
-        s = rng.uniform(0, 1, n)
-        walls.append(np.column_stack([x0 + s * (x1 - x0), y0 + s * (y1 - y0), rng.uniform(100.3, 105.3, n)]))
+    roof, walls = _house(rng, 106.0, 5.0, (100.3,) * 4, 105.3)  # about 1 point per m2 over 5 m of wall height
     xyz = np.concatenate([roof] + walls)
     xyz[:, :2] += rng.normal(0, 0.05, (len(xyz), 2))
     outline = np.array([[-0.6, -0.6], [10.6, -0.6], [10.6, 8.6], [-0.6, 8.6]])
@@ -201,14 +211,7 @@ def test_walls_on_a_slope_ignore_the_ground_in_front():
     and beside the 0.6 m overhang are not facade points (they pulled the seed-5 office's wall 0.41 m out); the
     four walls still land within 0.1 m."""
     rng = np.random.default_rng(7)
-    gx, gy = np.meshgrid(np.arange(-0.6, 10.6, 0.15), np.arange(-0.6, 8.6, 0.15))
-    roof = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 108.0)])
-    walls = []
-    for (x0, y0), (x1, y1) in (((0, 0), (10, 0)), ((10, 0), (10, 8)), ((10, 8), (0, 8)), ((0, 8), (0, 0))):
-        n = int(np.hypot(x1 - x0, y1 - y0) * 8.0)
-        s = rng.uniform(0, 1, n)
-        z0 = 101.5 if x0 == x1 == 0 else 100.0
-        walls.append(np.column_stack([x0 + s * (x1 - x0), y0 + s * (y1 - y0), rng.uniform(z0, 107.0, n)]))
+    roof, walls = _house(rng, 108.0, 8.0, (100.0, 100.0, 100.0, 101.5), 107.0)
     gx, gy = np.meshgrid(np.arange(-4.0, 0.0, 0.15), np.arange(0.0, 8.0, 0.15))
     street = np.column_stack([gx.ravel(), gy.ravel(), 101.5 + rng.normal(0, 0.05, gx.size)])
     xyz = np.concatenate([roof, street] + walls)
