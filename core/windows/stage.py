@@ -70,4 +70,4 @@ def run(ws, cfg: WindowsConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="windows", run=run, config=WindowsConfig, requires=("buildings", "texture"),
-              description="windows detected in the rectified wall textures", version="3")
+              description="windows detected in the rectified wall textures", version="4")

@@ -20,12 +20,13 @@ def window_grid(cols: int = 4, rows: int = 3, x0: float = 1.4, z0: float = 1.0, 
 def render_facade(windows: list[tuple[float, float, float, float]], width_m: float, height_m: float, texel: float,
                   noise: float = 8.0, frame_m: float = 0.0, seed: int = 0,
                   blob: tuple[float, float, float, float] | None = None, wall: np.ndarray = WALL,
-                  glass: np.ndarray = GLASS, bar_m: float = 0.0) -> np.ndarray:
+                  glass: np.ndarray = GLASS, bar_m: float = 0.0, right_pane: np.ndarray | None = None) -> np.ndarray:
     """Facade texture ``(rows, cols, 3)`` uint8 (row 0 at the top) of ``windows`` (metres, see
     :func:`window_grid`), area-averaged at ``texel`` m (4x4 supersampling), Gaussian noise; ``frame_m`` paints a
     light frame of that width inside every window; ``blob`` ``(s, z, rs, rz)`` a dark green ellipse (a tree);
     ``wall`` and ``glass`` colours (RGB 0-255); ``bar_m`` a vertical glazing bar of that width and the wall's
-    colour down the middle of every window."""
+    colour down the middle of every window; ``right_pane`` another colour for the right half of the glass (a
+    reflection)."""
     ss = 4
     ncol, nrow = int(round(width_m / texel)), int(round(height_m / texel))
     s = (np.arange(ncol * ss) + 0.5) * texel / ss
@@ -37,6 +38,8 @@ def render_facade(windows: list[tuple[float, float, float, float]], width_m: flo
         glass_in = inside & (S >= a + frame_m) & (S < c - frame_m) & (Z >= b + frame_m) & (Z < d - frame_m)
         img[inside] = 0.8 * np.asarray(wall, np.float64)
         img[glass_in] = glass
+        if right_pane is not None:
+            img[glass_in & (S >= 0.5 * (a + c))] = right_pane
         img[inside & (np.abs(S - 0.5 * (a + c)) < 0.5 * bar_m)] = wall
     if blob is not None:
         bs, bz, rs, rz = blob

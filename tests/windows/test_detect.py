@@ -144,6 +144,22 @@ def test_blue_glass_on_dark_red_brick_is_found_by_its_colour():
     assert s.precision == 1.0 and s.recall == 1.0 and s.iou_mean > 0.8
 
 
+def test_whole_windows_outweigh_the_panes_a_weaker_cue_finds():
+    """Dark glass with a reflection on its right pane, on brick: the darkness finds the left panes only (none
+    matches a window at IoU 0.5), the colour difference the whole windows. Their score sums are close (10.8 and
+    11.6); the window areas they cover are not, and the whole windows are kept."""
+    wins = window_grid(missing=())
+    img = render_facade(wins, W, H, TEXEL, noise=6.0, seed=2, wall=np.array([120.0, 35.0, 25.0]),
+                        glass=np.array([25.0, 30.0, 60.0]), right_pane=np.array([90.0, 60.0, 90.0]))
+    seen = np.ones(img.shape[:2], bool)
+    panes = detect_windows(img, seen, TEXEL, WindowOptions(grow_m=0.0, polarity="dark"))
+    assert len(panes) == 12
+    assert window_scores(to_world(np.array([d.box for d in panes])), truth_world(wins)).matched == 0
+    dets = detect_windows(img, seen, TEXEL, WindowOptions(grow_m=0.0))
+    s = window_scores(to_world(np.array([d.box for d in dets])), truth_world(wins))
+    assert s.precision == 1.0 and s.recall == 1.0
+
+
 def test_light_windows_on_a_dark_wall_are_found_in_the_negative():
     wins = window_grid()
     img = render_facade(wins, W, H, TEXEL, noise=6.0, wall=np.array([60.0, 55.0, 50.0]),
