@@ -27,7 +27,7 @@ from .overhang import OverhangConfig, overhang_surfaces, overhang_widths
 from .roof import RoofConfig, _wall_plane, check_topology, plane_z, roof_labels, topology
 from .volumetric import (
     VolumetricConfig,
-    clip_overhang_of_walls,
+    clip_spill_over_walls,
     eave_planes,
     grid_normals,
     interior_walls,
@@ -122,7 +122,7 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
     # the top grid from the roof points: an interior wall's points would raise the lower roof beside it
     roofish = xyz if wall_points is None else xyz[~wall_points]
     top, H = top_points(roofish, roof.origin, roof.cell, roof.labels.shape, ground_z)
-    H = clip_overhang_of_walls(H, roof.origin, roof.cell, inner)
+    H = clip_spill_over_walls(H, roof.origin, roof.cell, inner)
 
     def cell_of(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cr = np.floor((xy - roof.origin) / roof.cell).astype(np.int64)

@@ -199,7 +199,7 @@ def _slope_vote(z: np.ndarray, v: np.ndarray, tan: np.ndarray, cos: np.ndarray, 
     return cnt, h0
 
 
-def clip_overhang_of_walls(H: np.ndarray, origin: np.ndarray, cell: float, walls: list[np.ndarray],
+def clip_spill_over_walls(H: np.ndarray, origin: np.ndarray, cell: float, walls: list[np.ndarray],
                            rise: float = 1.5, reach: float = 2.0, margin: float = 0.5) -> np.ndarray:
     """The top grid ``H`` (rows = y index, cell ``(0, 0)`` at ``origin``, ``cell`` m) without the upper roof's
     heights spilled over an interior wall: beside each vertical wall ``(4,)`` whose sides (their median heights

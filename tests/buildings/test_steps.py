@@ -20,7 +20,7 @@ from oblique_city.core.buildings.roof import check_topology, roof_labels, topolo
 from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
 from oblique_city.core.buildings.volumetric import (
     PlaneSegment,
-    clip_overhang_of_walls,
+    clip_spill_over_walls,
     eave_planes,
     grid_normals,
     height_grid,
@@ -507,11 +507,11 @@ def test_an_upper_roof_spilled_over_an_interior_wall_is_clipped():
     H = np.where(x < 0, 22.0, 12.0 - 0.2 * x)
     H[(x > 0) & (x < 1.5)] = 22.0
     wall = np.array([-1.0, 0.0, 0.0, 0.0])  # -x + 0 = 0: x = 0
-    out = clip_overhang_of_walls(H, origin, cell, [wall])
+    out = clip_spill_over_walls(H, origin, cell, [wall])
     spill = (x > 0.5) & (x < 1.5)
     assert np.allclose(out[spill], 12.0 - 0.2 * (x[spill] + 2.0), atol=1e-9)  # the nave 2 m further out
     assert np.array_equal(out[~spill], H[~spill])
-    assert np.array_equal(clip_overhang_of_walls(np.where(x < 0, 12.5, 12.0), origin, cell, [wall]),
+    assert np.array_equal(clip_spill_over_walls(np.where(x < 0, 12.5, 12.0), origin, cell, [wall]),
                           np.where(x < 0, 12.5, 12.0))  # a 0.5 m step: no upper roof
 
 
