@@ -173,6 +173,15 @@ def test_hull_roof_around_a_block_on_it_comes_in_two_pieces():
     assert vol == pytest.approx(500.0 + 8.0, abs=1e-6)
 
 
+OUTLINE = np.array([[-0.6, -0.6], [10.6, -0.6], [10.6, 8.6], [-0.6, 8.6]])  # roof outline of :func:`_house`
+
+
+def _corner_error(ring: np.ndarray) -> float:
+    """Largest distance (m) from a corner of ``ring (k, 2)`` to the nearest corner of :func:`_house`'s walls."""
+    truth = np.array([[0, 0], [10, 0], [10, 8], [0, 8]], float)
+    return float(np.max(np.min(np.linalg.norm(ring[:, None] - truth[None], axis=2), axis=1)))
+
+
 def _house(rng: np.random.Generator, roof_z: float, per_m: float, wall_lo: tuple[float, ...], wall_hi: float
            ) -> tuple[np.ndarray, list[np.ndarray]]:
     """A 10 m x 8 m flat-roofed house with a 0.6 m overhang: roof points on a 0.15 m grid at ``roof_z``, and
@@ -196,14 +205,12 @@ def test_roof_outline_moves_onto_sparse_facades():
     roof, walls = _house(rng, 106.0, 5.0, (100.3,) * 4, 105.3)  # about 1 point per m2 over 5 m of wall height
     xyz = np.concatenate([roof] + walls)
     xyz[:, :2] += rng.normal(0, 0.05, (len(xyz), 2))
-    outline = np.array([[-0.6, -0.6], [10.6, -0.6], [10.6, 8.6], [-0.6, 8.6]])
-    ring, moved, inferred = walls_under_roof_outline(outline, xyz, 100.0)
+    ring, moved, inferred = walls_under_roof_outline(OUTLINE, xyz, 100.0)
     assert moved == 4 and inferred == 0
-    truth = np.array([[0, 0], [10, 0], [10, 8], [0, 8]], float)
-    assert np.max(np.min(np.linalg.norm(ring[:, None] - truth[None], axis=2), axis=1)) < 0.1
+    assert _corner_error(ring) < 0.1
     # without facade points the outline stays where the roof is
-    same, none, inferred = walls_under_roof_outline(outline, roof, 100.0)
-    assert none == 0 and inferred == 0 and np.allclose(np.sort(same, axis=0), np.sort(outline, axis=0))
+    same, none, inferred = walls_under_roof_outline(OUTLINE, roof, 100.0)
+    assert none == 0 and inferred == 0 and np.allclose(np.sort(same, axis=0), np.sort(OUTLINE, axis=0))
 
 
 def test_walls_on_a_slope_ignore_the_ground_in_front():
@@ -216,11 +223,9 @@ def test_walls_on_a_slope_ignore_the_ground_in_front():
     street = np.column_stack([gx.ravel(), gy.ravel(), 101.5 + rng.normal(0, 0.05, gx.size)])
     xyz = np.concatenate([roof, street] + walls)
     xyz[:, :2] += rng.normal(0, 0.05, (len(xyz), 2))
-    outline = np.array([[-0.6, -0.6], [10.6, -0.6], [10.6, 8.6], [-0.6, 8.6]])
-    ring, moved, inferred = walls_under_roof_outline(outline, xyz, 100.0)
+    ring, moved, inferred = walls_under_roof_outline(OUTLINE, xyz, 100.0)
     assert moved == 4 and inferred == 0
-    truth = np.array([[0, 0], [10, 0], [10, 8], [0, 8]], float)
-    assert np.max(np.min(np.linalg.norm(ring[:, None] - truth[None], axis=2), axis=1)) < 0.1
+    assert _corner_error(ring) < 0.1
 
 
 def test_walls_without_facade_points_take_the_building_overhang():
@@ -234,11 +239,9 @@ def test_walls_without_facade_points_take_the_building_overhang():
         y = rng.uniform(0, 8, 40)
         walls.append(np.column_stack([np.full(40, x), y, rng.uniform(100.3, 105.3, 40)]))
     xyz = np.concatenate([roof] + walls)
-    outline = np.array([[-0.6, -0.6], [10.6, -0.6], [10.6, 8.6], [-0.6, 8.6]])
-    ring, moved, inferred = walls_under_roof_outline(outline, xyz, 100.0)
+    ring, moved, inferred = walls_under_roof_outline(OUTLINE, xyz, 100.0)
     assert moved == 2 and inferred == 2
-    truth = np.array([[0, 0], [10, 0], [10, 8], [0, 8]], float)
-    assert np.max(np.min(np.linalg.norm(ring[:, None] - truth[None], axis=2), axis=1)) < 0.05
+    assert _corner_error(ring) < 0.05
 
 
 def test_green_crowns_rejected_green_roof_kept():
