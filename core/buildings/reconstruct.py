@@ -29,6 +29,7 @@ from .volumetric import (
     VolumetricConfig,
     clip_spill_over_walls,
     eave_planes,
+    grid_cell,
     grid_normals,
     interior_walls,
     same_plane,
@@ -124,17 +125,13 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
     top, H = top_points(roofish, roof.origin, roof.cell, roof.labels.shape, ground_z)
     H = clip_spill_over_walls(H, roof.origin, roof.cell, inner)
 
-    def cell_of(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        cr = np.floor((xy - roof.origin) / roof.cell).astype(np.int64)
-        return np.clip(cr[:, 1], 0, H.shape[0] - 1), np.clip(cr[:, 0], 0, H.shape[1] - 1)
-
     def height_at(xy: np.ndarray) -> np.ndarray:
-        return H[cell_of(xy)]
+        return H[grid_cell(xy, roof.origin, roof.cell, H.shape)]
 
     tol = max(3.0 * noise, 0.05)
     segs = voxel_planes(xyz[xyz[:, 2] > ground_z + 0.5], voxel, noise, cfg)
     # faces the growing missed, rising from the outline (a found face keeps its own, better supported plane)
-    normals = grid_normals(H, roof.cell)[cell_of(top[:, :2])]
+    normals = grid_normals(H, roof.cell)[grid_cell(top[:, :2], roof.origin, roof.cell, H.shape)]
     segs += [e for e in eave_planes(top, polygon, voxel, tol, cfg, normals=normals)
              if not any(same_plane(e, s, cfg.angle_deg, 2 * tol) for s in segs)]
     found = []

@@ -389,11 +389,18 @@ def height_grid(xyz: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[i
     return ndimage.median_filter(H, size=3)
 
 
+def grid_cell(xy: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, int]
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column ``(n,)`` of the grid cell (rows = y index, cell ``(0, 0)`` at ``origin``) under each point
+    ``xy (n, 2)``; points off the grid take its nearest edge cell."""
+    cr = np.floor((xy - origin) / cell).astype(np.int64)
+    return np.clip(cr[:, 1], 0, shape[0] - 1), np.clip(cr[:, 0], 0, shape[1] - 1)
+
+
 def top_points(xyz: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, int], ground_z: float
                ) -> tuple[np.ndarray, np.ndarray]:
     """The roof points of ``xyz (n, 3)``: within 1 m of the top surface grid (:func:`height_grid` on ``origin``,
     ``cell``, ``shape``) and over 2 m above the ground. Returns them ``(k, 3)`` and the grid."""
     H = height_grid(xyz, origin, cell, shape)
-    cr = np.floor((xyz[:, :2] - origin) / cell).astype(np.int64)
-    z_top = H[np.clip(cr[:, 1], 0, H.shape[0] - 1), np.clip(cr[:, 0], 0, H.shape[1] - 1)]
+    z_top = H[grid_cell(xyz[:, :2], origin, cell, H.shape)]
     return xyz[(xyz[:, 2] > z_top - 1.0) & (xyz[:, 2] > ground_z + 2.0)], H
