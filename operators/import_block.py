@@ -28,6 +28,7 @@ FORMAT_LABELS = {
     "opk": ("OPK List", "Text/CSV list: image, X, Y, Z, omega, phi, kappa, with a camera file"),
     "bex": ("BlocksExchange XML", "ContextCapture / iTwin Capture BlocksExchange"),
     "colmap": ("COLMAP Model", "COLMAP text or binary model folder (cameras, images, points3D)"),
+    "metashape": ("Metashape Camera XML", "Agisoft Metashape cameras exported as Agisoft XML"),
 }
 FOLDER_FORMATS = {"colmap"}
 """Formats whose source is a folder: picking a file inside it imports the folder."""

@@ -8,17 +8,19 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..model import ImageBlock
-from . import blocksexchange, colmap, native, opk
+from . import blocksexchange, colmap, metashape, native, opk
 
 Reader = Callable[..., ImageBlock]
 Writer = Callable[..., None]
 
 READERS: dict[str, Reader] = {"native": lambda source, **_: native.read_block(source),
-                              "opk": opk.read_opk, "bex": blocksexchange.read_bex, "colmap": colmap.read_colmap}
+                              "opk": opk.read_opk, "bex": blocksexchange.read_bex, "colmap": colmap.read_colmap,
+                              "metashape": metashape.read_metashape}
 """Format name -> ``reader(source, **options) -> ImageBlock``."""
 
 WRITERS: dict[str, Writer] = {"native": lambda block, dest, **_: native.write_block(block, dest),
-                              "opk": opk.write_opk, "bex": blocksexchange.write_bex, "colmap": colmap.write_colmap}
+                              "opk": opk.write_opk, "bex": blocksexchange.write_bex, "colmap": colmap.write_colmap,
+                              "metashape": metashape.write_metashape}
 """Format name -> ``writer(block, dest, **options)``."""
 
 

@@ -1,0 +1,175 @@
+"""Metashape camera XML: a file built from Metashape's own projection formula in geocentric coordinates, read into
+UTM, projects like Metashape; round trips; refusals that name the line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pyproj import CRS, Transformer
+
+from oblique_city.core.errors import InputError
+from oblique_city.core.geometry.projection import project
+from oblique_city.core.io.formats import read_block, write_block
+
+WGS84_WKT = CRS("EPSG:4326").to_wkt("WKT1_GDAL")
+CAL = {"f": 1200.0, "cx": 7.25, "cy": -4.5, "b1": 0.8, "k1": -0.08, "k2": 0.02, "k3": -0.004, "p1": 1.2e-3,
+       "p2": -0.9e-3}
+W, H = 1200, 900
+
+
+def _metashape_pixel(xyz_cam: np.ndarray) -> np.ndarray:
+    """Metashape's frame camera model (manual, appendix C), pixels from the image's top-left corner."""
+    x, y = xyz_cam[:, 0] / xyz_cam[:, 2], xyz_cam[:, 1] / xyz_cam[:, 2]
+    r2 = x * x + y * y
+    radial = 1 + CAL["k1"] * r2 + CAL["k2"] * r2**2 + CAL["k3"] * r2**3
+    xd = x * radial + CAL["p1"] * (r2 + 2 * x * x) + 2 * CAL["p2"] * x * y
+    yd = y * radial + CAL["p2"] * (r2 + 2 * y * y) + 2 * CAL["p1"] * x * y
+    return np.column_stack([W / 2 + CAL["cx"] + xd * (CAL["f"] + CAL["b1"]), H / 2 + CAL["cy"] + yd * CAL["f"]])
+
+
+def _rotation(rng: np.random.Generator) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def _numbers(a: np.ndarray) -> str:
+    return " ".join(repr(float(v)) for v in np.ravel(a))
+
+
+@pytest.fixture
+def geocentric_scene(tmp_path):
+    """A chunk in WGS 84 with a scaled, rotated internal frame, one camera in a scaled component, 5 markers seen by
+    both cameras. Placed 180 km east of UTM 32's central meridian, where its scale factor is 1, near the
+    ellipsoid: grid and geocentric geometry differ there by less than 3e-5 of the distances."""
+    rng = np.random.default_rng(5)
+    geo = Transformer.from_crs("EPSG:32632", "EPSG:4979", always_xy=True)
+    ecef = Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
+    lon, lat, h = geo.transform(680500.0, 5320000.0, 30.0)
+    p0 = np.array(ecef.transform(lon, lat, h))
+    lo, la = np.radians(lon), np.radians(lat)
+    east = np.array([-np.sin(lo), np.cos(lo), 0.0])
+    north = np.array([-np.sin(la) * np.cos(lo), -np.sin(la) * np.sin(lo), np.cos(la)])
+    up = np.cross(east, north)
+    offsets = rng.uniform(-25, 25, (5, 2))
+    pts_geo = np.array([geo.transform(680500.0 + dx, 5320000.0 + dy, 30.0 + dz)
+                        for (dx, dy), dz in zip(offsets, rng.uniform(-5, 15, 5), strict=True)])
+    pts = np.array([ecef.transform(*p) for p in pts_geo])
+    cams = []
+    for c_off in ((50.0, 10.0, 110.0), (-30.0, -45.0, 95.0)):
+        c = p0 + c_off[0] * east + c_off[1] * north + c_off[2] * up
+        z = (p0 - c) / np.linalg.norm(p0 - c)
+        xa = np.cross(north, z)
+        xa /= np.linalg.norm(xa)
+        r_ecef_from_cam = np.column_stack([xa, np.cross(z, xa), z])
+        cams.append((r_ecef_from_cam, c))
+    # internal frame: geocentric = s R x + t; a component (scale 0.5) for the second camera
+    s_ch, r_ch, t_ch = 2.5, _rotation(rng), p0 + [120.0, -80.0, 40.0]
+    s_co, r_co, t_co = 0.5, _rotation(rng), np.array([3.0, -1.0, 2.0])
+    chunk_m = np.eye(4)
+    chunk_m[:3, :3], chunk_m[:3, 3] = s_ch * r_ch, t_ch
+    comp_m = np.eye(4)
+    comp_m[:3, :3], comp_m[:3, 3] = s_co * r_co, t_co
+    cam_xml, pixels = [], []
+    for k, (r, c) in enumerate(cams):
+        world = np.eye(4)
+        world[:3, :3], world[:3, 3] = r, c
+        inner = np.linalg.inv(chunk_m @ (comp_m if k == 1 else np.eye(4))) @ world
+        inner[:3, :3] /= np.cbrt(np.linalg.det(inner[:3, :3]))  # the camera transform is rigid in its frame
+        comp = ' component_id="0"' if k == 1 else ""
+        cam_xml.append(f'<camera id="{k}" sensor_id="0" label="IMG_{k}.JPG"{comp}>'
+                       f"<transform>{_numbers(inner)}</transform><orientation>1</orientation></camera>")
+        pixels.append(_metashape_pixel((pts - c) @ r))
+    markers = "".join(f'<marker id="{j}" label="M{j}"><reference x="{p[0]!r}" y="{p[1]!r}" z="{p[2]!r}" '
+                      f'enabled="{"false" if j == 4 else "true"}"/></marker>' for j, p in enumerate(pts_geo))
+    locations = "".join(f'<marker marker_id="{j}">' + "".join(
+        f'<location camera_id="{k}" pinned="true" x="{pixels[k][j, 0]!r}" y="{pixels[k][j, 1]!r}"/>'
+        for k in range(2)) + "</marker>" for j in range(5))
+    cal = "".join(f"<{k}>{v!r}</{k}>" for k, v in CAL.items())
+    xml = f"""<?xml version="1.0" encoding="UTF-8"?>
+<document version="2.0.0">
+  <chunk label="Chunk 1" enabled="true">
+    <sensors next_id="1"><sensor id="0" label="UltraCam" type="frame"><resolution width="{W}" height="{H}"/>
+      <property name="pixel_width" value="0.004"/><property name="pixel_height" value="0.004"/>
+      <calibration type="frame" class="initial"><resolution width="{W}" height="{H}"/><f>1900</f></calibration>
+      <calibration type="frame" class="adjusted"><resolution width="{W}" height="{H}"/>{cal}</calibration>
+    </sensor></sensors>
+    <components next_id="1" active_id="0"><component id="0" label="Component 1"><transform>
+      <rotation locked="true">{_numbers(r_co)}</rotation><translation locked="true">{_numbers(t_co)}</translation>
+      <scale locked="true">{s_co!r}</scale></transform></component></components>
+    <cameras next_id="2" next_group_id="1"><group id="0" label="Flight 1" type="folder">{cam_xml[0]}</group>
+      {cam_xml[1]}</cameras>
+    <markers next_id="5">{markers}</markers>
+    <frames next_id="1"><frame id="0"><markers>{locations}</markers></frame></frames>
+    <transform><rotation locked="true">{_numbers(r_ch)}</rotation>
+      <translation locked="true">{_numbers(t_ch)}</translation><scale locked="true">{s_ch!r}</scale></transform>
+    <reference>{WGS84_WKT}</reference>
+  </chunk>
+</document>
+"""
+    path = tmp_path / "cameras.xml"
+    path.write_text(xml)
+    return path, pixels
+
+
+def test_reads_metashape_projection_into_utm(geocentric_scene):
+    path, pixels = geocentric_scene
+    block = read_block("metashape", path, crs="EPSG:32632")
+    assert block.crs == "EPSG:32632"
+    cam = block.cameras["UltraCam"]
+    assert (cam.fx, cam.fy, cam.p1, cam.p2) == (CAL["f"] + CAL["b1"], CAL["f"], CAL["p2"], CAL["p1"])
+    assert cam.pixel_size_mm == 0.004
+    assert [g.kind for g in block.ground_points.values()] == ["control"] * 4 + ["check"]
+    xyz = np.array([g.xyz for g in block.ground_points.values()])
+    assert np.all(np.abs(xyz[:, 0] - 680500.0) < 30) and np.all(np.abs(xyz[:, 2] - 35.0) < 11)
+    for k in range(2):
+        img = block.images[f"IMG_{k}.JPG"]
+        uv, _ = project(cam, img.pose, xyz)
+        # Metashape's pixels have their origin at the image corner; 0.5 px off or p1/p2 swapped fails by > 0.3 px
+        assert np.abs(uv - (pixels[k] - 0.5)).max() < 0.01  # measured 0.002
+        for j, g in enumerate(block.ground_points.values()):
+            assert np.abs(g.observations[img.id] - (pixels[k][j] - 0.5)).max() < 1e-9
+
+
+def test_geographic_chunk_needs_a_crs(geocentric_scene):
+    with pytest.raises(InputError, match="crs=EPSG") as e:
+        read_block("metashape", geocentric_scene[0])
+    assert e.value.line is not None and "reference" in str(e.value)
+
+
+def test_round_trip(tmp_path, oblique_block, same_block):
+    write_block("metashape", oblique_block, tmp_path / "cams.xml")
+    back = read_block("metashape", tmp_path / "cams.xml")
+    # centres pass through geocentric coordinates (pyproj round trip ~1e-8 m); rotations exactly
+    same_block(oblique_block, back, tol_m=5e-8, tol_rad=1e-13, tol_px=1e-5)
+    for name, g in oblique_block.ground_points.items():
+        assert np.array_equal(back.ground_points[name].sigma, g.sigma)
+    assert back.images["img0"].file == "img0"  # labels are image ids; no paths in the format
+
+
+def test_image_files_found_by_label(tmp_path, oblique_block):
+    from PIL import Image as PILImage
+
+    for img in oblique_block.images.values():
+        cam = oblique_block.camera_of(img)
+        PILImage.new("L", (cam.width, cam.height)).save(tmp_path / f"{img.id}.tif")
+    write_block("metashape", oblique_block, tmp_path / "cams.xml")
+    back = read_block("metashape", tmp_path / "cams.xml", image_root=str(tmp_path))
+    assert back.images["img3"].file == "img3.tif"
+
+
+@pytest.mark.parametrize(("old", "new", "field"), [
+    ("<k1>", "<k4>0.01</k4><k1>", "k4"),
+    ("<p1>", "<b2>0.5</b2><p1>", "b2"),
+    ('type="frame"><resolution', 'type="fisheye"><resolution', "type"),
+    ('sensor_id="0" label="IMG_1.JPG"', 'sensor_id="7" label="IMG_1.JPG"', "sensor_id"),
+    ("<orientation>1</orientation>", "<orientation>6</orientation>", "orientation"),
+    ('marker_id="2"', 'marker_id="9"', "marker_id"),
+])
+def test_refusals_name_line_and_field(geocentric_scene, old, new, field):
+    path = geocentric_scene[0]
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(InputError) as e:
+        read_block("metashape", path, crs="EPSG:32632")
+    assert e.value.line is not None and e.value.field.endswith(field), (e.value.field, str(e.value))
