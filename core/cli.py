@@ -22,7 +22,7 @@ COMMAND_MODULES: list[str] = [".aerotri.cli", ".simulate.cli", ".demo", ".export
 ``func`` on its parsers with ``parser.set_defaults(func=...)``."""
 
 
-def _parse_options(pairs: list[str] | None) -> dict[str, Any]:
+def parse_options(pairs: list[str] | None) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for p in pairs or []:
         if "=" not in p:
@@ -88,7 +88,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     from .io.formats import read_block
     from .pipeline import Workspace
 
-    block = read_block(args.format, args.source, **_parse_options(args.option))
+    block = read_block(args.format, args.source, **parse_options(args.option))
     root = Path(args.workspace)
     ws = Workspace.open(root) if (root / "project.toml").exists() else Workspace.create(root, crs=block.crs)
     if normalize_crs(block.crs) != normalize_crs(ws.crs):
@@ -108,7 +108,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .pipeline import Workspace
 
     ws = Workspace.open(args.workspace)
-    for k, v in _parse_options(args.set).items():
+    for k, v in parse_options(args.set).items():
         stage, _, opt = k.partition(".")
         if not opt:
             raise ConfigError(f"--set '{k}' should name a stage option like aerotri.mode=hierarchical")

@@ -1,8 +1,10 @@
-"""File > Export > City Model: the workspace's buildings as OBJ, CityGML 2.0 LoD2 or CityJSON 2.0.
+"""File > Export > City Model: the workspace's buildings as OBJ, CityGML 2.0 LoD2 or CityJSON 2.0; File > Export >
+Oriented Image Block: its block in another software's format.
 
-Calls :func:`core.export.command.export_buildings`, the function behind ``oblique-city export``, on the scene's
-workspace (``buildings/buildings.json``), so the file is the same as the CLI's; CityGML is schema-validated and
-CityJSON structure-checked unless "Validate" is off. A core error is reported as one line.
+The operators call :func:`core.export.command.export_buildings` and :func:`core.export.command.export_block`,
+the functions behind ``oblique-city export`` and ``oblique-city export-block``, on the scene's workspace, so the
+files are the same as the CLI's; CityGML is schema-validated and CityJSON structure-checked unless "Validate" is
+off. A core error is reported as one line.
 """
 
 from __future__ import annotations
@@ -14,7 +16,9 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
 from ..core.errors import CityError
-from ..core.export.command import export_buildings
+from ..core.export.command import export_block, export_buildings
+from ..core.io.formats import WRITERS
+from .import_block import FORMAT_LABELS, parse_options
 from .run import scene_workspace
 
 EXTENSIONS = {"citygml": ".gml", "cityjson": ".city.json", "obj": ".obj"}
@@ -83,8 +87,53 @@ class CITY_OT_export_city_model(bpy.types.Operator, ExportHelper):
         return {"FINISHED"}
 
 
+BLOCK_EXTENSIONS = {"bex": ".xml", "metashape": ".xml", "opk": ".txt", "native": ".json", "colmap": ""}
+"""Block format -> file extension (COLMAP writes a folder)."""
+
+_block_items: list[tuple[str, str, str]] = []
+
+
+def block_format_items(self, context) -> list[tuple[str, str, str]]:
+    """Enum items from the registered block writers (kept alive, as Blender requires for dynamic enums)."""
+    _block_items[:] = [(name, *FORMAT_LABELS.get(name, (name, f"Block format '{name}'"))) for name in WRITERS]
+    return _block_items
+
+
+class CITY_OT_export_block(bpy.types.Operator, ExportHelper):
+    """Export the workspace's oriented image block (adjusted after aerial triangulation) for other software"""
+
+    bl_idname = "city.export_block"
+    bl_label = "Export Oriented Image Block"
+
+    filename_ext = ""
+    filter_glob: StringProperty(default="*.xml;*.txt;*.json", options={"HIDDEN"})
+    format: EnumProperty(name="Format", items=block_format_items)
+    imported: BoolProperty(name="Imported Orientation", default=False,
+                           description="Write the imported block even when aerial triangulation adjusted it")
+    options: StringProperty(name="Options", default="",
+                            description="Writer options as key=value; key=value (e.g. rotation=opk, angles=gon)")
+
+    def execute(self, context):
+        if not self.filepath:
+            self.report({"ERROR"}, "no output file given")
+            return {"CANCELLED"}
+        path = bpy.path.abspath(self.filepath)
+        ext = BLOCK_EXTENSIONS.get(self.format, "")
+        if ext and not path.lower().endswith(ext):
+            path += ext
+        try:
+            summary = export_block(scene_workspace(context), self.format, path, adjusted=not self.imported,
+                                   **parse_options(self.options))
+        except CityError as e:
+            self.report({"ERROR"}, str(e).splitlines()[0])
+            return {"CANCELLED"}
+        self.report({"INFO"}, summary)
+        return {"FINISHED"}
+
+
 def menu_export(self, context) -> None:
-    """File > Export entries, one per format."""
+    """File > Export entries: the city model, one per format, and the oriented image block."""
     for fmt, label, _ in FORMAT_ITEMS:
         op = self.layout.operator(CITY_OT_export_city_model.bl_idname, text=f"City Model: {label} (Oblique City)")
         op.format = fmt
+    self.layout.operator(CITY_OT_export_block.bl_idname, text="Oriented Image Block (Oblique City)")

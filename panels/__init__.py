@@ -195,10 +195,12 @@ def draw_stage_options(layout, context, name: str, enabled: bool = True) -> None
 
 
 def draw_export(layout, context) -> None:
-    """The Export panel's button: the buildings to OBJ / CityGML / CityJSON."""
-    row = layout.row()
-    row.enabled = workspace_root(context) is not None
-    row.operator("city.export_city_model", text="Export City Model", icon="EXPORT")
+    """The Export panel's buttons: the buildings to OBJ / CityGML / CityJSON, the oriented block to other
+    software's formats."""
+    col = layout.column()
+    col.enabled = workspace_root(context) is not None
+    col.operator("city.export_city_model", text="Export City Model", icon="EXPORT")
+    col.operator("city.export_block", text="Export Oriented Block", icon="OUTLINER_OB_CAMERA")
 
 
 def triangulation_summary(root: Path) -> dict:

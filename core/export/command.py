@@ -1,4 +1,7 @@
-"""``oblique-city export WS --format obj|citygml|cityjson --out PATH``: the buildings of a workspace to a file.
+"""``oblique-city export WS --format obj|citygml|cityjson --out PATH``: the buildings of a workspace to a file;
+``oblique-city export-block WS --format bex|metashape|opk|colmap|native --out PATH``: its oriented image block
+(the aerial triangulation's adjusted orientations and cameras when it has run, else the imported ones), for other
+photogrammetry software.
 
 When the ``texture`` stage has run (``texture/textures.json``), the export carries its atlases (pages copied
 beside the output) unless ``--no-textures``; without it the export is untextured. When the ``windows`` stage has
@@ -72,6 +75,27 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
     raise ConfigError(f"unknown export format '{fmt}' (known: {', '.join(FORMATS)})")
 
 
+def export_block(workspace: str | Path, fmt: str, out: str | Path, adjusted: bool = True, **options) -> str:
+    """Write the workspace's block in block format ``fmt`` (see :data:`..io.formats.WRITERS`; ``options`` go to
+    the writer) and return a one-line summary. ``adjusted``: the aerial triangulation's block when it exists
+    (adjusted orientations and cameras), else the imported one."""
+    from ..io.formats import WRITERS, write_block
+    from ..pipeline import Workspace
+    from ..pipeline.workspace import ADJUSTED_BLOCK_FILE
+
+    if fmt not in WRITERS:
+        raise ConfigError(f"unknown block format '{fmt}' (known: {', '.join(sorted(WRITERS))})")
+    ws = Workspace.open(workspace)
+    block = ws.load_block(adjusted=adjusted)
+    which = "adjusted" if adjusted and (ws.root / ADJUSTED_BLOCK_FILE).exists() else "imported"
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_block(fmt, block, out, **options)
+    s = block.summary()
+    return (f"{which} block written to {out} ({fmt}): {s['images']} images, {s['cameras']} cameras, "
+            f"{s['control_points']} control and {s['check_points']} check points")
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     print(export_buildings(args.workspace, args.format, args.out, validate=not args.no_validate,
                            with_textures=not args.no_textures, with_windows=not args.no_windows))
@@ -87,3 +111,23 @@ def add_commands(sub) -> None:
     s.add_argument("--no-textures", action="store_true", help="leave out the texture stage's atlases")
     s.add_argument("--no-windows", action="store_true", help="leave out the windows stage's windows")
     s.set_defaults(func=cmd_export)
+
+    from ..io.formats import WRITERS
+
+    s = sub.add_parser("export-block", help="export the oriented image block (adjusted after aerial triangulation) "
+                                            "for other software")
+    s.add_argument("workspace")
+    s.add_argument("--format", required=True, choices=sorted(WRITERS))
+    s.add_argument("--out", required=True, help="output file (a folder for colmap)")
+    s.add_argument("--imported", action="store_true", help="the imported block even when an adjusted one exists")
+    s.add_argument("-o", "--option", action="append", metavar="KEY=VALUE",
+                   help="writer option (e.g. rotation=opk for bex, angles=gon for opk, binary=true for colmap)")
+    s.set_defaults(func=cmd_export_block)
+
+
+def cmd_export_block(args: argparse.Namespace) -> int:
+    from ..cli import parse_options
+
+    print(export_block(args.workspace, args.format, args.out, adjusted=not args.imported,
+                       **parse_options(args.option)))
+    return 0

@@ -2,7 +2,8 @@
 
 Checked: a CityGML file the core's schema validator accepts with both buildings in it, the format's extension
 added, a CityJSON file that passes the core's structure check, the File > Export entries, the Export panel's
-button, and a core error (no buildings yet) reported as one line.
+buttons, a core error (no buildings yet) reported as one line, and the oriented block exported as Metashape XML
+and BlocksExchange (read back with the same orientations), a wrong writer option reported.
 """
 
 from __future__ import annotations
@@ -65,3 +66,23 @@ def test_export_menu_and_panel(addon, ws):
     panel = next(c for c in STAGE_PANEL_CLASSES if c.bl_label == "Export")
     log = draw(panel, bpy.context)
     assert any(e[0] == "operator" and e[1] == "city.export_city_model" for e in log)
+    assert any(e[0] == "operator" and e[1] == "city.export_block" for e in log)
+
+
+def test_export_block(addon, ws, tmp_path):
+    bpy = addon
+    from oblique_city.core.io.formats import read_block
+
+    w = ws[0]
+    bpy.context.scene.oblique_city.workspace = str(w.root)
+    assert bpy.ops.city.export_block(filepath=str(tmp_path / "cams"), format="metashape") == {"FINISHED"}
+    block, back = w.load_block(), read_block("metashape", tmp_path / "cams.xml")
+    assert set(back.images) == set(block.images)
+    for iid, img in block.images.items():
+        assert np.abs(back.images[iid].pose.C - img.pose.C).max() < 1e-7
+        assert np.abs(back.images[iid].pose.R - img.pose.R).max() < 1e-12
+    assert bpy.ops.city.export_block(filepath=str(tmp_path / "b.xml"), format="bex", options="rotation=opk") \
+        == {"FINISHED"}
+    assert len(read_block("bex", tmp_path / "b.xml").images) == len(block.images)
+    with pytest.raises(RuntimeError, match="unknown option"):
+        bpy.ops.city.export_block(filepath=str(tmp_path / "c.xml"), format="bex", options="angle=gon")
