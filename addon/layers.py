@@ -6,8 +6,10 @@
   material that shows ``Col``.
 * ``surface``: ``surface/dsm.tif`` as a grid mesh through the cell centres (subsampled to at most
   :data:`MAX_DSM_VERTICES`; cells without height leave holes), textured with ``surface/ortho.png`` when that image
-  covers the same grid (as the surface stage writes it); ``surface/dtm.tif`` the same way as a second mesh,
-  hidden in the view layer until the user shows it.
+  covers the same grid (as the surface stage writes it); ``surface/dtm.tif`` the same way as a second mesh, and
+  the display subset of the classified points (``surface/points_classified_display.laz``) coloured by ASPRS class
+  (:data:`CLASS_COLOURS`, the code in a ``class`` attribute), both hidden in the view layer until the user shows
+  them.
 
 Positions go through :mod:`.georef` like everything else: the float64 world coordinates are offset by the scene
 origin before Blender stores them in float32.
@@ -20,7 +22,7 @@ import math
 import numpy as np
 
 from ..core.io.geotiff import read_geotiff
-from ..core.io.pointcloud import read_ply
+from ..core.io.pointcloud import read_las, read_ply
 from ..core.pipeline import Workspace
 from . import georef
 from .scene_tree import layer_collection
@@ -29,6 +31,11 @@ DENSE_DISPLAY_FILE = "dense/points_display.ply"
 DSM_FILE = "surface/dsm.tif"
 DTM_FILE = "surface/dtm.tif"
 ORTHO_FILE = "surface/ortho.png"
+CLASSIFIED_DISPLAY_FILE = "surface/points_classified_display.laz"
+CLASS_COLOURS = {1: (0.6, 0.6, 0.6), 2: (0.55, 0.4, 0.25), 3: (0.6, 0.85, 0.4), 4: (0.35, 0.7, 0.25),
+                 5: (0.1, 0.45, 0.1), 6: (0.85, 0.3, 0.2), 7: (0.9, 0.2, 0.9)}
+"""ASPRS class -> display colour (sRGB): grey unclassified, brown ground, greens vegetation (low to high), red
+buildings, magenta low points; other codes grey."""
 MAX_DSM_VERTICES = 1_000_000
 
 
@@ -80,25 +87,42 @@ def point_display(obj, radius: float) -> None:
     obj.modifiers.new("Points", "NODES").node_group = tree
 
 
-def build_dense_points(scene, ws: Workspace) -> str:
-    """Builder of the ``dense`` stage: the display subset of the point cloud."""
+def points_object(scene, coll, name: str, xyz: np.ndarray, rgb: np.ndarray, attributes: dict[str, np.ndarray]):
+    """A vertex-only mesh object of points ``xyz (n, 3)`` (world) with colours ``rgb (n, 3)`` (sRGB, 0-1) in the
+    ``Col`` attribute and integer point ``attributes``, drawn as points (:func:`point_display`)."""
     import bpy
 
+    mesh = mesh_from_arrays(name, georef.world_to_local(scene, xyz))
+    col = mesh.color_attributes.new("Col", "BYTE_COLOR", "POINT")
+    rgba = np.concatenate([rgb, np.ones((len(xyz), 1))], axis=1)
+    col.data.foreach_set("color_srgb", rgba.astype(np.float32).ravel())
+    for key, values in attributes.items():
+        mesh.attributes.new(key, "INT", "POINT").data.foreach_set("value", values.astype(np.int32))
+    obj = bpy.data.objects.new(name, mesh)
+    coll.objects.link(obj)
+    if len(xyz) > 1:
+        extent = np.ptp(xyz[:, :2], axis=0)
+        spacing = math.sqrt(max(float(extent[0] * extent[1]), 1e-6) / len(xyz))
+        point_display(obj, radius=max(0.01, 0.5 * spacing))
+    return obj
+
+
+def build_dense_points(scene, ws: Workspace) -> str:
+    """Builder of the ``dense`` stage: the display subset of the point cloud."""
     cloud = read_ply(ws.path(DENSE_DISPLAY_FILE))
     georef.ensure_georef(scene, ws.crs, cloud.xyz)
     coll = layer_collection(scene, "dense", "Dense points")
-    mesh = mesh_from_arrays("Dense points", georef.world_to_local(scene, cloud.xyz))
-    col = mesh.color_attributes.new("Col", "BYTE_COLOR", "POINT")
-    rgba = np.concatenate([cloud.rgb / 255.0, np.ones((len(cloud), 1))], axis=1)
-    col.data.foreach_set("color_srgb", rgba.astype(np.float32).ravel())
-    mesh.attributes.new("view", "INT", "POINT").data.foreach_set("value", cloud.view.astype(np.int32))
-    obj = bpy.data.objects.new("Dense points", mesh)
-    coll.objects.link(obj)
-    if len(cloud) > 1:
-        extent = np.ptp(cloud.xyz[:, :2], axis=0)
-        spacing = math.sqrt(max(float(extent[0] * extent[1]), 1e-6) / len(cloud))
-        point_display(obj, radius=max(0.01, 0.5 * spacing))
+    points_object(scene, coll, "Dense points", cloud.xyz, cloud.rgb / 255.0, {"view": cloud.view})
     return f"{len(cloud)} display points"
+
+
+def hide_in_view(scene, obj) -> None:
+    """Hide ``obj`` in renders and in every view layer of ``scene`` (the user shows it when wanted)."""
+    obj.hide_render = True
+    for layer in scene.view_layers:
+        layer.update()  # the new object enters the view layer's object list
+        if obj.name in layer.objects:
+            obj.hide_set(True, view_layer=layer)
 
 
 def grid_quads(valid: np.ndarray) -> np.ndarray:
@@ -168,10 +192,13 @@ def build_surface(scene, ws: Workspace) -> str:
         dtm_mesh.materials.append(_material("Oblique City DTM")[0])
         dtm = bpy.data.objects.new("DTM", dtm_mesh)
         coll.objects.link(dtm)
-        dtm.hide_render = True
-        for layer in scene.view_layers:
-            layer.update()  # the new object enters the view layer's object list
-            if dtm.name in layer.objects:
-                dtm.hide_set(True, view_layer=layer)
+        hide_in_view(scene, dtm)
         summary += f", DTM as {len(dtm_mesh.vertices)} vertices (hidden)"
+    classified_path = ws.path(CLASSIFIED_DISPLAY_FILE)
+    if classified_path.is_file():
+        cloud = read_las(classified_path)
+        rgb = np.array([CLASS_COLOURS.get(int(c), CLASS_COLOURS[1]) for c in range(256)])[cloud.classification]
+        hide_in_view(scene, points_object(scene, coll, "Classified points", cloud.xyz, rgb,
+                                          {"class": cloud.classification}))
+        summary += f", {len(cloud)} classified display points (hidden)"
     return summary

@@ -127,6 +127,8 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                                      "opposite one lies on a wall and takes the nearer side (0 = off)"},
         "se_size": {"min": 0.0, "description": "DTM structuring element (m)"},
         "threshold": {"min": 0.0, "description": "Points within this of the opened surface are ground (m)"},
+        "high_vegetation_m": {"min": 0.0, "description": "Vegetation points this high above the DTM are LAS class 5 "
+                                                         "(high vegetation), lower ones class 4 (m)"},
     },
 }
 """Stage -> field -> extra property settings: ``min``, ``max``, ``description``, ``items``

@@ -45,9 +45,11 @@ from oblique_city.core.evaluate.surface import (
 )
 from oblique_city.core.io.geotiff import read_geotiff
 from oblique_city.core.io.native import read_block
+from oblique_city.core.io.pointcloud import read_las
 from oblique_city.core.io.validate import resolve_image
 from oblique_city.core.pipeline import Executor, RunContext, Workspace
 from oblique_city.core.pipeline.runner import run_stages
+from oblique_city.core.surface.dtm import LAS_CLASSES
 
 ROOF = (3, 7, 8)       # roof, roof installation, roof edge (codes of core.simulate.city.SEMANTIC)
 GROUND = (0, 1)        # ground, street
@@ -267,6 +269,32 @@ def main() -> None:
     tree_pts = kept & on_surface & (sem == TREE) & (height > 2.0)
     results["point_classification"]["tree_points_above"] = float((pc[tree_pts] == 1).mean()) if tree_pts.any() \
         else float("nan")
+    # ASPRS classes of the classified LAS (kept points, same order) against the true surface each point lies on,
+    # inside the surface grid (the area of interest: beyond it raised points have no masks)
+    las = read_las(ws.path("surface", "points_classified.laz")).classification
+    lc = np.zeros(len(idx), np.uint8)
+    lc[kept] = las[kept_index[idx[kept]]]
+    p_xy = pts["xyz"][idx, :2]
+    in_aoi = (p_xy[:, 0] >= bbox[0]) & (p_xy[:, 0] < bbox[2]) & (p_xy[:, 1] > bbox[1]) & (p_xy[:, 1] <= bbox[3])
+    base = kept & on_surface & in_aoi
+    truth_sets = {"ground": base & np.isin(sem, GROUND) & (height < 0.3),
+                  "roofs": base & np.isin(sem, ROOF) & (height > 2.0),
+                  "walls": base & np.isin(sem, WALL) & (height > 2.0),
+                  "trees": base & (sem == TREE) & (height > 2.0)}
+    expected = {"ground": [LAS_CLASSES["ground"]], "roofs": [LAS_CLASSES["building"]],
+                "walls": [LAS_CLASSES["building"]],
+                "trees": [LAS_CLASSES["medium_vegetation"], LAS_CLASSES["high_vegetation"]]}
+    results["las_classification"] = {
+        k: {"points": int(m.sum()), "correct": float(np.isin(lc[m], expected[k]).mean()) if m.any() else float("nan"),
+            "classes": {int(v): int(n) for v, n in zip(*np.unique(lc[m], return_counts=True), strict=True)}}
+        for k, m in truth_sets.items()}
+    every = np.zeros(len(idx), bool)
+    for m in truth_sets.values():
+        every |= m
+    hit = np.zeros(len(idx), bool)
+    for k, m in truth_sets.items():
+        hit |= m & np.isin(lc, expected[k])
+    results["las_classification"]["overall"] = float(hit.sum() / every.sum()) if every.any() else float("nan")
     # facade density: points from oblique masters on true walls, per m2 of wall in the AOI (sample scaled up)
     v = truth.city.vertices
     tri = truth.city.triangles
@@ -333,6 +361,10 @@ def print_table(r: dict) -> None:
     c = r["point_classification"]
     print(f"   building/vegetation points classified above: {c['object_above']:.3f} ({c['object_points']} sampled); "
           f"trees alone {c['tree_points_above']:.3f}; ground points on the ground: {c['ground_on']:.3f}")
+    lc = r["las_classification"]
+    print("   classified LAS (ASPRS codes) against the surface each sampled point lies on, inside the AOI: "
+          + ", ".join(f"{k} {lc[k]['correct']:.3f} of {lc[k]['points']}" for k in ("ground", "roofs", "walls", "trees"))
+          + f"; overall {lc['overall']:.3f}")
     f = r["facades"]
     print(f"\n== Facades: {f['points_per_m2_oblique']:.1f} points/m2 from oblique masters, "
           f"{f['points_per_m2_nadir']:.1f} from nadir masters ({f['wall_area_m2']:.0f} m2 of wall in the AOI)")

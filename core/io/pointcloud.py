@@ -1,7 +1,8 @@
 """Point clouds with colour, normal, source view and master id: LAS/LAZ (laspy) and binary PLY, read and write.
 
 LAS 1.4, point format 7 (XYZ, GPS time, RGB): colour scaled to 16 bits, the master image index in
-``point_source_id``, the cardinal view code in ``user_data`` (index into :data:`VIEWS`), normals as extra byte
+``point_source_id``, the cardinal view code in ``user_data`` (index into :data:`VIEWS`), the ASPRS class in
+``classification`` (0 until the surface stage classifies the points), normals as extra byte
 dimensions ``nx, ny, nz`` (float32) and the CRS as WKT. ``.laz`` is written compressed (lazrs backend).
 Coordinates are stored with a 1 mm scale and an offset at the cloud's minimum, so UTM coordinates keep
 millimetres.
@@ -36,6 +37,7 @@ class PointCloud:
     master : (n,) uint16 index of the master image (into ``masters``)
     masters : image ids of the masters
     crs : EPSG:nnnn or WKT
+    classification : (n,) uint8 ASPRS class codes (0: never classified)
     """
 
     xyz: np.ndarray
@@ -45,6 +47,7 @@ class PointCloud:
     master: np.ndarray
     masters: list[str] = field(default_factory=list)
     crs: str = ""
+    classification: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.xyz = np.asarray(self.xyz, np.float64).reshape(-1, 3)
@@ -53,6 +56,8 @@ class PointCloud:
         self.normal = np.asarray(self.normal, np.float32).reshape(n, 3)
         self.view = np.asarray(self.view, np.uint8).reshape(n)
         self.master = np.asarray(self.master, np.uint16).reshape(n)
+        self.classification = (np.zeros(n, np.uint8) if self.classification is None
+                               else np.asarray(self.classification, np.uint8).reshape(n))
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -60,7 +65,7 @@ class PointCloud:
     def subset(self, mask_or_index: np.ndarray) -> PointCloud:
         i = mask_or_index
         return PointCloud(self.xyz[i], self.rgb[i], self.normal[i], self.view[i], self.master[i],
-                          list(self.masters), self.crs)
+                          list(self.masters), self.crs, self.classification[i])
 
 
 def write_las(path: str | Path, cloud: PointCloud) -> None:
@@ -81,6 +86,7 @@ def write_las(path: str | Path, cloud: PointCloud) -> None:
     rgb16 = cloud.rgb.astype(np.uint16) * 257
     las.red, las.green, las.blue = rgb16[:, 0], rgb16[:, 1], rgb16[:, 2]
     las.point_source_id = cloud.master
+    las.classification = cloud.classification
     las.user_data = cloud.view
     las.nx, las.ny, las.nz = cloud.normal[:, 0], cloud.normal[:, 1], cloud.normal[:, 2]
     path = Path(path)
@@ -106,7 +112,7 @@ def read_las(path: str | Path) -> PointCloud:
     normal = np.stack([las.nx, las.ny, las.nz], 1) if "nx" in names else np.zeros((n, 3), np.float32)
     crs = las.header.parse_crs()
     return PointCloud(xyz, rgb, normal, np.asarray(las.user_data), np.asarray(las.point_source_id),
-                      crs=crs.to_wkt() if crs is not None else "")
+                      crs=crs.to_wkt() if crs is not None else "", classification=np.asarray(las.classification))
 
 
 _PLY_FIELDS = [("x", "<f8", "double"), ("y", "<f8", "double"), ("z", "<f8", "double"),

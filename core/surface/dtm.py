@@ -229,3 +229,38 @@ def object_masks(ndsm: np.ndarray, rgb: np.ndarray | None, cell: float, cfg: Dtm
             m = keep[lab2]
         out.append(m)
     return out[0], out[1]
+
+
+LAS_CLASSES = {"unclassified": 1, "ground": 2, "medium_vegetation": 4, "high_vegetation": 5, "building": 6,
+               "low_point": 7}
+"""ASPRS LAS 1.4 classification codes the surface stage assigns."""
+
+
+def las_classes(classes: np.ndarray, xyz: np.ndarray, normal: np.ndarray, grid: GridSpec, building: np.ndarray,
+                vegetation: np.ndarray, dtm: np.ndarray, facade_nz: float = 0.3, facade_reach_m: float = 1.0,
+                high_vegetation_m: float = 2.0) -> np.ndarray:
+    """ASPRS codes ``(n,) uint8`` (:data:`LAS_CLASSES`) of points ``xyz (n, 3)``.
+
+    Ground (2) where the morphological filter put the point ``ON`` the terrain, low point (7) ``BELOW`` it. A point
+    ``ABOVE`` it is building (6) in a cell of the ``building (rows, cols)`` mask of ``grid``, or within
+    ``facade_reach_m`` of the mask when its ``normal (n, 3)`` is near horizontal (``|n_z| < facade_nz``: a facade
+    point, which stands on the mask's outer edge); vegetation in a ``vegetation`` cell, high (5) from
+    ``high_vegetation_m`` above the ``dtm (rows, cols)``, else medium (4); anything else raised (vehicles, street
+    furniture, points beyond the grid) stays unclassified (1).
+    """
+    out = np.full(len(xyz), LAS_CLASSES["unclassified"], np.uint8)
+    out[classes == ON] = LAS_CLASSES["ground"]
+    out[classes == BELOW] = LAS_CLASSES["low_point"]
+    r, c, inside = grid.cell_index(xyz[:, :2])
+    above = np.flatnonzero((classes == ABOVE) & inside)
+    r, c = r[above], c[above]
+    reach = max(1, int(np.ceil(facade_reach_m / grid.cell)))
+    near_building = ndimage.binary_dilation(building, iterations=reach)
+    facade = (np.abs(normal[above, 2]) < facade_nz) & np.any(normal[above] != 0, axis=1)
+    is_bld = building[r, c] | (facade & near_building[r, c])
+    is_veg = vegetation[r, c] & ~is_bld
+    out[above[is_bld]] = LAS_CLASSES["building"]
+    high = xyz[above, 2] - dtm[r, c] >= high_vegetation_m
+    out[above[is_veg & high]] = LAS_CLASSES["high_vegetation"]
+    out[above[is_veg & ~high]] = LAS_CLASSES["medium_vegetation"]
+    return out

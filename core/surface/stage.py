@@ -5,7 +5,9 @@ Reads ``dense/points.npz`` and the block; writes GeoTIFFs (with CRS and transfor
 ``ortho.tif`` (RGBA true orthophoto), ``ortho_source.tif`` (index of the image each cell came from),
 ``quality_adjusted.tif`` / ``quality_approx.tif`` (mean forward intersection error per cell, with the
 orientation used for matching and with the approximate one), ``*.png`` previews, ``point_classes.npy`` (the
-above/on/below class of every kept dense point).
+above/on/below class of every kept dense point) and ``points_classified.laz``: the kept dense points with their
+ASPRS classes (:func:`.dtm.las_classes`: ground, low point, building with its facades, medium and high
+vegetation, unclassified), with a display subset ``points_classified_display.laz``.
 """
 
 from __future__ import annotations
@@ -17,12 +19,16 @@ import numpy as np
 
 from ..errors import WorkspaceError
 from ..io.geotiff import write_geotiff, write_png
+from ..io.pointcloud import PointCloud, write_las
 from ..io.validate import resolve_image
 from ..pipeline.stage import Stage, StageResult
 from .dsm import DsmConfig, GridSpec, cell_colours, make_dsm
-from .dtm import ABOVE, BELOW, ON, DtmConfig, make_dtm, object_masks
+from .dtm import ABOVE, BELOW, LAS_CLASSES, ON, DtmConfig, las_classes, make_dtm, object_masks
 from .ortho import OrthoConfig, OrthoSource, true_ortho
 from .quality import colour_map, mean_per_cell
+
+DISPLAY_POINTS = 300_000
+"""Size of the classified points' display subset."""
 
 
 @dataclass(frozen=True)
@@ -41,6 +47,8 @@ class SurfaceConfig:
         on a wall: it is emptied and filled from its surroundings, roof or ground (:class:`.dsm.DsmConfig`; 0: off)
     dtm_cell, se_size, erosion_rank, threshold : DTM by robust morphological opening
     building_min_height, vegetation_min_height, greenness_min : object masks
+    high_vegetation_m : vegetation points this high above the DTM are high vegetation (LAS class 5), lower ones
+        medium (4)
     ortho_views : views used for the true orthophoto
     quality_vmax : top of the colour scale of the quality maps, metres (0 = the 98th percentile)
     """
@@ -62,6 +70,7 @@ class SurfaceConfig:
     building_min_height: float = 2.5
     vegetation_min_height: float = 1.0
     greenness_min: float = 0.3
+    high_vegetation_m: float = 2.0
     ortho_views: tuple[str, ...] = ("nadir",)
     quality_vmax: float = 0.0
 
@@ -84,6 +93,7 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     with np.load(path) as z:
         kept = z["removed"] == 0
         xyz, rgb, normal = z["xyz"][kept], z["rgb"][kept], z["normal"][kept]
+        view, master, masters = z["view"][kept], z["master"][kept], [str(m) for m in z["masters"]]
         err_used, err_approx = z["err_used"][kept], z["err_approx"][kept]
     if len(xyz) == 0:
         raise WorkspaceError(f"{path}: the dense point cloud is empty")
@@ -161,6 +171,13 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
         outputs.append(f"surface/{name}")
     np.save(out / "point_classes.npy", classes)
     outputs.append("surface/point_classes.npy")
+    las = las_classes(classes, xyz, normal, grid, bld, veg, dtm.data, facade_nz=cfg.dsm_facade_nz,
+                      high_vegetation_m=cfg.high_vegetation_m)
+    classified = PointCloud(xyz, rgb, normal, view, master, masters, crs, las)
+    write_las(out / "points_classified.laz", classified)
+    sub = np.random.default_rng(0).choice(len(classified), size=min(len(classified), DISPLAY_POINTS), replace=False)
+    write_las(out / "points_classified_display.laz", classified.subset(np.sort(sub)))
+    outputs += ["surface/points_classified.laz", "surface/points_classified_display.laz"]
     ctx.progress(steps, steps, "written")
 
     def mean(a: np.ndarray) -> float | None:
@@ -172,6 +189,7 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
         "dsm_filled_fraction": float(np.isfinite(dsm.data).mean()),
         "points_above": int((classes == ABOVE).sum()), "points_on": int((classes == ON).sum()),
         "points_below": int((classes == BELOW).sum()),
+        "las_classes": {name: int((las == code).sum()) for name, code in LAS_CLASSES.items()},
         "building_area_m2": float(bld.sum() * cell ** 2), "vegetation_area_m2": float(veg.sum() * cell ** 2),
         "quality_adjusted_mean_m": mean(q_used), "quality_approx_mean_m": mean(q_approx),
         "quality_vmax_m": vmax,
@@ -181,4 +199,5 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
-              description="DSM, DTM by robust morphology, nDSM, masks, true orthophoto, quality maps", version="11")
+              description="DSM, DTM by robust morphology, nDSM, masks, classified points, true orthophoto, "
+                          "quality maps", version="12")

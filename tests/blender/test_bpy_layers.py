@@ -2,7 +2,8 @@
 
 The stage outputs are written with the core's own writers (PLY, GeoTIFF, PNG) and marked done in ``state.json``;
 "Build Scene from Workspace" then creates their layers. Checked: world positions back from Blender within 1 mm,
-colours, holes where the DSM has no height, upward normals, and the ortho texture on the right cells.
+colours, holes where the DSM has no height, upward normals, the ortho texture on the right cells, and the
+classified points coloured by class (hidden).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 
 from oblique_city.core.io.geotiff import write_geotiff, write_png
-from oblique_city.core.io.pointcloud import PointCloud, write_ply
+from oblique_city.core.io.pointcloud import PointCloud, read_las, write_las, write_ply
 from oblique_city.core.model import Raster
 from oblique_city.core.pipeline import Workspace
 
@@ -40,13 +41,16 @@ def ws(tmp_path, utm_block):
     r, c = np.mgrid[0:ROWS, 0:COLS]
     ortho = np.stack([r * 5, c * 5, np.full_like(r, 128)], axis=-1).astype(np.uint8)  # colour encodes the cell
     write_png(w.path("surface", "ortho.png"), ortho)
+    classified = PointCloud(xyz[:500], cloud.rgb[:500], np.zeros((500, 3)), np.zeros(500), np.zeros(500), ["img0"],
+                            utm_block.crs, classification=rng.choice([1, 2, 5, 6, 7], 500))
+    write_las(w.path("surface", "points_classified_display.laz"), classified)
     w.write_state({"dense": {"status": "done"}, "surface": {"status": "done"}})
     return w, cloud, dsm, ortho
 
 
 def test_dense_and_surface_layers(addon, ws):
     bpy = addon
-    from oblique_city.addon import builders, georef
+    from oblique_city.addon import builders, georef, layers
 
     w, cloud, dsm, ortho = ws
     scene = bpy.context.scene
@@ -96,6 +100,20 @@ def test_dense_and_surface_layers(addon, ws):
     assert np.abs(298.0 + 0.01 * (cr[:, 0] + cr[:, 1]) - xyz[:, 2]).max() < 1e-3
     assert dtm.hide_get() and dtm.hide_render and not obj.hide_get()
     assert "DTM as 2000 vertices (hidden)" in messages[2]
+
+    # the classified points: coloured by class, the code in an attribute, hidden like the DTM
+    cls_obj = bpy.data.objects["Classified points"]
+    classified = read_las(w.path("surface", "points_classified_display.laz"))
+    assert np.abs(georef.mesh_vertices_world(scene, cls_obj) - classified.xyz).max() < 1e-3
+    code = np.empty(len(classified), np.int32)
+    cls_obj.data.attributes["class"].data.foreach_get("value", code)
+    assert np.array_equal(code, classified.classification)
+    col = np.empty(len(classified) * 4, np.float32)
+    cls_obj.data.color_attributes["Col"].data.foreach_get("color_srgb", col)
+    want = np.array([layers.CLASS_COLOURS[int(c)] for c in classified.classification])
+    assert np.abs(col.reshape(-1, 4)[:, :3] - want).max() < 0.003
+    assert cls_obj.hide_get() and cls_obj.hide_render
+    assert "500 classified display points (hidden)" in messages[2]
 
 
 def test_large_dsm_is_subsampled(addon, ws, monkeypatch):

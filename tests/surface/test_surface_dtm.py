@@ -14,7 +14,17 @@ from oblique_city.core.surface.dsm import (
     make_dsm,
     snap_wall_steps,
 )
-from oblique_city.core.surface.dtm import ABOVE, BELOW, ON, DtmConfig, greenness, make_dtm, object_masks
+from oblique_city.core.surface.dtm import (
+    ABOVE,
+    BELOW,
+    LAS_CLASSES,
+    ON,
+    DtmConfig,
+    greenness,
+    las_classes,
+    make_dtm,
+    object_masks,
+)
 
 X0, Y0 = 500000.0, 5400000.0
 
@@ -300,3 +310,25 @@ def test_wall_points_at_a_roof_edge_are_judged_by_the_surroundings():
     g[30, 30:60] = 112.0                 # the whole north row: a wall line between the ground and the roof
     f = finish_dsm(g, 0.156)
     assert np.allclose(f[30, 32:58], 107.0, atol=1e-6)
+
+
+def test_las_classes_of_ground_building_facade_tree_and_blunder():
+    grid = GridSpec(0.0, 20.0, 0.5, 40, 40)
+    building = np.zeros((40, 40), bool)
+    building[10:20, 10:20] = True  # x 5-10 m, y 10-15 m
+    veg = np.zeros_like(building)
+    veg[25:35, 25:35] = True  # x 12.5-17.5 m, y 2.5-7.5 m
+    dtm = np.full((40, 40), 100.0)
+    xyz = np.array([[2.0, 2.0, 100.0], [7.0, 12.0, 108.0], [4.6, 12.0, 104.0], [4.6, 12.0, 104.0],
+                    [3.0, 12.0, 104.0], [15.0, 5.0, 106.0], [15.0, 5.0, 101.6], [1.0, 18.0, 103.0],
+                    [2.0, 3.0, 97.0], [30.0, 30.0, 110.0]])
+    horizontal, up = [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]
+    normal = np.array([up, up, horizontal, up, horizontal, up, up, up, up, up])
+    classes = np.array([ON, ABOVE, ABOVE, ABOVE, ABOVE, ABOVE, ABOVE, ABOVE, BELOW, ABOVE])
+    got = las_classes(classes, xyz, normal, grid, building, veg, dtm)
+    c = LAS_CLASSES
+    # ground; roof; facade 0.4 m outside the roof; a raised non-facade point there; a facade point 2 m out;
+    # crown; low branch; a raised thing elsewhere; a blunder below the ground; a point beyond the grid
+    assert got.tolist() == [c["ground"], c["building"], c["building"], c["unclassified"], c["unclassified"],
+                            c["high_vegetation"], c["medium_vegetation"], c["unclassified"], c["low_point"],
+                            c["unclassified"]]

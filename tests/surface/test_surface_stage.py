@@ -15,6 +15,7 @@ from oblique_city.core.io.pointcloud import read_las, read_ply
 from oblique_city.core.model import GroundPoint
 from oblique_city.core.pipeline import RunContext, Workspace
 from oblique_city.core.pipeline.runner import run_stages
+from oblique_city.core.surface.dtm import LAS_CLASSES
 
 
 @pytest.fixture(scope="module")
@@ -90,6 +91,26 @@ def test_dtm_masks_and_classes(run):
     assert (classes[high] == 1).mean() > 0.97
     low = on_roof & (h < dense_scene.GROUND_Z + 0.1)
     assert (classes[low] == 0).mean() > 0.97
+    # the classified LAS: the same points, ASPRS codes against the scene's boxes
+    las = read_las(ws.path("surface", "points_classified.laz"))
+    assert len(las) == len(xyz) and np.abs(las.xyz - xyz).max() < 1e-3
+    code = las.classification
+    assert (code[low] == LAS_CLASSES["ground"]).mean() > 0.97
+    in_tree = np.zeros(len(xyz), bool)
+    for x0, y0, x1, y1, _, is_tree in dense_scene.BOXES:
+        if is_tree:
+            lx, ly = xyz[:, 0] - dense_scene.ORIGIN[0], xyz[:, 1] - dense_scene.ORIGIN[1]
+            in_tree |= (lx >= x0) & (lx <= x1) & (ly >= y0) & (ly <= y1)
+    # raised points beyond the surface grid (the area of interest) have no masks: unclassified
+    r, c = np.floor((dsm.y0 - xyz[:, 1]) / dsm.cell), np.floor((xyz[:, 0] - dsm.x0) / dsm.cell)
+    inside = (r >= 0) & (r < dsm.data.shape[0]) & (c >= 0) & (c < dsm.data.shape[1])
+    assert np.all(code[high & ~inside] == LAS_CLASSES["unclassified"])
+    high &= inside
+    roofs = high & ~in_tree
+    assert (code[roofs] == LAS_CLASSES["building"]).mean() > 0.95
+    if (high & in_tree).any():
+        assert np.isin(code[high & in_tree], [LAS_CLASSES["medium_vegetation"],
+                                              LAS_CLASSES["high_vegetation"]]).mean() > 0.8
 
 
 def test_true_ortho_roof_edges(run):
