@@ -5,8 +5,9 @@ in the "Buildings" collection, one mesh per building whose polygons are the mode
 triangles) over its shared vertices, placed at ``world - origin`` through :mod:`.georef`. Every polygon gets the
 material of its surface type (:data:`KIND_MATERIAL`: roof, wall, ground, overhang underside; the overhang's roof
 extension and fascia share the roof and wall materials as in CityGML). Custom properties on each object: the
-building id, the reconstruction path (``2d`` / ``volumetric``), the status (closed solid or the solid problem)
-and the reason of the path.
+building id, the reconstruction path (``2d`` / ``volumetric``), the status (closed solid or the solid problem),
+the reason of the path, and the building's attributes as exported (:func:`core.buildings.attributes
+.building_attributes`: ground and roof heights, areas, volume, roof type, each as ``oc_<name>``).
 
 The builder also fills the Buildings panel's list (``Scene.oblique_city.building_list``, :func:`fill_building_list`)
 from ``buildings/report.json`` and the models: one item per building, failures included with their reason;
@@ -20,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..core.buildings.attributes import building_attributes
 from ..core.buildings.model import BuildingModel, load_buildings
 from ..core.pipeline import Workspace
 from . import georef
@@ -105,6 +107,8 @@ def build_buildings(scene, ws: Workspace) -> str:
         obj["oc_path"] = b.path
         obj["oc_status"] = building_status(b)
         obj["oc_reason"] = b.reason
+        for key, value in building_attributes(b).items():
+            obj[f"oc_{key}"] = value
         coll.objects.link(obj)
         paths[b.path] = paths.get(b.path, 0) + 1
         closed += bool(b.info.get("closed"))
@@ -141,6 +145,10 @@ def fill_building_list(scene, ws: Workspace, buildings: list[BuildingModel] | No
         item.status = "closed solid" if item.closed else f"open: {r.get('solid_problem') or 'not checked'}"
         item.seconds = float(r["seconds"]) if isinstance(r.get("seconds"), (int, float)) else 0.0
         item.surfaces = len(models[item.name].surfaces) if item.name in models else 0
+        if item.name in models:
+            a = building_attributes(models[item.name])
+            item.roof_type, item.volume = str(a["roof_type"]), float(a["volume"])
+            item.height_70p = float(a["roof_height_70p"]) - float(a["ground_height"])
         item.dormers = len(r.get("dormers") or [])
     for f in report.get("failures", []):
         item = items.add()

@@ -264,6 +264,10 @@ class CityBuildingItem(bpy.types.PropertyGroup):
     seconds: FloatProperty(name="Seconds", description="Reconstruction time")
     surfaces: IntProperty(name="Surfaces", description="Number of surfaces of the model")
     dormers: IntProperty(name="Dormers", description="Dormers modelled on the building's roofs")
+    roof_type: StringProperty(name="Roof Type", description="horizontal, multiple horizontal or slanted")
+    height_70p: FloatProperty(name="Height (70 %)", description="70th percentile roof height above the ground "
+                                                                "(the LoD 1.2 block's height), m")
+    volume: FloatProperty(name="Volume", description="Volume of the LoD2 solid, m^3")
 
 
 def _select_active_building(self, context) -> None:

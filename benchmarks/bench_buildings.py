@@ -19,7 +19,9 @@ normal error, roof height RMSE (the model's top surface, roofs and their overhan
 grid 0.5 m inside the walls, m; 'off steps' leaves out the samples within 0.75 m of a step between roofs, where a step
 wall placed a decimetre off counts the step's height), overhang width error (m and DSM pixels), closed valid solid,
 path (2D or volumetric) and why, time per building, and the walls no facade point showed ('walls inf.': placed by the
-building's median measured overhang, an assumption). Buildings that failed or were not detected are listed with the
+building's median measured overhang, an assumption), and the attributes of a 3D building registry: the 70th
+percentile roof height over the footprint ('h70 err', model minus truth, m: the LoD 1.2 block's height) and the
+volume ('vol err', relative). Buildings that failed or were not detected are listed with the
 reason. Tables are printed and written as JSON (``--out``, default ``build/bench_buildings.json``).
 """
 
@@ -92,7 +94,7 @@ def print_case(res: dict) -> None:
     print(f"\n=== {res['case']} (GSD {gsd:.3f} m, DSM cell {px:.3f} m) ===")
     hdr = (f"{'building':20s} {'path':10s} {'closed':6s} {'corner med/mean m':>18s} {'(GSD)':>7s} "
            f"{'normal med/max deg':>19s} {'roof RMSE m':>11s} {'off steps':>9s} {'overhang err m':>15s} {'(px)':>6s} "
-           f"{'time s':>7s} {'walls inf.':>10s}  reason")
+           f"{'h70 err m':>9s} {'vol err':>7s} {'time s':>7s} {'walls inf.':>10s}  reason")
     print(hdr)
     print("-" * len(hdr))
     for b in res["buildings"]:
@@ -102,6 +104,7 @@ def print_case(res: dict) -> None:
               f"{b['normal_median_deg']:9.2f}/{b['normal_max_deg']:<8.2f} {b.get('roof_rmse', float('nan')):11.2f} "
               f"{b.get('roof_rmse_off_steps', float('nan')):9.2f} "
               f"{oh:15.2f} {oh / px:6.1f} "
+              f"{b.get('roof_70p_error', float('nan')):9.2f} {100 * b.get('volume_error', float('nan')):6.1f}% "
               f"{b['seconds']:7.2f} {b.get('walls_inferred', 0):10d}  {b['reason'][:70]}")
     print("-" * len(hdr))
     cm, nm, om = s["corner_median_of_medians"], s["normal_median_deg"], s["overhang_median_error"]
@@ -113,6 +116,8 @@ def print_case(res: dict) -> None:
           f"corner mean {f(s['corner_mean_of_means'])} m; normal median {f(nm)} deg "
           f"(target <= {TARGETS['normal_median_deg']}); roof height RMSE median {f(s.get('roof_rmse_median'))} m, "
           f"mean {f(s.get('roof_rmse_mean'))} m ({f(s.get('roof_rmse_off_steps_mean'))} m off steps); "
+          f"70th percentile roof height error median {f(s.get('roof_70p_abs_error_median'))} m, volume error "
+          f"median {f(s.get('volume_abs_error_median'), 100)} %; "
           f"overhang median {f(om)} m = {f(om, 1 / px)} px, "
           f"p90 {f(s['overhang_p90_error'])} m (target <= {TARGETS['overhang_px']} px)")
     print(f"closed valid solids {s['closed_share']:.0%} of reconstructed, {s['closed_share_of_true']:.0%} of true "

@@ -298,6 +298,7 @@ def draw_buildings(layout, context) -> None:
             if not item.failed:
                 dormers = f", {item.dormers} dormers" if item.dormers else ""
                 box.label(text=f"{item.path} path, {item.surfaces} surfaces{dormers}, {item.seconds:.1f} s")
+                box.label(text=f"{item.roof_type} roof, {item.height_70p:.1f} m high (70 %), {item.volume:.0f} m3")
         return
     attention = [(b["id"], f"open solid: {b.get('solid_problem') or '?'}", "ERROR") for b in done
                  if not b.get("closed")] + [(f["id"], f"failed: {f.get('reason', '?')}", "CANCEL") for f in failed]

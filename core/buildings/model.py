@@ -122,10 +122,16 @@ class BuildingModel:
         return b
 
 
+def ring_area_vector(xyz: np.ndarray) -> np.ndarray:
+    """Area vector ``(3,)`` of a planar ring ``xyz (k, 3)`` (Newell): its length is the ring's area, its direction
+    the normal of its counter-clockwise side."""
+    c = xyz - xyz.mean(0)
+    return 0.5 * np.cross(c, np.roll(c, -1, axis=0)).sum(0)
+
+
 def ring_normal(xyz: np.ndarray) -> np.ndarray:
     """Newell normal of a ring ``(k, 3)`` (unit, zero for degenerate rings)."""
-    c = xyz - xyz.mean(0)
-    n = np.cross(c, np.roll(c, -1, axis=0)).sum(0)
+    n = ring_area_vector(xyz)
     norm = np.linalg.norm(n)
     return n / norm if norm > 0 else n
 

@@ -13,7 +13,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..buildings.geometry import points_in_polygon, top_of_rings
+from ..buildings.attributes import building_attributes, footprint_samples, model_top_height
+from ..buildings.geometry import points_in_polygon
 from ..buildings.model import BuildingModel
 from ..matching.features import segment_distance
 
@@ -25,7 +26,8 @@ class BuildingTruth:
     name : label; footprint : list of (m, 2) wall outline rings; planes : list of ((3,) unit normal up,
     (3,) a point on the plane inside its face); edges : list of ((2, 2) wall segment, overhang width) for the
     exposed outline edges; top : (k, 3) the true top surface on a 0.5 m grid over the footprint, 0.5 m inside
-    its walls (roof installations included)
+    its walls (roof installations included); roof_70p : 70th percentile of the top surface over the whole
+    footprint (absolute height, m); volume : of the body between the ground height and the top surface (m^3)
     """
 
     name: str
@@ -33,6 +35,8 @@ class BuildingTruth:
     planes: list[tuple[np.ndarray, np.ndarray]]
     edges: list[tuple[np.ndarray, float]]
     top: np.ndarray | None = None
+    roof_70p: float = float("nan")
+    volume: float = float("nan")
 
     @classmethod
     def from_city(cls, b) -> BuildingTruth:
@@ -50,7 +54,11 @@ class BuildingTruth:
                  for e in b.overhang_edges() if e["exposed"]]
         rings = [np.asarray(r, dtype=np.float64) for r in b.footprint]
         xy = _inner_grid(rings)
-        return cls(f"{b.id}:{b.name}", rings, planes, edges, np.column_stack([xy, _top_height(b, xy)]))
+        step = 0.25
+        full = np.concatenate([footprint_samples(r, step) for r in rings])
+        top = _top_height(b, full)
+        return cls(f"{b.id}:{b.name}", rings, planes, edges, np.column_stack([xy, _top_height(b, xy)]),
+                   float(np.percentile(top, 70)), float(np.sum(top - b.ground_z) * step**2))
 
     @classmethod
     def from_synthetic(cls, sb) -> BuildingTruth:
@@ -146,6 +154,8 @@ class BuildingScore:
     roof_rmse: float = float("nan")
     roof_coverage: float = float("nan")
     roof_rmse_off_steps: float = float("nan")
+    roof_70p_error: float = float("nan")
+    volume_error: float = float("nan")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -206,13 +216,6 @@ def overhang_errors(truth: BuildingTruth, model: BuildingModel, max_offset: floa
     return np.asarray(out)
 
 
-def model_top_height(model: BuildingModel, xy: np.ndarray) -> np.ndarray:
-    """Height of the model's highest roof surface over points ``xy (n, 2)`` (NaN where no roof covers one); the
-    roof overhangs count (an upper roof's overhang over a lower one is the top surface there)."""
-    return top_of_rings(model.vertices, [list(s.ring) for s in model.surfaces if s.kind in ("roof", "overhang_roof")],
-                        xy)
-
-
 def roof_height_errors(truth: BuildingTruth, model: BuildingModel) -> np.ndarray:
     """Model top height minus true top height (m) at the truth's grid over the footprint (NaN where the model has
     no roof there)."""
@@ -255,12 +258,15 @@ def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
     def rms(a):
         return float(np.sqrt(np.mean(a**2))) if len(a) else float("nan")
 
+    attrs = building_attributes(model)
     return BuildingScore(truth.name, model.id, model.path, model.reason, bool(model.info.get("closed", False)),
                          float(model.info.get("seconds", np.nan)), med(c), float(np.mean(c)), float(np.max(c)),
                          int(sum(len(r) for r in truth.footprint)), int(len(model.footprint)), med(ne),
                          float(np.nanmax(ne)) if len(ne) and np.isfinite(ne).any() else float("nan"),
                          [float(x) for x in oe], med(oe), int(model.info.get("walls_inferred", 0)),
-                         rms(seen), float(len(seen) / len(he)) if len(he) else float("nan"), rms(off))
+                         rms(seen), float(len(seen) / len(he)) if len(he) else float("nan"), rms(off),
+                         float(attrs["roof_height_70p"]) - truth.roof_70p,
+                         float(attrs["volume"]) / truth.volume - 1.0 if truth.volume > 0 else float("nan"))
 
 
 def match_truth(model: BuildingModel, truths: list[BuildingTruth]) -> int | None:
@@ -293,6 +299,10 @@ def summary(scores: list[BuildingScore], n_truth: int) -> dict:
         "roof_rmse_mean": float(np.mean(pool("roof_rmse"))) if len(pool("roof_rmse")) else None,
         "roof_rmse_off_steps_mean": (float(np.mean(pool("roof_rmse_off_steps")))
                                      if len(pool("roof_rmse_off_steps")) else None),
+        "roof_70p_abs_error_median": (float(np.median(np.abs(pool("roof_70p_error"))))
+                                      if len(pool("roof_70p_error")) else None),
+        "volume_abs_error_median": (float(np.median(np.abs(pool("volume_error"))))
+                                    if len(pool("volume_error")) else None),
         "overhang_median_error": float(np.median(oh)) if len(oh) else None,
         "overhang_p90_error": float(np.percentile(oh, 90)) if len(oh) else None,
         "closed_share": float(np.mean([s.closed for s in scores])) if scores else 0.0,

@@ -1,6 +1,9 @@
 """CityGML 2.0 LoD2 export and offline schema validation.
 
-Each building becomes a ``bldg:Building`` with ``bldg:measuredHeight``, a ``bldg:lod2Solid`` (a ``gml:Solid``
+Each building becomes a ``bldg:Building`` with generic attributes (``gen:doubleAttribute`` / ``gen:stringAttribute``:
+the ground and roof heights, areas, volume and roof type of :func:`..buildings.attributes.building_attributes`),
+``bldg:measuredHeight``, a ``bldg:lod1Solid`` (the LoD 1.2 block: the footprint extruded to the 70th percentile
+roof height), a ``bldg:lod2Solid`` (a ``gml:Solid``
 whose exterior references the polygons of the body by ``xlink:href``) and ``bldg:boundedBy`` thematic surfaces
 (``RoofSurface``, ``WallSurface``, ``GroundSurface``, ``OuterCeilingSurface`` for the overhang underside) each
 holding a ``lod2MultiSurface``. The overhang's roof and fascia are Roof and Wall surfaces outside the solid.
@@ -26,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from lxml import etree
 
+from ..buildings.attributes import building_attributes, lod12_block
 from ..errors import ComputationError, InputError
 from ..pipeline.atomic import write_bytes
 from .textures import copy_pages, textured
@@ -36,12 +40,15 @@ NS = {
     "gml": "http://www.opengis.net/gml",
     "xlink": "http://www.w3.org/1999/xlink",
     "xsi": "http://www.w3.org/2001/XMLSchema-instance",
+    "gen": "http://www.opengis.net/citygml/generics/2.0",
 }
 APP_NS = "http://www.opengis.net/citygml/appearance/2.0"
 APP_SCHEMA = f"{APP_NS} http://schemas.opengis.net/citygml/appearance/2.0/appearance.xsd"
 SCHEMA_LOCATION = ("http://www.opengis.net/citygml/2.0 http://schemas.opengis.net/citygml/2.0/cityGMLBase.xsd "
                    "http://www.opengis.net/citygml/building/2.0 "
-                   "http://schemas.opengis.net/citygml/building/2.0/building.xsd")
+                   "http://schemas.opengis.net/citygml/building/2.0/building.xsd "
+                   "http://www.opengis.net/citygml/generics/2.0 "
+                   "http://schemas.opengis.net/citygml/generics/2.0/generics.xsd")
 THEMATIC = {"roof": "RoofSurface", "wall": "WallSurface", "ground": "GroundSurface",
             "overhang_roof": "RoofSurface", "overhang_fascia": "WallSurface",
             "overhang_underside": "OuterCeilingSurface"}
@@ -80,10 +87,21 @@ def citygml_tree(buildings, crs: str, textures=None, page_names: list[str] | Non
         member = etree.SubElement(root, _q("core", "cityObjectMember"))
         bel = etree.SubElement(member, _q("bldg", "Building"))
         bel.set(_q("gml", "id"), b.id)
-        ground = [s for s in b.surfaces if s.kind == "ground"]
-        z0 = float(b.vertices[list(ground[0].ring), 2].min()) if ground else float(b.vertices[:, 2].min())
-        h = etree.SubElement(bel, _q("bldg", "measuredHeight"), uom="m")
-        h.text = f"{float(b.vertices[:, 2].max()) - z0:.3f}"
+        attrs = building_attributes(b)
+        measured = attrs.pop("measured_height")
+        for name, value in attrs.items():
+            kind = "stringAttribute" if isinstance(value, str) else "doubleAttribute"
+            ga = etree.SubElement(bel, _q("gen", kind), name=name)
+            etree.SubElement(ga, _q("gen", "value")).text = value if isinstance(value, str) else repr(float(value))
+        etree.SubElement(bel, _q("bldg", "measuredHeight"), uom="m").text = f"{measured:.3f}"
+        blk_v, blk_rings, _ = lod12_block(b, attrs["roof_height_70p"])
+        lod1 = etree.SubElement(etree.SubElement(bel, _q("bldg", "lod1Solid")), _q("gml", "Solid"))
+        lod1.set(_q("gml", "id"), f"{b.id}_lod1")
+        comp1 = etree.SubElement(etree.SubElement(lod1, _q("gml", "exterior")), _q("gml", "CompositeSurface"))
+        for ring in blk_rings:
+            poly = etree.SubElement(etree.SubElement(comp1, _q("gml", "surfaceMember")), _q("gml", "Polygon"))
+            lr = etree.SubElement(etree.SubElement(poly, _q("gml", "exterior")), _q("gml", "LinearRing"))
+            etree.SubElement(lr, _q("gml", "posList"), srsDimension="3").text = _pos_list(blk_v[ring])
         solid_surfaces = [s for s in b.surfaces if s.in_solid]
         if solid_surfaces:
             solid = etree.SubElement(etree.SubElement(bel, _q("bldg", "lod2Solid")), _q("gml", "Solid"))
@@ -178,7 +196,7 @@ _SCHEMA: etree.XMLSchema | None = None
 
 
 def citygml_schema() -> etree.XMLSchema:
-    """The compiled CityGML 2.0 building and appearance schemas (with core and GML), built once."""
+    """The compiled CityGML 2.0 building, appearance and generics schemas (with core and GML), built once."""
     global _SCHEMA
     if _SCHEMA is None:
         root = schema_dir()
@@ -190,7 +208,9 @@ def citygml_schema() -> etree.XMLSchema:
                   b'<xs:import namespace="http://www.opengis.net/citygml/2.0" '
                   b'schemaLocation="http://schemas.opengis.net/citygml/2.0/cityGMLBase.xsd"/>'
                   b'<xs:import namespace="http://www.opengis.net/citygml/appearance/2.0" '
-                  b'schemaLocation="http://schemas.opengis.net/citygml/appearance/2.0/appearance.xsd"/></xs:schema>')
+                  b'schemaLocation="http://schemas.opengis.net/citygml/appearance/2.0/appearance.xsd"/>'
+                  b'<xs:import namespace="http://www.opengis.net/citygml/generics/2.0" '
+                  b'schemaLocation="http://schemas.opengis.net/citygml/generics/2.0/generics.xsd"/></xs:schema>')
         doc = etree.fromstring(driver, parser, base_url=str(root / "driver.xsd"))
         _SCHEMA = etree.XMLSchema(doc)
     return _SCHEMA

@@ -1,4 +1,8 @@
-"""CityJSON 2.0 export (LoD 2.2 Solid with semantic surfaces; overhangs as a MultiSurface) and a structural check.
+"""CityJSON 2.0 export (LoD 2.2 Solid with semantic surfaces; overhangs as a MultiSurface; an LoD 1.2 block at the
+70th percentile roof height) and a structural check.
+
+Every Building carries the attributes of :func:`..buildings.attributes.building_attributes` (ground and roof
+heights, areas, volume, roof type) beside ``measuredHeight``.
 
 Vertices are quantised integers with ``transform`` (scale 1 mm, translate = the minimum corner). The official
 validator (cjval) is not installable from the registries here, so :func:`check_cityjson` checks the structure
@@ -24,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from ..buildings.attributes import building_attributes, lod12_block
 from ..io.validate import read_json
 from ..pipeline.atomic import write_text
 from .textures import copy_pages, textured
@@ -62,7 +67,14 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
         base = len(vertices)
         q = np.round((b.vertices - translate) / scale).astype(np.int64)
         vertices.extend(q.tolist())
-        geoms = []
+        attrs = building_attributes(b)
+        blk_v, blk_rings, blk_kinds = lod12_block(b, attrs["roof_height_70p"])
+        first = len(vertices)
+        vertices.extend(np.round((blk_v - translate) / scale).astype(np.int64).tolist())
+        kinds = sorted(set(blk_kinds), key=list(SEMANTIC_TYPES).index)
+        geoms = [{"type": "Solid", "lod": "1.2", "boundaries": [[[[first + i for i in r]] for r in blk_rings]],
+                  "semantics": {"surfaces": [{"type": SEMANTIC_TYPES[k]} for k in kinds],
+                                "values": [[kinds.index(k) for k in blk_kinds]]}}]
         for in_solid in (True, False):
             surfaces = [s for s in b.surfaces if s.in_solid == in_solid]
             if not surfaces:
@@ -79,10 +91,8 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
             if any(textured(textures, s) for s in surfaces):
                 values = [[tex_ring(s)] for s in surfaces]
                 geoms[-1]["texture"] = {"texture": {"values": [values] if in_solid else values}}
-        ground = [s for s in b.surfaces if s.kind == "ground"]
-        z0 = float(b.vertices[list(ground[0].ring), 2].min()) if ground else float(b.vertices[:, 2].min())
         objects[b.id] = {"type": "Building", "geometry": geoms,
-                         "attributes": {"measuredHeight": round(float(b.vertices[:, 2].max()) - z0, 3),
+                         "attributes": {"measuredHeight": attrs.pop("measured_height"), **attrs,
                                         "reconstruction_path": b.path, "closed_solid": bool(b.info.get("closed"))}}
         wins = [w for s in b.surfaces if s.kind == "wall" for w in (windows or {}).get(s.id, [])]
         if wins:
@@ -177,11 +187,12 @@ def check_cityjson(doc: dict[str, Any]) -> list[str]:
             for other in obj.get(rel, []):
                 if oid not in objs.get(other, {}).get(back, []):
                     errors.append(f"{oid}: {rel} {other!r} does not list it among its {back}")
-        lods = ("2", "2.0", "2.1", "2.2", "2.3") + (("3", "3.0") if obj.get("type") == "BuildingInstallation" else ())
+        lods = ("1", "1.0", "1.1", "1.2", "1.3", "2", "2.0", "2.1", "2.2", "2.3") + (
+            ("3", "3.0") if obj.get("type") == "BuildingInstallation" else ())
         for gi, g in enumerate(obj.get("geometry", [])):
             where = f"{oid}.geometry[{gi}]"
             if g.get("lod") not in lods:
-                errors.append(f"{where}: lod {g.get('lod')!r} is not an LoD2 value")
+                errors.append(f"{where}: lod {g.get('lod')!r} is not an LoD1 or LoD2 value")
             b = g.get("boundaries")
             sem = g.get("semantics")
             if g.get("type") == "Solid":

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from oblique_city.core.buildings.attributes import building_attributes
 from oblique_city.core.buildings.model import BuildingModel, Surface, save_buildings
 from oblique_city.core.pipeline import Workspace
 
@@ -71,6 +72,8 @@ def test_buildings_layer(addon, ws):
             assert tuple(poly.vertices) == s.ring
             assert mesh.materials[poly.material_index].name == expected_material[s.kind]
         assert obj["oc_building_id"] == m.id and obj["oc_path"] == m.path
+        attrs = building_attributes(m)
+        assert {k: obj[f"oc_{k}"] for k in attrs} == attrs and attrs["volume"] > 0
     assert bpy.data.objects["B0001"]["oc_status"] == "closed solid"
     assert bpy.data.objects["B0002"]["oc_status"] == "open: 2 open edges"
     colours = {bpy.data.materials[n].diffuse_color[:3] for n in set(expected_material.values())}

@@ -18,6 +18,8 @@ import pytest
 from test_bpy_buildings import two_box_workspace
 from test_bpy_ui import RecordingLayout
 
+from oblique_city.core.buildings.attributes import building_attributes
+from oblique_city.core.buildings.model import load_buildings
 from oblique_city.core.pipeline import Workspace
 from oblique_city.core.pipeline.atomic import write_json
 from oblique_city.core.pipeline.registry import get_stage
@@ -142,7 +144,14 @@ def test_panel_draws_the_list_and_the_options(addon, ws):
     settings.building_index = 0
     layout = ListLayout()
     panel.draw(SimpleNamespace(layout=layout), bpy.context)
-    assert "2d path, 8 surfaces, 2 dormers, 1.2 s" in [e[1] for e in layout.log if e[0] == "label"]
+    labels = [e[1] for e in layout.log if e[0] == "label"]
+    assert "2d path, 8 surfaces, 2 dormers, 1.2 s" in labels
+    item = settings.building_list[0]
+    a = building_attributes(next(m for m in load_buildings(ws.path("buildings", "buildings.json"))[0]
+                                 if m.id == item.name))
+    assert item.roof_type == a["roof_type"] and item.volume == pytest.approx(a["volume"], rel=1e-6)
+    h = a["roof_height_70p"] - a["ground_height"]
+    assert f"{a['roof_type']} roof, {h:.1f} m high (70 %), {a['volume']:.0f} m3" in labels
 
     rows = []
     for item in settings.building_list:

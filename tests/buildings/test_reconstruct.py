@@ -90,8 +90,8 @@ def test_upper_roof_overhangs_the_lower_one_at_a_step():
     """A 10 m flat part beside a 5 m one, each with a 0.4 m overhang: the upper roof reaches 0.4 m over the lower one
     past the step wall (an overhang slab, as at the outline), measured in the DSM like the outline's; the top
     surface then matches the truth's to the noise, overhang band included (but for samples on its very edge)."""
+    from oblique_city.core.buildings.attributes import model_top_height
     from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
-    from oblique_city.core.evaluate.buildings import model_top_height
 
     b = SyntheticBuilding("overhang_step", (Part(0, 0, 9, 10, 10, 10, "flat", 0.4),
                                             Part(9, 0, 18, 10, 5, 5, "flat", 0.4)),
@@ -178,7 +178,7 @@ def test_a_dormer_becomes_part_of_the_solid_and_the_plain_slope_gets_none():
     dormer's faces sharing edges); along its centre line the model's top matches the truth's to 0.1 m RMS, and
     over it to 0.15 m, where the slope alone misses it by more than 0.5 m. The same house without a dormer gets
     none, and a block across its ridge is not taken for one."""
-    from oblique_city.core.evaluate.buildings import model_top_height
+    from oblique_city.core.buildings.attributes import model_top_height
 
     b, xyz, dsm = _house_with_dormer(True)
     m = reconstruct_building(xyz, 0.0, dsm, "B0001")

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from lxml import etree
 
 from oblique_city.core.buildings.model import save_buildings
 from oblique_city.core.buildings.reconstruct import reconstruct_building
@@ -40,8 +41,16 @@ def test_citygml_validates_against_the_official_xsd(models, tmp_path):
     assert validate_citygml(path) == []
     text = path.read_text()
     for tag in ("bldg:RoofSurface", "bldg:WallSurface", "bldg:GroundSurface", "bldg:OuterCeilingSurface",
-                "bldg:lod2Solid", 'srsName="urn:ogc:def:crs:EPSG::25832"'):
+                "bldg:lod1Solid", "bldg:lod2Solid", 'srsName="urn:ogc:def:crs:EPSG::25832"'):
         assert tag in text
+    # the generic attributes and the LoD1 block at the 70th percentile roof height
+    doc = etree.parse(str(path), etree.XMLParser(resolve_entities=False, no_network=True))
+    b = next(doc.iter("{*}Building"))
+    attrs = {a.get("name"): a.findtext("{*}value") for a in b if a.tag.endswith("Attribute")}
+    assert set(attrs) >= {"ground_height", "roof_height_70p", "volume", "roof_type", "footprint_area"}
+    z = np.array([float(v) for e in b.find("{*}lod1Solid").iter("{*}posList") for v in e.text.split()])[2::3]
+    assert np.abs(np.unique(np.round(z, 3)) - [float(attrs["ground_height"]), float(attrs["roof_height_70p"])]
+                  ).max() < 1e-3
 
 
 def test_citygml_validation_catches_errors(models, tmp_path):
@@ -81,14 +90,25 @@ def test_obj_round_trip(models, tmp_path):
 def test_cityjson_structure(models, tmp_path):
     doc = cityjson_document(models, "EPSG:25832")
     assert check_cityjson(json.loads(json.dumps(doc))) == []
-    solid = doc["CityObjects"]["B0001"]["geometry"][0]
-    assert solid["type"] == "Solid"
+    geoms = {g["lod"]: g for g in doc["CityObjects"]["B0001"]["geometry"] if g["type"] == "Solid"}
+    solid = geoms["2.2"]
     n_body = sum(s.in_solid for s in models[0].surfaces)
     assert len(solid["boundaries"][0]) == n_body == len(solid["semantics"]["values"][0])
     # vertices decode back to the model within the 1 mm quantisation
     v = np.asarray(doc["vertices"]) * doc["transform"]["scale"] + doc["transform"]["translate"]
     assert np.abs(v[:len(models[0].vertices)] - models[0].vertices).max() <= 0.0005 + 1e-9
-    doc["CityObjects"]["B0001"]["geometry"][0]["boundaries"][0][0][0][0] = len(doc["vertices"]) + 5
+    # the LoD 1.2 block: the footprint from the ground to the 70th percentile roof height, a closed prism
+    attrs = doc["CityObjects"]["B0001"]["attributes"]
+    block = geoms["1.2"]
+    rings = [v[face[0]] for face in block["boundaries"][0]]
+    assert len(rings) == len(models[0].footprint) + 2
+    z = np.concatenate(rings)[:, 2]
+    assert np.abs(np.unique(np.round(z, 3)) - [attrs["ground_height"], attrs["roof_height_70p"]]).max() < 1e-3
+    volume = sum(r[0] @ (0.5 * np.cross(r, np.roll(r, -1, 0)).sum(0)) for r in rings) / 3
+    height = attrs["roof_height_70p"] - attrs["ground_height"]
+    assert volume == pytest.approx(attrs["footprint_area"] * height, rel=1e-3)
+    assert attrs["roof_height_min"] <= attrs["roof_height_50p"] <= attrs["roof_height_70p"] <= attrs["roof_height_max"]
+    solid["boundaries"][0][0][0][0] = len(doc["vertices"]) + 5
     assert any("out of range" in e for e in check_cityjson(doc))
 
 
