@@ -34,8 +34,8 @@ reference (``Chunk.transform``, ``Camera.transform``, ``Calibration``):
   <location camera_id x y>``.
 * Cameras without ``<transform>`` (not aligned) are imported without orientation. Slave cameras of a multi-camera
   sensor (``master_id``) that lack one are refused: their pose would have to come from the rig offsets.
-* The file holds no image paths: a camera's ``label`` is its image file name, looked up under ``image_root`` (by
-  name, else by name without extension) when that option is given.
+* The file holds no image paths: a camera's ``label`` is its image file name, looked up under ``image_root`` (or,
+  without that option, the XML file's folder) by name, else by name without extension.
 
 Reader options: ``crs``, ``chunk`` (label or 0-based index when the document holds several), plus the shared
 options of :mod:`.common` (``pose=adjusted`` for a block Metashape has already aligned). The writer puts the chunk's
@@ -299,7 +299,7 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
         t = c.find("transform")
         components[c.get("id")] = np.eye(4) if t is None else _similarity(t, x)
 
-    files = _image_files(options.get("image_root"))
+    files = _image_files(options.get("image_root") or str(Path(path).resolve().parent))
     lines: dict[str, int] = {}
     by_id: dict[str, str] = {}
     cams_el = chunk.find("cameras")

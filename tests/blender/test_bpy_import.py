@@ -13,7 +13,7 @@ from oblique_city.core.io.formats import READERS, WRITERS
 
 pytestmark = pytest.mark.xdist_group("bpy")
 
-DEST = {"native": "block.json", "opk": "block.txt", "bex": "block.xml", "colmap": "colmap"}
+DEST = {"native": "block.json", "opk": "block.txt", "bex": "block.xml", "colmap": "colmap", "metashape": "cameras.xml"}
 """Where each format's writer puts the test block (a file, or a folder for COLMAP)."""
 OPTIONS = {"colmap": "crs=EPSG:32632"}
 """Operator "Options" a format needs (COLMAP models carry no CRS)."""

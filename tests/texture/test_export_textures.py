@@ -78,7 +78,7 @@ def test_cityjson_appearance(textured_ws, tmp_path):
     assert app["textures"] == [{"type": "PNG", "image": "city_atlas_000.png", "wrapMode": "none"}]
     tex = load_textures(textured_ws.path("texture", "textures.json"))
     models, _ = load_buildings(textured_ws.path("buildings", "buildings.json"))
-    solid = doc["CityObjects"]["B0001"]["geometry"][0]
+    solid = next(g for g in doc["CityObjects"]["B0001"]["geometry"] if g["lod"] == "2.2")
     values = solid["texture"]["texture"]["values"][0]
     body = [s for s in models[0].surfaces if s.in_solid]
     for s, v in zip(body, values, strict=True):
@@ -87,7 +87,8 @@ def test_cityjson_appearance(textured_ws, tmp_path):
         else:
             assert v == [[None]]
     broken = json.loads(json.dumps(doc))
-    broken["CityObjects"]["B0001"]["geometry"][0]["texture"]["texture"]["values"][0][1][0][1] = 10 ** 6
+    next(g for g in broken["CityObjects"]["B0001"]["geometry"] if g["lod"] == "2.2")["texture"]["texture"][
+        "values"][0][1][0][1] = 10 ** 6
     assert any("in range" in e for e in check_cityjson(broken))
 
 
