@@ -5,6 +5,7 @@
     OUT/simulation/   the simulated block (images, BlocksExchange XML, ground points) and its ground truth
     OUT/workspace/    the workspace: imported block and one folder per stage's outputs
     OUT/summary.json  what ran, how long it took, and each stage's metrics
+    OUT/workspace/report.html  the project report (:mod:`.report`)
 
 Every step is resumable: an existing simulation is reused, an unchanged block is not re-imported, and the runner
 skips finished stages. ``make demo`` then writes ``OUT/city.blend`` with the add-on's builders (a bpy process).
@@ -108,6 +109,9 @@ def run_demo(out: str | Path, ctx: RunContext | None = None,
         "total_seconds": time.perf_counter() - t0,
     }
     write_json(out / "summary.json", summary)
+    from .report import write_project_report
+
+    summary["report"] = str(write_project_report(ws))
     return summary
 
 
@@ -127,7 +131,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"points, {b['crs']}")
     for st in s["stages"]:
         print(f"{st['name']:10s} {st['status']:9s} {st['seconds']:8.1f} s  {st['message']}")
-    print(f"workspace: {s['workspace']}; summary: {Path(args.out) / 'summary.json'} "
+    print(f"workspace: {s['workspace']}; summary: {Path(args.out) / 'summary.json'}; report: {s['report']} "
           f"({s['total_seconds']:.1f} s in all)")
     return 0
 

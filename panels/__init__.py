@@ -129,6 +129,9 @@ class CITY_PT_block(CityPanel, bpy.types.Panel):
         row = layout.row(align=True)
         row.operator("city.view_image", icon="CAMERA_DATA")
         row.prop(scene.oblique_city, "undistort_backgrounds", text="", icon="IMAGE_BACKGROUND")
+        row = layout.row()
+        row.enabled = root is not None
+        row.operator("city.open_project_report", icon="TEXT")
 
 
 class CITY_PT_job(CityPanel, bpy.types.Panel):

@@ -243,20 +243,22 @@ def write_layers(layers: dict[str, Raster], folder: Path) -> list[str]:
     return files
 
 
-def _png_b64(rgb: np.ndarray) -> str:
+def png_base64(rgb: np.ndarray) -> str:
+    """An RGB image ``(rows, cols, 3)`` uint8 as base64 PNG text (for ``data:`` URIs)."""
     import cv2
 
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]))
     return base64.b64encode(buf.tobytes()).decode("ascii") if ok else ""
 
 
-def _fmt(v) -> str:
+def format_value(v) -> str:
+    """A value for an HTML table cell: 4 significant digits, lists joined, text escaped, None as '-'."""
     if v is None:
         return "-"
     if isinstance(v, float):
         return f"{v:.4g}"
     if isinstance(v, list):
-        return ", ".join(_fmt(x) for x in v)
+        return ", ".join(format_value(x) for x in v)
     return html.escape(str(v))
 
 
@@ -286,24 +288,26 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
             "datum_shift_m", "median_std_attitude_deg", "median_std_position_m", "std_kind", "point_std_xy_m",
             "point_std_z_m", "wall_s"]
     head = "".join(f"<th>{html.escape(r['name'])}</th>" for r in report["runs"])
-    rows = "".join(f"<tr><td>{k}</td>" + "".join(f"<td>{_fmt(r.get(k))}</td>" for r in report["runs"]) + "</tr>"
+    rows = "".join(f"<tr><td>{k}</td>" + "".join(f"<td>{format_value(r.get(k))}</td>" for r in report["runs"]) + "</tr>"
                    for k in keys)
     parts.append(f"<h2>Runs</h2><table><tr><th></th>{head}</tr>{rows}</table>")
-    rows = "".join(f"<tr><td>{s}</td><td>{c['n']}</td><td>{_fmt(c['rms_xy_m'])}</td><td>{_fmt(c['rms_z_m'])}</td>"
-                   f"<td>{_fmt(report['internal_accuracy'][s]['std_xy_m'])}</td>"
-                   f"<td>{_fmt(report['internal_accuracy'][s]['std_z_m'])}</td></tr>"
+    rows = "".join(f"<tr><td>{s}</td><td>{c['n']}</td><td>{format_value(c['rms_xy_m'])}</td>"
+                   f"<td>{format_value(c['rms_z_m'])}</td>"
+                   f"<td>{format_value(report['internal_accuracy'][s]['std_xy_m'])}</td>"
+                   f"<td>{format_value(report['internal_accuracy'][s]['std_z_m'])}</td></tr>"
                    for s, c in report["check_points"].items())
     parts.append("<h2>Accuracy</h2><table><tr><th>views</th><th>check points</th><th>RMS XY [m]</th>"
                  f"<th>RMS Z [m]</th><th>tie std XY [m]</th><th>tie std Z [m]</th></tr>{rows}</table>")
     if report.get("boresight"):
-        rows = "".join(f"<tr><td>{h}</td><td>{_fmt(b['mean_deg'])}</td><td>{_fmt(b['std_deg'])}</td></tr>"
+        rows = "".join(f"<tr><td>{h}</td><td>{format_value(b['mean_deg'])}</td>"
+                       f"<td>{format_value(b['std_deg'])}</td></tr>"
                        for h, b in report["boresight"].items())
         parts.append("<h2>Boresight from adjusted orientations [deg]</h2><table><tr><th>head</th><th>mean</th>"
                      f"<th>std</th></tr>{rows}</table>")
     if report.get("mounting"):
-        rows = "".join(f"<tr><td>{html.escape(c)}</td><td>{_fmt(m['boresight_deg'])}</td>"
-                       f"<td>{_fmt(m.get('boresight_std_deg'))}</td><td>{_fmt(m['offset_m'])}</td>"
-                       f"<td>{_fmt(m.get('offset_std_m'))}</td><td>{html.escape(m['run'])}</td><td>{m['images']}</td>"
+        rows = "".join(f"<tr><td>{html.escape(c)}</td><td>{format_value(m['boresight_deg'])}</td>"
+                       f"<td>{format_value(m.get('boresight_std_deg'))}</td><td>{format_value(m['offset_m'])}</td>"
+                       f"<td>{format_value(m.get('offset_std_m'))}</td><td>{html.escape(m['run'])}</td><td>{m['images']}</td>"
                        "</tr>" for c, m in report["mounting"].items())
         parts.append("<h2>Mounting calibration (camera axes)</h2><table><tr><th>camera</th><th>boresight [deg]</th>"
                      "<th>std [deg]</th><th>centre offset [m]</th><th>std [m]</th><th>run</th><th>images</th></tr>"
@@ -314,7 +318,7 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
     for name, r in layers.items():
         d = r.data[np.isfinite(r.data)]
         rng = f"{d.min():.3g} to {d.max():.3g}" if len(d) else "empty"
-        parts.append(f"<figure><img alt='{name}' src='data:image/png;base64,{_png_b64(colourise(r.data))}' "
+        parts.append(f"<figure><img alt='{name}' src='data:image/png;base64,{png_base64(colourise(r.data))}' "
                      f"style='image-rendering:pixelated;width:320px'><figcaption>{name} ({rng}; cell {r.cell} m)"
                      "</figcaption></figure>")
     style = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}td,th{border:1px solid #ccc;"

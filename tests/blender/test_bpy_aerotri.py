@@ -154,3 +154,11 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     (w.root / "aerotri" / "report.html").unlink()
     with pytest.raises(RuntimeError, match="no triangulation report"):
         bpy.ops.city.open_report()
+
+    # the project report: written into the workspace, then opened; the Block panel has its button
+    from oblique_city.panels import CITY_PT_block
+
+    assert any(e[0] == "operator" and e[1] == "city.open_project_report" for e in draw(CITY_PT_block, bpy.context))
+    assert bpy.ops.city.open_project_report() == {"FINISHED"}
+    assert opened[-1] == (w.root / "report.html").resolve().as_uri()
+    assert "<h2>Processing</h2>" in (w.root / "report.html").read_text()
