@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ..errors import InputError
@@ -39,15 +41,67 @@ def is_projected_metric(text: str) -> bool:
 
 
 def transform_points(xyz: np.ndarray, src: str, dst: str) -> np.ndarray:
-    """Transform ``(n, 3)`` coordinates from CRS ``src`` to ``dst`` (x = easting/longitude, always_xy)."""
-    from pyproj import Transformer
-
+    """Transform ``(n, 3)`` coordinates from CRS ``src`` to ``dst`` (x = easting/longitude, always_xy; see
+    :func:`crs_transformer` for what is refused)."""
     if normalize_crs(src) == normalize_crs(dst):
         return np.array(xyz, dtype=np.float64)
-    t = Transformer.from_crs(parse_crs(src), parse_crs(dst), always_xy=True)
+    return crs_transformer(parse_crs(src), parse_crs(dst))(xyz)
+
+
+def geocentric_crs(crs):
+    """The geocentric CRS (Cartesian X, Y, Z in metres) on the datum of ``crs`` (a pyproj CRS)."""
+    from pyproj import CRS
+
+    d = crs.geodetic_crs.to_json_dict()
+    d["type"] = "GeodeticCRS"
+    d["name"] = f"{d.get('name', 'datum')} (geocentric)"
+    d.pop("id", None)
+    d["coordinate_system"] = {"subtype": "Cartesian", "axis": [
+        {"name": f"Geocentric {a}", "abbreviation": a, "direction": f"geocentric{a}", "unit": "metre"}
+        for a in "XYZ"]}
+    return CRS.from_json_dict(d)
+
+
+def crs_transformer(src, dst, path: str | None = None, field: str = "crs") -> Callable[[np.ndarray], np.ndarray]:
+    """``f(xyz (n, 3)) -> (n, 3)`` from pyproj CRS ``src`` to ``dst``; refuses ballpark height transformations
+    and non-finite results."""
+    from pyproj import Transformer
+
+    t = Transformer.from_crs(src, dst, always_xy=True)
+    if "ballpark vertical" in t.description.lower():
+        raise InputError(f"heights from {src.name} to {dst.name} need a geoid model pyproj does not have here "
+                         f"({t.description}); choose a CRS with ellipsoidal heights (-o crs=EPSG:nnnn)",
+                         path=path, field=field)
+
+    def apply(xyz: np.ndarray) -> np.ndarray:
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        n = len(xyz)
+        if n == 1:  # pyproj takes size-1 arrays for scalars (a NumPy deprecation): pad to two points
+            xyz = np.repeat(xyz, 2, axis=0)
+        out = np.stack(t.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2]), axis=1)[:n]
+        if not np.all(np.isfinite(out)):
+            raise InputError(f"coordinates from {src.name} to {dst.name} could not be transformed", path=path,
+                             field=field)
+        return out
+
+    return apply
+
+
+def grid_rotations(xyz: np.ndarray, to_grid: Callable[[np.ndarray], np.ndarray], step: float = 1.0) -> np.ndarray:
+    """Rotations ``(n, 3, 3)`` ``grid_from_source`` of a coordinate transformation at points ``xyz (n, 3)``.
+
+    Each is the rotation nearest (polar decomposition) to the transformation's Jacobian at the point, taken by
+    central differences over ``step`` (source units). For a conformal map projection with heights that is the
+    turn by the grid convergence and the local vertical; the Jacobian's scale (projection and height scale
+    factors) is left out, as in every omega-phi-kappa export.
+    """
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     n = len(xyz)
-    if n == 1:  # pyproj takes size-1 arrays for scalars (a NumPy deprecation): pad to two points
-        xyz = np.repeat(xyz, 2, axis=0)
-    x, y, z = t.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2])
-    return np.stack([x, y, z], axis=1)[:n]
+    offsets = np.concatenate([np.eye(3), -np.eye(3)]) * step
+    g = to_grid((xyz[None, :, :] + offsets[:, None, :]).reshape(-1, 3)).reshape(6, n, 3)
+    jac = ((g[:3] - g[3:]) / (2.0 * step)).transpose(1, 2, 0)  # (n, grid axis, source axis)
+    u, _, vt = np.linalg.svd(jac)
+    q = u @ vt
+    if np.any(np.linalg.det(q) < 0):
+        raise InputError("the coordinate transformation mirrors the axes (left-handed CRS?)", field="crs")
+    return q

@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..geometry.crs import is_projected_metric, parse_crs
+from ..geometry.crs import crs_transformer, geocentric_crs, grid_rotations, is_projected_metric, parse_crs
 from ..model import CameraModel, GroundPoint, Image, ImageBlock, Pose
 from ..pipeline.atomic import write_bytes
 from .common import finish_block
@@ -100,65 +100,6 @@ class _Xml:
     def child_number(self, el, tag: str, default: float = 0.0) -> float:
         c = el.find(tag)
         return default if c is None else float(self.numbers(c, 1)[0])
-
-
-def _geocentric(crs):
-    """The geocentric CRS (Cartesian X, Y, Z in metres) on the datum of ``crs`` (a pyproj CRS)."""
-    from pyproj import CRS
-
-    d = crs.geodetic_crs.to_json_dict()
-    d["type"] = "GeodeticCRS"
-    d["name"] = f"{d.get('name', 'datum')} (geocentric)"
-    d.pop("id", None)
-    d["coordinate_system"] = {"subtype": "Cartesian", "axis": [
-        {"name": f"Geocentric {a}", "abbreviation": a, "direction": f"geocentric{a}", "unit": "metre"}
-        for a in "XYZ"]}
-    return CRS.from_json_dict(d)
-
-
-def _transformer(src, dst, path: str, field: str) -> Callable[[np.ndarray], np.ndarray]:
-    """``f(xyz (n, 3)) -> (n, 3)`` from pyproj CRS ``src`` to ``dst``; refuses ballpark height transformations
-    and non-finite results."""
-    from pyproj import Transformer
-
-    t = Transformer.from_crs(src, dst, always_xy=True)
-    if "ballpark vertical" in t.description.lower():
-        raise InputError(f"heights from {src.name} to {dst.name} need a geoid model pyproj does not have here "
-                         f"({t.description}); choose a CRS with ellipsoidal heights (-o crs=EPSG:nnnn)",
-                         path=path, field=field)
-
-    def apply(xyz: np.ndarray) -> np.ndarray:
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-        n = len(xyz)
-        if n == 1:  # pyproj takes size-1 arrays for scalars (a NumPy deprecation): pad to two points
-            xyz = np.repeat(xyz, 2, axis=0)
-        out = np.stack(t.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2]), axis=1)[:n]
-        if not np.all(np.isfinite(out)):
-            raise InputError(f"coordinates from {src.name} to {dst.name} could not be transformed", path=path,
-                             field=field)
-        return out
-
-    return apply
-
-
-def grid_rotations(xyz: np.ndarray, to_grid: Callable[[np.ndarray], np.ndarray], step: float = 1.0) -> np.ndarray:
-    """Rotations ``(n, 3, 3)`` ``grid_from_source`` of a coordinate transformation at points ``xyz (n, 3)``.
-
-    Each is the rotation nearest (polar decomposition) to the transformation's Jacobian at the point, taken by
-    central differences over ``step`` (source units). For a conformal map projection with heights that is the
-    turn by the grid convergence and the local vertical; the Jacobian's scale (projection and height scale
-    factors) is left out, as in every omega-phi-kappa export.
-    """
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    n = len(xyz)
-    offsets = np.concatenate([np.eye(3), -np.eye(3)]) * step
-    g = to_grid((xyz[None, :, :] + offsets[:, None, :]).reshape(-1, 3)).reshape(6, n, 3)
-    jac = ((g[:3] - g[3:]) / (2.0 * step)).transpose(1, 2, 0)  # (n, grid axis, source axis)
-    u, _, vt = np.linalg.svd(jac)
-    q = u @ vt
-    if np.any(np.linalg.det(q) < 0):
-        raise InputError("the coordinate transformation mirrors the axes (left-handed CRS?)", field="crs")
-    return q
 
 
 def _similarity(el, x: _Xml) -> np.ndarray:
@@ -277,7 +218,7 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
     if local:  # the chunk transform gives coordinates of the block CRS itself
         to_world: Callable[[np.ndarray], np.ndarray] = lambda xyz: np.asarray(xyz, np.float64).reshape(-1, 3)  # noqa: E731
     else:
-        to_world = _transformer(_geocentric(chunk_crs), target, path, "reference")
+        to_world = crs_transformer(geocentric_crs(chunk_crs), target, path, "reference")
     chunk_t = np.eye(4) if chunk.find("transform") is None else _similarity(chunk.find("transform"), x)
 
     block = ImageBlock(crs=crs)
@@ -355,7 +296,7 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
 def _markers(chunk, x: _Xml, block: ImageBlock, by_id: dict[str, str], chunk_crs, target) -> None:
     """``<markers>`` and their ``<frames>`` image positions into ground points."""
     m_el = chunk.find("markers")
-    to_world = None if chunk_crs is None else _transformer(chunk_crs, target, x.path, "marker")
+    to_world = None if chunk_crs is None else crs_transformer(chunk_crs, target, x.path, "marker")
     names: dict[str, str] = {}
     for mk in [] if m_el is None else m_el.findall("marker"):
         mid, name = mk.get("id"), mk.get("label") or f"marker{mk.get('id')}"
@@ -412,8 +353,8 @@ def write_metashape(block: ImageBlock, dest: str, **unknown: Any) -> None:
 
     reject_unknown(unknown, "metashape")
     crs = parse_crs(block.crs)
-    from_world = _transformer(crs, _geocentric(crs), dest, "crs")
-    to_world = _transformer(_geocentric(crs), crs, dest, "crs")
+    from_world = crs_transformer(crs, geocentric_crs(crs), dest, "crs")
+    to_world = crs_transformer(geocentric_crs(crs), crs, dest, "crs")
 
     def sub(parent, tag: str, text: str | None = None, **attrs: Any):
         e = etree.SubElement(parent, tag, {k: str(v) for k, v in attrs.items()})
