@@ -21,27 +21,29 @@ from ..core.io.formats import WRITERS
 from .import_block import FORMAT_LABELS, parse_options
 from .run import scene_workspace
 
-EXTENSIONS = {"citygml": ".gml", "cityjson": ".city.json", "obj": ".obj"}
+EXTENSIONS = {"citygml": ".gml", "cityjson": ".city.json", "obj": ".obj", "3dtiles": ""}
 FORMAT_ITEMS = [
     ("citygml", "CityGML 2.0", "CityGML 2.0 LoD2 buildings with typed surfaces (.gml), schema-validated"),
     ("cityjson", "CityJSON 2.0", "CityJSON 2.0 LoD2 buildings with semantic surfaces (.city.json)"),
     ("obj", "Wavefront OBJ", "Triangulated meshes with one group per building (.obj)"),
+    ("3dtiles", "3D Tiles 1.1", "tileset.json and glTF tiles for web globes (a folder)"),
 ]
 
 
 def with_extension(path: str, fmt: str) -> str:
-    """``path`` with the format's extension (``.city.json`` counts as one extension)."""
+    """``path`` with the format's extension (``.city.json`` counts as one extension; 3D Tiles, a folder, get none:
+    a known extension is taken off)."""
     ext = EXTENSIONS[fmt]
-    if path.endswith(ext):
+    if ext and path.endswith(ext):
         return path
     p = Path(path)
     stem = p.name
-    for e in sorted(EXTENSIONS.values(), key=len, reverse=True):
+    for e in sorted((e for e in EXTENSIONS.values() if e), key=len, reverse=True):
         if stem.endswith(e):
             stem = stem[: -len(e)]
             break
     else:
-        stem = p.stem if p.suffix else stem
+        stem = p.stem if p.suffix and ext else stem
     return str(p.with_name(stem + ext))
 
 

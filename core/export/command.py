@@ -1,4 +1,5 @@
-"""``oblique-city export WS --format obj|citygml|cityjson --out PATH``: the buildings of a workspace to a file;
+"""``oblique-city export WS --format obj|citygml|cityjson|3dtiles --out PATH``: the buildings of a workspace to a file
+(a folder for 3D Tiles);
 ``oblique-city export-block WS --format bex|metashape|opk|colmap|native --out PATH``: its oriented image block
 (the aerial triangulation's adjusted orientations and cameras when it has run, else the imported ones), for other
 photogrammetry software.
@@ -19,7 +20,7 @@ import numpy as np
 
 from ..errors import ComputationError, ConfigError
 
-FORMATS = ("obj", "citygml", "cityjson")
+FORMATS = ("obj", "citygml", "cityjson", "3dtiles")
 
 
 def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate: bool = True,
@@ -72,6 +73,13 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
             if errors:
                 raise ComputationError(f"{out}: CityJSON structure check failed: {errors[0]}")
         return f"{len(buildings)} buildings written to {out}" + (" (structure checked)" if validate else "") + note
+    if fmt == "3dtiles":
+        from .tiles import write_3dtiles
+
+        if out.exists() and not out.is_dir():
+            raise ConfigError(f"{out} is a file: 3D Tiles go into a folder (tileset.json and .glb tiles)")
+        files = write_3dtiles(out, buildings, crs, textures, windows)
+        return f"{len(buildings)} buildings written to {out / 'tileset.json'} ({len(files) - 1} glTF tiles{note})"
     raise ConfigError(f"unknown export format '{fmt}' (known: {', '.join(FORMATS)})")
 
 
@@ -103,10 +111,11 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def add_commands(sub) -> None:
-    s = sub.add_parser("export", help="export the reconstructed buildings (OBJ, CityGML 2.0 LoD2, CityJSON 2.0)")
+    s = sub.add_parser("export", help="export the reconstructed buildings (OBJ, CityGML 2.0 LoD2, CityJSON 2.0, "
+                                      "3D Tiles 1.1)")
     s.add_argument("workspace")
     s.add_argument("--format", required=True, choices=FORMATS)
-    s.add_argument("--out", required=True, help="output file")
+    s.add_argument("--out", required=True, help="output file (a folder for 3dtiles)")
     s.add_argument("--no-validate", action="store_true", help="skip the schema / structure check")
     s.add_argument("--no-textures", action="store_true", help="leave out the texture stage's atlases")
     s.add_argument("--no-windows", action="store_true", help="leave out the windows stage's windows")

@@ -99,3 +99,44 @@ def test_untextured_on_request(textured_ws, tmp_path):
     out = tmp_path / "plain.city.json"
     export_buildings(textured_ws.root, "cityjson", out, with_textures=False)
     assert "appearance" not in read_cityjson(out)
+
+
+def _glb(path) -> tuple[dict, bytes]:
+    """The JSON and binary chunks of a glTF binary file."""
+    import struct
+
+    data = path.read_bytes()
+    assert data[:4] == b"glTF" and struct.unpack_from("<I", data, 4)[0] == 2
+    n_json = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + n_json])
+    return doc, data[20 + n_json + 8:]
+
+
+def _accessor(doc: dict, binary: bytes, index: int) -> np.ndarray:
+    acc = doc["accessors"][index]
+    view = doc["bufferViews"][acc["bufferView"]]
+    width = {"VEC2": 2, "VEC3": 3, "SCALAR": 1}[acc["type"]]
+    dtype = {5126: np.float32, 5125: np.uint32, 5123: np.uint16}[acc["componentType"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    return np.frombuffer(binary, dtype, acc["count"] * width, start).reshape(acc["count"], width)
+
+
+def test_3dtiles_carry_the_atlas(textured_ws, tmp_path):
+    """The glTF tile embeds the atlas page and maps every textured ring vertex to its atlas UV, v flipped to
+    glTF's downward v."""
+    import cv2
+
+    export_buildings(textured_ws.root, "3dtiles", tmp_path / "tiles")
+    tex = load_textures(textured_ws.path("texture", "textures.json"))
+    models, _ = load_buildings(textured_ws.path("buildings", "buildings.json"))
+    doc, binary = _glb(next((tmp_path / "tiles").glob("*.glb")))
+    page = next(m for m in doc["meshes"] if m["name"] == "page0")["primitives"][0]
+    uv = _accessor(doc, binary, page["attributes"]["TEXCOORD_0"])
+    want = np.concatenate([tex.surfaces[s.id].uv for m in models for s in m.surfaces if s.id in tex.surfaces])
+    assert np.abs(uv - np.column_stack([want[:, 0], 1.0 - want[:, 1]])).max() < 1e-6
+    material = doc["materials"][page["material"]]
+    image = doc["images"][doc["textures"][material["pbrMetallicRoughness"]["baseColorTexture"]["index"]]["source"]]
+    view = doc["bufferViews"][image["bufferView"]]
+    png = np.frombuffer(binary, np.uint8, view["byteLength"], view.get("byteOffset", 0))
+    got = cv2.imdecode(png, cv2.IMREAD_COLOR)
+    assert np.array_equal(got, cv2.imread(str(tex.pages[0][0]), cv2.IMREAD_COLOR))
