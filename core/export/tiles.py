@@ -2,21 +2,20 @@
 viewers (CesiumJS, iTwin.js, deck.gl) that stream city models.
 
 The buildings are grouped into square tiles of ``tile_size`` metres (from the south-west corner of their extent) by
-the centre of their footprint, each a
-child of one root tile whose ``transform`` places a local Cartesian frame on the earth: its origin on the ground at
-the centre of the buildings, its axes those of the project CRS there (east and north of the grid, up), in
-geocentric coordinates (EPSG:4978 for WGS 84 datums). Every vertex is transformed exactly (pyproj, the project's
-heights taken as ellipsoidal heights, as the project CRS has no other vertical reference) to geocentric
-coordinates and then rotated into that frame, so the tiles carry the true geometry rather than the projection's
-distortion. glTF is y-up: positions are written as ``(x, z, -y)`` of the frame, which the 3D Tiles runtime turns
-back to z-up.
+the centre of their footprint, each a child of one root tile whose ``transform`` places a local Cartesian frame on
+the earth: its origin on the ground at the centre of the buildings, its axes those of the project CRS there (east
+and north of the grid, up), in geocentric coordinates (EPSG:4978 for WGS 84 datums). Every vertex is transformed
+exactly (pyproj, the project's heights taken as ellipsoidal heights, as the project CRS has no other vertical
+reference) to geocentric coordinates and then rotated into that frame, so the tiles carry the true geometry rather
+than the projection's distortion. glTF is y-up: positions are written as ``(x, z, -y)`` of the frame, which the 3D
+Tiles runtime turns back to z-up.
 
 Each tile's content has one mesh primitive per atlas page (the ``texture`` stage's pages embedded as PNG, UVs with
 ``v`` down as glTF wants) and per surface kind without texture (the colours of the OBJ export), flat-shaded (each
-surface has its own vertices), and the detected windows when given. Bounding volumes are boxes in the frame; the
-geometric error of the root is its box's diagonal, of the leaves 0 (all detail at once). Each tile has its own
-``transform``, a shift to its centre in the root frame, so its float32 glTF positions stay within a tile's size
-(0.03 mm steps at 250 m).
+surface has its own vertices), and the detected windows when given, lifted :data:`WINDOW_LIFT_M` off their wall.
+Bounding volumes are boxes in the frame; the geometric error of the root is its box's diagonal, of the leaves 0
+(all detail at once). Each tile has its own ``transform``, a shift to its centre in the root frame, so its float32
+glTF positions stay within a tile's size (0.03 mm steps at 250 m).
 """
 
 from __future__ import annotations
@@ -26,11 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..buildings.model import triangulate_ring
+from ..buildings.model import ring_normal, triangulate_ring
 from ..geometry.crs import crs_transformer, geocentric_crs, grid_rotations, parse_crs
 from ..pipeline.atomic import write_bytes, write_text
 from .obj import KIND_COLOURS, WINDOW_COLOUR
 from .textures import textured
+
+WINDOW_LIFT_M = 0.02
+"""Windows stand this far in front of their wall in the tiles (coplanar faces would flicker in a viewer)."""
 
 GLTF_FROM_LOCAL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 """glTF (y-up) from the tile frame (z-up): ``(x, y, z) -> (x, z, -y)``."""
@@ -69,9 +71,11 @@ def _primitives(buildings, textures, windows) -> dict[str, tuple[list, list, lis
             g[1].append(uv)
             g[2].append(tris)
         for s in b.surfaces:
-            for w in (windows or {}).get(s.id, []) if s.kind == "wall" else []:
+            wins = (windows or {}).get(s.id, []) if s.kind == "wall" else []
+            out = WINDOW_LIFT_M * ring_normal(b.vertices[list(s.ring)]) if wins else None
+            for w in wins:
                 g = groups.setdefault("window", ([], [], []))
-                g[0].append(np.asarray(w.corners, np.float64))
+                g[0].append(np.asarray(w.corners, np.float64) + out)
                 g[1].append(None)
                 g[2].append(np.array([[0, 1, 2], [0, 2, 3]]))
     return groups
