@@ -13,7 +13,11 @@ A :class:`Raster` is written with tifffile and these GeoTIFF tags (GeoTIFF 1.1, 
 * ``GDAL_NODATA`` (42113) as ASCII text when the raster has a no-data value (``nan`` for float rasters).
 
 Supported data: float32/float64/uint8/uint16/int16/int32 with one band, or several bands (``(rows, cols, bands)``;
-three or four uint8 bands are written as RGB/RGBA, e.g. orthophotos). Writes are atomic and deflate-compressed.
+three or four uint8 bands are written as RGB/RGBA, e.g. orthophotos). Writes are atomic and deflate-compressed,
+tiled (256 x 256) from 256 cells a side. Rasters larger than :data:`OVERVIEW_MIN` cells a side also get internal
+overviews (further IFDs with ``NewSubfileType`` 1, halved until :data:`OVERVIEW_MIN` / 4: what GDAL and QGIS read
+as overviews): colour bands averaged, float rasters averaged over their measured cells, other integer rasters
+(masks, labels) taken every second cell.
 """
 
 from __future__ import annotations
@@ -53,6 +57,30 @@ USER_DEFINED = 32767
 UNIT_METRE = 9001
 
 SUPPORTED_DTYPES = (np.uint8, np.uint16, np.int16, np.int32, np.float32, np.float64)
+OVERVIEW_MIN = 1024
+
+
+def overview_levels(data: np.ndarray, rgb: bool) -> list[np.ndarray]:
+    """The halved copies of ``data (rows, cols[, bands])`` for the overviews (none for small rasters)."""
+    import cv2
+
+    out = []
+    level = data
+    if max(data.shape[:2]) <= OVERVIEW_MIN:
+        return out
+    while max(level.shape[:2]) > OVERVIEW_MIN // 4:
+        rows, cols = level.shape[0] // 2, level.shape[1] // 2
+        if rgb:
+            level = cv2.resize(level, (cols, rows), interpolation=cv2.INTER_AREA)
+        elif level.dtype.kind == "f":
+            blocks = level[:2 * rows, :2 * cols].reshape(rows, 2, cols, 2, *level.shape[2:])
+            with np.errstate(invalid="ignore"):
+                finite = np.isfinite(blocks)
+                level = (np.nansum(blocks, axis=(1, 3)) / finite.sum(axis=(1, 3))).astype(level.dtype)
+        else:
+            level = level[:2 * rows:2, :2 * cols:2]
+        out.append(np.ascontiguousarray(level))
+    return out
 
 
 def _crs_keys(crs_text: str) -> tuple[list[tuple[int, int, int, int]], str]:
@@ -141,8 +169,12 @@ def write_geotiff(path: str | Path, raster: Raster, compress: bool = True) -> No
             kwargs["extrasamples"] = ("unassalpha",)
     if data.shape[0] >= 256 and data.shape[1] >= 256:
         kwargs["tile"] = (256, 256)
-    with atomic_path(path, suffix=".tif") as tmp:
-        tifffile.imwrite(tmp, data, **kwargs)
+    with atomic_path(path, suffix=".tif") as tmp, tifffile.TiffWriter(tmp) as tif:
+        tif.write(data, **kwargs)
+        overview = {k: v for k, v in kwargs.items() if k not in ("extratags", "metadata", "tile")}
+        for level in overview_levels(data, rgb):
+            tile = (256, 256) if min(level.shape[:2]) >= 256 else None
+            tif.write(level, subfiletype=1, tile=tile, metadata=None, **overview)
 
 
 def _tag(page, code: int):

@@ -82,3 +82,30 @@ def test_png_rgb_order(tmp_path):
     write_png(tmp_path / "a.png", rgb)
     bgr = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)
     assert bgr.shape == (3, 4, 3) and np.all(bgr[..., 2] == 200) and np.all(bgr[..., :2] == 0)
+
+
+def test_large_rasters_get_internal_overviews(tmp_path):
+    """Halved levels as reduced-resolution IFDs (GDAL's internal overviews): a float raster averaged over its
+    measured cells, a label raster decimated; small rasters get none; reading takes the full resolution."""
+    import tifffile
+
+    rng = np.random.default_rng(1)
+    dsm = rng.normal(100.0, 3.0, (1500, 1100)).astype(np.float32)
+    dsm[0, 0] = np.nan  # one of four cells missing: the overview cell is the mean of the other three
+    write_geotiff(tmp_path / "dsm.tif", Raster(dsm, 500000.0, 5400000.0, 0.1, "EPSG:32632"))
+    labels = rng.integers(0, 7, (1500, 1100)).astype(np.int16)
+    write_geotiff(tmp_path / "labels.tif", Raster(labels, 500000.0, 5400000.0, 0.1, "EPSG:32632", nodata=-1))
+    with tifffile.TiffFile(tmp_path / "dsm.tif") as tif:
+        shapes = [p.shape for p in tif.pages]
+        assert [p.subfiletype for p in tif.pages] == [0, 1, 1, 1]
+        level1 = tif.pages[1].asarray()
+    assert shapes == [(1500, 1100), (750, 550), (375, 275), (187, 137)]
+    assert level1[0, 0] == pytest.approx(np.mean([dsm[0, 1], dsm[1, 0], dsm[1, 1]]), rel=1e-6)
+    assert np.allclose(level1[3, 5], dsm[6:8, 10:12].mean(), rtol=1e-6)
+    with tifffile.TiffFile(tmp_path / "labels.tif") as tif:
+        assert np.array_equal(tif.pages[1].asarray(), labels[::2, ::2])
+    back = read_geotiff(tmp_path / "dsm.tif")
+    assert back.data.shape == dsm.shape and np.isnan(back.data[0, 0])
+    write_geotiff(tmp_path / "small.tif", Raster(dsm[:500, :500], 500000.0, 5400000.0, 0.1, "EPSG:32632"))
+    with tifffile.TiffFile(tmp_path / "small.tif") as tif:
+        assert len(tif.pages) == 1
