@@ -6,6 +6,8 @@
     OUT/workspace/    the workspace: imported block and one folder per stage's outputs
     OUT/summary.json  what ran, how long it took, and each stage's metrics
     OUT/workspace/report.html  the project report (:mod:`.report`)
+    OUT/export/       the city as CityGML 2.0, CityJSON 2.0, OBJ (textured, with windows) and 3D Tiles 1.1, and
+                      the adjusted block as BlocksExchange and Metashape XML (once the stages they need are done)
 
 Every step is resumable: an existing simulation is reused, an unchanged block is not re-imported, and the runner
 skips finished stages. ``make demo`` then writes ``OUT/city.blend`` with the add-on's builders (a bpy process).
@@ -19,12 +21,14 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from .pipeline import RunContext, Workspace, run_stages
 from .pipeline.atomic import write_json
 
 SIMULATION = "simulation"
 WORKSPACE = "workspace"
+EXPORT = "export"
 
 
 def _simulate_if_missing(sim: Path, progress: Callable[[int, int, str], None] | None) -> dict | None:
@@ -108,11 +112,26 @@ def run_demo(out: str | Path, ctx: RunContext | None = None,
                     "metrics": state.get(r.name, {}).get("metrics", {})} for r in records],
         "total_seconds": time.perf_counter() - t0,
     }
+    summary.update(deliverables(ws, out / EXPORT))
     write_json(out / "summary.json", summary)
+    return summary
+
+
+def deliverables(ws: Workspace, folder: Path) -> dict[str, Any]:
+    """The demo's deliverables: into ``folder`` the city in every format once the buildings exist and the block
+    (adjusted once aerial triangulation ran) for other photogrammetry software, and the project report into the
+    workspace. Returns ``{"exports": [one line per file], "report": path}``."""
+    from .export.command import export_block, export_buildings
     from .report import write_project_report
 
-    summary["report"] = str(write_project_report(ws))
-    return summary
+    done = []
+    if ws.read_state().get("buildings", {}).get("status") == "done":
+        for fmt, name in (("citygml", "city.gml"), ("cityjson", "city.city.json"), ("obj", "city.obj"),
+                          ("3dtiles", "tiles")):
+            done.append(export_buildings(ws.root, fmt, folder / name))
+    for fmt, name in (("bex", "block.xml"), ("metashape", "cameras.xml")):
+        done.append(export_block(ws.root, fmt, folder / name))
+    return {"exports": done, "report": str(write_project_report(ws.root))}
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -131,6 +150,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"points, {b['crs']}")
     for st in s["stages"]:
         print(f"{st['name']:10s} {st['status']:9s} {st['seconds']:8.1f} s  {st['message']}")
+    for line in s["exports"]:
+        print(f"export: {line}")
     print(f"workspace: {s['workspace']}; summary: {Path(args.out) / 'summary.json'}; report: {s['report']} "
           f"({s['total_seconds']:.1f} s in all)")
     return 0
