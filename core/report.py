@@ -1,12 +1,13 @@
 """The project report: one self-contained HTML page on a workspace, like the processing reports of photogrammetry
 software (``oblique-city report WS``, Blender "Project Report").
 
-It gathers what the stages left in the workspace: the block (images per view, cameras, ground points), every
-stage's status, time, summary and metrics from ``state.json`` (stages not run are listed as such), the aerial
-triangulation's quality layers (``aerotri/layers/*.png``) with a link to its own report, and pictures of the
-surface: the true orthophoto with the building outlines of ``buildings/buildings.json`` drawn over it, the DSM
-as a coloured hillshade and the forward intersection error map. Pictures are downscaled to at most
-``max_side`` pixels and embedded as PNG, so the page can be mailed on its own.
+It gathers what the stages left in the workspace: the block (images per view, cameras, ground points), every stage's
+status, time, summary and metrics from ``state.json`` (stages not run are listed as such), the aerial
+triangulation's quality layers (``aerotri/layers/*.png``) with a link to its own report, a table of the buildings
+(path, closed solid, roof type, heights, footprint, volume, windows) and pictures of the surface: the true
+orthophoto with the building outlines of ``buildings/buildings.json`` drawn over it, the DSM as a coloured hillshade
+and the forward intersection error map. Pictures are downscaled to at most ``max_side`` pixels and embedded as PNG,
+so the page can be mailed on its own.
 """
 
 from __future__ import annotations
@@ -112,6 +113,30 @@ def _surface_figures(ws: Workspace, max_side: int) -> list[str]:
     return out
 
 
+def _building_table(ws: Workspace) -> str:
+    """One row per building: reconstruction path, closed solid, roof type, heights, areas, volume, windows."""
+    from .buildings.attributes import building_attributes
+    from .buildings.model import load_buildings
+
+    buildings, _ = load_buildings(ws.path("buildings", "buildings.json"))
+    windows: dict[str, int] = {}
+    if ws.path("windows", "windows.json").exists():
+        from .windows.store import load_windows
+
+        for w in load_windows(ws.path("windows", "windows.json")):
+            windows[w.building_id] = windows.get(w.building_id, 0) + 1
+    head = ("building", "path", "closed", "roof type", "ground [m]", "height 70 % [m]", "max height [m]",
+            "footprint [m2]", "volume [m3]", "surfaces", "windows")
+    rows = []
+    for b in buildings:
+        a = building_attributes(b)
+        cells = (b.id, b.path, "yes" if b.info.get("closed") else "no", a["roof_type"], a["ground_height"],
+                 a["roof_height_70p"] - a["ground_height"], a["measured_height"], a["footprint_area"], a["volume"],
+                 len(b.surfaces), windows.get(b.id, 0))
+        rows.append("<tr>" + "".join(f"<td>{format_value(c)}</td>" for c in cells) + "</tr>")
+    return ("<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>" + "".join(rows) + "</table>")
+
+
 def project_report(ws: Workspace, max_side: int = 900) -> str:
     """The report page of workspace ``ws`` (see the module docstring)."""
     import cv2
@@ -143,22 +168,26 @@ def project_report(ws: Workspace, max_side: int = 900) -> str:
                  + "".join(rows) + f"</table><p>total {total:.0f} s</p>")
     for stage in stages:
         metrics = state.get(stage.name, {}).get("metrics")
-        if not metrics:
-            continue
-        body = "".join(f"<tr><td style='text-align:left'>{html.escape(k)}</td><td>{v}</td></tr>"
-                       for k, v in _metric_rows(metrics))
-        parts.append(f"<h2>{html.escape(stage.name)}</h2><table>{body}</table>")
+        section = []
+        if metrics:
+            body = "".join(f"<tr><td style='text-align:left'>{html.escape(k)}</td><td>{v}</td></tr>"
+                           for k, v in _metric_rows(metrics))
+            section.append(f"<table>{body}</table>")
         if stage.name == "aerotri":
             if ws.path("aerotri", "report.html").exists():
                 uri = ws.path("aerotri", "report.html").resolve().as_uri()
-                parts.append(f"<p><a href='{uri}'>the aerial triangulation's own report</a></p>")
+                section.append(f"<p><a href='{uri}'>the aerial triangulation's own report</a></p>")
             for name in AEROTRI_LAYERS:
                 p = ws.path("aerotri", "layers", f"{name}.png")
                 if p.exists():
-                    parts.append(_figure(cv2.imread(str(p), cv2.IMREAD_COLOR)[:, :, ::-1], name.replace("_", " "),
-                                         max_side // 2))
+                    section.append(_figure(cv2.imread(str(p), cv2.IMREAD_COLOR)[:, :, ::-1],
+                                           name.replace("_", " "), max_side // 2))
         if stage.name == "surface":
-            parts += _surface_figures(ws, max_side)
+            section += _surface_figures(ws, max_side)
+        if stage.name == "buildings" and ws.path("buildings", "buildings.json").exists():
+            section.append(_building_table(ws))
+        if section:
+            parts.append(f"<h2>{html.escape(stage.name)}</h2>" + "".join(section))
     style = ("body{font-family:sans-serif;margin:2em;max-width:1100px}table{border-collapse:collapse;margin:4px 0}"
              "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}figure{display:inline-block;margin:8px}")
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(ws.root.name)}</title>"

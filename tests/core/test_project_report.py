@@ -69,6 +69,9 @@ def test_report_lists_stages_metrics_and_pictures(ws):
     assert ortho[40, 45, 0] > 200 and ortho[56, 50, 0] > 200 and ortho[48, 40, 0] > 200
     assert ortho[48, 50, 0] < 50 and ortho[20, 20, 0] < 50  # inside the building and far from it: no line
     assert any(k.startswith("DSM, 100.0 to 106.0 m") for k in images)
+    # the building table: the box's roof type, height above its ground, footprint and volume
+    assert ("<td>B0001</td><td>2d</td><td>yes</td><td>horizontal</td><td>100</td><td>6</td><td>6</td><td>80</td>"
+            "<td>480</td>") in page
 
 
 def test_hillshade_lights_slopes_facing_the_sun():
