@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..buildings.model import ring_normal, triangulate_ring
+from ..errors import ComputationError
 from ..geometry.crs import crs_transformer, geocentric_crs, grid_rotations, parse_crs
 from ..pipeline.atomic import write_bytes, write_text
 from .obj import KIND_COLOURS, WINDOW_COLOUR
@@ -118,6 +119,8 @@ def write_3dtiles(folder: str | Path, buildings, crs: str, textures=None, window
                   tile_size: float = 250.0) -> list[str]:
     """Write ``folder/tileset.json`` and one ``.glb`` per tile (see the module docstring); returns the file names
     written."""
+    if not buildings:
+        raise ComputationError("no buildings to write as 3D Tiles (the buildings stage found none)")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     allv = np.concatenate([b.vertices for b in buildings])

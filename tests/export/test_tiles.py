@@ -11,7 +11,7 @@ import trimesh
 from pyproj import Transformer
 
 from oblique_city.core.buildings.model import BuildingModel, Surface
-from oblique_city.core.errors import ConfigError
+from oblique_city.core.errors import ComputationError, ConfigError
 from oblique_city.core.export.tiles import GLTF_FROM_LOCAL, write_3dtiles
 
 CRS = "EPSG:25832"
@@ -72,3 +72,5 @@ def test_export_command_writes_a_folder(tmp_path):
     (tmp_path / "afile").write_text("x")
     with pytest.raises(ConfigError, match="folder"):
         export_buildings(ws.root, "3dtiles", tmp_path / "afile")
+    with pytest.raises(ComputationError, match="no buildings"):
+        write_3dtiles(tmp_path / "empty", [], CRS)

@@ -173,3 +173,36 @@ def test_refusals_name_line_and_field(geocentric_scene, old, new, field):
     with pytest.raises(InputError) as e:
         read_block("metashape", path, crs="EPSG:32632")
     assert e.value.line is not None and e.value.field.endswith(field), (e.value.field, str(e.value))
+
+
+def test_local_chunk_and_chunk_choice(tmp_path, oblique_block, same_block):
+    """A chunk in a local frame (LOCAL_CS, no geocentric step): its transform gives the block CRS's coordinates
+    directly, which -o crs names; a document with two chunks needs -o chunk."""
+    write_block("metashape", oblique_block, tmp_path / "geo.xml")
+    text = (tmp_path / "geo.xml").read_text()
+    # the local chunk: the internal frame is the block CRS itself (identity chunk transform)
+    head, rest = text.split("<transform>\n      <rotation", 1)
+    chunk_end = rest.index("</transform>") + len("</transform>")
+    local_cs = 'LOCAL_CS["Local Coordinates (m)",LOCAL_DATUM["Local Datum",0],UNIT["metre",1]]'
+    body = head + rest[chunk_end:]
+    body = body[:body.index("<reference>")] + f"<reference>{local_cs}</reference>" + \
+        body[body.index("</reference>") + len("</reference>"):]
+    cams = []
+    for img in oblique_block.images.values():
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = img.pose.R.T, img.pose.C
+        cams.append((img.id, " ".join(repr(float(v)) for v in m.ravel())))
+    for iid, numbers in cams:
+        start = body.index(f'label="{iid}"')
+        t0 = body.index("<transform>", start) + len("<transform>")
+        body = body[:t0] + numbers + body[body.index("</transform>", t0):]
+    (tmp_path / "local.xml").write_text(body)
+    with pytest.raises(InputError, match="local frame"):
+        read_block("metashape", tmp_path / "local.xml")
+    back = read_block("metashape", tmp_path / "local.xml", crs=oblique_block.crs)
+    same_block(oblique_block, back, tol_m=1e-6, tol_rad=1e-12, tol_px=1e-5)
+    two = body.replace("</document>", "") + body[body.index("<chunk"):]
+    (tmp_path / "two.xml").write_text(two)
+    with pytest.raises(InputError, match="2 chunks"):
+        read_block("metashape", tmp_path / "two.xml", crs=oblique_block.crs)
+    assert len(read_block("metashape", tmp_path / "two.xml", crs=oblique_block.crs, chunk=1).images) == 8
