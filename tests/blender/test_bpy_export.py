@@ -86,3 +86,13 @@ def test_export_block(addon, ws, tmp_path):
     assert len(read_block("bex", tmp_path / "b.xml").images) == len(block.images)
     with pytest.raises(RuntimeError, match="unknown option"):
         bpy.ops.city.export_block(filepath=str(tmp_path / "c.xml"), format="bex", options="angle=gon")
+
+
+def test_file_names_per_format(addon):
+    from oblique_city.operators.export import with_extension
+
+    assert with_extension("/x/city", "citygml") == "/x/city.gml"
+    assert with_extension("/x/city.gml", "cityjson") == "/x/city.city.json"
+    assert with_extension("/x/city.city.json", "obj") == "/x/city.obj"
+    assert with_extension("/x/city.obj", "3dtiles") == "/x/city"  # a folder: the extension goes
+    assert with_extension("/x/tiles", "3dtiles") == "/x/tiles"
