@@ -22,7 +22,15 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..evaluate.aerotri import SPLITS, check_point_errors, rms_xy_z, std_xy_z, tie_point_std
+from ..evaluate.aerotri import (
+    SPLITS,
+    check_point_errors,
+    intersect_ground_point,
+    rms_xy_z,
+    std_xy_z,
+    tie_point_std,
+)
+from ..geometry.projection import project
 from ..geometry.rotations import matrix_to_rotvec
 from ..model import ImageBlock, Raster, TiePoints
 from .hierarchical import ATResult, Run
@@ -158,6 +166,24 @@ def boresight(block: ImageBlock, poses: dict) -> dict:
     return out
 
 
+def ground_point_residuals(block: ImageBlock, poses: dict) -> list[dict]:
+    """Per control and check point: the images it was measured in with an adjusted orientation, the difference
+    of its intersection from all of them to its given coordinates (m; NaN for a coordinate not given) and the RMS
+    image residual of that intersection (px). Points with fewer than two such images are left out."""
+    rows = []
+    for gp in block.ground_points.values():
+        got = intersect_ground_point(block, poses, gp) if gp.xyz is not None else None
+        if got is None:
+            continue
+        xyz, ids = got
+        res = [project(block.camera_of(i), poses[i], xyz[None])[0][0] - gp.observations[i] for i in ids]
+        d = xyz - gp.xyz
+        rows.append({"name": gp.name, "kind": gp.kind, "images": len(ids), "dx_m": float(d[0]),
+                     "dy_m": float(d[1]), "dz_m": float(d[2]),
+                     "image_rms_px": float(np.sqrt(np.mean(np.sum(np.square(res), axis=1))))})
+    return rows
+
+
 def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float) -> dict:
     """Figures of the whole adjustment (combined over runs)."""
     runs = [run_statistics(r, sigma_px) for r in at.runs]
@@ -177,6 +203,7 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
         internal[split] = {"points": int(np.isfinite(std[:, 0]).sum()), "std_xy_m": xy, "std_z_m": z}
     return {"mode": at.mode, "connection": at.connection, "images": len(at.poses), "sigma0": sigma0,
             "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
+            "ground_points": ground_point_residuals(block, at.poses),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at), "wall_s": at.wall_s,
             "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0}
 
@@ -298,6 +325,14 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
                    for s, c in report["check_points"].items())
     parts.append("<h2>Accuracy</h2><table><tr><th>views</th><th>check points</th><th>RMS XY [m]</th>"
                  f"<th>RMS Z [m]</th><th>tie std XY [m]</th><th>tie std Z [m]</th></tr>{rows}</table>")
+    if report.get("ground_points"):
+        rows = "".join(f"<tr><td>{html.escape(g['name'])}</td><td>{g['kind']}</td><td>{g['images']}</td>"
+                       f"<td>{format_value(g['dx_m'])}</td><td>{format_value(g['dy_m'])}</td>"
+                       f"<td>{format_value(g['dz_m'])}</td><td>{format_value(g['image_rms_px'])}</td></tr>"
+                       for g in report["ground_points"])
+        parts.append("<h2>Ground points (intersected from every image with its adjusted orientation, minus the "
+                     "given coordinates)</h2><table><tr><th>point</th><th>kind</th><th>images</th><th>dX [m]</th>"
+                     f"<th>dY [m]</th><th>dZ [m]</th><th>image RMS [px]</th></tr>{rows}</table>")
     if report.get("boresight"):
         rows = "".join(f"<tr><td>{h}</td><td>{format_value(b['mean_deg'])}</td>"
                        f"<td>{format_value(b['std_deg'])}</td></tr>"

@@ -30,6 +30,24 @@ def _view_ok(view: str | None, split: str) -> bool:
     return view is not None and view != "nadir"
 
 
+def intersect_ground_point(block: ImageBlock, poses: dict[str, Pose], gp, split: str = "all"
+                           ) -> tuple[np.ndarray, list[str]] | None:
+    """A ground point intersected from its rays in the split's images of ``poses``: ``(xyz (3,), image ids)``,
+    None with fewer than two rays."""
+    o, d, ids = [], [], []
+    for iid, uv in gp.observations.items():
+        p = poses.get(iid)
+        if p is None or not _view_ok(block.images[iid].view, split):
+            continue
+        o.append(p.C)
+        d.append(pixel_rays(block.camera_of(iid), p, np.asarray(uv)[None])[0])
+        ids.append(iid)
+    if len(o) < 2:
+        return None
+    xyz, _ = intersect_rays(np.array(o), np.array(d))
+    return xyz, ids
+
+
 def check_point_errors(block: ImageBlock, poses: dict[str, Pose], split: str = "all",
                        kind: str = "check") -> tuple[list[str], np.ndarray]:
     """Names and errors ``(k, 3)`` (intersected - given) of the ground points of ``kind`` with at least two
@@ -38,18 +56,11 @@ def check_point_errors(block: ImageBlock, poses: dict[str, Pose], split: str = "
     for gp in block.ground_points.values():
         if gp.kind != kind or gp.xyz is None:
             continue
-        o, d = [], []
-        for iid, uv in gp.observations.items():
-            p = poses.get(iid)
-            if p is None or not _view_ok(block.images[iid].view, split):
-                continue
-            o.append(p.C)
-            d.append(pixel_rays(block.camera_of(iid), p, np.asarray(uv)[None])[0])
-        if len(o) < 2:
+        got = intersect_ground_point(block, poses, gp, split)
+        if got is None:
             continue
-        xyz, _ = intersect_rays(np.array(o), np.array(d))
         names.append(gp.name)
-        errs.append(xyz - gp.xyz)
+        errs.append(got[0] - gp.xyz)
     return names, np.array(errs).reshape(-1, 3)
 
 

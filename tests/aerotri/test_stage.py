@@ -7,6 +7,7 @@ import json
 import numpy as np
 
 from oblique_city.core.cli import main
+from oblique_city.core.evaluate.aerotri import check_point_errors
 from oblique_city.core.io.geotiff import read_geotiff
 from oblique_city.core.pipeline import Workspace
 from oblique_city.core.simulate.observations import SimulationConfig, simulate_block
@@ -41,7 +42,18 @@ def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
     assert [r["name"] for r in report["runs"]][0] == "nadir"
     assert abs(report["sigma0"] - 1.0) < 0.1
     assert report["check_points"]["all"]["n"] >= 20
+    # per ground point: the check points' differences are those of the RMS above, measurements fit their
+    # intersection to the simulated noise, and control points are listed too
+    rows = {g["name"]: g for g in report["ground_points"]}
+    names, err = check_point_errors(block, {i: block.images[i].pose_adjusted for i in adjusted})
+    assert len(names) == report["check_points"]["all"]["n"]
+    for name, e in zip(names, err, strict=True):
+        assert rows[name]["kind"] == "check" and rows[name]["images"] >= 2
+        assert np.allclose([rows[name]["dx_m"], rows[name]["dy_m"], rows[name]["dz_m"]], e, atol=1e-9)
+    assert any(g["kind"] == "control" for g in rows.values())
+    assert np.median([g["image_rms_px"] for g in rows.values()]) < 1.0
     html = ws.path("aerotri/report.html").read_text()
+    assert "<h2>Ground points" in html
     assert "data:image/png;base64," in html and "<svg" in html and "src='http" not in html
     rays = read_geotiff(ws.path("aerotri/layers/cba_rays.tif"))
     assert rays.cell == 40.0 and np.nanmax(rays.data) >= 3
