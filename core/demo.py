@@ -6,8 +6,9 @@
     OUT/workspace/    the workspace: imported block and one folder per stage's outputs
     OUT/summary.json  what ran, how long it took, and each stage's metrics
     OUT/workspace/report.html  the project report (:mod:`.report`)
-    OUT/export/       the city as CityGML 2.0, CityJSON 2.0, OBJ (textured, with windows) and 3D Tiles 1.1, and
-                      the adjusted block as BlocksExchange and Metashape XML (once the stages they need are done)
+    OUT/export/       the city as CityGML 2.0, CityJSON 2.0, OBJ (textured, with windows), 3D Tiles 1.1 and GeoJSON
+                      footprints, and the adjusted block as BlocksExchange and Metashape XML (once the stages they
+                      need are done)
 
 Every step is resumable: an existing simulation is reused, an unchanged block is not re-imported, and the runner
 skips finished stages. ``make demo`` then writes ``OUT/city.blend`` with the add-on's builders (a bpy process).
@@ -127,7 +128,7 @@ def deliverables(ws: Workspace, folder: Path) -> dict[str, Any]:
     done = []
     if ws.read_state().get("buildings", {}).get("status") == "done":
         for fmt, name in (("citygml", "city.gml"), ("cityjson", "city.city.json"), ("obj", "city.obj"),
-                          ("3dtiles", "tiles")):
+                          ("3dtiles", "tiles"), ("geojson", "footprints.geojson")):
             done.append(export_buildings(ws.root, fmt, folder / name))
     for fmt, name in (("bex", "block.xml"), ("metashape", "cameras.xml")):
         done.append(export_block(ws.root, fmt, folder / name))

@@ -21,12 +21,13 @@ from ..core.io.formats import WRITERS
 from .import_block import FORMAT_LABELS, parse_options
 from .run import scene_workspace
 
-EXTENSIONS = {"citygml": ".gml", "cityjson": ".city.json", "obj": ".obj", "3dtiles": ""}
+EXTENSIONS = {"citygml": ".gml", "cityjson": ".city.json", "obj": ".obj", "3dtiles": "", "geojson": ".geojson"}
 FORMAT_ITEMS = [
     ("citygml", "CityGML 2.0", "CityGML 2.0 LoD2 buildings with typed surfaces (.gml), schema-validated"),
     ("cityjson", "CityJSON 2.0", "CityJSON 2.0 LoD2 buildings with semantic surfaces (.city.json)"),
     ("obj", "Wavefront OBJ", "Triangulated meshes with one group per building (.obj)"),
     ("3dtiles", "3D Tiles 1.1", "tileset.json and glTF tiles for web globes (a folder)"),
+    ("geojson", "GeoJSON footprints", "Building footprints with heights, areas, volume and roof type (WGS 84)"),
 ]
 
 
@@ -54,7 +55,7 @@ class CITY_OT_export_city_model(bpy.types.Operator, ExportHelper):
     bl_label = "Export City Model"
 
     filename_ext = ".gml"
-    filter_glob: StringProperty(default="*.gml;*.json;*.obj", options={"HIDDEN"})
+    filter_glob: StringProperty(default="*.gml;*.json;*.obj;*.geojson", options={"HIDDEN"})
     format: EnumProperty(name="Format", items=FORMAT_ITEMS, default="citygml")
     validate: BoolProperty(name="Validate", default=True,
                            description="Check the written file (CityGML 2.0 schema, CityJSON structure)")

@@ -1,5 +1,5 @@
-"""``oblique-city export WS --format obj|citygml|cityjson|3dtiles --out PATH``: the buildings of a workspace to a file
-(a folder for 3D Tiles);
+"""``oblique-city export WS --format obj|citygml|cityjson|3dtiles|geojson --out PATH``: the buildings of a workspace
+to a file (a folder for 3D Tiles; footprints with attributes for GeoJSON);
 ``oblique-city export-block WS --format bex|metashape|opk|colmap|native --out PATH``: its oriented image block
 (the aerial triangulation's adjusted orientations and cameras when it has run, else the imported ones), for other
 photogrammetry software.
@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import ComputationError, ConfigError
 
-FORMATS = ("obj", "citygml", "cityjson", "3dtiles")
+FORMATS = ("obj", "citygml", "cityjson", "3dtiles", "geojson")
 
 
 def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate: bool = True,
@@ -73,6 +73,11 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
             if errors:
                 raise ComputationError(f"{out}: CityJSON structure check failed: {errors[0]}")
         return f"{len(buildings)} buildings written to {out}" + (" (structure checked)" if validate else "") + note
+    if fmt == "geojson":
+        from .geojson import write_footprints_geojson
+
+        write_footprints_geojson(out, buildings, crs)
+        return f"{len(buildings)} building footprints with their attributes written to {out} (WGS 84)"
     if fmt == "3dtiles":
         from .tiles import write_3dtiles
 
@@ -112,7 +117,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def add_commands(sub) -> None:
     s = sub.add_parser("export", help="export the reconstructed buildings (OBJ, CityGML 2.0 LoD2, CityJSON 2.0, "
-                                      "3D Tiles 1.1)")
+                                      "3D Tiles 1.1, GeoJSON footprints)")
     s.add_argument("workspace")
     s.add_argument("--format", required=True, choices=FORMATS)
     s.add_argument("--out", required=True, help="output file (a folder for 3dtiles)")

@@ -31,7 +31,7 @@ def test_deliverables(tmp_path, utm_block):
     save_buildings(ws.path("buildings", "buildings.json"), [_box()], ws.crs)
     ws.write_state({"buildings": {"status": "done", "seconds": 1.0, "message": "1 building"}})
     got = deliverables(ws, tmp_path / "export")
-    assert len(got["exports"]) == 6
+    assert len(got["exports"]) == 7
     assert validate_citygml(tmp_path / "export" / "city.gml") == []
     assert json.loads((tmp_path / "export" / "tiles" / "tileset.json").read_text())["asset"]["version"] == "1.1"
     assert "1 building" in (ws.root / "report.html").read_text()
