@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
 from ..core.errors import CityError
@@ -59,6 +59,9 @@ class CITY_OT_export_city_model(bpy.types.Operator, ExportHelper):
     format: EnumProperty(name="Format", items=FORMAT_ITEMS, default="citygml")
     validate: BoolProperty(name="Validate", default=True,
                            description="Check the written file (CityGML 2.0 schema, CityJSON structure)")
+    height_offset: FloatProperty(name="Height Offset", default=0.0, unit="LENGTH",
+                                 description="3D Tiles: metres added to the heights to make them ellipsoidal (the "
+                                             "geoid undulation when the project's heights are orthometric)")
 
     def check(self, context) -> bool:
         new = with_extension(self.filepath, self.format)
@@ -82,7 +85,8 @@ class CITY_OT_export_city_model(bpy.types.Operator, ExportHelper):
             return {"CANCELLED"}
         out = bpy.path.abspath(with_extension(self.filepath, self.format))
         try:
-            summary = export_buildings(scene_workspace(context), self.format, out, validate=self.validate)
+            summary = export_buildings(scene_workspace(context), self.format, out, validate=self.validate,
+                                       height_offset=self.height_offset)
         except CityError as e:
             self.report({"ERROR"}, str(e).splitlines()[0])
             return {"CANCELLED"}

@@ -24,7 +24,7 @@ FORMATS = ("obj", "citygml", "cityjson", "3dtiles", "geojson")
 
 
 def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate: bool = True,
-                     with_textures: bool = True, with_windows: bool = True) -> str:
+                     with_textures: bool = True, with_windows: bool = True, height_offset: float = 0.0) -> str:
     """Write the workspace's ``buildings/buildings.json`` as ``fmt`` (textured when the texture stage's output
     exists and ``with_textures``, with the detected windows when the windows stage's output exists and
     ``with_windows``); returns a one-line summary."""
@@ -83,7 +83,7 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
 
         if out.exists() and not out.is_dir():
             raise ConfigError(f"{out} is a file: 3D Tiles go into a folder (tileset.json and .glb tiles)")
-        files = write_3dtiles(out, buildings, crs, textures, windows)
+        files = write_3dtiles(out, buildings, crs, textures, windows, height_offset=height_offset)
         return f"{len(buildings)} buildings written to {out / 'tileset.json'} ({len(files) - 1} glTF tiles{note})"
     raise ConfigError(f"unknown export format '{fmt}' (known: {', '.join(FORMATS)})")
 
@@ -111,7 +111,8 @@ def export_block(workspace: str | Path, fmt: str, out: str | Path, adjusted: boo
 
 def cmd_export(args: argparse.Namespace) -> int:
     print(export_buildings(args.workspace, args.format, args.out, validate=not args.no_validate,
-                           with_textures=not args.no_textures, with_windows=not args.no_windows))
+                           with_textures=not args.no_textures, with_windows=not args.no_windows,
+                           height_offset=args.height_offset))
     return 0
 
 
@@ -124,6 +125,9 @@ def add_commands(sub) -> None:
     s.add_argument("--no-validate", action="store_true", help="skip the schema / structure check")
     s.add_argument("--no-textures", action="store_true", help="leave out the texture stage's atlases")
     s.add_argument("--no-windows", action="store_true", help="leave out the windows stage's windows")
+    s.add_argument("--height-offset", type=float, default=0.0, metavar="M",
+                   help="3dtiles: metres added to the heights to make them ellipsoidal (the geoid undulation when "
+                        "the project's heights are orthometric)")
     s.set_defaults(func=cmd_export)
 
     from ..io.formats import WRITERS

@@ -6,9 +6,9 @@ the centre of their footprint, each a child of one root tile whose ``transform``
 the earth: its origin on the ground at the centre of the buildings, its axes those of the project CRS there (east
 and north of the grid, up), in geocentric coordinates (EPSG:4978 for WGS 84 datums). Every vertex is transformed
 exactly (pyproj, the project's heights taken as ellipsoidal heights, as the project CRS has no other vertical
-reference) to geocentric coordinates and then rotated into that frame, so the tiles carry the true geometry rather
-than the projection's distortion. glTF is y-up: positions are written as ``(x, z, -y)`` of the frame, which the 3D
-Tiles runtime turns back to z-up.
+reference; ``height_offset`` adds the geoid undulation to orthometric heights) to geocentric coordinates and then
+rotated into that frame, so the tiles carry the true geometry rather than the projection's distortion. glTF is y-up:
+positions are written as ``(x, z, -y)`` of the frame, which the 3D Tiles runtime turns back to z-up.
 
 Each tile's content has one mesh primitive per atlas page (the ``texture`` stage's pages embedded as PNG, UVs with
 ``v`` down as glTF wants) and per surface kind without texture (the colours of the OBJ export), flat-shaded (each
@@ -21,6 +21,7 @@ glTF positions stay within a tile's size (0.03 mm steps at 250 m).
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -116,11 +117,16 @@ def _box(lo: np.ndarray, hi: np.ndarray) -> list[float]:
 
 
 def write_3dtiles(folder: str | Path, buildings, crs: str, textures=None, windows: dict | None = None,
-                  tile_size: float = 250.0) -> list[str]:
+                  tile_size: float = 250.0, height_offset: float = 0.0) -> list[str]:
     """Write ``folder/tileset.json`` and one ``.glb`` per tile (see the module docstring); returns the file names
-    written."""
+    written. ``height_offset`` (m) is added to every height before the geocentric step: the geoid undulation
+    turns orthometric project heights into the ellipsoidal ones a globe places models by."""
     if not buildings:
         raise ComputationError("no buildings to write as 3D Tiles (the buildings stage found none)")
+    if height_offset:
+        buildings = [replace(b, vertices=b.vertices + [0.0, 0.0, height_offset]) for b in buildings]
+        windows = {k: [replace(w, corners=w.corners + [0.0, 0.0, height_offset]) for w in v]
+                   for k, v in (windows or {}).items()}
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     allv = np.concatenate([b.vertices for b in buildings])

@@ -74,3 +74,18 @@ def test_export_command_writes_a_folder(tmp_path):
         export_buildings(ws.root, "3dtiles", tmp_path / "afile")
     with pytest.raises(ComputationError, match="no buildings"):
         write_3dtiles(tmp_path / "empty", [], CRS)
+
+
+def test_height_offset_lifts_the_tiles_along_the_vertical(tmp_path):
+    """Orthometric heights plus the geoid undulation: the same tiles 47.5 m higher on the ellipsoid."""
+    model = _box("B1", 512000.0, 5403000.0, 7.0)
+    write_3dtiles(tmp_path / "a", [model], CRS)
+    write_3dtiles(tmp_path / "b", [model], CRS, height_offset=47.5)
+    worlds = []
+    for folder in ("a", "b"):
+        ts = json.loads((tmp_path / folder / "tileset.json").read_text())
+        child = ts["root"]["children"][0]
+        tile = np.array(ts["root"]["transform"]).reshape(4, 4).T @ np.array(child["transform"]).reshape(4, 4).T
+        worlds.append(_world_vertices(tmp_path / folder, child["content"]["uri"], tile)[0])
+    d = worlds[1] - worlds[0]
+    assert np.abs(d[:, :2]).max() < 1e-3 and np.abs(d[:, 2] - 47.5).max() < 1e-3
