@@ -34,8 +34,9 @@ reference (``Chunk.transform``, ``Camera.transform``, ``Calibration``):
   <location camera_id x y>``.
 * Cameras without ``<transform>`` (not aligned) are imported without orientation. Slave cameras of a multi-camera
   sensor (``master_id``) that lack one are refused: their pose would have to come from the rig offsets.
-* The file holds no image paths: a camera's ``label`` is its image file name, looked up under ``image_root`` (or,
-  without that option, the XML file's folder) by name, else by name without extension.
+* The file holds no image paths: a camera's ``label`` is its image file name, looked up under ``image_root`` and
+  its subfolders (without that option, in the XML file's own folder only) by name, else by name without
+  extension.
 
 Reader options: ``crs``, ``chunk`` (label or 0-based index when the document holds several), plus the shared
 options of :mod:`.common` (``pose=adjusted`` for a block Metashape has already aligned). The writer puts the chunk's
@@ -175,13 +176,14 @@ def _select_chunk(root, x: _Xml, which: Any):
     raise x.fail(root, f"no chunk '{which}' (chunks: {', '.join(c.get('label', '?') for c in chunks)})", "chunk")
 
 
-def _image_files(root: str | None) -> dict[str, str]:
-    """File name and stem -> path relative to ``root``, for the image files under it (empty without root)."""
+def _image_files(root: str | None, recursive: bool) -> dict[str, str]:
+    """File name and stem -> path relative to ``root``, for the image files in it (and its subfolders when
+    ``recursive``); empty without root."""
     out: dict[str, str] = {}
     if root is None or not Path(root).is_dir():
         return out
     base = Path(root).expanduser().resolve()
-    for p in sorted(base.rglob("*")):
+    for p in sorted(base.rglob("*") if recursive else base.glob("*")):
         if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file():
             rel = p.relative_to(base).as_posix()
             out.setdefault(p.name, rel)
@@ -240,7 +242,8 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
         t = c.find("transform")
         components[c.get("id")] = np.eye(4) if t is None else _similarity(t, x)
 
-    files = _image_files(options.get("image_root") or str(Path(path).resolve().parent))
+    root = options.get("image_root")
+    files = _image_files(str(root), True) if root else _image_files(str(Path(path).resolve().parent), False)
     lines: dict[str, int] = {}
     by_id: dict[str, str] = {}
     cams_el = chunk.find("cameras")
