@@ -4,12 +4,14 @@
 Every Building carries the attributes of :func:`..buildings.attributes.building_attributes` (ground and roof
 heights, areas, volume, roof type) beside ``measuredHeight``.
 
-Vertices are quantised integers with ``transform`` (scale 1 mm, translate = the minimum corner). The official
-validator (cjval) is not installable from the registries here, so :func:`check_cityjson` checks the structure
-the specification prescribes for what we write: top-level members, object types, geometry types and LoDs,
-the nesting depth of ``boundaries``, vertex indices in range, closed rings of at least three distinct vertices,
-and ``semantics.values`` mirroring the boundaries; with textures, ``texture.values`` mirroring the boundaries
-with one texture index and one ``vertices-texture`` index per ring vertex.
+Vertices are quantised integers with ``transform`` (scale 1 mm, translate = the minimum corner), each listed once
+(the LoD 1.2 block shares the LoD2 model's ground corners). The official validator, cjval (a Rust program, ``cargo
+install cjval --features build-binary``), accepts what we write; the test suite does not build it, so
+:func:`check_cityjson` checks the structure the specification prescribes for what we write: top-level members,
+object types, geometry types and LoDs, the nesting depth of ``boundaries``, vertex indices in range, closed rings of
+at least three distinct vertices, and ``semantics.values`` mirroring the boundaries; with textures,
+``texture.values`` mirroring the boundaries with one texture index and one ``vertices-texture`` index per ring
+vertex.
 
 Detected windows (the ``windows`` stage) of a building form one child CityObject ``<building>-windows`` of type
 ``BuildingInstallation`` (``parents``/``children`` linked), an LoD3 ``MultiSurface`` whose surfaces carry the
@@ -52,8 +54,20 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
     allv = np.concatenate([b.vertices for b in buildings]) if buildings else np.zeros((1, 3))
     translate = np.floor(allv.min(0))
     vertices: list[list[int]] = []
+    index_of: dict[tuple[int, int, int], int] = {}
     objects: dict[str, Any] = {}
     uvs: list[list[float]] = []
+
+    def add(xyz: np.ndarray) -> list[int]:
+        """Indices of the quantised points ``xyz (n, 3)`` in the shared vertex list (each vertex once)."""
+        out = []
+        for v in np.round((np.asarray(xyz) - translate) / scale).astype(np.int64).tolist():
+            key = (v[0], v[1], v[2])
+            if key not in index_of:
+                index_of[key] = len(vertices)
+                vertices.append(v)
+            out.append(index_of[key])
+        return out
 
     def tex_ring(s) -> list:
         if not textured(textures, s):
@@ -64,15 +78,12 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
         return [st.page, *range(first, first + len(s.ring))]
 
     for b in buildings:
-        base = len(vertices)
-        q = np.round((b.vertices - translate) / scale).astype(np.int64)
-        vertices.extend(q.tolist())
+        idx = add(b.vertices)
         attrs = building_attributes(b)
         blk_v, blk_rings, blk_kinds = lod12_block(b, attrs["roof_height_70p"])
-        first = len(vertices)
-        vertices.extend(np.round((blk_v - translate) / scale).astype(np.int64).tolist())
+        blk = add(blk_v)
         kinds = sorted(set(blk_kinds), key=list(SEMANTIC_TYPES).index)
-        geoms = [{"type": "Solid", "lod": "1.2", "boundaries": [[[[first + i for i in r]] for r in blk_rings]],
+        geoms = [{"type": "Solid", "lod": "1.2", "boundaries": [[[[blk[i] for i in r]] for r in blk_rings]],
                   "semantics": {"surfaces": [{"type": SEMANTIC_TYPES[k]} for k in kinds],
                                 "values": [[kinds.index(k) for k in blk_kinds]]}}]
         for in_solid in (True, False):
@@ -82,7 +93,7 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
             kinds = sorted({s.kind for s in surfaces}, key=list(SEMANTIC_TYPES).index)
             sem = {"surfaces": [{"type": SEMANTIC_TYPES[k], "oc_kind": k} for k in kinds],
                    "values": [kinds.index(s.kind) for s in surfaces]}
-            faces = [[[base + i for i in s.ring]] for s in surfaces]
+            faces = [[[idx[i] for i in s.ring]] for s in surfaces]
             if in_solid:
                 geoms.append({"type": "Solid", "lod": "2.2", "boundaries": [faces],
                               "semantics": {"surfaces": sem["surfaces"], "values": [sem["values"]]}})
@@ -96,14 +107,12 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
                                         "reconstruction_path": b.path, "closed_solid": bool(b.info.get("closed"))}}
         wins = [w for s in b.surfaces if s.kind == "wall" for w in (windows or {}).get(s.id, [])]
         if wins:
-            first = len(vertices)
-            vertices.extend(np.round((np.concatenate([w.corners for w in wins]) - translate) / scale
-                                     ).astype(np.int64).tolist())
+            corners = add(np.concatenate([w.corners for w in wins]))
             wid = f"{b.id}-windows"
             objects[b.id]["children"] = [wid]
             objects[wid] = {"type": "BuildingInstallation", "parents": [b.id], "geometry": [{
                 "type": "MultiSurface", "lod": "3",
-                "boundaries": [[list(range(first + 4 * k, first + 4 * k + 4))] for k in range(len(wins))],
+                "boundaries": [[corners[4 * k:4 * k + 4]] for k in range(len(wins))],
                 "semantics": {"surfaces": [{"type": "Window", "oc_wall": w.surface_id, "oc_id": w.id,
                                             "oc_score": round(w.score, 4)} for w in wins],
                               "values": list(range(len(wins)))}}]}

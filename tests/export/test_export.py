@@ -94,9 +94,10 @@ def test_cityjson_structure(models, tmp_path):
     solid = geoms["2.2"]
     n_body = sum(s.in_solid for s in models[0].surfaces)
     assert len(solid["boundaries"][0]) == n_body == len(solid["semantics"]["values"][0])
-    # vertices decode back to the model within the 1 mm quantisation
+    # vertices decode back to the model within the 1 mm quantisation, each listed once
     v = np.asarray(doc["vertices"]) * doc["transform"]["scale"] + doc["transform"]["translate"]
     assert np.abs(v[:len(models[0].vertices)] - models[0].vertices).max() <= 0.0005 + 1e-9
+    assert len({tuple(x) for x in doc["vertices"]}) == len(doc["vertices"])
     # the LoD 1.2 block: the footprint from the ground to the 70th percentile roof height, a closed prism
     attrs = doc["CityObjects"]["B0001"]["attributes"]
     block = geoms["1.2"]
