@@ -26,3 +26,12 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ] || ! "$PY" -c "import oblique_ci
   "$PY" -m pip install --disable-pip-version-check -q -e ".[blender,dev]"
   echo "$want" > "$stamp"
 fi
+
+# cjval, the official CityJSON validator (a Rust program), for the export tests: built once with cargo when cargo is
+# there; without it those tests say they were skipped and why.
+CJVAL_VERSION=0.10.0
+if command -v cargo >/dev/null 2>&1 && ! "${CARGO_HOME:-$HOME/.cargo}/bin/cjval" --version 2>/dev/null | grep -q "$CJVAL_VERSION"; then
+  echo "setup: building cjval $CJVAL_VERSION (official CityJSON validator) with cargo"
+  cargo install -q --locked cjval --version "$CJVAL_VERSION" --features build-binary \
+    || echo "setup: cjval could not be built; the CityJSON validator tests will be skipped"
+fi

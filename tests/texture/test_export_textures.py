@@ -140,3 +140,36 @@ def test_3dtiles_carry_the_atlas(textured_ws, tmp_path):
     png = np.frombuffer(binary, np.uint8, view["byteLength"], view.get("byteOffset", 0))
     got = cv2.imdecode(png, cv2.IMREAD_COLOR)
     assert np.array_equal(got, cv2.imread(str(tex.pages[0][0]), cv2.IMREAD_COLOR))
+
+
+def _cjval() -> str | None:
+    import os
+    import shutil
+
+    home = os.path.join(os.environ.get("CARGO_HOME", os.path.expanduser("~/.cargo")), "bin", "cjval")
+    return shutil.which("cjval") or (home if os.path.exists(home) else None)
+
+
+@pytest.mark.skipif(_cjval() is None, reason="cjval (the official CityJSON validator, built by make setup with "
+                                             "cargo) is not installed")
+def test_official_cityjson_validator_accepts_the_textured_city(textured_ws, tmp_path):
+    """cjval checks the schema, parents and children, vertex indices, semantics and texture arrays, and warns of
+    duplicate or unused vertices: the textured city with its LoD 1.2 blocks and windows passes without warnings;
+    a broken texture index fails."""
+    import subprocess
+
+    out = tmp_path / "city.city.json"
+    export_buildings(textured_ws.root, "cityjson", out)
+
+    def report(path) -> dict:
+        run = subprocess.run([_cjval(), "-r", str(path)], capture_output=True, text=True, timeout=120)
+        return json.loads(run.stdout)
+
+    r = report(out)
+    assert r["valid"] and not r["has_warnings"], r["checks"]
+    doc = json.loads(out.read_text())
+    obj = next(o for o in doc["CityObjects"].values() if o["type"] == "Building")
+    geom = next(g for g in obj["geometry"] if g["lod"] == "2.2" and "texture" in g)
+    geom["texture"]["texture"]["values"][0][0][0][0] = 99  # a texture that does not exist
+    (tmp_path / "broken.city.json").write_text(json.dumps(doc))
+    assert not report(tmp_path / "broken.city.json")["valid"]
