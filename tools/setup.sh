@@ -35,3 +35,15 @@ if command -v cargo >/dev/null 2>&1 && ! "${CARGO_HOME:-$HOME/.cargo}/bin/cjval"
   cargo install -q --locked cjval --version "$CJVAL_VERSION" --features build-binary \
     || echo "setup: cjval could not be built; the CityJSON validator tests will be skipped"
 fi
+
+# gltf-validator, the Khronos glTF validator (npm), for the 3D Tiles tests: installed once where npm is there;
+# without it those tests say they were skipped and why.
+GLTF_VALIDATOR_VERSION=2.0.0-dev.3.10
+GLTF_DIR="${XDG_CACHE_HOME:-$HOME/.cache}/oblique-city/gltf-validator"
+if command -v npm >/dev/null 2>&1 && \
+    ! grep -qs "\"version\": \"$GLTF_VALIDATOR_VERSION\"" "$GLTF_DIR/node_modules/gltf-validator/package.json"; then
+  echo "setup: installing gltf-validator $GLTF_VALIDATOR_VERSION (Khronos glTF validator) with npm"
+  mkdir -p "$GLTF_DIR"
+  npm install --silent --no-audit --no-fund --prefix "$GLTF_DIR" "gltf-validator@$GLTF_VALIDATOR_VERSION" \
+    || echo "setup: gltf-validator could not be installed; the glTF validator test will be skipped"
+fi

@@ -173,3 +173,55 @@ def test_official_cityjson_validator_accepts_the_textured_city(textured_ws, tmp_
     geom["texture"]["texture"]["values"][0][0][0][0] = 99  # a texture that does not exist
     (tmp_path / "broken.city.json").write_text(json.dumps(doc))
     assert not report(tmp_path / "broken.city.json")["valid"]
+
+
+def _gltf_validator() -> tuple[str, str] | None:
+    """``(node, module folder)`` of the Khronos glTF validator installed by make setup, or None."""
+    import os
+    import shutil
+
+    cache = os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache"))
+    modules = os.path.join(cache, "oblique-city", "gltf-validator", "node_modules")
+    node = shutil.which("node")
+    return (node, modules) if node and os.path.isdir(os.path.join(modules, "gltf-validator")) else None
+
+
+@pytest.mark.skipif(_gltf_validator() is None, reason="the Khronos glTF validator (npm gltf-validator, installed by "
+                                                      "make setup where npm is) is not installed")
+def test_khronos_validator_accepts_the_3dtiles(textured_ws, tmp_path):
+    """Every glTF tile of the textured city passes the Khronos validator without errors or warnings; a tile whose
+    texture coordinates point past the buffer fails it."""
+    import struct
+    import subprocess
+
+    node, modules = _gltf_validator()
+    runner = tmp_path / "validate.js"
+    runner.write_text(
+        "const v = require('gltf-validator'); const fs = require('fs');\n"
+        "v.validateBytes(new Uint8Array(fs.readFileSync(process.argv[2])))"
+        ".then(r => console.log(JSON.stringify(r.issues)))"
+        ".catch(e => { console.log(JSON.stringify({numErrors: 1, error: String(e)})); });\n")
+
+    def issues(path) -> dict:
+        run = subprocess.run([node, str(runner), str(path)], capture_output=True, text=True, timeout=120,
+                             env={"NODE_PATH": modules, "PATH": "/usr/bin:/bin"})
+        return json.loads(run.stdout)
+
+    export_buildings(textured_ws.root, "3dtiles", tmp_path / "tiles")
+    tiles = sorted((tmp_path / "tiles").glob("*.glb"))
+    assert tiles
+    for tile in tiles:
+        r = issues(tile)
+        assert r["numErrors"] == 0 and r["numWarnings"] == 0, r["messages"][:5]
+    doc, binary = _glb(tiles[0])
+    page = next(m for m in doc["meshes"] if m["name"] == "page0")["primitives"][0]
+    doc["accessors"][page["attributes"]["TEXCOORD_0"]]["count"] *= 100  # reads past its buffer view
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    data = tiles[0].read_bytes()
+    n_json = struct.unpack_from("<I", data, 12)[0]
+    rest = data[20 + n_json:]
+    broken = b"glTF" + struct.pack("<II", 2, 12 + 8 + len(text) + len(rest)) + struct.pack("<I", len(text)) + \
+        b"JSON" + text + rest
+    (tmp_path / "broken.glb").write_bytes(broken)
+    assert issues(tmp_path / "broken.glb")["numErrors"] > 0
