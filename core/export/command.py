@@ -84,7 +84,8 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
         if out.exists() and not out.is_dir():
             raise ConfigError(f"{out} is a file: 3D Tiles go into a folder (tileset.json and .glb tiles)")
         files = write_3dtiles(out, buildings, crs, textures, windows, height_offset=height_offset)
-        return f"{len(buildings)} buildings written to {out / 'tileset.json'} ({len(files) - 1} glTF tiles{note})"
+        return (f"{len(buildings)} buildings written to {out / 'tileset.json'} ({(len(files) - 1) // 2} tiles, each "
+                f"as LoD 1.2 blocks and LoD2 models in glTF{note})")
     raise ConfigError(f"unknown export format '{fmt}' (known: {', '.join(FORMATS)})")
 
 

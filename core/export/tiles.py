@@ -13,9 +13,12 @@ positions are written as ``(x, z, -y)`` of the frame, which the 3D Tiles runtime
 Each tile's content has one mesh primitive per atlas page (the ``texture`` stage's pages embedded as PNG, UVs with
 ``v`` down as glTF wants) and per surface kind without texture (the colours of the OBJ export), flat-shaded (each
 surface has its own vertices), and the detected windows when given, lifted :data:`WINDOW_LIFT_M` off their wall.
-Bounding volumes are boxes in the frame; the geometric error of the root is its box's diagonal, of the leaves 0
-(all detail at once). Each tile has its own ``transform``, a shift to its centre in the root frame, so its float32
-glTF positions stay within a tile's size (0.03 mm steps at 250 m).
+Every tile comes in two levels, refined by replacement: the LoD 1.2 blocks (``tile_i_j_lod12.glb``: the footprints
+extruded to the 70th percentile roof height, untextured) with the largest height difference between a block and its
+roof as geometric error, and the textured LoD2 models (``tile_i_j.glb``, geometric error 0), so a viewer streams
+blocks from afar and the models close by. Bounding volumes are boxes in the frame; the root's geometric error is its
+box's diagonal. Each tile has its own ``transform``, a shift to its centre in the root frame, so its float32 glTF
+positions stay within a tile's size (0.03 mm steps at 250 m).
 """
 
 from __future__ import annotations
@@ -26,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..buildings.model import ring_normal, triangulate_ring
+from ..buildings.attributes import building_attributes, lod12_block
+from ..buildings.model import BuildingModel, Surface, ring_normal, triangulate_ring
 from ..errors import ComputationError
 from ..geometry.crs import crs_transformer, geocentric_crs, grid_rotations, parse_crs
 from ..pipeline.atomic import write_bytes, write_text
@@ -111,6 +115,21 @@ def tile_glb(buildings, crs: str, rotation: np.ndarray, origin_geo: np.ndarray, 
     return scene.export(file_type="glb"), lo, hi
 
 
+def lod12_models(buildings) -> tuple[list[BuildingModel], float]:
+    """The LoD 1.2 blocks of ``buildings`` as models (:func:`..buildings.attributes.lod12_block` at the 70th
+    percentile roof height) and their geometric error for the tileset: the largest height difference between a
+    block's top and its building's roof (m, at least 0.5)."""
+    blocks, error = [], 0.5
+    for b in buildings:
+        a = building_attributes(b)
+        v, rings, kinds = lod12_block(b, a["roof_height_70p"])
+        surfaces = [Surface(f"{b.id}_lod12_{k}", kind, tuple(r)) for k, (r, kind) in enumerate(zip(rings, kinds))]
+        blocks.append(BuildingModel(b.id, v, surfaces, b.path, "LoD 1.2 block", np.asarray(b.footprint),
+                                    np.zeros(len(b.footprint)), np.zeros((0, 4))))
+        error = max(error, a["roof_height_max"] - a["roof_height_70p"], a["roof_height_70p"] - a["roof_height_min"])
+    return blocks, float(error)
+
+
 def _box(lo: np.ndarray, hi: np.ndarray) -> list[float]:
     c, h = (lo + hi) / 2.0, (hi - lo) / 2.0
     return [*c.tolist(), float(h[0]), 0.0, 0.0, 0.0, float(h[1]), 0.0, 0.0, 0.0, float(h[2])]
@@ -139,17 +158,23 @@ def write_3dtiles(folder: str | Path, buildings, crs: str, textures=None, window
     children, files = [], []
     lo_all, hi_all = np.full(3, np.inf), np.full(3, -np.inf)
     for (i, j), members in sorted(cells.items()):
-        name = f"tile_{i}_{j}.glb"
+        name, coarse = f"tile_{i}_{j}.glb", f"tile_{i}_{j}_lod12.glb"
         corners = to_local(crs, np.concatenate([b.vertices for b in members]), rotation, origin_geo)
         offset = np.round((corners.min(0) + corners.max(0)) / 2.0)
         glb, lo, hi = tile_glb(members, crs, rotation, origin_geo, offset, textures, windows)
+        blocks, error = lod12_models(members)
+        glb12, lo12, hi12 = tile_glb(blocks, crs, rotation, origin_geo, offset)
         write_bytes(folder / name, glb)
-        files.append(name)
-        lo_all, hi_all = np.minimum(lo_all, lo + offset), np.maximum(hi_all, hi + offset)
+        write_bytes(folder / coarse, glb12)
+        files += [coarse, name]
+        lo_t, hi_t = np.minimum(lo, lo12), np.maximum(hi, hi12)
+        lo_all, hi_all = np.minimum(lo_all, lo_t + offset), np.maximum(hi_all, hi_t + offset)
         move = np.eye(4)
         move[:3, 3] = offset
-        children.append({"transform": move.T.ravel().tolist(), "boundingVolume": {"box": _box(lo, hi)},
-                         "geometricError": 0.0, "content": {"uri": name}})
+        children.append({"transform": move.T.ravel().tolist(), "boundingVolume": {"box": _box(lo_t, hi_t)},
+                         "geometricError": error, "refine": "REPLACE", "content": {"uri": coarse},
+                         "children": [{"boundingVolume": {"box": _box(lo, hi)}, "geometricError": 0.0,
+                                       "content": {"uri": name}}]})
     transform = np.eye(4)
     transform[:3, :3], transform[:3, 3] = rotation.T, origin_geo
     tileset = {"asset": {"version": "1.1", "generator": "Oblique City"},

@@ -39,14 +39,23 @@ def test_tiles_carry_the_true_geometry(tmp_path):
               _box("B3", 512600.0, 5403010.0, 9.0)]  # 600 m east: a tile of its own
     files = write_3dtiles(tmp_path, models, CRS, tile_size=250.0)
     ts = json.loads((tmp_path / "tileset.json").read_text())
-    assert ts["asset"]["version"] == "1.1" and files[0] == "tileset.json" and len(files) == 3
+    assert ts["asset"]["version"] == "1.1" and files[0] == "tileset.json" and len(files) == 5
     root = ts["root"]
     transform = np.array(root["transform"]).reshape(4, 4).T  # column-major
     assert np.abs(transform[:3, :3] @ transform[:3, :3].T - np.eye(3)).max() < 1e-12
     assert np.linalg.norm(transform[:3, 3]) == pytest.approx(6.37e6, rel=0.01)  # on the earth's surface
-    contents = [c["content"]["uri"] for c in root["children"]]
-    for child, uri, members in zip(root["children"], contents, (models[:2], models[2:]), strict=True):
+    # each tile: the LoD 1.2 blocks, replaced by the LoD2 models within their geometric error
+    tiles = root["children"]
+    assert [t["refine"] for t in tiles] == ["REPLACE"] * 2 and all(t["children"][0]["geometricError"] == 0
+                                                                   for t in tiles)
+    assert tiles[0]["geometricError"] == pytest.approx(0.5)  # flat roofs: the blocks are the models
+    contents = [t["children"][0]["content"]["uri"] for t in tiles]
+    for child, uri, members in zip(tiles, contents, (models[:2], models[2:]), strict=True):
         tile = transform @ np.array(child["transform"]).reshape(4, 4).T  # the tile's shift within the root frame
+        blocks, _ = _world_vertices(tmp_path, child["content"]["uri"], tile)
+        assert np.abs(np.unique(np.round(blocks[:, 2], 2)) - sorted({150.0, *(m.vertices[:, 2].max() for m in
+                                                                             members)})).max() < 2e-3
+        child = child["children"][0]
         world, local = _world_vertices(tmp_path, uri, tile)
         truth = np.concatenate([m.vertices for m in members])
         d = np.linalg.norm(world[:, None, :] - truth[None, :, :], axis=2)
@@ -55,8 +64,7 @@ def test_tiles_carry_the_true_geometry(tmp_path):
         assert np.all(np.abs(local - box[:3]) <= np.abs(box[[3, 7, 11]]) + 1e-4)  # float32 positions
         assert np.abs(local).max() < 30.0  # small numbers around the tile's own centre
     # up in the frame is up on the earth: roofs stand 7-12 m above the ground in the frame's z
-    world, local = _world_vertices(tmp_path, contents[0], transform @ np.array(root["children"][0]["transform"]
-                                                                                ).reshape(4, 4).T)
+    world, local = _world_vertices(tmp_path, contents[0], transform @ np.array(tiles[0]["transform"]).reshape(4, 4).T)
     assert np.ptp(local[:, 2]) == pytest.approx(12.0, abs=0.01)
 
 
@@ -67,7 +75,8 @@ def test_export_command_writes_a_folder(tmp_path):
 
     ws = Workspace.create(tmp_path / "ws", crs=CRS)
     save_buildings(ws.path("buildings", "buildings.json"), [_box("B1", 512000.0, 5403000.0, 7.0)], ws.crs)
-    assert "1 glTF tiles" in export_buildings(ws.root, "3dtiles", tmp_path / "tiles")
+    summary = export_buildings(ws.root, "3dtiles", tmp_path / "tiles")
+    assert "(1 tiles, each as LoD 1.2 blocks and LoD2 models" in summary
     assert (tmp_path / "tiles" / "tileset.json").exists()
     (tmp_path / "afile").write_text("x")
     with pytest.raises(ConfigError, match="folder"):
