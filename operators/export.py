@@ -18,7 +18,7 @@ from bpy_extras.io_utils import ExportHelper
 from ..core.errors import CityError
 from ..core.export.command import export_block, export_buildings
 from ..core.io.formats import WRITERS
-from .import_block import FORMAT_LABELS, parse_options
+from .import_block import enum_items, parse_options
 from .run import scene_workspace
 
 EXTENSIONS = {"citygml": ".gml", "cityjson": ".city.json", "obj": ".obj", "3dtiles": "", "geojson": ".geojson"}
@@ -101,9 +101,8 @@ _block_items: list[tuple[str, str, str]] = []
 
 
 def block_format_items(self, context) -> list[tuple[str, str, str]]:
-    """Enum items from the registered block writers (kept alive, as Blender requires for dynamic enums)."""
-    _block_items[:] = [(name, *FORMAT_LABELS.get(name, (name, f"Block format '{name}'"))) for name in WRITERS]
-    return _block_items
+    """Enum items from the registered block writers."""
+    return enum_items(WRITERS, _block_items)
 
 
 class CITY_OT_export_block(bpy.types.Operator, ExportHelper):

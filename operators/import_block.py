@@ -36,10 +36,16 @@ FOLDER_FORMATS = {"colmap"}
 _format_items: list[tuple[str, str, str]] = []
 
 
+def enum_items(names, store: list) -> list[tuple[str, str, str]]:
+    """Enum items of block format ``names`` with their labels, written into ``store`` (a module-level list kept
+    alive, as Blender requires for dynamic enums)."""
+    store[:] = [(name, *FORMAT_LABELS.get(name, (name, f"Block format '{name}'"))) for name in names]
+    return store
+
+
 def format_items(self, context) -> list[tuple[str, str, str]]:
-    """Enum items from the registered readers (the list is kept alive, as Blender requires for dynamic enums)."""
-    _format_items[:] = [(name, *FORMAT_LABELS.get(name, (name, f"Block format '{name}'"))) for name in READERS]
-    return _format_items
+    """Enum items from the registered readers."""
+    return enum_items(READERS, _format_items)
 
 
 def parse_options(text: str) -> dict[str, object]:

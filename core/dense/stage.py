@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import ComputationError, ConfigError
 from ..geometry.views import VIEWS
-from ..io.pointcloud import PointCloud, write_las, write_ply
+from ..io.pointcloud import PointCloud, display_subset, write_las, write_ply
 from ..io.validate import resolve_image
 from ..model.block import ImageBlock
 from ..model.camera import CameraModel
@@ -243,9 +243,7 @@ def _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted) 
                        arr["master"][kept], masters, block.crs)
     write_las(out_dir / "points.laz", cloud)
     write_ply(out_dir / "points.ply", cloud)
-    rng = np.random.default_rng(0)
-    sub = rng.choice(len(cloud), size=min(len(cloud), cfg.display_points), replace=False) if len(cloud) else []
-    write_ply(out_dir / "points_display.ply", cloud.subset(np.sort(sub)))
+    write_ply(out_dir / "points_display.ply", display_subset(cloud, cfg.display_points))
     secs = sum(r.seconds for r in results)
     mpx = sum(r.megapixels for r in results)
     write_json(out_dir / "selection.json", {

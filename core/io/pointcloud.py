@@ -68,6 +68,14 @@ class PointCloud:
                           list(self.masters), self.crs, self.classification[i])
 
 
+def display_subset(cloud: PointCloud, n: int, seed: int = 0) -> PointCloud:
+    """At most ``n`` points of ``cloud`` drawn at random (fixed ``seed``), in their original order: the light
+    copy viewers and Blender show."""
+    sub = np.random.default_rng(seed).choice(len(cloud), size=min(len(cloud), n), replace=False) if len(cloud) \
+        else np.zeros(0, np.int64)
+    return cloud.subset(np.sort(sub))
+
+
 def write_las(path: str | Path, cloud: PointCloud) -> None:
     """Write ``cloud`` as LAS, or LAZ when ``path`` ends with ``.laz`` (atomically)."""
     import laspy

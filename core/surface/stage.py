@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import WorkspaceError
 from ..io.geotiff import write_geotiff, write_png
-from ..io.pointcloud import PointCloud, write_las
+from ..io.pointcloud import PointCloud, display_subset, write_las
 from ..io.validate import resolve_image
 from ..pipeline.stage import Stage, StageResult
 from .dsm import DsmConfig, GridSpec, cell_colours, make_dsm
@@ -175,8 +175,7 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
                       high_vegetation_m=cfg.high_vegetation_m)
     classified = PointCloud(xyz, rgb, normal, view, master, masters, crs, las)
     write_las(out / "points_classified.laz", classified)
-    sub = np.random.default_rng(0).choice(len(classified), size=min(len(classified), DISPLAY_POINTS), replace=False)
-    write_las(out / "points_classified_display.laz", classified.subset(np.sort(sub)))
+    write_las(out / "points_classified_display.laz", display_subset(classified, DISPLAY_POINTS))
     outputs += ["surface/points_classified.laz", "surface/points_classified_display.laz"]
     ctx.progress(steps, steps, "written")
 
