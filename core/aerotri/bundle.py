@@ -103,22 +103,33 @@ class BundleOptions:
         oblique run of the 3,000-image block the first step left 0.09 of the cost change (2.1 of chi-square) to a
         second one and a third confirmed convergence; from 1e6 up the first step reached the same cost and the
         second confirmed it (3 -> 2 iterations, same final cost to 7 digits)
-    linear_solver : ``auto``, ``sparse_schur`` or ``iterative_schur``; ``auto`` factorises the reduced camera
-        system (sparse Schur) while it has at most ``sparse_schur_max_blocks`` non-zero 6x6 blocks (image pairs
-        sharing a point, counted on a sample of the tracks) or at most ``sparse_schur_max_neighbours`` of them per
-        image, and solves it by conjugate gradients (iterative Schur, Schur-Jacobi preconditioner) otherwise. The
-        fill-in of the factorisation grows with the neighbours per image. Measured on simulated blocks: one-view
-        sub-blocks have 41-58 neighbours per image at any size; sparse Schur solved the 600-image nadir one of the
-        3,000-image block in 10.5 s against 27.8 s iterative, and the 1,608-image nadir one of an 8,000-image
-        block in 23.0 s against 51.7 s (same rejections); all 3,000 images together have 611 k blocks (204 per
-        image), where the factorisation fills in: IAT spent 458 s in Ceres with sparse Schur against 206 s
+    linear_solver : ``auto``, ``sparse_schur``, ``iterative_schur`` or ``explicit_schur``; ``auto`` factorises the
+        reduced camera system (sparse Schur) while it has at most ``sparse_schur_max_blocks`` non-zero 6x6 blocks
+        (image pairs sharing a point, counted on a sample of the tracks) or at most ``sparse_schur_max_neighbours``
+        of them per image, and solves it by conjugate gradients (iterative Schur, Schur-Jacobi preconditioner)
+        otherwise. The fill-in of the factorisation grows with the neighbours per image. Measured on simulated
+        blocks: one-view sub-blocks have 41-58 neighbours per image at any size; sparse Schur solved the 600-image
+        nadir one of the 3,000-image block in 10.5 s against 27.8 s iterative, and the 1,608-image nadir one of an
+        8,000-image block in 23.0 s against 51.7 s (same rejections); all 3,000 images together have 611 k blocks
+        (204 per image), where the factorisation fills in: IAT spent 458 s in Ceres with sparse Schur against 206 s
         iterative. A sub-block with fewer than ``sparse_schur_min_obs_per_image`` observations per image (thinned
-        tie points) is solved iteratively too: factorising costs the same per image whatever the observations,
-        while each conjugate-gradient product costs in proportion to them. Measured on the one-view oblique runs
-        of the 3,000-image block (600 images, 54 neighbours per image): at 100 observations per image iterative
-        Schur took 0.76-0.84 s in Ceres against 1.08-1.16 s sparse (200-image runs of a 1,000-image block: 0.21-0.25
-        against 0.26-0.37 s), at 245 per image both the same (2.4-2.7 s), at 777 (the nadir run) sparse is 2.6
-        times faster
+        tie points) is solved iteratively too: factorising costs the same per image whatever the observations, while
+        each conjugate-gradient product costs in proportion to them. Measured on the one-view oblique runs of the
+        3,000-image block (600 images, 54 neighbours per image): at 100 observations per image iterative Schur took
+        0.76-0.84 s in Ceres against 1.08-1.16 s sparse (200-image runs of a 1,000-image block: 0.21-0.25 against
+        0.26-0.37 s), at 245 per image both the same (2.4-2.7 s), at 777 (the nadir run) sparse is 2.6 times faster.
+        ``explicit_schur`` forms the reduced camera system as sparse Schur does and solves it by conjugate gradients
+        to a relative residual of ``explicit_schur_eta`` instead of factorising it; ``auto`` takes it in place of
+        sparse Schur for a sub-block of at least ``explicit_schur_min_images`` images without camera or mounting
+        parameters (global unknowns that couple every image and can slow conjugate gradients down). Ceres orders a
+        factorisation's columns by a constrained minimum degree over the whole Jacobian (points included) in its
+        preprocessor, once per solve: on the 600-image one-view sub-blocks of the 3,000-image block that ordering
+        was about 1.2 s of a 2.6 s preprocessing, while the solves that replace the factorisation cost 0.1-0.3 s
+        more, and the steps are as exact (same iterations, same final cost): 4.2-4.6 s in Ceres against 4.7-5.8 s
+        (the nadir run: 9.4-10.0 s against 9.9-11.3 s). Where iterative Schur is chosen it stays: on all 3,000
+        images (204 neighbours per image) forming the reduced system costs more than the implicit products save (IAT
+        250 s with it against 149 s), and the thinned oblique runs (100 observations per image) took as long or
+        longer with it (1.5-1.9 s in Ceres against 1.3-1.5 s)
     resolve_tolerance : a least-squares round whose flagged observations carry less than this share of chi-square
         ends the rejection without another solve: they are rejected and only the points that lost them are
         re-estimated (cameras fixed), since a full solve would move the cameras by far less than their precision
@@ -160,6 +171,8 @@ class BundleOptions:
     sparse_schur_max_blocks: int = 60_000
     sparse_schur_max_neighbours: float = 100.0
     sparse_schur_min_obs_per_image: float = 200.0
+    explicit_schur_min_images: int = 300
+    explicit_schur_eta: float = 1e-5
     resolve_tolerance: float = 1e-4
     marginal_max_images: int = 0
     screen_start: bool = False
@@ -832,6 +845,9 @@ class _Round:
         else:
             so.linear_solver_type = pyceres.LinearSolverType.ITERATIVE_SCHUR
             so.preconditioner_type = pyceres.PreconditionerType.SCHUR_JACOBI
+            if kind == "explicit_schur":
+                so.use_explicit_schur_complement = True
+                so.eta = opt.explicit_schur_eta
         so.num_threads = opt.threads
         so.max_num_iterations = opt.robust_max_iterations if robust else opt.max_iterations
         so.function_tolerance = opt.robust_function_tolerance if robust else opt.function_tolerance
@@ -861,14 +877,23 @@ def camera_blocks(obs_point: np.ndarray, obs_image: np.ndarray, n_points: int, n
     return int((a.T @ a).nnz - n_images)
 
 
+LINEAR_SOLVERS = ("auto", "sparse_schur", "iterative_schur", "explicit_schur")
+
+
 def linear_solver_kind(prob: BundleProblem, opt: BundleOptions, active: np.ndarray) -> str:
-    """``sparse_schur`` or ``iterative_schur`` for ``opt.linear_solver`` (see :class:`BundleOptions`)."""
+    """``sparse_schur``, ``iterative_schur`` or ``explicit_schur`` for ``opt.linear_solver`` (see
+    :class:`BundleOptions`)."""
+    if opt.linear_solver not in LINEAR_SOLVERS:
+        raise ComputationError(f"unknown linear solver '{opt.linear_solver}' (use {', '.join(LINEAR_SOLVERS)})")
     if opt.linear_solver != "auto":
         return opt.linear_solver
     blocks = camera_blocks(prob.obs_point[active], prob.obs_image[active], prob.n_points, prob.n_images)
     sparse = blocks <= opt.sparse_schur_max_blocks or blocks <= opt.sparse_schur_max_neighbours * prob.n_images
     sparse &= int(active.sum()) >= opt.sparse_schur_min_obs_per_image * prob.n_images
-    return "sparse_schur" if sparse else "iterative_schur"
+    if not sparse:
+        return "iterative_schur"
+    explicit = prob.n_images >= opt.explicit_schur_min_images and not opt.self_calibration and not opt.mounting
+    return "explicit_schur" if explicit else "sparse_schur"
 
 
 def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
