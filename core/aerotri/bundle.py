@@ -126,10 +126,11 @@ class BundleOptions:
         preprocessor, once per solve: on the 600-image one-view sub-blocks of the 3,000-image block that ordering
         was about 1.2 s of a 2.6 s preprocessing, while the solves that replace the factorisation cost 0.1-0.3 s
         more, and the steps are as exact (same iterations, same final cost): 4.2-4.6 s in Ceres against 4.7-5.8 s
-        (the nadir run: 9.4-10.0 s against 9.9-11.3 s). Where iterative Schur is chosen it stays: on all 3,000
-        images (204 neighbours per image) forming the reduced system costs more than the implicit products save (IAT
-        250 s with it against 149 s), and the thinned oblique runs (100 observations per image) took as long or
-        longer with it (1.5-1.9 s in Ceres against 1.3-1.5 s)
+        (the nadir run: 9.4-10.0 s against 9.9-11.3 s), each run measured alone; whole HAT runs on 2 cores (37-48 s
+        here) differed by less than their spread from run to run. Where iterative Schur is chosen it stays: on all
+        3,000 images (204 neighbours per image) forming the reduced system costs more than the implicit products
+        save (IAT 250 s with it against 149 s), and the thinned oblique runs (100 observations per image) took as
+        long or longer with it (1.5-1.9 s in Ceres against 1.3-1.5 s)
     resolve_tolerance : a least-squares round whose flagged observations carry less than this share of chi-square
         ends the rejection without another solve: they are rejected and only the points that lost them are
         re-estimated (cameras fixed), since a full solve would move the cameras by far less than their precision
