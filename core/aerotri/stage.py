@@ -17,7 +17,7 @@ from ..errors import ConfigError, WorkspaceError
 from ..model import CameraModel, ImageBlock, TiePoints
 from ..pipeline.atomic import write_json, write_text
 from ..pipeline.stage import Stage, StageResult
-from .bundle import CALIBRATION_GROUPS, BundleOptions
+from .bundle import CALIBRATION_GROUPS, LINEAR_SOLVERS, BundleOptions
 from .hierarchical import CONNECTIONS, ATResult, hierarchical, integrated
 from .report import block_report, html_report, quality_layers, write_layers
 
@@ -51,6 +51,9 @@ class AerotriConfig:
     blunder_threshold : normalised residual rejection threshold; max_rejection_rounds : rounds after the robust one
     robust_scale : Cauchy loss scale of the first solve in sigmas
     threads : Ceres threads per adjustment
+    linear_solver : how Ceres solves the reduced camera system: ``auto`` (by the block's size and structure),
+        ``sparse_schur`` (factorisation), ``iterative_schur`` or ``explicit_schur`` (conjugate gradients, see
+        :class:`.bundle.BundleOptions`); ``sparse_schur`` is the fallback where conjugate gradients converge slowly
     layer_cell : cell of the quality layers in metres (0: the CBA cell size)
     layer_views : rays and intersection precision of the CBA layers from ``all``, ``nadir`` or ``oblique`` views
     min_rays : tie tracks with fewer rays are left out (two-ray points are badly constrained and hide blunders)
@@ -80,6 +83,7 @@ class AerotriConfig:
     max_rejection_rounds: int = 4
     robust_scale: float = 3.0
     threads: int = 2
+    linear_solver: str = "auto"
     layer_cell: float = 0.0
     layer_views: str = "all"
     min_rays: int = 3
@@ -92,6 +96,9 @@ class AerotriConfig:
             if g not in CALIBRATION_GROUPS:
                 raise ConfigError(f"aerotri.self_calibration: unknown group '{g}' "
                                   f"(use {', '.join(CALIBRATION_GROUPS)})")
+        if self.linear_solver not in LINEAR_SOLVERS:
+            raise ConfigError(f"aerotri.linear_solver: unknown solver '{self.linear_solver}' "
+                              f"(use {', '.join(LINEAR_SOLVERS)})")
         return BundleOptions(sigma_px=self.sigma_px, robust_scale=self.robust_scale,
                              blunder_threshold=self.blunder_threshold,
                              max_rejection_rounds=self.max_rejection_rounds,
@@ -99,7 +106,7 @@ class AerotriConfig:
                              rig=self.rig, rig_sigma_deg=self.rig_sigma_deg, rig_sigma_m=self.rig_sigma_m,
                              mounting=self.mounting, mounting_sigma_deg=self.mounting_sigma_deg,
                              mounting_sigma_m=self.mounting_sigma_m, threads=self.threads,
-                             marginal_max_images=self.marginal_std_max_images)
+                             linear_solver=self.linear_solver, marginal_max_images=self.marginal_std_max_images)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:

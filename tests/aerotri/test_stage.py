@@ -107,6 +107,20 @@ def test_rig_constraint_on_a_block_without_rig_is_refused(tmp_path):
         STAGE.run(ws, AerotriConfig(rig=True), RunContext())
 
 
+def test_linear_solver_option_reaches_the_adjustment_and_is_checked(tmp_path):
+    """``aerotri.linear_solver`` forces how Ceres solves the reduced camera system; an unknown name is refused with
+    the option's name before anything runs."""
+    import pytest
+
+    from oblique_city.core.aerotri.stage import AerotriConfig
+    from oblique_city.core.errors import ConfigError
+
+    assert AerotriConfig(linear_solver="explicit_schur").bundle_options().linear_solver == "explicit_schur"
+    assert AerotriConfig().bundle_options().linear_solver == "auto"
+    with pytest.raises(ConfigError, match="aerotri.linear_solver: unknown solver 'cholmod'"):
+        AerotriConfig(linear_solver="cholmod").bundle_options()
+
+
 def test_self_calibrated_cameras_are_saved_with_the_adjusted_block(tmp_path):
     """The imported focal lengths are 0.3 % off: with ``self_calibration = ["focal"]`` the adjusted block the later
     stages read carries the calibrated cameras (within 0.05 % of the true focal), not the imported ones that the
