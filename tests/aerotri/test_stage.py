@@ -107,7 +107,7 @@ def test_rig_constraint_on_a_block_without_rig_is_refused(tmp_path):
         STAGE.run(ws, AerotriConfig(rig=True), RunContext())
 
 
-def test_linear_solver_option_reaches_the_adjustment_and_is_checked(tmp_path):
+def test_linear_solver_option_reaches_the_adjustment_and_is_checked():
     """``aerotri.linear_solver`` forces how Ceres solves the reduced camera system; an unknown name is refused with
     the option's name before anything runs."""
     import pytest
