@@ -12,7 +12,7 @@
   other heads of each exposure; from there their blunders are tested at the start (``BundleOptions.screen_start``)
   instead of by a robust solve, so each oblique run needs one least-squares solve. The first part of that
   screened start (a screening and one resection step, :func:`.bundle.resected_start`) needs no connection point:
-  it starts from the nadir run's robust round and runs on the executor while the nadir run finishes
+  it starts from the nadir run's robust round and runs in a thread of this process while the nadir run finishes
   (:class:`_EarlyStart`); the oblique runs then screen once, with their connection points.
   Optionally (``oblique_ties_per_cell``) the oblique runs adjust a thinned, regularly distributed subset of their
   tie points (a production practice); the rest are intersected afterwards with the final orientations.
@@ -208,11 +208,11 @@ def _start_points(block: ImageBlock, ties: TiePoints, in_runs: list[np.ndarray],
     return np.where(np.isfinite(x_nadir[:, :1]), x_nadir, np.where(np.isfinite(x_int[:, :1]), x_int, xyz0))
 
 
-def _resect_units(items: list[tuple[BundleProblem, BundleOptions]]
+def _resected_starts(items: list[tuple[BundleProblem, BundleOptions]]
                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
-    """Executor unit: :func:`.bundle.resected_start` of oblique sub-blocks, one after the other, from their start
-    values (all observations with a start point) -> per sub-block ``r (k, 3, 3)``, ``c (k, 3)``, points
-    ``(p, 3)``, the screening's sigma0. One unit, so one worker: the nadir run keeps the other core."""
+    """:func:`.bundle.resected_start` of oblique sub-blocks, one after the other, from their start values (all
+    observations with a start point) -> per sub-block ``r (k, 3, 3)``, ``c (k, 3)``, points ``(p, 3)``, the
+    screening's sigma0."""
     out = []
     for prob, opt in items:
         idx = np.flatnonzero(np.isfinite(prob.xyz[prob.obs_point, 0]) & np.all(np.isfinite(prob.obs_uv), 1))
@@ -230,12 +230,14 @@ class _EarlyStart:
     propagated to the other heads, the tie points intersected from there) serves the blunder tests at the start,
     for which the robust round's orientations are as good (on the 3,000-image block they differ from the final
     ones by 0.09-0.17 of the final standard deviations, median). Called as ``adjust``'s ``on_robust`` hook with
-    the nadir orientations and points; with a parallel executor the set-up runs in a thread and the sub-blocks one
-    after the other in one of the executor's workers (the core the nadir run leaves idle in its single-threaded
-    parts; spread over both workers of a two-core machine they slowed the nadir run down by as much as the oblique
-    runs gained), inline otherwise (when :meth:`results` is asked, with the same values). ``results()`` -> view ->
-    (image ids, tracks ``(p,)``, ``r (k, 3, 3)``, ``c (k, 3)``, points ``(p, 3)``, sigma0), and the start points
-    ``(n, 3)`` of all tracks."""
+    the nadir orientations and points; with ``parallel`` (an executor with workers) the set-up and the sub-blocks,
+    one after the other, run in a thread of this process (mostly numpy, which leaves the interpreter to the nadir
+    run; on the core the nadir run leaves idle in its single-threaded parts), inline otherwise (when
+    :meth:`results` is asked, with the same values). Sending the sub-blocks to the executor's workers instead did
+    not help on 2 cores: the nadir run and the set-up after it took 16.4-19.6 s with the thread (3 runs of the
+    3,000-image block), 19.5 s with one worker, 17.7-19.3 s with both. ``results()`` -> view -> (image ids,
+    tracks ``(p,)``, ``r (k, 3, 3)``, ``c (k, 3)``, points ``(p, 3)``, sigma0), and the start points ``(n, 3)`` of
+    all tracks."""
 
     block: ImageBlock
     ties: TiePoints
@@ -244,7 +246,7 @@ class _EarlyStart:
     nadir_problem: SubProblem
     xyz0: np.ndarray
     opt: BundleOptions
-    executor: object = None
+    parallel: bool = False
     before: threading.Thread | None = None
     _start: tuple | None = field(default=None, init=False)
     _thread: threading.Thread | None = field(default=None, init=False)
@@ -253,7 +255,7 @@ class _EarlyStart:
 
     def __call__(self, r: np.ndarray, c: np.ndarray, xyz: np.ndarray) -> None:
         self._start = (r, c, xyz)
-        if self.executor is not None:
+        if self.parallel:
             self._thread = threading.Thread(target=self._run, daemon=True)
             self._thread.start()
 
@@ -291,7 +293,7 @@ class _EarlyStart:
         subs = {v: build_problem(block, ties, self.views[v], xyz_start, obs_mask=in_run, use_control=False,
                                  initial=start) for v, in_run in self.in_runs.items()}
         items = [(sub.problem, self.opt) for sub in subs.values()]
-        outs = self.executor.map(_resect_units, [items])[0] if self.executor is not None else _resect_units(items)
+        outs = _resected_starts(items)
         return ({v: (sub.problem.image_ids, sub.track_index, *out) for (v, sub), out in zip(subs.items(), outs)},
                 xyz_start)
 
@@ -353,7 +355,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         pre_views[v] = (ids, in_view, rays_v, kept)
     early = _EarlyStart(block, ties, views, {v: in_view if kept is None else in_view & kept[ties.obs_track]
                                              for v, (_, in_view, _, kept) in pre_views.items()},
-                        sub_n, xyz0, opt, executor if parallel else None, warm)
+                        sub_n, xyz0, opt, parallel, warm)
     try:
         res_n = adjust(sub_n.problem, opt, None if progress is None else
                        (lambda d, t, m: progress(d, t * 2, "nadir: " + m)), on_robust=early if pre_views else None)
