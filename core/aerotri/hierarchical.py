@@ -363,7 +363,6 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         early.discard()
         raise
     nadir = _to_run("nadir", sub_n, res_n, time.perf_counter() - t1)
-    early_out = early.results()
     xyz_nadir = np.full((n, 3), np.nan)
     cov_nadir = np.full((n, 3, 3), np.nan)
     xyz_nadir[nadir.track_index], cov_nadir[nadir.track_index] = nadir.xyz, nadir.xyz_cov
@@ -387,7 +386,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         per_view.append((v, ids, sel, in_run))
     # start coordinates of the tracks that enter an oblique run (thinned tracks are intersected at the end): the
     # nadir run's where it adjusted them, else those of the early start (see _EarlyStart), else intersected from
-    # the propagated orientations
+    # the propagated orientations (the connection points above were selected while the early start finished)
+    early_out = early.results()
     if early_out is not None:
         pre, xyz_pre = early_out
         xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
