@@ -54,6 +54,8 @@ class AerotriConfig:
     linear_solver : how Ceres solves the reduced camera system: ``auto`` (by the block's size and structure),
         ``sparse_schur`` (factorisation), ``iterative_schur`` or ``explicit_schur`` (conjugate gradients, see
         :class:`.bundle.BundleOptions`); ``sparse_schur`` is the fallback where conjugate gradients converge slowly
+    settle_stop : end an exactly solved least-squares round after the step its quadratic model foretold (one linear
+        solve sooner, the same solution; :attr:`.bundle.BundleOptions.settle_stop`); off: Ceres' own tests alone
     layer_cell : cell of the quality layers in metres (0: the CBA cell size)
     layer_views : rays and intersection precision of the CBA layers from ``all``, ``nadir`` or ``oblique`` views
     min_rays : tie tracks with fewer rays are left out (two-ray points are badly constrained and hide blunders)
@@ -84,6 +86,7 @@ class AerotriConfig:
     robust_scale: float = 3.0
     threads: int = 2
     linear_solver: str = "auto"
+    settle_stop: bool = True
     layer_cell: float = 0.0
     layer_views: str = "all"
     min_rays: int = 3
@@ -106,7 +109,8 @@ class AerotriConfig:
                              rig=self.rig, rig_sigma_deg=self.rig_sigma_deg, rig_sigma_m=self.rig_sigma_m,
                              mounting=self.mounting, mounting_sigma_deg=self.mounting_sigma_deg,
                              mounting_sigma_m=self.mounting_sigma_m, threads=self.threads,
-                             linear_solver=self.linear_solver, marginal_max_images=self.marginal_std_max_images)
+                             linear_solver=self.linear_solver, settle_stop=self.settle_stop,
+                             marginal_max_images=self.marginal_std_max_images)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:

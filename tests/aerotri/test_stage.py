@@ -121,6 +121,14 @@ def test_linear_solver_option_reaches_the_adjustment_and_is_checked():
         AerotriConfig(linear_solver="cholmod").bundle_options()
 
 
+def test_settle_stop_option_reaches_the_adjustment():
+    """``aerotri.settle_stop`` (on by default) switches the settle stop of the least-squares rounds."""
+    from oblique_city.core.aerotri.stage import AerotriConfig
+
+    assert AerotriConfig().bundle_options().settle_stop
+    assert not AerotriConfig(settle_stop=False).bundle_options().settle_stop
+
+
 def test_self_calibrated_cameras_are_saved_with_the_adjusted_block(tmp_path):
     """The imported focal lengths are 0.3 % off: with ``self_calibration = ["focal"]`` the adjusted block the later
     stages read carries the calibrated cameras (within 0.05 % of the true focal), not the imported ones that the
