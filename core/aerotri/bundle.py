@@ -132,8 +132,9 @@ class BundleOptions:
         save (IAT 250 s with it against 149 s), and the thinned oblique runs (100 observations per image) took as
         long or longer with it (1.5-1.9 s in Ceres against 1.3-1.5 s)
     settle_stop : a least-squares round solved exactly (sparse Schur, or explicit Schur to
-        ``explicit_schur_eta``) ends after an undamped step (:data:`SETTLE_MIN_RADIUS`, the least-squares rounds'
-        ``ls_trust_region_radius``) that :func:`model_settled` accepts: its quadratic model foretold
+        ``explicit_schur_eta``, the conjugate gradients stopped before their cap) ends after an undamped step
+        (:data:`SETTLE_MIN_RADIUS`, the least-squares rounds' ``ls_trust_region_radius``) that
+        :func:`model_settled` accepts: its quadratic model foretold
         the cost so closely that no further step can lower the cost by ``function_tolerance``. Ceres would compute
         that step, find the decrease under its tolerance and discard it, so the result is the same, one linear
         solve and one cost evaluation sooner. On the 600-image sub-blocks of the 3,000-image block the least-squares
@@ -872,7 +873,7 @@ class _Round:
         stop = None
         if opt.settle_stop and not robust and kind != "iterative_schur":
             stop = _settle_stop_class()(opt.function_tolerance, opt.explicit_schur_eta if kind == "explicit_schur"
-                                        else 0.0)
+                                        else 0.0, so.max_linear_solver_iterations)
             so.callbacks = [stop]
         summary = pyceres.SolverSummary()
         pyceres.solve(so, self.problem, summary)
@@ -916,17 +917,20 @@ def _settle_stop_class() -> type:
 
     class SettleStop(pyceres.IterationCallback):
         """Ends the solve after a step :func:`model_settled` accepts, taken with a trust region radius of at least
-        :data:`SETTLE_MIN_RADIUS`; ``settled`` tells whether it did."""
+        :data:`SETTLE_MIN_RADIUS` and, by conjugate gradients, in fewer than ``max_linear_iterations`` (else they
+        stopped at the cap, short of ``solve_share``); ``settled`` tells whether it did."""
 
-        def __init__(self, function_tolerance: float, solve_share: float) -> None:
+        def __init__(self, function_tolerance: float, solve_share: float, max_linear_iterations: int) -> None:
             super().__init__()
             self.function_tolerance, self.solve_share, self.settled = function_tolerance, solve_share, False
+            self.max_linear_iterations = max_linear_iterations
             self.radius = 0.0  # the radius the next step is computed with (Ceres reports it after each iteration)
 
         def __call__(self, s) -> object:
             step_radius, self.radius = self.radius, s.trust_region_radius
-            if s.iteration >= 1 and s.step_is_successful and step_radius >= SETTLE_MIN_RADIUS and model_settled(
-                    s.cost, s.cost_change, s.relative_decrease, self.function_tolerance, self.solve_share):
+            if (s.iteration >= 1 and s.step_is_successful and step_radius >= SETTLE_MIN_RADIUS
+                    and s.linear_solver_iterations < self.max_linear_iterations and model_settled(
+                        s.cost, s.cost_change, s.relative_decrease, self.function_tolerance, self.solve_share)):
                 self.settled = True
                 return pyceres.CallbackReturnType.SOLVER_TERMINATE_SUCCESSFULLY
             return pyceres.CallbackReturnType.SOLVER_CONTINUE

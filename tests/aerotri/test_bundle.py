@@ -203,6 +203,30 @@ def test_model_settled_needs_a_foretold_decrease_and_an_exact_solve():
     assert not model_settled(1e4, 1e-3, -1.0, 1e-6, 0.0)
 
 
+def test_settle_stop_needs_an_undamped_step_solved_to_its_tolerance():
+    """The stop ends a solve only on a step taken at a radius of at least SETTLE_MIN_RADIUS (the radius Ceres reports
+    after the previous iteration) and whose conjugate gradients stopped before their cap."""
+    from types import SimpleNamespace
+
+    import pyceres
+
+    from oblique_city.core.aerotri.bundle import SETTLE_MIN_RADIUS, _settle_stop_class
+
+    def run(radius: float, cg_iterations: int):
+        stop = _settle_stop_class()(1e-6, 1e-5, 500)
+        first = SimpleNamespace(iteration=0, trust_region_radius=radius, step_is_successful=True,
+                                linear_solver_iterations=0, cost=1e4, cost_change=0.0, relative_decrease=0.0)
+        step = SimpleNamespace(iteration=1, trust_region_radius=3 * radius, step_is_successful=True,
+                               linear_solver_iterations=cg_iterations, cost=1e4, cost_change=100.0,
+                               relative_decrease=1.0 - 1e-7)
+        return stop(first), stop(step), stop.settled
+
+    go, end = pyceres.CallbackReturnType.SOLVER_CONTINUE, pyceres.CallbackReturnType.SOLVER_TERMINATE_SUCCESSFULLY
+    assert run(SETTLE_MIN_RADIUS, 55) == (go, end, True)
+    assert run(SETTLE_MIN_RADIUS / 10, 55) == (go, go, False)  # damped
+    assert run(SETTLE_MIN_RADIUS, 500) == (go, go, False)  # conjugate gradients at their cap
+
+
 def assert_same_solution(ref, other, share: float) -> None:
     """The same rejections, orientations and points within ``share`` of ``ref``'s standard deviations, sigma0 to
     1e-4."""
