@@ -131,19 +131,18 @@ class BundleOptions:
         3,000 images (204 neighbours per image) forming the reduced system costs more than the implicit products
         save (IAT 250 s with it against 149 s), and the thinned oblique runs (100 observations per image) took as
         long or longer with it (1.5-1.9 s in Ceres against 1.3-1.5 s)
-    settle_stop : a least-squares round solved exactly (sparse Schur, or explicit Schur to
-        ``explicit_schur_eta``, the conjugate gradients stopped before their cap) ends after an undamped step
-        (:data:`SETTLE_MIN_RADIUS`, the least-squares rounds' ``ls_trust_region_radius``) that
-        :func:`model_settled` accepts: its quadratic model foretold
-        the cost so closely that no further step can lower the cost by ``function_tolerance``. Ceres would compute
-        that step, find the decrease under its tolerance and discard it, so the result is the same, one linear
+    settle_stop : a least-squares round solved exactly (sparse Schur, or explicit Schur to ``explicit_schur_eta``, the
+        conjugate gradients stopped before their cap) ends after an undamped step (:data:`SETTLE_MIN_RADIUS`, the
+        least-squares rounds' ``ls_trust_region_radius``) that :func:`model_settled` accepts: its quadratic model
+        foretold the cost so closely that no further step can lower the cost by ``function_tolerance``. Ceres would
+        compute that step, find the decrease under its tolerance and discard it, so the result is the same, one linear
         solve and one cost evaluation sooner. On the 600-image sub-blocks of the 3,000-image block the least-squares
-        rounds took one step where Ceres computed two and kept one (the model foretold the step's decrease to 1e-6
-        of it; bit-identical orientations and points on one thread): an oblique run on one thread 8.0-8.7 s
-        against 8.9-11.1 s, the nadir run on two 11.9-13.5 s against 13.1-13.7 s, whole HAT runs on 2 cores
-        34.7-36.6 s against 37.3-37.8 s. Not for iterative Schur, whose steps stop short of the model's minimum by
-        design (truncated Newton, ``eta`` 0.1); IAT's least-squares round solved by explicit Schur with this stop
-        instead took as long (IAT 142 s against 147 s), so IAT keeps iterative Schur
+        rounds took one step where Ceres computed two and kept one (the model foretold the step's decrease to 1e-6 of
+        it; bit-identical orientations and points on one thread): an oblique run on one thread 8.0-8.7 s against
+        8.9-11.1 s, the nadir run on two 11.9-13.5 s against 13.1-13.7 s, whole HAT runs on 2 cores 34.7-36.6 s against
+        37.3-37.8 s. Not for iterative Schur, whose steps stop short of the model's minimum by design (truncated Newton,
+        ``eta`` 0.1); IAT's least-squares round solved by explicit Schur with this stop instead took as long (IAT 142 s
+        against 147 s), so IAT keeps iterative Schur
     resolve_tolerance : a least-squares round whose flagged observations carry less than this share of chi-square
         ends the rejection without another solve: they are rejected and only the points that lost them are
         re-estimated (cameras fixed), since a full solve would move the cameras by far less than their precision
@@ -901,11 +900,11 @@ def model_settled(cost: float, cost_change: float, relative_decrease: float, fun
 
 
 SETTLE_MIN_RADIUS = 1e8
-"""The least trust region radius of a step the settle stop (:attr:`BundleOptions.settle_stop`) may end on. The
-bound of :func:`model_settled` holds for the model's minimum, and a Levenberg-Marquardt step falls short of it in
-the directions whose eigenvalue is small against the damping (``1 / radius`` of the normal matrix' diagonal): at
-Ceres' default of 1e4 the first step of a 100-image oblique sub-block lowered the cost by 26.73 where the undamped
-one lowered it by 27.30, with the model as exact (to 1e-6) for both. At 1e8 the weakest directions of the simulated
+"""The least trust region radius of a step the settle stop (:attr:`BundleOptions.settle_stop`) may end on. The bound of
+:func:`model_settled` holds for the model's minimum, and a Levenberg-Marquardt step falls short of it in the
+directions whose eigenvalue is small against the damping (``1 / radius`` of the normal matrix' diagonal): at Ceres'
+default of 1e4 the first step of an 80-image oblique sub-block lowered the cost by 26.73 where the undamped one
+lowered it by 27.30, with the model as exact (to about 1e-6) for both. At 1e8 the weakest directions of the simulated
 sub-blocks (eigenvalues 1e-4 of the diagonal) are shortened by 1e-4, their share of the decrease by 1e-8."""
 
 

@@ -209,7 +209,7 @@ def _start_points(block: ImageBlock, ties: TiePoints, in_runs: list[np.ndarray],
 
 
 def _resected_starts(items: list[tuple[BundleProblem, BundleOptions]]
-                  ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+                     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
     """:func:`.bundle.resected_start` of oblique sub-blocks, one after the other, from their start values (all
     observations with a start point) -> per sub-block ``r (k, 3, 3)``, ``c (k, 3)``, points ``(p, 3)``, the
     screening's sigma0."""
