@@ -854,6 +854,7 @@ class _Round:
         import pyceres
 
         so = pyceres.SolverOptions()
+        solve_share = 0.0  # of the model decrease a step may miss (see model_settled): none for a factorisation
         if kind == "sparse_schur":
             so.linear_solver_type = pyceres.LinearSolverType.SPARSE_SCHUR
         else:
@@ -861,7 +862,7 @@ class _Round:
             so.preconditioner_type = pyceres.PreconditionerType.SCHUR_JACOBI
             if kind == "explicit_schur":
                 so.use_explicit_schur_complement = True
-                so.eta = opt.explicit_schur_eta
+                so.eta = solve_share = opt.explicit_schur_eta
         so.num_threads = opt.threads
         so.max_num_iterations = opt.robust_max_iterations if robust else opt.max_iterations
         so.function_tolerance = opt.robust_function_tolerance if robust else opt.function_tolerance
@@ -871,8 +872,7 @@ class _Round:
         so.parameter_tolerance = 1e-8
         stop = None
         if opt.settle_stop and not robust and kind != "iterative_schur":
-            stop = _settle_stop_class()(opt.function_tolerance, opt.explicit_schur_eta if kind == "explicit_schur"
-                                        else 0.0, so.max_linear_solver_iterations)
+            stop = _settle_stop_class()(opt.function_tolerance, solve_share, so.max_linear_solver_iterations)
             so.callbacks = [stop]
         summary = pyceres.SolverSummary()
         pyceres.solve(so, self.problem, summary)
