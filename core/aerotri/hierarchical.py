@@ -195,30 +195,12 @@ def _adjust_unit(item: tuple[str, SubProblem, BundleOptions]) -> tuple[str, Bund
     return name, adjust(sub.problem, opt), time.perf_counter() - t0
 
 
-def _start_points(block: ImageBlock, ties: TiePoints, in_runs: list[np.ndarray], x_nadir: np.ndarray,
-                  poses: dict[str, Pose], xyz0: np.ndarray) -> np.ndarray:
-    """Start coordinates ``(n, 3)`` of the tracks of the oblique runs: the nadir run's ``x_nadir (n, 3)`` where it
-    adjusted them (finite), else intersected from ``poses`` with the observations of the runs (``in_runs``: one
-    ``(m,)`` bool observation mask per run), else ``xyz0 (n, 3)``."""
-    used = np.zeros(ties.n_tracks, bool)
-    for in_run in in_runs:
-        used[ties.obs_track[in_run]] = True
-    used &= ~np.isfinite(x_nadir[:, 0])
-    x_int, _ = intersect_ties(block, ties, poses, obs_mask=used[ties.obs_track], undistort_iterations=4)
-    return np.where(np.isfinite(x_nadir[:, :1]), x_nadir, np.where(np.isfinite(x_int[:, :1]), x_int, xyz0))
-
-
-def _resected_starts(items: list[tuple[BundleProblem, BundleOptions]]
-                     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
-    """:func:`.bundle.resected_start` of oblique sub-blocks, one after the other, from their start values (all
-    observations with a start point) -> per sub-block ``r (k, 3, 3)``, ``c (k, 3)``, points ``(p, 3)``, the
-    screening's sigma0."""
-    out = []
-    for prob, opt in items:
-        idx = np.flatnonzero(np.isfinite(prob.xyz[prob.obs_point, 0]) & np.all(np.isfinite(prob.obs_uv), 1))
-        out.append(resected_start(prob.cameras, prob.image_camera, prob.r_cam_from_world, prob.c_world, prob.xyz,
-                                  prob.obs_point[idx], prob.obs_image[idx], prob.obs_uv[idx], opt))
-    return out
+def _resected(prob: BundleProblem, opt: BundleOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """:func:`.bundle.resected_start` of an oblique sub-block from its start values (all observations with a start
+    point) -> ``r (k, 3, 3)``, ``c (k, 3)``, points ``(p, 3)``, the screening's sigma0."""
+    idx = np.flatnonzero(np.isfinite(prob.xyz[prob.obs_point, 0]) & np.all(np.isfinite(prob.obs_uv), 1))
+    return resected_start(prob.cameras, prob.image_camera, prob.r_cam_from_world, prob.c_world, prob.xyz,
+                          prob.obs_point[idx], prob.obs_image[idx], prob.obs_uv[idx], opt)
 
 
 @dataclass(eq=False)
@@ -227,17 +209,22 @@ class _EarlyStart:
     one resection step) from the nadir run's robust round, while the nadir run goes on.
 
     The oblique runs need the final nadir run for their connection points only; their start (the nadir corrections
-    propagated to the other heads, the tie points intersected from there) serves the blunder tests at the start,
-    for which the robust round's orientations are as good (on the 3,000-image block they differ from the final
-    ones by 0.09-0.17 of the final standard deviations, median). Called as ``adjust``'s ``on_robust`` hook with
-    the nadir orientations and points; with ``parallel`` (an executor with workers) the set-up and the sub-blocks,
-    one after the other, run in a thread of this process (mostly numpy, which leaves the interpreter to the nadir
-    run; on the core the nadir run leaves idle in its single-threaded parts), inline otherwise (when
-    :meth:`results` is asked, with the same values). Sending the sub-blocks to the executor's workers instead did
-    not help on 2 cores: the nadir run and the set-up after it took 16.4-19.6 s with the thread (3 runs of the
-    3,000-image block), 19.5 s with one worker, 17.7-19.3 s with both. ``results()`` -> view -> (image ids,
-    tracks ``(p,)``, ``r (k, 3, 3)``, ``c (k, 3)``, points ``(p, 3)``, sigma0), and the start points ``(n, 3)`` of
-    all tracks."""
+    propagated to the other heads) serves the blunder tests at the start, for which the robust round's orientations
+    are as good (on the 3,000-image block they differ from the final ones by 0.09-0.17 of the final standard
+    deviations, median). The tie points start from the nadir run's robust round where it holds them, else from
+    their intersection from the navigation data (``xyz0``): the screening's Gauss-Newton step moves them from there
+    (intersecting them again from the propagated orientations first took 2 s on the 3,000-image block and left
+    every rejection and result as it was).
+
+    Called as ``adjust``'s ``on_robust`` hook with the nadir orientations and points; with ``parallel`` (an
+    executor with workers) the set-up and the sub-blocks, one after the other, run in a thread of this process
+    (mostly numpy, which leaves the interpreter to the nadir run; on the core the nadir run leaves idle in its
+    single-threaded parts), and :meth:`results` takes the sub-blocks the thread has not started yet, so that the
+    core the nadir run freed does not wait; inline otherwise (when :meth:`results` is asked, with the same values).
+    Sending the sub-blocks to the executor's workers instead did not help on 2 cores: the nadir run and the set-up
+    after it took 16.4-19.6 s with the thread (3 runs of the 3,000-image block), 19.5 s with one worker, 17.7-19.3
+    s with both. ``results()`` -> view -> (image ids, tracks ``(p,)``, ``r (k, 3, 3)``, ``c (k, 3)``, points
+    ``(p, 3)``, sigma0), and the start points ``(n, 3)`` of all tracks."""
 
     block: ImageBlock
     ties: TiePoints
@@ -250,8 +237,11 @@ class _EarlyStart:
     before: threading.Thread | None = None
     _start: tuple | None = field(default=None, init=False)
     _thread: threading.Thread | None = field(default=None, init=False)
-    _out: tuple | None = field(default=None, init=False)
     _error: BaseException | None = field(default=None, init=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, init=False)
+    _xyz_start: np.ndarray | None = field(default=None, init=False)
+    _todo: list | None = field(default=None, init=False)  # (view, sub-block) not started yet, once set up
+    _outs: dict = field(default_factory=dict, init=False)
 
     def __call__(self, r: np.ndarray, c: np.ndarray, xyz: np.ndarray) -> None:
         self._start = (r, c, xyz)
@@ -263,39 +253,59 @@ class _EarlyStart:
         try:
             if self.before is not None:
                 self.before.join()
-            self._out = self._compute()
+            self._set_up()
+            self._work()
         except BaseException as e:  # noqa: BLE001 - handed to the caller in results()
             self._error = e
 
     def results(self) -> tuple[dict, np.ndarray] | None:
         """The early starts (None when the nadir run had no robust round); raises what the computation raised."""
+        if self._start is None:
+            return None
         if self._thread is not None:
-            self._thread.join()
-        elif self._start is not None and self._out is None:
-            self._out = self._compute()
+            try:
+                self._work()
+            finally:
+                self._thread.join()
+        else:
+            if self._todo is None:
+                self._set_up()
+            self._work()
         if self._error is not None:
             raise self._error
-        return self._out
+        return {v: self._outs[v] for v in self.in_runs}, self._xyz_start
 
     def discard(self) -> None:
         """Wait for a running early start and drop its outcome (the nadir run failed or was cancelled)."""
         if self._thread is not None:
+            with self._lock:
+                self._todo = []
             self._thread.join()
 
-    def _compute(self) -> tuple[dict, np.ndarray]:
+    def _set_up(self) -> None:
+        """The start orientations and points, the sub-blocks."""
         r, c, xyz = self._start
-        block, ties, n = self.block, self.ties, self.ties.n_tracks
+        block, ties = self.block, self.ties
         prob_n = self.nadir_problem.problem
         start = nadir_propagation(block, {iid: Pose(r[k], c[k]) for k, iid in enumerate(prob_n.image_ids)})
-        x_nadir = np.full((n, 3), np.nan)
-        x_nadir[self.nadir_problem.track_index] = xyz
-        xyz_start = _start_points(block, ties, list(self.in_runs.values()), x_nadir, start, self.xyz0)
-        subs = {v: build_problem(block, ties, self.views[v], xyz_start, obs_mask=in_run, use_control=False,
-                                 initial=start) for v, in_run in self.in_runs.items()}
-        items = [(sub.problem, self.opt) for sub in subs.values()]
-        outs = _resected_starts(items)
-        return ({v: (sub.problem.image_ids, sub.track_index, *out) for (v, sub), out in zip(subs.items(), outs)},
-                xyz_start)
+        xyz_start = self.xyz0.copy()
+        xyz_start[self.nadir_problem.track_index] = np.where(np.isfinite(xyz[:, :1]), xyz,
+                                                             xyz_start[self.nadir_problem.track_index])
+        subs = [(v, build_problem(block, ties, self.views[v], xyz_start, obs_mask=in_run, use_control=False,
+                                  initial=start)) for v, in_run in self.in_runs.items()]
+        with self._lock:
+            self._xyz_start = xyz_start
+            if self._todo is None:  # (not discarded meanwhile)
+                self._todo = subs
+
+    def _work(self) -> None:
+        """Resect the sub-blocks not started yet, one after the other (in the thread and in :meth:`results`)."""
+        while True:
+            with self._lock:
+                if not self._todo:
+                    return
+                v, sub = self._todo.pop(0)
+            self._outs[v] = (sub.problem.image_ids, sub.track_index, *_resected(sub.problem, self.opt))
 
 
 def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connection: str = "cba",
@@ -371,8 +381,9 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     nadir_rays = np.bincount(ties.obs_track[nadir_ok_obs], minlength=n)
     cov_ok = np.all(np.isfinite(safe_inverse(np.nan_to_num(cov_nadir)).reshape(n, 9)), 1)
     # (2) oblique sub-blocks tied by connection points
-    # start values of the oblique blocks: each exposure's nadir correction propagated to its other heads, and
-    # tie points re-intersected from those orientations (fewer iterations than from the navigation data)
+    # start values of the oblique blocks: each exposure's nadir correction propagated to its other heads; their
+    # tie points start where the nadir run or the navigation data put them (the screening at the start of each
+    # oblique run moves them onto its rays with a Gauss-Newton step)
     start_poses = nadir_propagation(block, nadir.frames)
     thinned_obs = np.zeros(ties.n_obs, bool)
     per_view = []
@@ -386,14 +397,14 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         per_view.append((v, ids, sel, in_run))
     # start coordinates of the tracks that enter an oblique run (thinned tracks are intersected at the end): the
     # nadir run's where it adjusted them, else those of the early start (see _EarlyStart), else intersected from
-    # the propagated orientations (the connection points above were selected while the early start finished)
+    # the navigation data (the connection points above were selected while the early start finished)
     early_out = early.results()
     if early_out is not None:
         pre, xyz_pre = early_out
         xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
     else:
         pre = {}
-        xyz_start = _start_points(block, ties, [in_run for *_, in_run in per_view], xyz_nadir, start_poses, xyz0)
+        xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz0)
     items, conn_counts, conn_masks = [], {}, {}
     for v, ids, sel, in_run in per_view:
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)

@@ -52,6 +52,44 @@ def test_hat_oblique_runs_in_worker_processes_give_the_same_result(sim, xyz0, op
     assert [r.connection_count for r in par.runs] == [r.connection_count for r in inline.runs]
 
 
+def test_hat_early_start_shares_its_sub_blocks_with_the_caller(sim, xyz0, options, monkeypatch):
+    """With workers, the early start runs in a thread and the set-up, asking for its results, resects the oblique
+    sub-blocks the thread has not started yet: both take sub-blocks, and the result is the inline one."""
+    import threading
+
+    import oblique_city.core.aerotri.hierarchical as hat_module
+
+    class Serial:
+        """An executor with workers as far as HAT can tell, running its units in this process."""
+        mode, workers = "serial", 1
+
+        def map(self, fn, items, on_done=None):
+            return [fn(it) for it in items]
+
+    inline = hierarchical(sim.block, sim.ties, options, connection="cba", xyz0=xyz0)
+    resected, taken, caller_came = hat_module._resected, [], threading.Event()
+
+    def shared(prob, opt):
+        in_caller = threading.current_thread() is threading.main_thread()
+        taken.append(in_caller)
+        if in_caller:
+            caller_came.set()
+        else:  # the thread resects one sub-block, then waits for the caller to take one
+            assert caller_came.wait(60) or taken.count(False) == 1
+        return resected(prob, opt)
+
+    monkeypatch.setattr(hat_module, "_resected", shared)
+    par = hierarchical(sim.block, sim.ties, options, connection="cba", xyz0=xyz0, executor=Serial())
+    assert len(taken) == 4 and 1 <= taken.count(True) <= 3
+    for iid, p in inline.poses.items():
+        np.testing.assert_allclose(par.poses[iid].C, p.C, atol=1e-6)
+    # as many rays rejected per track (which of two rays with equal tests goes is decided by rounding in Ceres'
+    # threads: two inline runs differ in 1-4 % of the oblique rejections)
+    track, n = sim.ties.obs_track, sim.ties.n_tracks
+    counts = [np.bincount(track[r.obs_rejected], minlength=n) for r in (par, inline)]
+    assert np.sum(counts[0] != counts[1]) <= 0.005 * np.sum(counts[1] > 0)
+
+
 def test_hat_early_start_agrees_with_the_start_from_the_final_nadir_run(sim, xyz0, options, monkeypatch):
     """The oblique runs moved to their inliers from the nadir run's robust round (while the nadir run goes on) end
     where the start from the final nadir run leads (the previous computation, without the adjust hook): the same
