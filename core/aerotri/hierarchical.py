@@ -213,8 +213,8 @@ class _EarlyStart:
     are as good (on the 3,000-image block they differ from the final ones by 0.09-0.17 of the final standard
     deviations, median). The tie points start from the nadir run's robust round where it holds them, else from
     their intersection from the navigation data (``xyz0``): the screening's Gauss-Newton step moves them from there
-    (intersecting them again from the propagated orientations first took 2 s on the 3,000-image block and left
-    every rejection and result as it was).
+    (intersecting them again from the propagated orientations first took 2 s on the 3,000-image block and changed
+    nothing printed: the same 78,599 rejections, check point RMS and standard deviations).
 
     Called as ``adjust``'s ``on_robust`` hook with the nadir orientations and points; with ``parallel`` (an
     executor with workers) the set-up and the sub-blocks, one after the other, run in a thread of this process
@@ -276,7 +276,8 @@ class _EarlyStart:
         return {v: self._outs[v] for v in self.in_runs}, self._xyz_start
 
     def discard(self) -> None:
-        """Wait for a running early start and drop its outcome (the nadir run failed or was cancelled)."""
+        """Let a running early start end after the sub-block it is on and drop its outcome (the nadir run failed or
+        was cancelled)."""
         if self._thread is not None:
             with self._lock:
                 self._todo = []
