@@ -152,9 +152,10 @@ def build_quality_layer(scene, ws: Workspace, name: str = "cba_rays", z: float |
 
 def report_summary(path: Path) -> dict:
     """Key figures of ``aerotri/report.json``: mode, connection, images, sigma0 (unitless and px), check point
-    RMS XY / Z (m) and their count, rejected observations (%), and of a mounting calibration the camera with the
-    largest boresight correction and its angle in degrees (``mounting``: ``(cameras, camera, angle)`` or None).
-    Raises :class:`InputError` naming the file."""
+    RMS XY / Z (m) and their count, rejected observations (%), of a mounting calibration the camera with the
+    largest boresight correction and its angle in degrees (``mounting``: ``(cameras, camera, angle)`` or None), and
+    the camera with the largest systematic image residual (``systematic``: ``(camera, px)`` or None; reports
+    written before it existed have none). Raises :class:`InputError` naming the file."""
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError:
@@ -166,7 +167,11 @@ def report_summary(path: Path) -> dict:
         angles = {c: float(math.sqrt(sum(float(a) ** 2 for a in m["boresight_deg"])))
                   for c, m in (doc.get("mounting") or {}).items()}
         largest = max(angles, key=angles.get) if angles else None
+        sys_px = {c: float(f["systematic_rms_px"]) for c, f in (doc.get("image_residual_fields") or {}).items()
+                  if f.get("systematic_rms_px") is not None}
+        worst = max(sys_px, key=sys_px.get) if sys_px else None
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
+                "systematic": (worst, sys_px[worst]) if worst else None,
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),
                 "check_n": int(check["n"]), "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],

@@ -219,7 +219,7 @@ def _metres(v) -> str:
 
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders, the mounting
-    calibration) and Open Report."""
+    calibration, the camera with the largest systematic image residual) and Open Report."""
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return
@@ -233,6 +233,9 @@ def draw_triangulation(layout, context) -> None:
     if s["mounting"]:
         n, cam, angle = s["mounting"]
         col.label(text=f"Mounting calibrated for {n} cameras, largest boresight {angle:.4f} deg ({cam})")
+    if s["systematic"]:
+        cam, px = s["systematic"]
+        col.label(text=f"Largest systematic image residual: {px:.3f} px ({cam})")
     layout.operator("city.open_report", icon="URL")
 
 

@@ -7,6 +7,10 @@
   estimated from the adjusted orientations of each exposure, each camera's mounting correction when the adjustment
   estimated one (``BundleOptions.mounting``), and the forward intersection error of all tie
   points before (navigation orientation) and after adjustment.
+* Per camera the image residuals by position in the frame (mean residual per cell, what of it noise does not
+  explain, a radial profile): an error of the camera model shows as a pattern. Per image its observations kept and
+  rejected, residual RMS, orientation standard deviations and its move from the navigation orientation. The
+  tie points' ray counts.
 * CBA layers over a grid: mean ray count of the tie points per cell and their intersection standard deviation
   XY and Z; and the intersection error map. Written as GeoTIFF (float32, NaN for empty cells) and as coloured
   PNG, embedded in the HTML page as base64.
@@ -32,9 +36,21 @@ from ..evaluate.aerotri import (
 )
 from ..geometry.projection import project
 from ..geometry.rotations import matrix_to_rotvec
-from ..model import ImageBlock, Raster, TiePoints
+from ..model import CameraModel, ImageBlock, Raster, TiePoints
 from .hierarchical import ATResult, Run
 from .problem import intersect_ties
+
+FIELD_CELLS = 8
+"""Cells of the image residual field along the frame's longer side (:func:`residual_field`)."""
+FIELD_RINGS = 8
+"""Rings of distance from the principal point in the radial profile of the residual field."""
+FIELD_MIN_OBS = 20
+"""A cell or ring with fewer observations gets no mean residual (it would be mostly noise)."""
+RAYS_TOP = 12
+"""The ray count histogram's last bin holds the tie points with this many rays or more."""
+WORST_IMAGES = 10
+"""The HTML page lists this many images with the largest residuals and this many with the fewest observations
+(report.json has every image)."""
 
 _VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float64)
 
@@ -184,9 +200,123 @@ def ground_point_residuals(block: ImageBlock, poses: dict) -> list[dict]:
     return rows
 
 
+def accepted_residuals(at: ATResult) -> tuple[np.ndarray, np.ndarray]:
+    """The tie observations the runs kept, as indices ``(k,)`` into the block's tie arrays, and their image
+    residuals ``(k, 2)`` in pixels (observed minus the projection with the adjusted orientation and point)."""
+    idx, res = [], []
+    for run in at.runs:
+        used = run.result.obs_used if len(run.result.obs_used) == len(run.obs_index) else ~run.obs_rejected
+        ok = used & np.all(np.isfinite(run.obs_residual), 1)
+        idx.append(run.obs_index[ok])
+        res.append(run.obs_residual[ok])
+    if not idx:
+        return np.zeros(0, np.int64), np.zeros((0, 2))
+    return np.concatenate(idx), np.concatenate(res)
+
+
+def residual_field(uv: np.ndarray, v: np.ndarray, camera: CameraModel, cells: int = FIELD_CELLS,
+                   rings: int = FIELD_RINGS, min_obs: int = FIELD_MIN_OBS) -> dict:
+    """Image residuals by position in the frame of one camera: what an adjustment leaves of systematic image
+    errors (a distortion, principal point or focal length the camera model lacks shows as a pattern).
+
+    ``uv (k, 2)`` observed pixel positions, ``v (k, 2)`` their residuals (px). The frame is cut into ``cells``
+    cells along its longer side (square-ish cells across); per cell the count and the mean residual vector (None
+    below ``min_obs`` observations). Their weighted RMS ``cell_mean_rms_px`` holds noise too: a cell mean of ``n``
+    residuals of variance ``s^2`` per axis scatters by ``s sqrt(2 / n)``, whose weighted RMS is ``noise_rms_px``;
+    ``systematic_rms_px = sqrt(max(cell_mean_rms^2 - noise_rms^2, 0))`` is the part noise does not explain. In
+    ``rings`` rings of distance from the principal point, out to the farthest corner, the mean radial residual
+    (positive outwards) and the count: a radial distortion error shows as a curve over the radius."""
+    w, h = camera.width, camera.height
+    cols, rows = (cells, max(1, round(cells * h / w))) if w >= h else (max(1, round(cells * w / h)), cells)
+    cu = np.clip((uv[:, 0] + 0.5) * cols / w, 0, cols - 1).astype(np.int64)
+    cv = np.clip((uv[:, 1] + 0.5) * rows / h, 0, rows - 1).astype(np.int64)
+    cell = cv * cols + cu
+    n = np.bincount(cell, minlength=rows * cols)
+    s = np.stack([np.bincount(cell, weights=v[:, i], minlength=rows * cols) for i in (0, 1)], 1)
+    ss = np.bincount(cell, weights=np.sum(v**2, 1), minlength=rows * cols)
+    full = n >= max(min_obs, 2)
+    mean = s[full] / n[full, None]
+    # unbiased variance of both axes together, of one cell's residuals about their mean
+    var = (ss[full] - n[full] * np.sum(mean**2, 1)) / (n[full] - 1)
+    mean_rms = float(np.sqrt(np.sum(n[full] * np.sum(mean**2, 1)) / n[full].sum())) if full.any() else None
+    noise_rms = float(np.sqrt(np.sum(var) / n[full].sum())) if full.any() else None
+    grid = np.full((rows * cols, 2), np.nan)
+    grid[full] = mean
+    d = uv - [camera.cx, camera.cy]
+    r = np.hypot(d[:, 0], d[:, 1])
+    r_max = float(np.max(np.hypot(np.array([0.0, w - 1.0]) - camera.cx, np.array([0.0, h - 1.0])[:, None] - camera.cy)))
+    ring = np.clip((r / max(r_max, 1e-9) * rings).astype(np.int64), 0, rings - 1)
+    radial = np.sum(v * d, 1) / np.maximum(r, 1e-9)
+    rn = np.bincount(ring, minlength=rings)
+    rs = np.bincount(ring, weights=radial, minlength=rings)
+    return {"camera": camera.id, "observations": int(len(uv)), "cells": [cols, rows],
+            "cell_px": [w / cols, h / rows], "count": n.reshape(rows, cols).tolist(),
+            "mean_px": [[None if not np.isfinite(m[0]) else [float(m[0]), float(m[1])] for m in row]
+                        for row in grid.reshape(rows, cols, 2)],
+            "cell_mean_rms_px": mean_rms, "noise_rms_px": noise_rms,
+            "systematic_rms_px": None if mean_rms is None else float(np.sqrt(max(mean_rms**2 - noise_rms**2, 0.0))),
+            "radial": {"radius_px": ((np.arange(rings) + 0.5) * r_max / rings).tolist(), "count": rn.tolist(),
+                       "mean_px": [float(a / b) if b >= min_obs else None for a, b in zip(rs, rn)]}}
+
+
+def camera_residual_fields(block: ImageBlock, ties: TiePoints, obs: np.ndarray, v: np.ndarray) -> dict[str, dict]:
+    """Per camera of the block (its current, possibly self-calibrated model) the :func:`residual_field` of the
+    observations ``obs (k,)`` (indices into the tie arrays) with residuals ``v (k, 2)``."""
+    cam_of_image = np.array([block.images[i].camera_id if i in block.images else "" for i in ties.image_ids],
+                            dtype=object)
+    cam_obs = cam_of_image[ties.obs_image[obs]]
+    return {cid: residual_field(ties.obs_uv[obs[sel]], v[sel], cam)
+            for cid, cam in sorted(block.cameras.items()) if (sel := cam_obs == cid).any()}
+
+
+def image_statistics(block: ImageBlock, ties: TiePoints, at: ATResult, obs: np.ndarray, v: np.ndarray) -> list[dict]:
+    """Per adjusted image: its run, its tie observations kept and rejected, the RMS length of its residual
+    vectors (px) over those the runs adjusted (``obs (k,)`` with residuals ``v (k, 2)``, see
+    :func:`accepted_residuals`; a thinned HAT intersects the others afterwards), the standard deviations of its
+    orientation (rotation about X Y Z in degrees, centre in metres) and how far the adjustment moved it from its
+    navigation orientation (centre in metres, attitude angle in degrees)."""
+    n_img = len(ties.image_ids)
+    kept = np.bincount(ties.obs_image[~at.obs_rejected], minlength=n_img)
+    n_res = np.bincount(ties.obs_image[obs], minlength=n_img)
+    vv = np.bincount(ties.obs_image[obs], weights=np.sum(v**2, 1), minlength=n_img)
+    rejected = np.bincount(ties.obs_image[at.obs_rejected], minlength=n_img)
+    index = {iid: k for k, iid in enumerate(ties.image_ids)}
+    run_of = {iid: run.name for run in at.runs for iid in run.poses}
+    rows = []
+    for iid, pose in at.poses.items():
+        k = index.get(iid)
+        img = block.images[iid]
+        std = at.image_std.get(iid)
+        nav = img.pose_approx
+        rows.append({
+            "image": iid, "view": img.view, "run": run_of.get(iid, ""),
+            "observations": int(kept[k]) if k is not None else 0,
+            "rejected": int(rejected[k]) if k is not None else 0,
+            "rms_px": float(np.sqrt(vv[k] / n_res[k])) if k is not None and n_res[k] else None,
+            "std_attitude_deg": np.degrees(std[:3]).tolist() if std is not None else None,
+            "std_position_m": std[3:].tolist() if std is not None else None,
+            "moved_m": float(np.linalg.norm(pose.C - nav.C)) if nav is not None else None,
+            "turned_deg": float(np.degrees(np.linalg.norm(matrix_to_rotvec(nav.R.T @ pose.R))))
+            if nav is not None else None})
+    return rows
+
+
+def ray_counts(ties: TiePoints, at: ATResult, top: int = RAYS_TOP) -> dict:
+    """How many rays the adjusted tie points kept: ``points[i]`` tie points with ``rays[i]`` observations not
+    rejected (2 .. ``top - 1``, and in the last bin ``top`` or more), their mean, and the share of two-ray points
+    (badly constrained: a blunder among two rays cannot be told from the other ray)."""
+    n = np.bincount(ties.obs_track[~at.obs_rejected], minlength=ties.n_tracks)
+    n = n[(n >= 2) & np.isfinite(at.xyz[:, 0])]
+    hist = np.bincount(np.minimum(n, top), minlength=top + 1)[2:]
+    return {"rays": list(range(2, top + 1)), "points": hist.tolist(),
+            "mean_rays": float(n.mean()) if len(n) else None,
+            "two_ray_share": float(np.mean(n == 2)) if len(n) else None}
+
+
 def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float) -> dict:
     """Figures of the whole adjustment (combined over runs)."""
     runs = [run_statistics(r, sigma_px) for r in at.runs]
+    obs, v = accepted_residuals(at)
     obs_ok = ~at.obs_rejected
     chi = sum(r.result.sigma0**2 * r.result.redundancy for r in at.runs)
     dof = sum(r.result.redundancy for r in at.runs)
@@ -205,7 +335,9 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
             "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
             "ground_points": ground_point_residuals(block, at.poses),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at), "wall_s": at.wall_s,
-            "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0}
+            "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0,
+            "tie_point_rays": ray_counts(ties, at), "image_residual_fields": camera_residual_fields(
+                block, ties, obs, v), "images_table": image_statistics(block, ties, at, obs, v)}
 
 
 def quality_layers(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float,
@@ -289,18 +421,94 @@ def format_value(v) -> str:
     return html.escape(str(v))
 
 
+def _bars_svg(counts: np.ndarray, title: str, first: str, last: str) -> str:
+    """A bar chart of ``counts (b,)`` as inline SVG, ``first`` and ``last`` written under the outer bars."""
+    w, hh, b = 420, 160, len(counts)
+    top = max(int(counts.max()), 1) if b else 1
+    bars = "".join(f'<rect x="{30 + i * (w - 40) / b:.1f}" y="{hh - 20 - 120 * c / top:.1f}" '
+                   f'width="{(w - 40) / b - 1:.1f}" height="{120 * c / top:.1f}" fill="#3b528b"/>'
+                   for i, c in enumerate(counts))
+    return (f'<svg width="{w}" height="{hh}" xmlns="http://www.w3.org/2000/svg"><text x="30" y="14" '
+            f'font-size="12">{html.escape(title)}</text>{bars}<text x="30" y="{hh - 4}" font-size="10">'
+            f'{html.escape(first)}</text><text x="{w - 60}" y="{hh - 4}" font-size="10">{html.escape(last)}</text>'
+            '</svg>')
+
+
 def _histogram_svg(values: np.ndarray, title: str, bins: int = 30) -> str:
     v = values[np.isfinite(values)]
     if len(v) == 0:
         return ""
     h, e = np.histogram(v, bins=bins, range=(0, float(np.percentile(v, 99)) or 1.0))
-    w, hh = 420, 160
-    bars = "".join(f'<rect x="{30 + i * (w - 40) / bins:.1f}" y="{hh - 20 - 120 * c / max(h.max(), 1):.1f}" '
-                   f'width="{(w - 40) / bins - 1:.1f}" height="{120 * c / max(h.max(), 1):.1f}" fill="#3b528b"/>'
-                   for i, c in enumerate(h))
-    return (f'<svg width="{w}" height="{hh}" xmlns="http://www.w3.org/2000/svg"><text x="30" y="14" '
-            f'font-size="12">{html.escape(title)}</text>{bars}<text x="30" y="{hh - 4}" font-size="10">0</text>'
-            f'<text x="{w - 60}" y="{hh - 4}" font-size="10">{e[-1]:.3g}</text></svg>')
+    return _bars_svg(h, title, "0", f"{e[-1]:.3g}")
+
+
+def _field_svg(field: dict, width: int = 300) -> str:
+    """The residual field of one camera as inline SVG: per cell an arrow from its centre along the mean residual,
+    the longest drawn as nine tenths of a cell."""
+    cols, rows = field["cells"]
+    cw, ch = field["cell_px"]
+    scale_img = width / (cols * cw)
+    height = int(round(rows * ch * scale_img))
+    means = [(i, j, m) for j, row in enumerate(field["mean_px"]) for i, m in enumerate(row) if m is not None]
+    longest = max((float(np.hypot(*m)) for _, _, m in means), default=0.0)
+    k = 0.9 * min(cw, ch) * scale_img / longest if longest > 0 else 0.0
+    grid = "".join(f'<line x1="{i * width / cols:.1f}" y1="0" x2="{i * width / cols:.1f}" y2="{height}" '
+                   'stroke="#ddd"/>' for i in range(1, cols))
+    grid += "".join(f'<line x1="0" y1="{j * height / rows:.1f}" x2="{width}" y2="{j * height / rows:.1f}" '
+                    'stroke="#ddd"/>' for j in range(1, rows))
+    arrows = ""
+    for i, j, (du, dv) in means:
+        x, y = (i + 0.5) * width / cols, (j + 0.5) * height / rows
+        arrows += (f'<circle cx="{x:.1f}" cy="{y:.1f}" r="1.5" fill="#440154"/><line x1="{x:.1f}" y1="{y:.1f}" '
+                   f'x2="{x + k * du:.1f}" y2="{y + k * dv:.1f}" stroke="#440154" stroke-width="1.5"/>')
+    return (f'<svg width="{width}" height="{height + 16}" xmlns="http://www.w3.org/2000/svg">'
+            f'<rect width="{width}" height="{height}" fill="none" stroke="#888"/>{grid}{arrows}'
+            f'<text x="2" y="{height + 12}" font-size="10">longest arrow {longest:.3f} px</text></svg>')
+
+
+def _image_rows(images: list[dict]) -> str:
+    return "".join(f"<tr><td>{html.escape(str(r['image']))}</td><td>{html.escape(str(r['view']))}</td>"
+                   f"<td>{html.escape(r['run'])}</td><td>{r['observations']}</td><td>{r['rejected']}</td>"
+                   f"<td>{format_value(r['rms_px'])}</td><td>{format_value(r['std_position_m'])}</td>"
+                   f"<td>{format_value(r['moved_m'])}</td><td>{format_value(r['turned_deg'])}</td></tr>"
+                   for r in images)
+
+
+def _report_extras(report: dict) -> list[str]:
+    """The HTML of the image residual fields, the images with the largest residuals and fewest observations, and
+    the tie points' ray counts (the parts of :func:`block_report` beyond the run tables)."""
+    parts = []
+    fields = report.get("image_residual_fields") or {}
+    if fields:
+        rows = "".join(f"<tr><td>{html.escape(c)}</td><td>{f['observations']}</td>"
+                       f"<td>{format_value(f['cell_mean_rms_px'])}</td><td>{format_value(f['noise_rms_px'])}</td>"
+                       f"<td>{format_value(f['systematic_rms_px'])}</td>"
+                       f"<td>{format_value(f['radial']['mean_px'])}</td></tr>" for c, f in fields.items())
+        parts.append("<h2>Image residuals by position in the frame</h2><p>Per camera the mean residual (observed "
+                     "minus adjusted projection) in cells of the frame. Noise alone gives cell means of the RMS in "
+                     "'noise'; 'systematic' is what it does not explain (an error of the camera model). The radial "
+                     "profile is the mean residual away from the principal point in rings out to the corners.</p>"
+                     "<table><tr><th>camera</th><th>observations</th><th>cell means RMS [px]</th><th>noise [px]</th>"
+                     f"<th>systematic [px]</th><th>radial profile [px]</th></tr>{rows}</table>")
+        parts.extend(f"<figure>{_field_svg(f)}<figcaption>{html.escape(c)}</figcaption></figure>"
+                     for c, f in fields.items())
+    images = report.get("images_table") or []
+    if images:
+        head = ("<tr><th>image</th><th>view</th><th>run</th><th>observations</th><th>rejected</th><th>RMS [px]</th>"
+                "<th>std centre [m]</th><th>moved [m]</th><th>turned [deg]</th></tr>")
+        worst = sorted((r for r in images if r["rms_px"] is not None), key=lambda r: -r["rms_px"])[:WORST_IMAGES]
+        fewest = sorted(images, key=lambda r: r["observations"])[:WORST_IMAGES]
+        parts.append(f"<h2>Images</h2><p>{len(images)} adjusted images (every one in report.json). Moved and turned: "
+                     "from the navigation orientation to the adjusted one.</p><h3>Largest residuals</h3>"
+                     f"<table>{head}{_image_rows(worst)}</table><h3>Fewest observations</h3>"
+                     f"<table>{head}{_image_rows(fewest)}</table>")
+    rays = report.get("tie_point_rays")
+    if rays and rays["mean_rays"] is not None:
+        parts.append(f"<h2>Tie point rays</h2><p>Mean {rays['mean_rays']:.2f} rays per adjusted tie point; "
+                     f"{100 * rays['two_ray_share']:.1f} % have two.</p>"
+                     + _bars_svg(np.array(rays["points"]), "tie points per number of kept rays", "2",
+                                 f"{rays['rays'][-1]}+"))
+    return parts
 
 
 def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarray) -> str:
@@ -349,6 +557,7 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
                      f"{rows}</table>")
     parts.append("<h2>Image residuals</h2>" + _histogram_svg(np.linalg.norm(residuals_px, axis=1),
                                                              "|v| [px] of accepted observations"))
+    parts.extend(_report_extras(report))
     parts.append("<h2>Layers</h2>")
     for name, r in layers.items():
         d = r.data[np.isfinite(r.data)]

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 
 from oblique_city.core.cli import main
 from oblique_city.core.evaluate.aerotri import check_point_errors
 from oblique_city.core.io.geotiff import read_geotiff
+from oblique_city.core.model import TiePoints
 from oblique_city.core.pipeline import Workspace
 from oblique_city.core.simulate.observations import SimulationConfig, simulate_block
 
@@ -52,8 +54,30 @@ def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
         assert np.allclose([rows[name]["dx_m"], rows[name]["dy_m"], rows[name]["dz_m"]], e, atol=1e-9)
     assert any(g["kind"] == "control" for g in rows.values())
     assert np.median([g["image_rms_px"] for g in rows.values()]) < 1.0
+    # per image: every adjusted image, its kept and rejected tie observations as the adjustment flagged them, and
+    # residuals whose squares add up to the runs' image RMS (each observation is in one run; within 2 %: a point
+    # left with one ray drops out of its run without a rejection)
+    table = {r["image"]: r for r in report["images_table"]}
+    assert set(table) == set(adjusted)
+    ties = TiePoints.load(str(ws.path("aerotri/ties.npz")))
+    idx = {iid: k for k, iid in enumerate(ties.image_ids)}
+    for iid in adjusted[:10]:
+        mine = ties.obs_image == idx[iid]
+        assert table[iid]["observations"] == int((mine & ~ties.obs_blunder).sum())
+        assert table[iid]["rejected"] == int((mine & ties.obs_blunder).sum())
+    sq = sum(r["observations"] * r["rms_px"] ** 2 for r in table.values() if r["rms_px"] is not None)
+    run_sq = sum((r["observations"] - r["rejected"]) * (r["rms_image_px"][0] ** 2 + r["rms_image_px"][1] ** 2)
+                 for r in report["runs"])
+    assert abs(sq / run_sq - 1) < 0.02
+    # the camera models are the simulation's: no camera shows systematic residuals (see test_report.py)
+    fields = report["image_residual_fields"]
+    assert set(fields) == set(block.cameras)
+    assert all(f["systematic_rms_px"] < 0.04 for f in fields.values())
+    rays = report["tie_point_rays"]
+    assert sum(rays["points"]) == int(np.isfinite(ties.xyz[:, 0]).sum()) and rays["mean_rays"] > 3
     html = ws.path("aerotri/report.html").read_text()
     assert "<h2>Ground points" in html
+    assert "<h2>Image residuals by position" in html and "<h2>Images</h2>" in html and "<h2>Tie point rays" in html
     assert "data:image/png;base64," in html and "<svg" in html and "src='http" not in html
     rays = read_geotiff(ws.path("aerotri/layers/cba_rays.tif"))
     assert rays.cell == 40.0 and np.nanmax(rays.data) >= 3
@@ -133,8 +157,6 @@ def test_self_calibrated_cameras_are_saved_with_the_adjusted_block(tmp_path):
     """The imported focal lengths are 0.3 % off: with ``self_calibration = ["focal"]`` the adjusted block the later
     stages read carries the calibrated cameras (within 0.05 % of the true focal), not the imported ones that the
     adjusted orientations no longer fit."""
-    from dataclasses import replace
-
     from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
     from oblique_city.core.pipeline import RunContext
 
@@ -169,3 +191,29 @@ def test_mounting_calibration_through_the_cli_is_reported(tmp_path):
         assert np.all(np.abs(m["boresight_deg"]) < 4 * np.array(m["boresight_std_deg"])), m
     assert abs(report["sigma0"] - 1.0) < 0.1
     assert "Mounting calibration" in ws.path("aerotri/report.html").read_text()
+
+
+def test_residual_field_shows_a_distortion_error_that_self_calibration_removes(tmp_path):
+    """Every camera is imported with k1 0.01 too large (the simulated measurements follow the true k1): 3.4 px at
+    the nadir camera's corners, 1.3 px at the obliques' (``f k1 r^3`` with r = 0.67 and 0.42 in normalised units).
+    The orientations absorb what they can (a change of height acts as one of focal length); the report's residual
+    field shows the rest: systematic residuals above 0.05 px for every camera (with the true models they stay under
+    0.04 px, see the hierarchical test above) and a radial profile that turns inwards at the corners. With radial
+    self-calibration the field is flat again: every camera under 0.04 px."""
+    from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
+    from oblique_city.core.pipeline import RunContext
+
+    s, ws = _simulated_workspace(tmp_path)
+    block = ws.load_block()
+    for cid, cam in list(block.cameras.items()):
+        block.cameras[cid] = replace(cam, k1=cam.k1 + 0.01)
+    ws.save_block(block)
+    fields = {}
+    for calib in ((), ("radial",)):
+        STAGE.run(ws, AerotriConfig(self_calibration=calib, sigma_px=0.3), RunContext())
+        fields[calib] = json.loads(ws.path("aerotri/report.json").read_text())["image_residual_fields"]
+    for cid in block.cameras:
+        wrong, calibrated = fields[()][cid], fields[("radial",)][cid]
+        assert wrong["systematic_rms_px"] > 0.05, (cid, wrong["systematic_rms_px"])
+        assert wrong["radial"]["mean_px"][-1] < -0.1, (cid, wrong["radial"]["mean_px"])
+        assert calibrated["systematic_rms_px"] < 0.04, (cid, calibrated["systematic_rms_px"])
