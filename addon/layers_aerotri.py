@@ -155,7 +155,9 @@ def report_summary(path: Path) -> dict:
     RMS XY / Z (m) and their count, rejected observations (%), of a mounting calibration the camera with the
     largest boresight correction and its angle in degrees (``mounting``: ``(cameras, camera, angle)`` or None), and
     the camera with the largest systematic image residual (``systematic``: ``(camera, px)`` or None; reports
-    written before it existed have none). Raises :class:`InputError` naming the file."""
+    written before it existed have none), and the control points whose coordinates the adjustment rejected with the
+    number of control measurements it rejected (``control_rejected``: ``(names, measurements)``). Raises
+    :class:`InputError` naming the file."""
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError:
@@ -170,8 +172,12 @@ def report_summary(path: Path) -> dict:
         sys_px = {c: float(f["systematic_rms_px"]) for c, f in (doc.get("image_residual_fields") or {}).items()
                   if f.get("systematic_rms_px") is not None}
         worst = max(sys_px, key=sys_px.get) if sys_px else None
+        ground = doc.get("ground_points") or []
+        rejected = ([str(g["name"]) for g in ground if g.get("rejected_coordinates")],
+                    sum(len(g.get("rejected_images") or []) for g in ground))
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
                 "systematic": (worst, sys_px[worst]) if worst else None,
+                "control_rejected": rejected if rejected[0] or rejected[1] else None,
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),
                 "check_n": int(check["n"]), "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],

@@ -219,7 +219,8 @@ def _metres(v) -> str:
 
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders, the mounting
-    calibration, the camera with the largest systematic image residual) and Open Report."""
+    calibration, the camera with the largest systematic image residual, rejected control data) and Open
+    Report."""
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return
@@ -236,6 +237,10 @@ def draw_triangulation(layout, context) -> None:
     if s["systematic"]:
         cam, px = s["systematic"]
         col.label(text=f"Largest systematic image residual: {px:.3f} px ({cam})")
+    if s["control_rejected"]:
+        names, measurements = s["control_rejected"]
+        col.label(text=f"Rejected control: {len(names)} points{' (' + ', '.join(names) + ')' if names else ''}, "
+                       f"{measurements} measurements")
     layout.operator("city.open_report", icon="URL")
 
 

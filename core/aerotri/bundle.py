@@ -41,6 +41,9 @@ number, see :mod:`.precision`; ``w^2`` is chi-square with 2 degrees of freedom) 
 A start already close to the solution (``BundleOptions.screen_start``) replaces the robust solve by tests at the
 start with the cameras held (:func:`screen_points`, one resection step of the images from their inliers, the tests
 again), so that a single least-squares solve usually remains.
+Control points are tested after each round too (:func:`control_point_tests`, ``BundleOptions.control_tests``): a
+measurement that does not fit the point's other rays, or coordinates that do not fit the images and the datum shift
+of the other control points, leave the next round (a wrong point cannot hide in the shift it helps to estimate).
 Coordinates are solved around a local origin (the mean prior centre) so UTM magnitudes cost no digits.
 """
 
@@ -81,6 +84,8 @@ class BundleOptions:
     sigma_px : a priori standard deviation of tie point image measurements, pixels
     robust_scale : Cauchy loss scale of the first solve, in units of ``sigma_px``
     blunder_threshold : normalised residual above which an observation is rejected (4.3 ~ alpha 1e-4)
+    control_tests : after each round, test the control points' image measurements and coordinates
+        (:func:`control_point_tests`) with ``blunder_threshold``; what fails leaves the next round
     max_rejection_rounds : least-squares rounds with rejection after the robust solve
     self_calibration : groups of :data:`CALIBRATION_GROUPS` to estimate
     datum_shift : estimate a 3D shift between the GNSS and the control frame
@@ -189,6 +194,7 @@ class BundleOptions:
     settle_stop: bool = True
     resolve_tolerance: float = 1e-4
     marginal_max_images: int = 0
+    control_tests: bool = True
     screen_start: bool = False
     screen_max_sigma0: float = 2.0
     screen_rounds: int = 10
@@ -264,6 +270,10 @@ class BundleResult:
     obs_residual : (m, 2) pixels (observed - computed); obs_rejected : (m,) bool; obs_w : (m,) normalised residual
     obs_used : (m,) bool, observations in the final solution (not rejected, their point determined)
     gcp_xyz : (g, 3) adjusted control points; gcp_residual : (g, 3) adjusted - given
+    gcp_obs_rejected : (k,) control point measurements rejected by their own test; gcp_rejected : (g,) control
+        points whose coordinates were rejected (they left the adjustment with all their measurements); gcp_w :
+        (g,) their largest normalised coordinate differences in the last test (:func:`control_point_tests`; NaN:
+        untested)
     datum_shift : (3,) control frame - GNSS frame
     mounting : (k, 6) per camera model its mounting correction ``M`` (``BundleOptions.mounting``): rotation vector
         (radians, camera axes) and the camera centre's offset ``-R_M^T t_M`` from the frame's (metres, camera axes);
@@ -302,6 +312,9 @@ class BundleResult:
     mounting_std: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     log: list[str] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)
+    gcp_obs_rejected: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    gcp_rejected: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    gcp_w: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _quat_xyzw(r: np.ndarray) -> np.ndarray:
@@ -696,7 +709,7 @@ class _Round:
     robust round) plus the priors, connection points, single-ray connection points and control points."""
 
     def __init__(self, model: _Model, opt: BundleOptions, ref: np.ndarray, xyz: np.ndarray, gcp_xyz: np.ndarray,
-                 shift: np.ndarray, active: np.ndarray, robust: bool) -> None:
+                 shift: np.ndarray, active: np.ndarray, robust: bool, gcp_obs_ok: np.ndarray) -> None:
         import pyceres
         import pycolmap
         import pycolmap.cost_functions as cf
@@ -819,7 +832,7 @@ class _Round:
         self.shift = np.array(shift, dtype=np.float64)
         self.gcp_x = gcp_x = np.array(gcp_xyz - ref, dtype=np.float64)
         gcp_seen = np.zeros(len(gcp_x), bool)
-        for k_obs in range(len(prob.gcp_obs_point)):
+        for k_obs in np.flatnonzero(gcp_obs_ok):
             g, k = int(prob.gcp_obs_point[k_obs]), int(prob.gcp_obs_image[k_obs])
             if k not in self.frame_params:
                 continue
@@ -996,6 +1009,12 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     m = len(prob.obs_point)
     active = np.isfinite(xyz[prob.obs_point, 0]) & np.all(np.isfinite(prob.obs_uv), axis=1)
     rejected = np.zeros(m, bool)
+    # control points: their measurements in use, their coordinates in use (a rejected point leaves with its
+    # measurements), the largest normalised coordinate differences of the last test
+    gcp_obs_ok = np.ones(len(prob.gcp_obs_point), bool)
+    gcp_obs_bad = np.zeros(len(prob.gcp_obs_point), bool)
+    gcp_ok = np.ones(len(prob.gcp_xyz), bool)
+    gcp_w = np.full(len(prob.gcp_xyz), np.nan)
     iterations = 0
     log: list[str] = []
     total_rounds = opt.max_rejection_rounds + 1
@@ -1048,7 +1067,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             progress(rnd, total_rounds, f"bundle adjustment round {rnd + 1}")
         model.keep_only(active)
         rd = None  # the previous round's Ceres problem goes before the next one is built (peak memory)
-        rd = _Round(model, opt, ref, xyz, gcp_xyz, shift, active, robust=(rnd == 0))
+        rd = _Round(model, opt, ref, xyz, gcp_xyz, shift, active, robust=(rnd == 0), gcp_obs_ok=gcp_obs_ok)
         lap("build_s")
         summary = rd.solve(opt, solver, robust=(rnd == 0))
         lap("solve_s")
@@ -1094,6 +1113,22 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
                    + (", ended by the settled model (see BundleOptions.settle_stop)" if rd.settled else ""))
         if rnd >= opt.max_rejection_rounds:
             break
+        gcp_bad = False
+        if opt.control_tests and len(prob.gcp_xyz):
+            bad_go, bad_g, gcp_w = control_point_tests(
+                cams, prob.image_camera, r, c, prob.gcp_xyz, prob.gcp_sigma, prob.gcp_sigma_px, prob.gcp_obs_point,
+                prob.gcp_obs_image, prob.gcp_obs_uv, gcp_obs_ok & rd.adjusted[prob.gcp_obs_image], gcp_ok, shift,
+                opt.datum_shift, opt.blunder_threshold)
+            for k_obs in np.flatnonzero(bad_go):
+                log.append(f"round {rnd}: control point {prob.gcp_names[prob.gcp_obs_point[k_obs]]}: measurement in "
+                           f"{prob.image_ids[prob.gcp_obs_image[k_obs]]} rejected")
+            for g in np.flatnonzero(bad_g):
+                log.append(f"round {rnd}: control point {prob.gcp_names[g]}: coordinates rejected (normalised "
+                           f"difference {gcp_w[g]:.1f} to the others' shift)")
+            gcp_ok &= ~bad_g
+            gcp_obs_bad |= bad_go
+            gcp_obs_ok &= ~bad_go & gcp_ok[prob.gcp_obs_point]
+            gcp_bad = bool(bad_go.any() or bad_g.any())
         if rnd == 0:
             # the robust solution is not pulled by the blunders: reject every flagged observation at once
             bad = active & np.isfinite(w) & (w > opt.blunder_threshold)
@@ -1105,10 +1140,10 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
                 f"bundle adjustment did not converge: round {rnd + 1} flags {int(bad.sum())} of "
                 f"{int(active.sum())} observations (sigma0 {sigma0 * opt.sigma_px:.2f} px); check the "
                 "approximate orientations, the tie points and the a priori sigmas")
-        if not bad.any() and rnd > 0:
+        if not bad.any() and rnd > 0 and not gcp_bad:
             break
         removed = float(np.sum(vv[bad])) / opt.sigma_px**2
-        if rnd > 0 and removed < opt.resolve_tolerance * chi2:
+        if rnd > 0 and removed < opt.resolve_tolerance * chi2 and not gcp_bad:
             # negligible: reject without another solve, re-estimate only the points that lost an observation
             rejected |= bad
             active &= ~bad
@@ -1171,7 +1206,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         image_std_kind=image_std_kind, mounting=mounting, mounting_std=mounting_std,
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
-        timing=timing)
+        timing=timing, gcp_obs_rejected=gcp_obs_bad, gcp_rejected=~gcp_ok, gcp_w=gcp_w)
 
 
 def frame_poses(r_cam_from_world: np.ndarray, c_world: np.ndarray, image_camera: np.ndarray,
@@ -1374,6 +1409,82 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
         todo = np.zeros(n, bool)
         todo[op_all[bad]] = True
     return xyz, cov * s0**2, rejected, s0
+
+
+def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
+                        given: np.ndarray, sigma: np.ndarray, sigma_px: np.ndarray, op: np.ndarray, oi: np.ndarray,
+                        uv: np.ndarray, obs_ok: np.ndarray, point_ok: np.ndarray, shift: np.ndarray,
+                        shift_free: bool, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Blunder tests of control points with the images held at ``r (n, 3, 3)``, ``c (n, 3)`` (frame of the
+    navigation data; ``shift (3,)`` takes it to the control frame).
+
+    Control points ``given (g, 3)`` with standard deviations ``sigma (g, 3)`` (m) are measured ``uv (k, 2)`` in
+    images ``oi (k,)`` (point ``op (k,)``, pixel sigma ``sigma_px (g,)``); ``obs_ok (k,)`` and ``point_ok (g,)``
+    mark what is still in use.
+
+    1. Image measurements: of a point with at least three measurements in use, the worst ray is rejected while its
+       normalised residual (intersection with the images held, :func:`screen_points` with sigma0 1) exceeds
+       ``threshold`` (two rays cannot tell which is wrong).
+    2. Coordinates: each point is intersected from its measurements in use (covariance ``C`` from its pixel sigma)
+       and compared with its given coordinates after the shift: with ``shift_free`` (the adjustment estimates the
+       shift from the control points) the shift of the *other* points (their differences averaged with the
+       inverse of ``C + diag(sigma^2)``), so a wrong point cannot hide in the shift; otherwise ``shift``. The
+       normalised difference of an axis is the difference over its standard deviation (``C``, ``sigma`` and the
+       shift's); of the points above ``threshold`` the worst one is rejected (one per round, as in data snooping).
+
+    Returns the rejected measurements ``(k,)``, the rejected points ``(g,)`` and each point's largest normalised
+    coordinate difference ``(g,)`` (NaN where untested)."""
+    from .problem import intersect_rays, ray_directions  # problem builds on this module
+
+    g = len(given)
+    bad_obs = np.zeros(len(op), bool)
+    use = obs_ok & point_ok[op]
+    rays = np.bincount(op[use], minlength=g)
+    # the points start where their rays meet (a wrong coordinate is no start), else at their given place
+    x0, _ = intersect_rays(c[oi[use]], ray_directions(cameras, image_camera, r, oi[use], uv[use]), op[use], g)
+    start = np.where(np.isfinite(x0), x0, np.nan_to_num(given - shift))
+    for s_px in np.unique(sigma_px):
+        sel = np.flatnonzero(use & (rays >= 3)[op] & (sigma_px[op] == s_px))
+        if len(sel):
+            _, _, rej, _ = screen_points(cameras, image_camera, r, c, op[sel], oi[sel], uv[sel], start, float(s_px),
+                                         1.0, threshold, 10, reject_undetermined=False)
+            bad_obs[sel[rej]] = True
+    use &= ~bad_obs
+    x = np.full((g, 3), np.nan)
+    cov = np.full((g, 3, 3), np.nan)
+    for s_px in np.unique(sigma_px):
+        sel = np.flatnonzero(use & (sigma_px[op] == s_px))
+        if len(sel):
+            x_s, c_s, _, _ = screen_points(cameras, image_camera, r, c, op[sel], oi[sel], uv[sel], start, float(s_px),
+                                           1.0, np.inf, 2)
+            pts = np.unique(op[sel])
+            x[pts], cov[pts] = x_s[pts], c_s[pts]
+    ok = point_ok & np.all(np.isfinite(x), 1) & np.all(np.isfinite(cov.reshape(g, 9)), 1) \
+        & np.all(np.isfinite(given), 1)
+    w_pt = np.full(g, np.nan)
+    if not ok.any():
+        return bad_obs, np.zeros(g, bool), w_pt
+    total = cov + np.einsum("gi,ij->gij", np.nan_to_num(sigma) ** 2, np.eye(3))
+    diff = given - x  # each point's own estimate of the shift
+    weight = np.zeros((g, 3, 3))
+    weight[ok] = np.linalg.inv(total[ok])
+    info_all = weight[ok].sum(0)
+    rhs_all = np.einsum("gij,gj->i", weight[ok], diff[ok])
+    for i in np.flatnonzero(ok):
+        if shift_free:
+            info = info_all - weight[i]
+            if np.linalg.cond(info) > 1e12:
+                continue  # no other control point: the shift rests on this one alone
+            s_cov = np.linalg.inv(info)
+            s_i = s_cov @ (rhs_all - weight[i] @ diff[i])
+        else:
+            s_cov, s_i = np.zeros((3, 3)), shift
+        w_pt[i] = float(np.max(np.abs(diff[i] - s_i) / np.sqrt(np.diagonal(total[i] + s_cov))))
+    bad_pt = np.zeros(g, bool)
+    worst = int(np.nanargmax(np.where(np.isfinite(w_pt), w_pt, -1.0)))
+    if np.isfinite(w_pt[worst]) and w_pt[worst] > threshold:
+        bad_pt[worst] = True
+    return bad_obs, bad_pt, w_pt
 
 
 def resected_start(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,

@@ -77,6 +77,8 @@ class Run:
     result : the bundle result (statistics); connection_count : connection points used (oblique runs)
     frames : the orientations of the frames of those images: with a mounting calibration the images' corrections
         removed (:func:`.bundle.frame_poses`), else the images' own; the navigation data describe these
+    control_rejected : control points whose coordinates the run rejected; control_obs_rejected : (control point,
+        image) of the measurements it rejected (see :func:`.bundle.control_point_tests`)
     """
 
     name: str
@@ -93,6 +95,8 @@ class Run:
     connection_info: np.ndarray | None = None
     wall_s: float = 0.0
     frames: dict[str, Pose] = field(default_factory=dict)
+    control_rejected: tuple[str, ...] = ()
+    control_obs_rejected: tuple[tuple[str, str], ...] = ()
 
 
 @dataclass(eq=False)
@@ -110,15 +114,28 @@ class ATResult:
     wall_s: float = 0.0
     extra: dict = field(default_factory=dict)
 
+    def control_rejections(self) -> tuple[set[str], set[tuple[str, str]]]:
+        """The control points whose coordinates a run rejected, and the (point, image) measurements rejected."""
+        return rejected_control(self.runs)
+
+
+def rejected_control(runs: list[Run]) -> tuple[set[str], set[tuple[str, str]]]:
+    """Over ``runs``: the control points whose coordinates one rejected, and the (point, image) measurements."""
+    return {n for run in runs for n in run.control_rejected}, {o for run in runs for o in run.control_obs_rejected}
+
 
 def _to_run(name: str, sub: SubProblem, res: BundleResult, wall: float) -> Run:
+    prob = sub.problem
     poses = result_poses(sub, res)
     std = {iid: res.image_std[k] for k, iid in enumerate(sub.problem.image_ids) if res.image_adjusted[k]}
     r_f, c_f = frame_poses(res.r_cam_from_world, res.c_world, sub.problem.image_camera, res.mounting)
     frames = {iid: Pose(r_f[k], c_f[k]) for k, iid in enumerate(sub.problem.image_ids) if iid in poses}
     return Run(name=name, poses=poses, image_std=std, track_index=sub.track_index, xyz=res.xyz,
                xyz_cov=res.xyz_cov, obs_index=sub.obs_index, obs_rejected=res.obs_rejected,
-               obs_residual=res.obs_residual, result=res, wall_s=wall, frames=frames)
+               obs_residual=res.obs_residual, result=res, wall_s=wall, frames=frames,
+               control_rejected=tuple(prob.gcp_names[g] for g in np.flatnonzero(res.gcp_rejected)),
+               control_obs_rejected=tuple((prob.gcp_names[prob.gcp_obs_point[k]], prob.image_ids[prob.gcp_obs_image[k]])
+                                          for k in np.flatnonzero(res.gcp_obs_rejected)))
 
 
 def initial_tie_coordinates(block: ImageBlock, ties: TiePoints) -> np.ndarray:
@@ -458,7 +475,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         rej[run.obs_index] |= run.obs_rejected
     datum_delta = np.zeros(3)
     if combined_datum:
-        datum_delta = datum_correction(block, poses)
+        datum_delta = datum_correction(block, poses, *rejected_control(runs))
         poses = {i: Pose(p.R, p.C + datum_delta) for i, p in poses.items()}
         xyz = xyz + datum_delta
         for run in runs:
@@ -626,19 +643,27 @@ def _intersect_share(cameras: list, image_camera: np.ndarray, r: np.ndarray, c: 
                          max_rounds)[:3]
 
 
-def datum_correction(block: ImageBlock, poses: dict[str, Pose]) -> np.ndarray:
+def datum_correction(block: ImageBlock, poses: dict[str, Pose], rejected: set[str] | None = None,
+                     rejected_obs: set[tuple[str, str]] | None = None) -> np.ndarray:
     """Translation ``(3,)`` that best moves the block onto its control points: each control point is intersected
     from all its image measurements with ``poses`` (covariance from its pixel sigma), and the differences to the
     given coordinates are averaged with the inverse of (intersection covariance + control covariance). Zero when
     no control point has two measured rays. All control points are intersected together (arrays over their
-    measurements)."""
+    measurements). Control points named in ``rejected`` and the (point, image) measurements in ``rejected_obs``
+    (the adjustment's blunder tests, :meth:`ATResult.control_rejections`) are left out."""
+    rejected, rejected_obs = rejected or set(), rejected_obs or set()
+
+    def used(gp, iid: str) -> bool:
+        return iid in poses and (gp.name, iid) not in rejected_obs
+
     gps = [gp for gp in block.ground_points.values()
-           if gp.kind == "control" and gp.xyz is not None and sum(i in poses for i in gp.observations) >= 2]
+           if gp.kind == "control" and gp.xyz is not None and gp.name not in rejected
+           and sum(used(gp, i) for i in gp.observations) >= 2]
     if not gps:
         return np.zeros(3)
-    image_ids = sorted({i for gp in gps for i in gp.observations if i in poses})
+    image_ids = sorted({i for gp in gps for i in gp.observations if used(gp, i)})
     k_of = {iid: k for k, iid in enumerate(image_ids)}
-    obs = [(g, k_of[i], uv) for g, gp in enumerate(gps) for i, uv in gp.observations.items() if i in poses]
+    obs = [(g, k_of[i], uv) for g, gp in enumerate(gps) for i, uv in gp.observations.items() if used(gp, i)]
     op = np.array([o[0] for o in obs], np.int64)
     oi = np.array([o[1] for o in obs], np.int64)
     uv = np.array([o[2] for o in obs], np.float64).reshape(-1, 2)

@@ -7,6 +7,8 @@
   estimated from the adjusted orientations of each exposure, each camera's mounting correction when the adjustment
   estimated one (``BundleOptions.mounting``), and the forward intersection error of all tie
   points before (navigation orientation) and after adjustment.
+* Per control and check point its intersection minus its given coordinates, and what the adjustment rejected of
+  it (coordinates, measurements: :func:`.bundle.control_point_tests`).
 * Per camera the image residuals by position in the frame (mean residual per cell, what of it noise does not
   explain, a radial profile): an error of the camera model shows as a pattern. Per image its observations kept and
   rejected, residual RMS, orientation standard deviations and its move from the navigation orientation. The
@@ -128,6 +130,8 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
         "std_kind": res.image_std_kind,
         "point_std_xy_m": sxy, "point_std_z_m": sz,
         "connection_points": run.connection_count, "wall_s": run.wall_s, "log": res.log,
+        "control_points_rejected": list(run.control_rejected),
+        "control_measurements_rejected": [list(o) for o in run.control_obs_rejected],
         "mounting": {cam.id: _mounting_entry(res, ci) for ci, cam in enumerate(res.cameras)
                      if np.all(np.isfinite(res.mounting[ci]))},
     }
@@ -182,13 +186,20 @@ def boresight(block: ImageBlock, poses: dict) -> dict:
     return out
 
 
-def ground_point_residuals(block: ImageBlock, poses: dict) -> list[dict]:
+def ground_point_residuals(block: ImageBlock, poses: dict, rejected: set[str] | None = None,
+                           rejected_obs: set[tuple[str, str]] | None = None) -> list[dict]:
     """Per control and check point: the images it was measured in with an adjusted orientation, the difference
     of its intersection from all of them to its given coordinates (m; NaN for a coordinate not given) and the RMS
-    image residual of that intersection (px). Points with fewer than two such images are left out."""
+    image residual of that intersection (px). Points with fewer than two such images are left out. The
+    measurements the adjustment rejected (``rejected_obs``: (point, image)) are left out of the intersection and
+    listed (``rejected_images``); ``rejected_coordinates`` says whether it rejected the point's coordinates (its
+    name in ``rejected``), whose difference is then the evidence."""
+    rejected, rejected_obs = rejected or set(), rejected_obs or set()
     rows = []
     for gp in block.ground_points.values():
-        got = intersect_ground_point(block, poses, gp) if gp.xyz is not None else None
+        bad = sorted(i for i in gp.observations if (gp.name, i) in rejected_obs)
+        use = {i: p for i, p in poses.items() if i not in bad} if bad else poses
+        got = intersect_ground_point(block, use, gp) if gp.xyz is not None else None
         if got is None:
             continue
         xyz, ids = got
@@ -196,7 +207,8 @@ def ground_point_residuals(block: ImageBlock, poses: dict) -> list[dict]:
         d = xyz - gp.xyz
         rows.append({"name": gp.name, "kind": gp.kind, "images": len(ids), "dx_m": float(d[0]),
                      "dy_m": float(d[1]), "dz_m": float(d[2]),
-                     "image_rms_px": float(np.sqrt(np.mean(np.sum(np.square(res), axis=1))))})
+                     "image_rms_px": float(np.sqrt(np.mean(np.sum(np.square(res), axis=1)))),
+                     "rejected_coordinates": gp.name in rejected, "rejected_images": bad})
     return rows
 
 
@@ -333,7 +345,7 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
         internal[split] = {"points": int(np.isfinite(std[:, 0]).sum()), "std_xy_m": xy, "std_z_m": z}
     return {"mode": at.mode, "connection": at.connection, "images": len(at.poses), "sigma0": sigma0,
             "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
-            "ground_points": ground_point_residuals(block, at.poses),
+            "ground_points": ground_point_residuals(block, at.poses, *at.control_rejections()),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at), "wall_s": at.wall_s,
             "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0,
             "tie_point_rays": ray_counts(ties, at), "image_residual_fields": camera_residual_fields(
@@ -466,6 +478,13 @@ def _field_svg(field: dict, width: int = 300) -> str:
             f'<text x="2" y="{height + 12}" font-size="10">longest arrow {longest:.3f} px</text></svg>')
 
 
+def _rejection_text(g: dict) -> str:
+    """What the adjustment rejected of a ground point (its coordinates, measurements in images), for a table cell."""
+    parts = (["coordinates"] if g.get("rejected_coordinates") else []) + \
+        [f"measurement in {i}" for i in g.get("rejected_images", [])]
+    return html.escape("; ".join(parts)) if parts else "-"
+
+
 def _image_rows(images: list[dict]) -> str:
     return "".join(f"<tr><td>{html.escape(str(r['image']))}</td><td>{html.escape(str(r['view']))}</td>"
                    f"<td>{html.escape(r['run'])}</td><td>{r['observations']}</td><td>{r['rejected']}</td>"
@@ -536,11 +555,12 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
     if report.get("ground_points"):
         rows = "".join(f"<tr><td>{html.escape(g['name'])}</td><td>{g['kind']}</td><td>{g['images']}</td>"
                        f"<td>{format_value(g['dx_m'])}</td><td>{format_value(g['dy_m'])}</td>"
-                       f"<td>{format_value(g['dz_m'])}</td><td>{format_value(g['image_rms_px'])}</td></tr>"
-                       for g in report["ground_points"])
+                       f"<td>{format_value(g['dz_m'])}</td><td>{format_value(g['image_rms_px'])}</td>"
+                       f"<td>{_rejection_text(g)}</td></tr>" for g in report["ground_points"])
         parts.append("<h2>Ground points (intersected from every image with its adjusted orientation, minus the "
                      "given coordinates)</h2><table><tr><th>point</th><th>kind</th><th>images</th><th>dX [m]</th>"
-                     f"<th>dY [m]</th><th>dZ [m]</th><th>image RMS [px]</th></tr>{rows}</table>")
+                     f"<th>dY [m]</th><th>dZ [m]</th><th>image RMS [px]</th><th>rejected by the adjustment</th></tr>"
+                     f"{rows}</table>")
     if report.get("boresight"):
         rows = "".join(f"<tr><td>{h}</td><td>{format_value(b['mean_deg'])}</td>"
                        f"<td>{format_value(b['std_deg'])}</td></tr>"

@@ -217,3 +217,31 @@ def test_residual_field_shows_a_distortion_error_that_self_calibration_removes(t
         assert wrong["systematic_rms_px"] > 0.05, (cid, wrong["systematic_rms_px"])
         assert wrong["radial"]["mean_px"][-1] < -0.1, (cid, wrong["radial"]["mean_px"])
         assert calibrated["systematic_rms_px"] < 0.04, (cid, calibrated["systematic_rms_px"])
+
+
+def test_a_wrong_control_point_is_rejected_and_reported(tmp_path):
+    """A control point given 0.3 m too high (20 times its 0.015 m sigma): the aerotri stage rejects its coordinates,
+    says so in the report (JSON: the run and the ground point row; HTML: the ground points table), and the check
+    points come out within 5 % of those of the clean block (on which nothing is rejected)."""
+    from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
+    from oblique_city.core.pipeline import RunContext
+
+    reports = []
+    for lift in (0.0, 0.3):
+        s, ws = _simulated_workspace(tmp_path / f"lift{lift}")
+        block = ws.load_block()
+        gp = max((g for g in block.ground_points.values() if g.kind == "control"), key=lambda g: len(g.observations))
+        gp.xyz = gp.xyz + np.array([0.0, 0.0, lift])
+        ws.save_block(block)
+        STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext())
+        reports.append(json.loads(ws.path("aerotri/report.json").read_text()))
+    clean, report = reports
+    assert not any(g["rejected_coordinates"] or g["rejected_images"] for g in clean["ground_points"])
+    assert report["runs"][0]["control_points_rejected"] == [gp.name]
+    row = next(g for g in report["ground_points"] if g["name"] == gp.name)
+    assert row["rejected_coordinates"] and abs(row["dz_m"] + 0.3) < 0.05
+    assert not any(g["rejected_coordinates"] or g["rejected_images"] for g in report["ground_points"] if g is not row)
+    for key in ("rms_xy_m", "rms_z_m"):
+        assert report["check_points"]["all"][key] < 1.05 * clean["check_points"]["all"][key]
+    html = ws.path("aerotri/report.html").read_text()
+    assert f"<td>{gp.name}</td><td>control</td>" in html and "<td>coordinates</td>" in html

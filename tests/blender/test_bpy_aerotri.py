@@ -41,7 +41,10 @@ def ws(tmp_path, utm_block):
               "check_points": {"all": {"n": 4, "rms_xy_m": 0.0312, "rms_z_m": 0.0457}}, "blunder_percent": 1.25,
               "mounting": {"nadir": {"boresight_deg": [0.01, 0.0, 0.0]}, "left": {"boresight_deg": [0.03, 0.0, -0.04]}},
               "image_residual_fields": {"nadir": {"systematic_rms_px": 0.012}, "left": {"systematic_rms_px": 0.0841},
-                                        "right": {"systematic_rms_px": None}}}
+                                        "right": {"systematic_rms_px": None}},
+              "ground_points": [{"name": "G1", "rejected_coordinates": True, "rejected_images": []},
+                                {"name": "G2", "rejected_coordinates": False, "rejected_images": ["a", "b"]},
+                                {"name": "C3"}]}
     (w.stage_dir("aerotri") / "report.json").write_text(json.dumps(report))
     (w.stage_dir("aerotri") / "report.html").write_text("<html><body>report</body></html>")
     w.write_state({"aerotri": {"status": "done"}})
@@ -148,6 +151,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Rejected observations: 1.25 %" in labels
     assert "Mounting calibrated for 2 cameras, largest boresight 0.0500 deg (left)" in labels
     assert "Largest systematic image residual: 0.084 px (left)" in labels
+    assert "Rejected control: 1 points (G1), 2 measurements" in labels
     assert any(e[0] == "operator" and e[1] == "city.open_report" for e in log)
 
     opened = []
