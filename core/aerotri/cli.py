@@ -1,4 +1,5 @@
-"""CLI command ``oblique-city aerotri WS --mode integrated|hierarchical --connection cba|2|3|5|10 [--mounting]``.
+"""CLI command ``oblique-city aerotri WS --mode integrated|hierarchical --connection cba|2|3|5|10 [--mounting]
+[--no-control-tests]``.
 
 A shortcut for ``oblique-city run WS --stages aerotri --set aerotri.mode=... --set aerotri.connection=...``
 that stores the options in ``project.toml`` and runs the stage (forced, since the options are the point).
@@ -22,8 +23,9 @@ def cmd_aerotri(args: argparse.Namespace) -> int:
         value = getattr(args, key)
         if value is not None:
             opts[key] = value
-    if args.mounting is not None:
-        opts["mounting"] = args.mounting
+    for key in ("mounting", "control_tests"):
+        if getattr(args, key) is not None:
+            opts[key] = getattr(args, key)
     if args.self_calibration is not None:
         opts["self_calibration"] = [g for g in args.self_calibration.split(",") if g]
     ws.save_project()
@@ -40,6 +42,8 @@ def add_commands(sub) -> None:
     s.add_argument("--self-calibration", help="comma-separated: focal,principal_point,radial,tangential")
     s.add_argument("--mounting", action=argparse.BooleanOptionalAction,
                    help="calibrate each camera's boresight and lever arm against the GNSS/IMU priors")
+    s.add_argument("--control-tests", dest="control_tests", action=argparse.BooleanOptionalAction,
+                   help="test the control points' measurements and coordinates for blunders (on by default)")
     s.add_argument("--executor", choices=("inline", "processes", "dask"), default="inline")
     s.add_argument("--workers", type=int, default=2)
     s.add_argument("--scheduler", help="Dask scheduler address")

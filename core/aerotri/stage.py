@@ -64,6 +64,8 @@ class AerotriConfig:
         conditional ones)
     default_sigma_position, default_sigma_attitude_deg : EO prior sigmas (metres, degrees) for images whose
         import carries none (e.g. BlocksExchange); the same for X, Y, Z and omega, phi, kappa
+    control_tests : blunder tests of the control points' measurements and coordinates (on by default; see
+        :func:`.bundle.control_point_tests`)
     """
 
     mode: str = "integrated"
@@ -93,6 +95,7 @@ class AerotriConfig:
     marginal_std_max_images: int = 500
     default_sigma_position: float = 0.15
     default_sigma_attitude_deg: float = 0.05
+    control_tests: bool = True
 
     def bundle_options(self) -> BundleOptions:
         for g in self.self_calibration:
@@ -110,7 +113,7 @@ class AerotriConfig:
                              mounting=self.mounting, mounting_sigma_deg=self.mounting_sigma_deg,
                              mounting_sigma_m=self.mounting_sigma_m, threads=self.threads,
                              linear_solver=self.linear_solver, settle_stop=self.settle_stop,
-                             marginal_max_images=self.marginal_std_max_images)
+                             marginal_max_images=self.marginal_std_max_images, control_tests=self.control_tests)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:

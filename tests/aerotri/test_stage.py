@@ -222,7 +222,8 @@ def test_residual_field_shows_a_distortion_error_that_self_calibration_removes(t
 def test_a_wrong_control_point_is_rejected_and_reported(tmp_path):
     """A control point given 0.3 m too high (20 times its 0.015 m sigma): the aerotri stage rejects its coordinates,
     says so in the report (JSON: the run and the ground point row; HTML: the ground points table), and the check
-    points come out within 5 % of those of the clean block (on which nothing is rejected)."""
+    points come out within 5 % of those of the clean block (on which nothing is rejected). With
+    ``--no-control-tests`` the point stays in and the check points' Z RMS is worse."""
     from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
     from oblique_city.core.pipeline import RunContext
 
@@ -245,3 +246,9 @@ def test_a_wrong_control_point_is_rejected_and_reported(tmp_path):
         assert report["check_points"]["all"][key] < 1.05 * clean["check_points"]["all"][key]
     html = ws.path("aerotri/report.html").read_text()
     assert f"<td>{gp.name}</td><td>control</td>" in html and "<td>coordinates</td>" in html
+    # switched off from the command line: stored in the project, nothing rejected, the wrong point pulls the block
+    assert main(["aerotri", str(ws.root), "--no-control-tests"]) == 0
+    assert Workspace.open(ws.root).stage_options("aerotri")["control_tests"] is False
+    untested = json.loads(ws.path("aerotri/report.json").read_text())
+    assert not any(g["rejected_coordinates"] for g in untested["ground_points"])
+    assert untested["check_points"]["all"]["rms_z_m"] > report["check_points"]["all"]["rms_z_m"]
