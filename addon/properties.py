@@ -72,10 +72,34 @@ class CityPreferences(bpy.types.AddonPreferences):
         row.prop(self, "scheduler")
 
 
-OPTION_STAGES = ("dense", "surface", "buildings", "windows")
+OPTION_STAGES = ("aerotri", "dense", "surface", "buildings", "windows")
 """The stages whose options their panel edits (``Scene.oblique_city.stage_options.<stage>``)."""
 
 OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
+    "aerotri": {
+        "mode": {"items": (("integrated", "Integrated (IAT)", "All images in one adjustment"),
+                           ("hierarchical", "Hierarchical (HAT)", "Nadir block first, then each oblique view tied "
+                                                                  "to it by connection points"))},
+        "connection": {"items": (("cba", "CBA", "Per grid cell the tie point with most rays"),
+                                 ("2", ">= 2 rays", "Every tie point with at least 2 nadir rays"),
+                                 ("3", ">= 3 rays", "Every tie point with at least 3 nadir rays"),
+                                 ("5", ">= 5 rays", "Every tie point with at least 5 nadir rays"),
+                                 ("10", ">= 10 rays", "Every tie point with at least 10 nadir rays"))},
+        "cell_size": {"min": 0.0, "description": "CBA grid cell (m)"},
+        "sigma_px": {"min": 0.0, "description": "A priori sigma of the tie measurements (px)"},
+        "mounting": {"description": "Calibrate each camera's boresight and lever arm against the GNSS/IMU priors"},
+        "control_tests": {"description": "Test the control points' measurements and coordinates for blunders"},
+        "blunder_threshold": {"min": 0.0, "description": "Normalised residual above which an observation is "
+                                                         "rejected"},
+        "linear_solver": {"items": (("auto", "Automatic", "Chosen from the block's size and structure"),
+                                    ("sparse_schur", "Sparse Schur", "Sparse factorisation of the camera system"),
+                                    ("explicit_schur", "Explicit Schur", "Conjugate gradients on the explicit "
+                                                                         "camera system"),
+                                    ("iterative_schur", "Iterative Schur", "Conjugate gradients, implicit"))},
+        "layer_views": {"items": (("all", "All", "CBA layers from all views"),
+                                  ("nadir", "Nadir", "CBA layers from the nadir views"),
+                                  ("oblique", "Oblique", "CBA layers from the oblique views"))},
+    },
     "buildings": {
         "min_height": {"min": 0.0, "description": "Lowest building above the terrain (nDSM, m)"},
         "min_area": {"min": 0.0, "description": "Smallest building footprint (m^2)"},

@@ -169,3 +169,33 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert bpy.ops.city.open_project_report() == {"FINISHED"}
     assert opened[-1] == (w.root / "report.html").resolve().as_uri()
     assert "<h2>Processing</h2>" in (w.root / "report.html").read_text()
+
+
+def test_triangulation_options_round_trip_through_project_toml(addon, ws):
+    """The Triangulation panel edits ``[stages.aerotri]``: mode, connection and the linear solver as choices, the
+    control tests and the mounting calibration as switches (the self-calibration groups, a list, stay in the
+    file); what it writes is what the stage's config reads."""
+    import tomllib
+
+    from oblique_city.addon.properties import option_fields
+    from oblique_city.core.pipeline.registry import get_stage
+    from oblique_city.panels import STAGE_PANEL_CLASSES
+
+    bpy = addon
+    w = ws[0]
+    scene = bpy.context.scene
+    scene.oblique_city.workspace = str(w.root)
+    fields = option_fields("aerotri")
+    assert {"mode", "connection", "cell_size", "mounting", "control_tests", "linear_solver"} <= set(fields)
+    assert "self_calibration" not in fields
+    opts = scene.oblique_city.stage_options.aerotri
+    assert opts.mode == "integrated" and opts.connection == "cba" and opts.control_tests
+    opts.mode, opts.connection, opts.control_tests, opts.cell_size = "hierarchical", "5", False, 40.0
+    doc = tomllib.loads((w.root / "project.toml").read_text(encoding="utf-8"))["stages"]["aerotri"]
+    assert doc["mode"] == "hierarchical" and doc["connection"] == "5" and doc["control_tests"] is False
+    cfg = get_stage("aerotri").make_config(Workspace.open(w.root).stage_options("aerotri"))
+    assert (cfg.mode, cfg.connection, cfg.control_tests, cfg.cell_size) == ("hierarchical", "5", False, 40.0)
+    assert not cfg.bundle_options().control_tests
+    panel = next(c for c in STAGE_PANEL_CLASSES if c.bl_label == "Triangulation")
+    props = [e[1] for e in draw(panel, bpy.context) if e[0] == "prop"]
+    assert {"mode", "connection", "control_tests"} <= set(props)
