@@ -86,6 +86,10 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                  ("5", ">= 5 rays", "Every tie point with at least 5 nadir rays"),
                                  ("10", ">= 10 rays", "Every tie point with at least 10 nadir rays"))},
         "cell_size": {"min": 0.0, "description": "CBA grid cell (m)"},
+        "self_calibration": {"items": (("focal", "Focal", "Focal length"),
+                                       ("principal_point", "Principal point", "Principal point"),
+                                       ("radial", "Radial", "Radial distortion k1 k2 k3"),
+                                       ("tangential", "Tangential", "Tangential distortion p1 p2"))},
         "sigma_px": {"min": 0.0, "description": "A priori sigma of the tie measurements (px)"},
         "mounting": {"description": "Calibrate each camera's boresight and lever arm against the GNSS/IMU priors"},
         "control_tests": {"description": "Test the control points' measurements and coordinates for blunders"},
@@ -205,7 +209,8 @@ def set_stage_option(scene, stage: str, name: str, value: Any) -> None:
 
 def _option_property(stage: str, field: dataclasses.Field, default: Any) -> Any:
     """A property with get/set callbacks over one field of a stage's config, or None for a type the panel does
-    not edit (tuples, None defaults: those stay in ``project.toml``)."""
+    not edit (tuples without ``items``, None defaults: those stay in ``project.toml``). A tuple with ``items`` is
+    a set of choices (toggle buttons), written as a list."""
     hints = OPTION_HINTS.get(stage, {}).get(field.name, {})
     common = {"name": field.name.replace("_", " ").title(),
               "description": hints.get("description", f"[stages.{stage}] {field.name} in project.toml")}
@@ -214,6 +219,18 @@ def _option_property(stage: str, field: dataclasses.Field, default: Any) -> Any:
         v = stage_option_values(scene, stage).get(field.name, default)
         return v if isinstance(v, type(default)) or (isinstance(default, float) and isinstance(v, int)) else default
 
+    if "items" in hints and isinstance(default, tuple):
+        choices = [v for v, _, _ in hints["items"]]
+
+        def get_flags(self) -> int:
+            v = stage_option_values(self.id_data, stage).get(field.name, default)
+            chosen = v if isinstance(v, (list, tuple)) else default
+            return sum(1 << i for i, x in enumerate(choices) if x in chosen)
+
+        return EnumProperty(items=[(v, n, d, 1 << i) for i, (v, n, d) in enumerate(hints["items"])],
+                            options={"ENUM_FLAG"}, **common, get=get_flags,
+                            set=lambda self, m: set_stage_option(self.id_data, stage, field.name,
+                                                                 [x for i, x in enumerate(choices) if m >> i & 1]))
     if "items" in hints:
         values = [v for v, _, _ in hints["items"]]
         items = [(v or "AUTO", n, d, i) for i, (v, n, d) in enumerate(hints["items"])]

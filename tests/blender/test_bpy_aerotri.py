@@ -173,7 +173,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
 
 def test_triangulation_options_round_trip_through_project_toml(addon, ws):
     """The Triangulation panel edits ``[stages.aerotri]``: mode, connection and the linear solver as choices, the
-    control tests and the mounting calibration as switches (the self-calibration groups, a list, stay in the
+    control tests and the mounting calibration as switches, the self-calibration groups as toggles (a list in the
     file); what it writes is what the stage's config reads."""
     import tomllib
 
@@ -186,16 +186,21 @@ def test_triangulation_options_round_trip_through_project_toml(addon, ws):
     scene = bpy.context.scene
     scene.oblique_city.workspace = str(w.root)
     fields = option_fields("aerotri")
-    assert {"mode", "connection", "cell_size", "mounting", "control_tests", "linear_solver"} <= set(fields)
-    assert "self_calibration" not in fields
+    assert {"mode", "connection", "cell_size", "mounting", "control_tests", "linear_solver",
+            "self_calibration"} <= set(fields)
     opts = scene.oblique_city.stage_options.aerotri
     assert opts.mode == "integrated" and opts.connection == "cba" and opts.control_tests
+    assert opts.self_calibration == set()
     opts.mode, opts.connection, opts.control_tests, opts.cell_size = "hierarchical", "5", False, 40.0
+    opts.self_calibration = {"radial", "focal"}
     doc = tomllib.loads((w.root / "project.toml").read_text(encoding="utf-8"))["stages"]["aerotri"]
     assert doc["mode"] == "hierarchical" and doc["connection"] == "5" and doc["control_tests"] is False
+    assert doc["self_calibration"] == ["focal", "radial"]
     cfg = get_stage("aerotri").make_config(Workspace.open(w.root).stage_options("aerotri"))
     assert (cfg.mode, cfg.connection, cfg.control_tests, cfg.cell_size) == ("hierarchical", "5", False, 40.0)
     assert not cfg.bundle_options().control_tests
+    assert tuple(cfg.bundle_options().self_calibration) == ("focal", "radial")
+    assert opts.self_calibration == {"focal", "radial"}
     panel = next(c for c in STAGE_PANEL_CLASSES if c.bl_label == "Triangulation")
     props = [e[1] for e in draw(panel, bpy.context) if e[0] == "prop"]
     assert {"mode", "connection", "control_tests"} <= set(props)
