@@ -19,11 +19,13 @@ the median of the N paired ratios; every pair is printed and saved (the accuracy
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -216,6 +218,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=1,
                     help="times IAT and HAT-CBA are timed, in alternating order; the wall-time target takes the median "
                          "of the paired ratios")
+    ap.add_argument("--control-blunders", type=int, default=0,
+                    help="also adjust a copy of the block with this many control points given wrong coordinates and "
+                         "as many others with one wrong measurement (Table 9)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out")
     args = ap.parse_args(argv)
@@ -328,6 +333,12 @@ def main(argv=None) -> int:
                                        oblique_tie_grid=args.oblique_tie_grid,
                                        oblique_ties_per_cell=args.oblique_ties_per_cell),
                 lambda: Executor(args.executor, workers=args.workers) if args.executor != "inline" else None)
+        if args.control_blunders > 0:
+            out["control_blunders"] = control_blunder_runs(
+                block, ties, xyz0, opt, args.control_blunders, args.seed, rows,
+                lambda b, o: hierarchical(b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
+                                          oblique_tie_grid=args.oblique_tie_grid,
+                                          oblique_ties_per_cell=args.oblique_ties_per_cell))
     finally:
         if ex is not None:
             ex.close()
@@ -337,12 +348,57 @@ def main(argv=None) -> int:
         rows.append(evaluate("nadir AT + propagation", block, ties, sim, prop, None, None, nadir_run.result.sigma0,
                              noise, nadir_run.wall_s, 0.0))
     print_tables(out, sim)
+    if "control_blunders" in out:
+        print_control_blunders(out["control_blunders"], sim.gsd)
     targets(out)
     path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1, default=float))
     print(f"\nwritten {path}")
     return 0
+
+
+def control_blunder_runs(block, ties, xyz0, opt: BundleOptions, n: int, seed: int, rows: list[dict],
+                         run_hat: Callable[[object, BundleOptions], object]) -> dict:
+    """Control point blunders (Table 9): in a copy of the block, ``n`` control points get one coordinate 0.2-0.5 m
+    wrong (20-50 times their sigma) and ``n`` others one measurement 5-10 px off; IAT and HAT-CBA adjust it with
+    the control tests (and HAT once without). Returns per method what was planted, found and wrongly rejected and
+    the check point RMS beside that of the clean block's adjustment (``rows``)."""
+    rng = np.random.default_rng(seed + 1)
+    bad = copy.deepcopy(block)
+    ctrl = sorted((g for g in bad.ground_points.values() if g.kind == "control" and len(g.observations) >= 3),
+                  key=lambda g: g.name)
+    pick = rng.choice(len(ctrl), size=min(2 * n, len(ctrl)), replace=False)
+    coords = {ctrl[i].name for i in pick[:n]}
+    measured = set()
+    for i in pick[:n]:
+        gp = ctrl[i]
+        gp.xyz = gp.xyz + np.eye(3)[rng.integers(3)] * rng.choice([-1, 1]) * rng.uniform(0.2, 0.5)
+    for i in pick[n:]:
+        gp = ctrl[i]
+        image = sorted(gp.observations)[rng.integers(len(gp.observations))]
+        angle = rng.uniform(0, 2 * np.pi)
+        gp.observations[image] = gp.observations[image] + rng.uniform(5, 10) * np.array([np.cos(angle), np.sin(angle)])
+        measured.add((gp.name, image))
+    clean = {r["method"]: r for r in rows}
+    out = {"planted_coordinates": sorted(coords), "planted_measurements": sorted(map(list, measured)), "runs": {}}
+    runs = [("IAT", "IAT", lambda: integrated(bad, ties, opt, xyz0=xyz0)),
+            ("HAT cba", "HAT cba", lambda: run_hat(bad, opt)),
+            ("HAT cba, tests off", "HAT cba", lambda: run_hat(bad, replace(opt, control_tests=False)))]
+    for name, ref, fn in runs:
+        if ref not in clean:
+            continue
+        at = fn()
+        got_pts, got_obs = at.control_rejections()
+        xy, z = rms_xy_z(check_point_errors(bad, at.poses)[1])
+        out["runs"][name] = {
+            "coordinates_found": len(got_pts & coords), "measurements_found": len(got_obs & measured),
+            "false_alarms": len(got_pts - coords) + len(got_obs - measured),
+            "check_xy_m": xy, "check_z_m": z,
+            "clean_check_xy_m": clean[ref]["check_all"]["xy_m"], "clean_check_z_m": clean[ref]["check_all"]["z_m"]}
+        print(f"{name} on the block with control blunders: {len(got_pts & coords)}/{len(coords)} coordinates, "
+              f"{len(got_obs & measured)}/{len(measured)} measurements found")
+    return out
 
 
 def timing_pairs(repeat: int, first: tuple[float, float, float, float], run_iat: Callable[[], object],
@@ -490,6 +546,19 @@ def print_tables(out: dict, sim) -> None:
                     line += (f"   error {_v(b - truth[cam]['boresight_deg'], 4)}  "
                              f"{_v(o - np.array(truth[cam]['offset_m']), 3)}")
                 print(line)
+
+
+def print_control_blunders(cb: dict, gsd: float) -> None:
+    print(f"\nTable 9. Control point blunders: {len(cb['planted_coordinates'])} points with a wrong coordinate "
+          f"(0.2-0.5 m), {len(cb['planted_measurements'])} with a wrong measurement (5-10 px); check point RMS [GSD] "
+          "against the clean block's")
+    print(f"{'method':26s} {'coordinates':>11s} {'measurements':>12s} {'false':>6s} {'XY':>7s} {'clean':>7s} "
+          f"{'Z':>7s} {'clean':>7s}")
+    for name, r in cb["runs"].items():
+        print(f"{name:26s} {r['coordinates_found']:>4d} of {len(cb['planted_coordinates']):<3d} "
+              f"{r['measurements_found']:>5d} of {len(cb['planted_measurements']):<3d} {r['false_alarms']:>6d} "
+              f"{_f(r['check_xy_m'], 1 / gsd):>7s} {_f(r['clean_check_xy_m'], 1 / gsd):>7s} "
+              f"{_f(r['check_z_m'], 1 / gsd):>7s} {_f(r['clean_check_z_m'], 1 / gsd):>7s}")
 
 
 def _v(a, nd: int) -> str:
