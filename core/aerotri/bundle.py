@@ -1430,10 +1430,11 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
        shift from the control points) the shift of the *other* points (their differences averaged with the
        inverse of ``C + diag(sigma^2)``), so a wrong point cannot hide in the shift; otherwise ``shift``. The
        normalised difference of an axis is the difference over its standard deviation (``C``, ``sigma`` and the
-       shift's); of the points above ``threshold`` the worst one is rejected (one per round, as in data snooping).
+       shift's); while a point is above ``threshold``, the worst one is rejected and the others are tested again
+       without it (data snooping; the images stay where they are).
 
     Returns the rejected measurements ``(k,)``, the rejected points ``(g,)`` and each point's largest normalised
-    coordinate difference ``(g,)`` (NaN where untested)."""
+    coordinate difference ``(g,)`` (a rejected point's when it was rejected; NaN where untested)."""
     from .problem import intersect_rays, ray_directions  # problem builds on this module
 
     g = len(given)
@@ -1470,21 +1471,27 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
     weight[ok] = np.linalg.inv(total[ok])
     info_all = weight[ok].sum(0)
     rhs_all = np.einsum("gij,gj->i", weight[ok], diff[ok])
-    for i in np.flatnonzero(ok):
-        if shift_free:
-            info = info_all - weight[i]
-            if np.linalg.cond(info) > 1e12:
-                continue  # no other control point: the shift rests on this one alone
-            s_cov = np.linalg.inv(info)
-            s_i = s_cov @ (rhs_all - weight[i] @ diff[i])
-        else:
-            s_cov, s_i = np.zeros((3, 3)), shift
-        w_pt[i] = float(np.max(np.abs(diff[i] - s_i) / np.sqrt(np.diagonal(total[i] + s_cov))))
     bad_pt = np.zeros(g, bool)
-    worst = int(np.nanargmax(np.where(np.isfinite(w_pt), w_pt, -1.0)))
-    if np.isfinite(w_pt[worst]) and w_pt[worst] > threshold:
-        bad_pt[worst] = True
-    return bad_obs, bad_pt, w_pt
+    w_bad = np.full(g, np.nan)  # a rejected point's figure when it was rejected
+    while True:
+        w_pt[:] = np.nan
+        for i in np.flatnonzero(ok):
+            if shift_free:
+                info = info_all - weight[i]
+                if np.linalg.cond(info) > 1e12:
+                    continue  # no other control point: the shift rests on this one alone
+                s_cov = np.linalg.inv(info)
+                s_i = s_cov @ (rhs_all - weight[i] @ diff[i])
+            else:
+                s_cov, s_i = np.zeros((3, 3)), shift
+            w_pt[i] = float(np.max(np.abs(diff[i] - s_i) / np.sqrt(np.diagonal(total[i] + s_cov))))
+        worst = int(np.argmax(np.where(np.isfinite(w_pt), w_pt, -1.0)))
+        if not (np.isfinite(w_pt[worst]) and w_pt[worst] > threshold):
+            return bad_obs, bad_pt, np.where(bad_pt, w_bad, w_pt)
+        # the worst goes, and the others are tested again without it (its error no longer in their shift)
+        bad_pt[worst], ok[worst], w_bad[worst] = True, False, w_pt[worst]
+        info_all = info_all - weight[worst]
+        rhs_all = rhs_all - weight[worst] @ diff[worst]
 
 
 def resected_start(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
