@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.aerotri.report import largest_systematic
 from ..core.errors import InputError
 from ..core.io.geotiff import read_geotiff
 from ..core.model import Raster, TiePoints
@@ -169,14 +170,11 @@ def report_summary(path: Path) -> dict:
         angles = {c: float(math.sqrt(sum(float(a) ** 2 for a in m["boresight_deg"])))
                   for c, m in (doc.get("mounting") or {}).items()}
         largest = max(angles, key=angles.get) if angles else None
-        sys_px = {c: float(f["systematic_rms_px"]) for c, f in (doc.get("image_residual_fields") or {}).items()
-                  if f.get("systematic_rms_px") is not None}
-        worst = max(sys_px, key=sys_px.get) if sys_px else None
         ground = doc.get("ground_points") or []
         rejected = ([str(g["name"]) for g in ground if g.get("rejected_coordinates")],
                     sum(len(g.get("rejected_images") or []) for g in ground))
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
-                "systematic": (worst, sys_px[worst]) if worst else None,
+                "systematic": largest_systematic(doc.get("image_residual_fields") or {}),
                 "control_rejected": rejected if rejected[0] or rejected[1] else None,
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),

@@ -127,9 +127,9 @@ def rejected_control(runs: list[Run]) -> tuple[set[str], set[tuple[str, str]]]:
 def _to_run(name: str, sub: SubProblem, res: BundleResult, wall: float) -> Run:
     prob = sub.problem
     poses = result_poses(sub, res)
-    std = {iid: res.image_std[k] for k, iid in enumerate(sub.problem.image_ids) if res.image_adjusted[k]}
-    r_f, c_f = frame_poses(res.r_cam_from_world, res.c_world, sub.problem.image_camera, res.mounting)
-    frames = {iid: Pose(r_f[k], c_f[k]) for k, iid in enumerate(sub.problem.image_ids) if iid in poses}
+    std = {iid: res.image_std[k] for k, iid in enumerate(prob.image_ids) if res.image_adjusted[k]}
+    r_f, c_f = frame_poses(res.r_cam_from_world, res.c_world, prob.image_camera, res.mounting)
+    frames = {iid: Pose(r_f[k], c_f[k]) for k, iid in enumerate(prob.image_ids) if iid in poses}
     return Run(name=name, poses=poses, image_std=std, track_index=sub.track_index, xyz=res.xyz,
                xyz_cov=res.xyz_cov, obs_index=sub.obs_index, obs_rejected=res.obs_rejected,
                obs_residual=res.obs_residual, result=res, wall_s=wall, frames=frames,

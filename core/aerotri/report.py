@@ -102,11 +102,24 @@ def grid_layer(xy: np.ndarray, values: np.ndarray, cell: float, crs: str, reduce
     return Raster(data=out.reshape(rows, cols).astype(np.float32), x0=float(x0), y0=float(y0), cell=cell, crs=crs)
 
 
+def _used(run: Run) -> np.ndarray:
+    """The run's observations ``(m,)`` in its final solution (results without ``obs_used``: those not rejected)."""
+    used = run.result.obs_used
+    return used if len(used) == len(run.obs_rejected) else ~run.obs_rejected
+
+
+def largest_systematic(fields: dict[str, dict]) -> tuple[str, float] | None:
+    """The camera with the largest ``systematic_rms_px`` of :func:`camera_residual_fields` (as in report.json) and
+    that figure, or None without one."""
+    px = {c: float(f["systematic_rms_px"]) for c, f in fields.items() if f.get("systematic_rms_px") is not None}
+    worst = max(px, key=px.get) if px else None
+    return (worst, px[worst]) if worst else None
+
+
 def run_statistics(run: Run, sigma_px: float) -> dict:
     """Figures of one adjustment run (see the module docstring)."""
     res = run.result
-    used = res.obs_used if len(res.obs_used) == len(run.obs_rejected) else ~run.obs_rejected
-    v = run.obs_residual[used]
+    v = run.obs_residual[_used(run)]
     v = v[np.all(np.isfinite(v), 1)]
     std = np.array(list(run.image_std.values())) if run.image_std else np.zeros((0, 6))
     pt_std = np.sqrt(np.abs(np.diagonal(run.xyz_cov, axis1=1, axis2=2)))
@@ -217,8 +230,7 @@ def accepted_residuals(at: ATResult) -> tuple[np.ndarray, np.ndarray]:
     residuals ``(k, 2)`` in pixels (observed minus the projection with the adjusted orientation and point)."""
     idx, res = [], []
     for run in at.runs:
-        used = run.result.obs_used if len(run.result.obs_used) == len(run.obs_index) else ~run.obs_rejected
-        ok = used & np.all(np.isfinite(run.obs_residual), 1)
+        ok = _used(run) & np.all(np.isfinite(run.obs_residual), 1)
         idx.append(run.obs_index[ok])
         res.append(run.obs_residual[ok])
     if not idx:

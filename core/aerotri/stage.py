@@ -19,7 +19,14 @@ from ..pipeline.atomic import write_json, write_text
 from ..pipeline.stage import Stage, StageResult
 from .bundle import CALIBRATION_GROUPS, LINEAR_SOLVERS, BundleOptions
 from .hierarchical import CONNECTIONS, ATResult, hierarchical, integrated
-from .report import accepted_residuals, block_report, html_report, quality_layers, write_layers
+from .report import (
+    accepted_residuals,
+    block_report,
+    html_report,
+    largest_systematic,
+    quality_layers,
+    write_layers,
+)
 
 MODES = ("integrated", "hierarchical")
 TIES_FILE = "matching/ties.npz"
@@ -178,9 +185,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     write_text(out / "report.html", html_report(report, layers, accepted_residuals(at)[1]))
     ctx.progress(2, 2, "done")
     check = report["check_points"]["all"]
-    systematic = {c: f["systematic_rms_px"] for c, f in report["image_residual_fields"].items()
-                  if f["systematic_rms_px"] is not None}
-    worst = max(systematic, key=systematic.get) if systematic else None
+    worst = largest_systematic(report["image_residual_fields"])
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
@@ -188,10 +193,10 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],
                  "blunder_percent": report["blunder_percent"], "wall_s": report["wall_s"],
                  "thinned_observations": report["thinned_observations"],
-                 "systematic_residual_px": systematic.get(worst)},
+                 "systematic_residual_px": worst[1] if worst else None},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
-                + (f", largest systematic image residual {systematic[worst]:.3f} px ({worst})" if worst else ""))
+                + (f", largest systematic image residual {worst[1]:.3f} px ({worst[0]})" if worst else ""))
 
 
 def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
