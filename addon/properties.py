@@ -93,6 +93,7 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
         "sigma_px": {"min": 0.0, "description": "A priori sigma of the tie measurements (px)"},
         "mounting": {"description": "Calibrate each camera's boresight and lever arm against the GNSS/IMU priors"},
         "control_tests": {"description": "Test the control points' measurements and coordinates for blunders"},
+        "prior_tests": {"description": "Test each image's GNSS position and IMU attitude prior for blunders"},
         "blunder_threshold": {"min": 0.0, "description": "Normalised residual above which an observation is "
                                                          "rejected"},
         "linear_solver": {"items": (("auto", "Automatic", "Chosen from the block's size and structure"),

@@ -52,7 +52,8 @@ from oblique_city.core.evaluate.aerotri import (  # noqa: E402
     std_xy_z,
     tie_point_std,
 )
-from oblique_city.core.geometry.rotations import matrix_to_rotvec  # noqa: E402
+from oblique_city.core.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
+from oblique_city.core.model import Pose  # noqa: E402
 from oblique_city.core.pipeline import Executor  # noqa: E402
 from oblique_city.core.simulate.flight import NavErrors, perturbed_rig  # noqa: E402
 from oblique_city.core.simulate.observations import SimulationConfig, simulate_block  # noqa: E402
@@ -221,6 +222,9 @@ def main(argv=None) -> int:
     ap.add_argument("--control-blunders", type=int, default=0,
                     help="also adjust a copy of the block with this many control points given wrong coordinates and "
                          "as many others with one wrong measurement (Table 9)")
+    ap.add_argument("--prior-blunders", type=int, default=0,
+                    help="also adjust a copy of the block with this many exposures given a wrong GNSS position and as "
+                         "many others a wrong IMU attitude, on all their heads (Table 10)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out")
     args = ap.parse_args(argv)
@@ -333,12 +337,19 @@ def main(argv=None) -> int:
                                        oblique_tie_grid=args.oblique_tie_grid,
                                        oblique_ties_per_cell=args.oblique_ties_per_cell),
                 lambda: Executor(args.executor, workers=args.workers) if args.executor != "inline" else None)
+
+        def run_blunder_hat(b, o):
+            return hierarchical(b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
+                                oblique_tie_grid=args.oblique_tie_grid,
+                                oblique_ties_per_cell=args.oblique_ties_per_cell)
+
         if args.control_blunders > 0:
             out["control_blunders"] = control_blunder_runs(
                 block, ties, xyz0, opt, args.control_blunders, args.seed, rows,
-                lambda b, o: hierarchical(b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
-                                          oblique_tie_grid=args.oblique_tie_grid,
-                                          oblique_ties_per_cell=args.oblique_ties_per_cell))
+                run_blunder_hat)
+        if args.prior_blunders > 0:
+            out["prior_blunders"] = prior_blunder_runs(block, ties, xyz0, sim.true_poses, opt, args.prior_blunders,
+                                                       args.seed, rows, run_blunder_hat)
     finally:
         if ex is not None:
             ex.close()
@@ -350,6 +361,8 @@ def main(argv=None) -> int:
     print_tables(out, sim)
     if "control_blunders" in out:
         print_control_blunders(out["control_blunders"], sim.gsd)
+    if "prior_blunders" in out:
+        print_prior_blunders(out["prior_blunders"], sim.gsd)
     targets(out)
     path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -380,24 +393,89 @@ def control_blunder_runs(block, ties, xyz0, opt: BundleOptions, n: int, seed: in
         angle = rng.uniform(0, 2 * np.pi)
         gp.observations[image] = gp.observations[image] + rng.uniform(5, 10) * np.array([np.cos(angle), np.sin(angle)])
         measured.add((gp.name, image))
+
+    def score(at) -> dict:
+        got_pts, got_obs = at.control_rejections()
+        print(f"on the block with control blunders: {len(got_pts & coords)}/{len(coords)} coordinates, "
+              f"{len(got_obs & measured)}/{len(measured)} measurements found")
+        return {"coordinates_found": len(got_pts & coords), "measurements_found": len(got_obs & measured),
+                "false_alarms": len(got_pts - coords) + len(got_obs - measured)}
+
+    return {"planted_coordinates": sorted(coords), "planted_measurements": sorted(map(list, measured)),
+            "runs": _blunder_runs(bad, ties, xyz0, opt, rows, run_hat, "control_tests", score)}
+
+
+def prior_blunder_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, n: int, seed: int, rows: list[dict],
+                       run_hat: Callable[[object, BundleOptions], object]) -> dict:
+    """EO prior blunders (Table 10): in a copy of the block, ``n`` exposures get a GNSS position 0.5-2 m off (a lost
+    fix; 6-40 times the sigmas) on all their heads and ``n`` others an IMU attitude 0.05-0.1 deg off (10-20 times);
+    IAT and HAT-CBA adjust it with the prior tests (and HAT once without). Returns per method the priors found and
+    wrongly rejected, the check point RMS beside the clean block's (``rows``), and the RMS error against the truth
+    of the centres of the GNSS images and of the attitudes of the IMU images, beside that of all images."""
+    rng = np.random.default_rng(seed + 2)
+    bad = copy.deepcopy(block)
+    by_exposure: dict[str, list[str]] = {}
+    for iid, img in sorted(bad.images.items()):
+        if img.exposure is not None and img.pose_approx is not None:
+            by_exposure.setdefault(img.exposure, []).append(iid)
+    names = sorted(by_exposure)
+    pick = rng.choice(len(names), size=min(2 * n, len(names)), replace=False)
+    gnss = [iid for k in pick[:n] for iid in by_exposure[names[k]]]
+    imu = [iid for k in pick[n:] for iid in by_exposure[names[k]]]
+    for k in pick[:n]:
+        d = rng.normal(size=3)
+        offset = d / np.linalg.norm(d) * rng.uniform(0.5, 2.0)
+        for iid in by_exposure[names[k]]:
+            p = bad.images[iid].pose_approx
+            bad.images[iid].pose_approx = Pose(p.R, p.C + offset)
+    for k in pick[n:]:
+        d = rng.normal(size=3)
+        turn = rotvec_to_matrix(np.radians(d / np.linalg.norm(d) * rng.uniform(0.05, 0.1)))
+        for iid in by_exposure[names[k]]:
+            p = bad.images[iid].pose_approx
+            bad.images[iid].pose_approx = Pose(p.R @ turn, p.C)
+    planted = {(i, "position") for i in gnss} | {(i, "attitude") for i in imu}
+
+    def centre_rms(at, ids) -> float:
+        return float(np.sqrt(np.mean([np.sum((at.poses[i].C - true_poses[i].C) ** 2) for i in ids if i in at.poses])))
+
+    def angle_rms(at, ids) -> float:
+        return float(np.degrees(np.sqrt(np.mean([np.sum(matrix_to_rotvec(true_poses[i].R.T @ at.poses[i].R) ** 2)
+                                                 for i in ids if i in at.poses]))))
+
+    def score(at) -> dict:
+        got = at.prior_rejections()
+        found = {part: len({o for o in got & planted if o[1] == part}) for part in ("position", "attitude")}
+        print(f"on the block with prior blunders: {found['position']}/{len(gnss)} GNSS positions, "
+              f"{found['attitude']}/{len(imu)} IMU attitudes found, {len(got - planted)} false alarms")
+        return {"positions_found": found["position"], "attitudes_found": found["attitude"],
+                "false_alarms": len(got - planted), "gnss_centre_rms_m": centre_rms(at, gnss),
+                "imu_angle_rms_deg": angle_rms(at, imu), "all_centre_rms_m": centre_rms(at, list(at.poses)),
+                "all_angle_rms_deg": angle_rms(at, list(at.poses))}
+
+    return {"gnss_images": len(gnss), "imu_images": len(imu),
+            "runs": _blunder_runs(bad, ties, xyz0, opt, rows, run_hat, "prior_tests", score)}
+
+
+def _blunder_runs(bad, ties, xyz0, opt: BundleOptions, rows: list[dict],
+                  run_hat: Callable[[object, BundleOptions], object], tests: str,
+                  score: Callable[[object], dict]) -> dict:
+    """IAT and HAT-CBA on the block ``bad`` with planted blunders, and HAT-CBA with the option ``tests`` off: per
+    method ``score(result)`` with the check point RMS beside that of the clean block's adjustment (``rows``)."""
     clean = {r["method"]: r for r in rows}
-    out = {"planted_coordinates": sorted(coords), "planted_measurements": sorted(map(list, measured)), "runs": {}}
+    out = {}
     runs = [("IAT", "IAT", lambda: integrated(bad, ties, opt, xyz0=xyz0)),
             ("HAT cba", "HAT cba", lambda: run_hat(bad, opt)),
-            ("HAT cba, tests off", "HAT cba", lambda: run_hat(bad, replace(opt, control_tests=False)))]
+            ("HAT cba, tests off", "HAT cba", lambda: run_hat(bad, replace(opt, **{tests: False})))]
     for name, ref, fn in runs:
         if ref not in clean:
             continue
+        print(name, end=" ")
         at = fn()
-        got_pts, got_obs = at.control_rejections()
         xy, z = rms_xy_z(check_point_errors(bad, at.poses)[1])
-        out["runs"][name] = {
-            "coordinates_found": len(got_pts & coords), "measurements_found": len(got_obs & measured),
-            "false_alarms": len(got_pts - coords) + len(got_obs - measured),
-            "check_xy_m": xy, "check_z_m": z,
-            "clean_check_xy_m": clean[ref]["check_all"]["xy_m"], "clean_check_z_m": clean[ref]["check_all"]["z_m"]}
-        print(f"{name} on the block with control blunders: {len(got_pts & coords)}/{len(coords)} coordinates, "
-              f"{len(got_obs & measured)}/{len(measured)} measurements found")
+        out[name] = {**score(at), "check_xy_m": xy, "check_z_m": z,
+                     "clean_check_xy_m": clean[ref]["check_all"]["xy_m"],
+                     "clean_check_z_m": clean[ref]["check_all"]["z_m"]}
     return out
 
 
@@ -559,6 +637,21 @@ def print_control_blunders(cb: dict, gsd: float) -> None:
               f"{r['measurements_found']:>5d} of {len(cb['planted_measurements']):<3d} {r['false_alarms']:>6d} "
               f"{_f(r['check_xy_m'], 1 / gsd):>7s} {_f(r['clean_check_xy_m'], 1 / gsd):>7s} "
               f"{_f(r['check_z_m'], 1 / gsd):>7s} {_f(r['clean_check_z_m'], 1 / gsd):>7s}")
+
+
+def print_prior_blunders(pb: dict, gsd: float) -> None:
+    print(f"\nTable 10. EO prior blunders: {pb['gnss_images']} images (all heads of their exposures) with a GNSS "
+          f"position 0.5-2 m off, {pb['imu_images']} with an IMU attitude 0.05-0.1 deg off; check point RMS [GSD] "
+          "against the clean block's; RMS error against the truth of those images' centres [m] and attitudes [deg], "
+          "and of all images'")
+    print(f"{'method':22s} {'GNSS':>9s} {'IMU':>9s} {'false':>5s} {'XY':>6s} {'clean':>6s} {'Z':>6s} {'clean':>6s} "
+          f"{'centre':>7s} {'all':>7s} {'attitude':>8s} {'all':>7s}")
+    for name, r in pb["runs"].items():
+        print(f"{name:22s} {r['positions_found']:>3d} of {pb['gnss_images']:<3d} {r['attitudes_found']:>3d} of "
+              f"{pb['imu_images']:<3d} {r['false_alarms']:>5d} {_f(r['check_xy_m'], 1 / gsd):>6s} "
+              f"{_f(r['clean_check_xy_m'], 1 / gsd):>6s} {_f(r['check_z_m'], 1 / gsd):>6s} "
+              f"{_f(r['clean_check_z_m'], 1 / gsd):>6s} {r['gnss_centre_rms_m']:>7.4f} {r['all_centre_rms_m']:>7.4f} "
+              f"{r['imu_angle_rms_deg']:>8.4f} {r['all_angle_rms_deg']:>7.4f}")
 
 
 def _v(a, nd: int) -> str:

@@ -241,6 +241,9 @@ def draw_triangulation(layout, context) -> None:
         names, measurements = s["control_rejected"]
         col.label(text=f"Rejected control: {len(names)} points{' (' + ', '.join(names) + ')' if names else ''}, "
                        f"{measurements} measurements")
+    if s["priors_rejected"]:
+        positions, attitudes = s["priors_rejected"]
+        col.label(text=f"Rejected priors: {positions} GNSS positions, {attitudes} IMU attitudes")
     layout.operator("city.open_report", icon="URL")
 
 

@@ -44,6 +44,9 @@ again), so that a single least-squares solve usually remains.
 Control points are tested after each round too (:func:`control_point_tests`, ``BundleOptions.control_tests``): a
 measurement that does not fit the point's other rays, or coordinates that do not fit the images and the datum shift
 of the other control points, leave the next round (a wrong point cannot hide in the shift it helps to estimate).
+So are the images' EO priors (:func:`prior_tests`, ``BundleOptions.prior_tests``): a GNSS position or IMU attitude
+that does not fit the orientation the image's own tie points give (a loss of the GNSS fix, a time-tag error) leaves
+the next round, the other part of the prior staying.
 Coordinates are solved around a local origin (the mean prior centre) so UTM magnitudes cost no digits.
 """
 
@@ -74,6 +77,15 @@ number at most this share of the tie observations, else as one 3-row block of py
 images with the CBA's 224 points per oblique run is nothing, but with the ">= 3 rays" selection (40,000 points per
 run) doubled the oblique runs' time (7.8 -> 14.9 s) where the specialisation saves 0.1-0.3 s."""
 
+PRIOR_SCALE_NOTE = 1.5
+"""A robust scale of the EO prior tests (:func:`prior_tests`) above this goes into the adjustment's log: the priors'
+sigmas look too small. On the simulated 400-image test block it is 1.0 for the attitude and 1.2-1.3 for the
+position, whose 80 exposures drew GNSS errors of 1.22-1.32 times their sigma (median absolute error over 0.6745)."""
+
+UNBOUNDED_VARIANCE = 1e12
+"""Variance (m^2) that takes the position out of a 6-DoF pose prior whose position a prior test rejected (1000 km
+standard deviation: a weight of 1e-12 against the tie points')."""
+
 
 @dataclass(frozen=True)
 class BundleOptions:
@@ -86,6 +98,8 @@ class BundleOptions:
     blunder_threshold : normalised residual above which an observation is rejected (4.3 ~ alpha 1e-4)
     control_tests : after each round, test the control points' image measurements and coordinates
         (:func:`control_point_tests`) with ``blunder_threshold``; what fails leaves the next round
+    prior_tests : after each round, test each image's GNSS position and IMU attitude prior against the orientation
+        its tie points give (:func:`prior_tests`) with ``blunder_threshold``; a part that fails leaves the next round
     max_rejection_rounds : least-squares rounds with rejection after the robust solve
     self_calibration : groups of :data:`CALIBRATION_GROUPS` to estimate
     datum_shift : estimate a 3D shift between the GNSS and the control frame
@@ -195,6 +209,7 @@ class BundleOptions:
     resolve_tolerance: float = 1e-4
     marginal_max_images: int = 0
     control_tests: bool = True
+    prior_tests: bool = True
     screen_start: bool = False
     screen_max_sigma0: float = 2.0
     screen_rounds: int = 10
@@ -274,6 +289,9 @@ class BundleResult:
         points whose coordinates were rejected (they left the adjustment with all their measurements); gcp_w :
         (g,) their largest normalised coordinate differences in the last test (:func:`control_point_tests`; NaN:
         untested)
+    prior_rejected : (n, 2) bool, the attitude (column 0) and position (column 1) priors of each image rejected by
+        :func:`prior_tests`; prior_w : (n, 2) their largest normalised differences in the last test (a rejected
+        part's when it was rejected; NaN: untested)
     datum_shift : (3,) control frame - GNSS frame
     mounting : (k, 6) per camera model its mounting correction ``M`` (``BundleOptions.mounting``): rotation vector
         (radians, camera axes) and the camera centre's offset ``-R_M^T t_M`` from the frame's (metres, camera axes);
@@ -315,6 +333,8 @@ class BundleResult:
     gcp_obs_rejected: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     gcp_rejected: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     gcp_w: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    prior_rejected: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), bool))
+    prior_w: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def _quat_xyzw(r: np.ndarray) -> np.ndarray:
@@ -709,7 +729,8 @@ class _Round:
     robust round) plus the priors, connection points, single-ray connection points and control points."""
 
     def __init__(self, model: _Model, opt: BundleOptions, ref: np.ndarray, xyz: np.ndarray, gcp_xyz: np.ndarray,
-                 shift: np.ndarray, active: np.ndarray, robust: bool, gcp_obs_ok: np.ndarray) -> None:
+                 shift: np.ndarray, active: np.ndarray, robust: bool, gcp_obs_ok: np.ndarray,
+                 prior_off: np.ndarray) -> None:
         import pyceres
         import pycolmap
         import pycolmap.cost_functions as cf
@@ -759,21 +780,31 @@ class _Round:
         self.costs = []  # the Python cost functions Ceres calls (kept alive with the problem)
         mounted, self._mounting_prior, mounted_relative = _cost_classes() if model.mount else (None, None, None)
         model.mount_used = set()
+        # a part (attitude, position) a prior test rejected (prior_off) adds no information: the mounted cost gets
+        # zero weights and the attitude-only prior an unbounded position variance, their rows counted as padding
+        self.padded_rows = 0  # zero rows that pad costs (the priors' blocks, rejected parts; out of the redundancy)
         for k, fp in self.frame_params.items():
             s_att, s_pos = prob.prior_sigma_att[k], prob.prior_sigma_pos[k]
-            if not (np.all(np.isfinite(s_att)) and np.all(np.isfinite(s_pos))):
+            if not (np.all(np.isfinite(s_att)) and np.all(np.isfinite(s_pos))) or prior_off[k].all():
                 continue
             rp = prob.prior_r[k]
             if model.mount:
                 q, t = self._mount_blocks(problem, model, int(prob.image_camera[k]), opt)
-                self.costs.append(mounted(rp, prob.prior_c[k] - ref, _pose_weights(sp, s_att, s_pos)))
+                w = _pose_weights(sp, s_att, s_pos) * np.repeat(~prior_off[k], 3)
+                self.costs.append(mounted(rp, prob.prior_c[k] - ref, w))
                 problem.add_residual_block(self.costs[-1], None, [fp, q, t])
+                self.padded_rows += 3 * int(prior_off[k].sum())
+                continue
+            if prior_off[k, 0]:  # the position alone (world frame)
+                cost = cf.AbsolutePosePositionPriorCost(np.diag(s_pos**2) / sp**2, prob.prior_c[k] - ref)
+                problem.add_residual_block(cost, None, [fp])
                 continue
             cov = np.zeros((6, 6))
             cov[:3, :3] = rp @ np.diag(s_att**2) @ rp.T
-            cov[3:, 3:] = rp @ np.diag(s_pos**2) @ rp.T
+            cov[3:, 3:] = rp @ np.diag(s_pos**2) @ rp.T if not prior_off[k, 1] else np.eye(3) * UNBOUNDED_VARIANCE
             cost = cf.AbsolutePosePriorCost(cov / sp**2, _rigid(rp, prob.prior_c[k] - ref))
             problem.add_residual_block(cost, None, [fp])
+            self.padded_rows += 3 * int(prior_off[k, 1])
         # rig constraints: relative pose priors between the heads of one exposure
         if opt.rig and len(prob.rig_pairs):
             cov = np.diag([np.radians(opt.rig_sigma_deg) ** 2] * 3 + [opt.rig_sigma_m**2] * 3) / sp**2
@@ -797,7 +828,6 @@ class _Round:
         # connection points: ground observations with their covariance, in 2-row blocks when they are few (see
         # PRIOR_SPLIT_SHARE), else pycolmap's 3-row alignment cost through an identity similarity held constant
         point_prior = _point_prior_class()
-        self.padded_rows = 0  # zero rows that pad the priors' blocks to two residuals (out of the redundancy)
         self.sim_const = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0])
         conn_in_rec = np.flatnonzero(has_prior_pt & (model.point_ids >= 0))
         split = len(conn_in_rec) + len(single_obs) <= PRIOR_SPLIT_SHARE * int(model.in_rec.sum())
@@ -1015,6 +1045,10 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     gcp_obs_bad = np.zeros(len(prob.gcp_obs_point), bool)
     gcp_ok = np.ones(len(prob.gcp_xyz), bool)
     gcp_w = np.full(len(prob.gcp_xyz), np.nan)
+    # EO priors: the parts (attitude, position) rejected, the largest normalised differences of the last test
+    prior_ok = has_prior & np.all(np.isfinite(prob.prior_sigma_att), 1) & np.all(np.isfinite(prob.prior_sigma_pos), 1)
+    prior_off = np.zeros((prob.n_images, 2), bool)
+    prior_w = np.full((prob.n_images, 2), np.nan)
     iterations = 0
     log: list[str] = []
     total_rounds = opt.max_rejection_rounds + 1
@@ -1067,7 +1101,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             progress(rnd, total_rounds, f"bundle adjustment round {rnd + 1}")
         model.keep_only(active)
         rd = None  # the previous round's Ceres problem goes before the next one is built (peak memory)
-        rd = _Round(model, opt, ref, xyz, gcp_xyz, shift, active, robust=(rnd == 0), gcp_obs_ok=gcp_obs_ok)
+        rd = _Round(model, opt, ref, xyz, gcp_xyz, shift, active, robust=(rnd == 0), gcp_obs_ok=gcp_obs_ok,
+                    prior_off=prior_off)
         lap("build_s")
         summary = rd.solve(opt, solver, robust=(rnd == 0))
         lap("solve_s")
@@ -1099,8 +1134,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         cams = [_camera_from_params(cm, cam_params[i]) for i, cm in enumerate(prob.cameras)]
         uv_hat = project_obs(cams, prob.image_camera, r, c, xyz, prob.obs_point, prob.obs_image)
         v = prob.obs_uv - uv_hat
-        stats = _precision(prob, opt, r, c, xyz, cams, active, rd.adjusted)
-        q_point, q_image, red = stats
+        q_point, q_image, red, n_ties = _precision(prob, opt, r, c, xyz, cams, active, prior_off)
         vv = np.sum(v**2, axis=1)
         t_unscaled = vv / (opt.sigma_px**2 * red)
         robust_s0 = float(np.sqrt(np.nanmedian(t_unscaled[active]) / (2 * np.log(2)))) if active.any() else 1.0
@@ -1129,6 +1163,22 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             gcp_obs_bad |= bad_go
             gcp_obs_ok &= ~bad_go & gcp_ok[prob.gcp_obs_point]
             gcp_bad = bool(bad_go.any() or bad_g.any())
+        prior_bad = False
+        if opt.prior_tests and prior_ok.any():
+            att_v, pos_v = _prior_residuals(prob, *frame_poses(r, c, prob.image_camera, model.mounting()))
+            bad_p, w_p, scale = prior_tests(att_v, pos_v, prob.prior_sigma_att, prob.prior_sigma_pos, n_ties,
+                                            prior_ok[:, None] & ~prior_off & rd.adjusted[:, None],
+                                            opt.blunder_threshold)
+            prior_w = np.where(prior_off, prior_w, w_p)
+            for part in np.flatnonzero(scale > PRIOR_SCALE_NOTE):
+                log.append(f"round {rnd}: the {('IMU attitude', 'GNSS position')[part]} priors differ from the tie "
+                           f"points' orientations by {scale[part]:.1f} times their sigmas (robust): tested at that "
+                           "scale; check their a priori sigmas")
+            for k, part in zip(*np.nonzero(bad_p)):
+                log.append(f"round {rnd}: {('IMU attitude', 'GNSS position')[part]} prior of {prob.image_ids[k]} "
+                           f"rejected (normalised difference {w_p[k, part]:.1f} to its tie points' orientation)")
+            prior_off |= bad_p
+            prior_bad = bool(bad_p.any())
         if rnd == 0:
             # the robust solution is not pulled by the blunders: reject every flagged observation at once
             bad = active & np.isfinite(w) & (w > opt.blunder_threshold)
@@ -1140,10 +1190,10 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
                 f"bundle adjustment did not converge: round {rnd + 1} flags {int(bad.sum())} of "
                 f"{int(active.sum())} observations (sigma0 {sigma0 * opt.sigma_px:.2f} px); check the "
                 "approximate orientations, the tie points and the a priori sigmas")
-        if not bad.any() and rnd > 0 and not gcp_bad:
+        if not bad.any() and rnd > 0 and not gcp_bad and not prior_bad:
             break
         removed = float(np.sum(vv[bad])) / opt.sigma_px**2
-        if rnd > 0 and removed < opt.resolve_tolerance * chi2 and not gcp_bad:
+        if rnd > 0 and removed < opt.resolve_tolerance * chi2 and not gcp_bad and not prior_bad:
             # negligible: reject without another solve, re-estimate only the points that lost an observation
             rejected |= bad
             active &= ~bad
@@ -1195,10 +1245,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     gcp_out = gcp_xyz + shift
     # prior residuals (adjusted - prior), world frame; with a mounting correction those of the frame it leaves
     r_f, c_f = frame_poses(r, c, prob.image_camera, mounting)
-    pos_res = np.where(has_prior[:, None], c_f - prob.prior_c, np.nan)
-    att_res = np.full((prob.n_images, 3), np.nan)
-    for k in np.flatnonzero(has_prior):
-        att_res[k] = matrix_to_rotvec(prob.prior_r[k].T @ r_f[k])
+    att_res, pos_res = _prior_residuals(prob, r_f, c_f)
     return BundleResult(
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
@@ -1206,7 +1253,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         image_std_kind=image_std_kind, mounting=mounting, mounting_std=mounting_std,
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
-        timing=timing, gcp_obs_rejected=gcp_obs_bad, gcp_rejected=~gcp_ok, gcp_w=gcp_w)
+        timing=timing, gcp_obs_rejected=gcp_obs_bad, gcp_rejected=~gcp_ok, gcp_w=gcp_w,
+        prior_rejected=prior_off, prior_w=prior_w)
 
 
 def frame_poses(r_cam_from_world: np.ndarray, c_world: np.ndarray, image_camera: np.ndarray,
@@ -1494,6 +1542,57 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
         rhs_all = rhs_all - weight[worst] @ diff[worst]
 
 
+def _prior_residuals(prob: BundleProblem, r_frame: np.ndarray, c_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Adjusted minus prior of each image's frame (``r_frame (n, 3, 3)``, ``c_frame (n, 3)``, the navigation frame):
+    the rotation about the world axes ``(n, 3)`` (radians, ``R = R_prior exp([theta]x)``) and the centre ``(n, 3)``;
+    NaN rows for images without a prior."""
+    has = np.all(np.isfinite(prob.prior_c), axis=1)
+    att = np.full((prob.n_images, 3), np.nan)
+    for k in np.flatnonzero(has):
+        att[k] = matrix_to_rotvec(prob.prior_r[k].T @ r_frame[k])
+    return att, np.where(has[:, None], c_frame - prob.prior_c, np.nan)
+
+
+def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray, sigma_pos: np.ndarray,
+                n_ties: np.ndarray, in_use: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Blunder tests of the images' EO priors (GNSS position, IMU attitude), each against the orientation the
+    image's own tie observations give with the points held (a resection, in which the prior takes no part).
+
+    ``att_res, pos_res (n, 3)``: adjusted minus prior (world axes, see :func:`_prior_residuals`); ``sigma_att,
+    sigma_pos (n, 3)`` the priors' standard deviations; ``n_ties (n, 6, 6)`` the normal blocks of the images from
+    their tie observations alone (rotation about the world axes, centre; unit weight); ``in_use (n, 2)`` the parts
+    (attitude, position) still in the adjustment.
+
+    With the points held, the adjusted pose minimises tie and prior terms, so ``x = N^-1 (N_t x_t + P x_p)`` with
+    ``N = N_t + P``; the tie-only pose differs from the prior by ``d = x_t - x_p = v + N_t^-1 P v`` (v the prior's
+    residual), with the covariance ``N_t^-1 + P^-1``. An axis's normalised difference is ``|d| / std``, over the
+    part's robust scale when that exceeds one: the median absolute normalised difference of all its tested axes over
+    0.6745 (the normal one's), as data snooping assumes few blunders among correctly weighted observations, and
+    priors whose sigmas are too small (a GNSS accuracy taken from a better survey) would otherwise fail by the
+    dozen. A part whose largest exceeds ``threshold`` is rejected. An image whose ties do not determine its pose
+    (``N_t`` singular) is not tested. Returns the rejected parts ``(n, 2)``, the parts' largest normalised
+    differences ``(n, 2)`` (NaN: not tested) and the two robust scales ``(2,)`` (1 where not above it)."""
+    n = len(att_res)
+    use6 = np.repeat(in_use, 3, axis=1)
+    sigma = np.concatenate([sigma_att, sigma_pos], 1)
+    v = np.where(use6, np.concatenate([att_res, pos_res], 1), 0.0)
+    p = np.where(use6, 1.0 / sigma**2, 0.0)
+    q_t = precision.safe_inverse(n_ties)
+    d = v + np.einsum("nij,nj->ni", q_t, p * v)
+    w6 = np.abs(d) / np.sqrt(np.diagonal(q_t, axis1=1, axis2=2) + sigma**2)
+    w6 = np.where(use6 & np.isfinite(w6), w6, np.nan).reshape(n, 2, 3)
+    scale = np.ones(2)
+    for part in range(2):
+        a = w6[:, part][np.isfinite(w6[:, part])]
+        if len(a):
+            scale[part] = max(1.0, float(np.median(a)) / 0.6745)
+    w6 = w6 / scale[None, :, None]
+    w = np.full((n, 2), np.nan)
+    tested = np.isfinite(w6).any(2)
+    w[tested] = np.nanmax(w6[tested], axis=1)
+    return tested & (np.nan_to_num(w) > threshold), w, scale
+
+
 def resected_start(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                    xyz: np.ndarray, op: np.ndarray, oi: np.ndarray, uv: np.ndarray, opt: BundleOptions,
                    prior_xyz: np.ndarray | None = None, prior_info: np.ndarray | None = None
@@ -1560,8 +1659,10 @@ def worst_per_track(w: np.ndarray, obs_point: np.ndarray, active: np.ndarray, th
 
 
 def _precision(prob: BundleProblem, opt: BundleOptions, r: np.ndarray, c: np.ndarray, xyz: np.ndarray,
-               cams: list[CameraModel], active: np.ndarray, adjusted: np.ndarray):
-    """Cofactor blocks of points ``(p, 3, 3)`` and images ``(n, 6, 6)`` and redundancy numbers ``(m,)``."""
+               cams: list[CameraModel], active: np.ndarray, prior_off: np.ndarray):
+    """Cofactor blocks of points ``(p, 3, 3)`` and images ``(n, 6, 6)``, redundancy numbers ``(m,)`` and the images'
+    normal blocks from their tie observations alone ``(n, 6, 6)`` (the priors' parts in ``prior_off (n, 2)`` left
+    out of the cofactors)."""
     fx, fy = image_focals(cams, prob.image_camera)
     op, oi = prob.obs_point, prob.obs_image
     jp, jr = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
@@ -1576,10 +1677,10 @@ def _precision(prob: BundleProblem, opt: BundleOptions, r: np.ndarray, c: np.nda
     ok = np.all(np.isfinite(prob.prior_sigma_att), 1) & np.all(np.isfinite(prob.prior_sigma_pos), 1)
     idx = np.arange(3)
     k = np.flatnonzero(ok)[:, None]
-    prior_im[k, idx, idx] = 1.0 / prob.prior_sigma_att[ok] ** 2
-    prior_im[k, idx + 3, idx + 3] = 1.0 / prob.prior_sigma_pos[ok] ** 2
-    n_i = precision.image_normals(jp, jr, w_obs, oi, prob.n_images, prior_im)
+    prior_im[k, idx, idx] = np.where(prior_off[ok, :1], 0.0, 1.0 / prob.prior_sigma_att[ok] ** 2)
+    prior_im[k, idx + 3, idx + 3] = np.where(prior_off[ok, 1:], 0.0, 1.0 / prob.prior_sigma_pos[ok] ** 2)
+    n_ties = precision.image_normals(jp, jr, w_obs, oi, prob.n_images)
     q_point = precision.safe_inverse(n_p)
-    q_image = precision.safe_inverse(n_i)
+    q_image = precision.safe_inverse(n_ties + prior_im)
     red = precision.redundancy_numbers(jp, jr, 1.0 / opt.sigma_px**2 * np.ones(len(op)), q_point, q_image, op, oi)
-    return q_point, q_image, red
+    return q_point, q_image, red, n_ties

@@ -1,5 +1,5 @@
 """CLI command ``oblique-city aerotri WS --mode integrated|hierarchical --connection cba|2|3|5|10 [--mounting]
-[--no-control-tests]``.
+[--no-control-tests] [--no-prior-tests]``.
 
 A shortcut for ``oblique-city run WS --stages aerotri --set aerotri.mode=... --set aerotri.connection=...``
 that stores the options in ``project.toml`` and runs the stage (forced, since the options are the point).
@@ -23,7 +23,7 @@ def cmd_aerotri(args: argparse.Namespace) -> int:
         value = getattr(args, key)
         if value is not None:
             opts[key] = value
-    for key in ("mounting", "control_tests"):
+    for key in ("mounting", "control_tests", "prior_tests"):
         if getattr(args, key) is not None:
             opts[key] = getattr(args, key)
     if args.self_calibration is not None:
@@ -44,6 +44,8 @@ def add_commands(sub) -> None:
                    help="calibrate each camera's boresight and lever arm against the GNSS/IMU priors")
     s.add_argument("--control-tests", dest="control_tests", action=argparse.BooleanOptionalAction,
                    help="test the control points' measurements and coordinates for blunders (on by default)")
+    s.add_argument("--prior-tests", dest="prior_tests", action=argparse.BooleanOptionalAction,
+                   help="test each image's GNSS position and IMU attitude prior for blunders (on by default)")
     s.add_argument("--executor", choices=("inline", "processes", "dask"), default="inline")
     s.add_argument("--workers", type=int, default=2)
     s.add_argument("--scheduler", help="Dask scheduler address")

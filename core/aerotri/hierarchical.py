@@ -79,6 +79,9 @@ class Run:
         removed (:func:`.bundle.frame_poses`), else the images' own; the navigation data describe these
     control_rejected : control points whose coordinates the run rejected; control_obs_rejected : (control point,
         image) of the measurements it rejected (see :func:`.bundle.control_point_tests`)
+    prior_rejected : (image, ``attitude`` or ``position``) of the EO priors it rejected (see
+        :func:`.bundle.prior_tests`); prior_w : image -> (2,) the normalised differences of its attitude and position
+        prior in the last test (a rejected part's when it was rejected; NaN: untested)
     """
 
     name: str
@@ -97,6 +100,12 @@ class Run:
     frames: dict[str, Pose] = field(default_factory=dict)
     control_rejected: tuple[str, ...] = ()
     control_obs_rejected: tuple[tuple[str, str], ...] = ()
+    prior_rejected: tuple[tuple[str, str], ...] = ()
+    prior_w: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+PRIOR_PARTS = ("attitude", "position")
+"""The parts of an EO prior, in the column order of :attr:`.bundle.BundleResult.prior_rejected`."""
 
 
 @dataclass(eq=False)
@@ -118,6 +127,10 @@ class ATResult:
         """The control points whose coordinates a run rejected, and the (point, image) measurements rejected."""
         return rejected_control(self.runs)
 
+    def prior_rejections(self) -> set[tuple[str, str]]:
+        """The (image, ``attitude`` or ``position``) EO priors a run rejected."""
+        return {o for run in self.runs for o in run.prior_rejected}
+
 
 def rejected_control(runs: list[Run]) -> tuple[set[str], set[tuple[str, str]]]:
     """Over ``runs``: the control points whose coordinates one rejected, and the (point, image) measurements."""
@@ -135,7 +148,11 @@ def _to_run(name: str, sub: SubProblem, res: BundleResult, wall: float) -> Run:
                obs_residual=res.obs_residual, result=res, wall_s=wall, frames=frames,
                control_rejected=tuple(prob.gcp_names[g] for g in np.flatnonzero(res.gcp_rejected)),
                control_obs_rejected=tuple((prob.gcp_names[prob.gcp_obs_point[k]], prob.image_ids[prob.gcp_obs_image[k]])
-                                          for k in np.flatnonzero(res.gcp_obs_rejected)))
+                                          for k in np.flatnonzero(res.gcp_obs_rejected)),
+               prior_rejected=tuple((prob.image_ids[k], PRIOR_PARTS[part])
+                                    for k, part in zip(*np.nonzero(res.prior_rejected))),
+               prior_w={iid: res.prior_w[k] for k, iid in enumerate(prob.image_ids)
+                        if k < len(res.prior_w) and np.isfinite(res.prior_w[k]).any()})
 
 
 def initial_tie_coordinates(block: ImageBlock, ties: TiePoints) -> np.ndarray:

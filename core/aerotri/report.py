@@ -8,7 +8,9 @@
   estimated one (``BundleOptions.mounting``), and the forward intersection error of all tie
   points before (navigation orientation) and after adjustment.
 * Per control and check point its intersection minus its given coordinates, and what the adjustment rejected of
-  it (coordinates, measurements: :func:`.bundle.control_point_tests`).
+  it (coordinates, measurements: :func:`.bundle.control_point_tests`). The EO priors (GNSS position, IMU
+  attitude) the adjustment rejected (:func:`.bundle.prior_tests`), with their normalised differences; the prior
+  residual RMS is over the priors kept.
 * Per camera the image residuals by position in the frame (mean residual per cell, what of it noise does not
   explain, a radial profile): an error of the camera model shows as a pattern. Per image its observations kept and
   rejected, residual RMS, orientation standard deviations and its move from the navigation orientation. The
@@ -39,7 +41,7 @@ from ..evaluate.aerotri import (
 from ..geometry.projection import project
 from ..geometry.rotations import matrix_to_rotvec
 from ..model import CameraModel, ImageBlock, Raster, TiePoints
-from .hierarchical import ATResult, Run
+from .hierarchical import PRIOR_PARTS, ATResult, Run
 from .problem import intersect_ties
 
 FIELD_CELLS = 8
@@ -124,8 +126,10 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
     std = np.array(list(run.image_std.values())) if run.image_std else np.zeros((0, 6))
     pt_std = np.sqrt(np.abs(np.diagonal(run.xyz_cov, axis1=1, axis2=2)))
     sxy, sz = std_xy_z(pt_std)
-    pos = res.prior_residual_pos[np.all(np.isfinite(res.prior_residual_pos), 1)]
-    att = res.prior_residual_att[np.all(np.isfinite(res.prior_residual_att), 1)]
+    off = res.prior_rejected if len(res.prior_rejected) == len(res.prior_residual_pos) else \
+        np.zeros((len(res.prior_residual_pos), 2), bool)
+    pos = res.prior_residual_pos[np.all(np.isfinite(res.prior_residual_pos), 1) & ~off[:, 1]]
+    att = res.prior_residual_att[np.all(np.isfinite(res.prior_residual_att), 1) & ~off[:, 0]]
     return {
         "name": run.name, "images": len(run.poses), "points": int(np.isfinite(run.xyz[:, 0]).sum()),
         "observations": int(len(run.obs_index)), "rejected": int(run.obs_rejected.sum()),
@@ -145,6 +149,7 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
         "connection_points": run.connection_count, "wall_s": run.wall_s, "log": res.log,
         "control_points_rejected": list(run.control_rejected),
         "control_measurements_rejected": [list(o) for o in run.control_obs_rejected],
+        "priors_rejected": [list(o) for o in run.prior_rejected],
         "mounting": {cam.id: _mounting_entry(res, ci) for ci, cam in enumerate(res.cameras)
                      if np.all(np.isfinite(res.mounting[ci]))},
     }
@@ -297,8 +302,9 @@ def image_statistics(block: ImageBlock, ties: TiePoints, at: ATResult, obs: np.n
     """Per adjusted image: its run, its tie observations kept and rejected, the RMS length of its residual
     vectors (px) over those the runs adjusted (``obs (k,)`` with residuals ``v (k, 2)``, see
     :func:`accepted_residuals`; a thinned HAT intersects the others afterwards), the standard deviations of its
-    orientation (rotation about X Y Z in degrees, centre in metres) and how far the adjustment moved it from its
-    navigation orientation (centre in metres, attitude angle in degrees)."""
+    orientation (rotation about X Y Z in degrees, centre in metres), how far the adjustment moved it from its
+    navigation orientation (centre in metres, attitude angle in degrees), the normalised differences of its
+    attitude and position priors in their last test and the parts rejected (:func:`.bundle.prior_tests`)."""
     n_img = len(ties.image_ids)
     kept = np.bincount(ties.obs_image[~at.obs_rejected], minlength=n_img)
     n_res = np.bincount(ties.obs_image[obs], minlength=n_img)
@@ -306,6 +312,11 @@ def image_statistics(block: ImageBlock, ties: TiePoints, at: ATResult, obs: np.n
     rejected = np.bincount(ties.obs_image[at.obs_rejected], minlength=n_img)
     index = {iid: k for k, iid in enumerate(ties.image_ids)}
     run_of = {iid: run.name for run in at.runs for iid in run.poses}
+    prior_w = {iid: w for run in at.runs for iid, w in run.prior_w.items()}
+    prior_off = {}
+    for run in at.runs:
+        for iid, part in run.prior_rejected:
+            prior_off.setdefault(iid, []).append(part)
     rows = []
     for iid, pose in at.poses.items():
         k = index.get(iid)
@@ -321,7 +332,9 @@ def image_statistics(block: ImageBlock, ties: TiePoints, at: ATResult, obs: np.n
             "std_position_m": std[3:].tolist() if std is not None else None,
             "moved_m": float(np.linalg.norm(pose.C - nav.C)) if nav is not None else None,
             "turned_deg": float(np.degrees(np.linalg.norm(matrix_to_rotvec(nav.R.T @ pose.R))))
-            if nav is not None else None})
+            if nav is not None else None,
+            "prior_w": [None if not np.isfinite(x) else float(x) for x in prior_w[iid]] if iid in prior_w else None,
+            "prior_rejected": prior_off.get(iid, [])})
     return rows
 
 
@@ -533,6 +546,18 @@ def _report_extras(report: dict) -> list[str]:
                      "from the navigation orientation to the adjusted one.</p><h3>Largest residuals</h3>"
                      f"<table>{head}{_image_rows(worst)}</table><h3>Fewest observations</h3>"
                      f"<table>{head}{_image_rows(fewest)}</table>")
+    rejected = [(r, part) for r in images for part in r.get("prior_rejected") or []]
+    if rejected:
+        rows = "".join(f"<tr><td>{html.escape(str(r['image']))}</td><td>{html.escape(r['run'])}</td>"
+                       f"<td>{('IMU attitude', 'GNSS position')[PRIOR_PARTS.index(part)]}</td>"
+                       f"<td>{format_value(r['prior_w'][PRIOR_PARTS.index(part)])}</td>"
+                       f"<td>{format_value(r['moved_m'])}</td><td>{format_value(r['turned_deg'])}</td></tr>"
+                       for r, part in rejected)
+        parts.append("<h2>Rejected EO priors</h2><p>Priors that do not fit the orientation the image's own tie points "
+                     "give (normalised difference above the blunder threshold): the image was adjusted without "
+                     "them. Moved and turned: from the navigation orientation to the adjusted one.</p><table><tr>"
+                     "<th>image</th><th>run</th><th>prior</th><th>normalised difference</th><th>moved [m]</th>"
+                     f"<th>turned [deg]</th></tr>{rows}</table>")
     rays = report.get("tie_point_rays")
     if rays and rays["mean_rays"] is not None:
         parts.append(f"<h2>Tie point rays</h2><p>Mean {rays['mean_rays']:.2f} rays per adjusted tie point; "

@@ -73,6 +73,8 @@ class AerotriConfig:
         import carries none (e.g. BlocksExchange); the same for X, Y, Z and omega, phi, kappa
     control_tests : blunder tests of the control points' measurements and coordinates (on by default; see
         :func:`.bundle.control_point_tests`)
+    prior_tests : blunder tests of the images' GNSS position and IMU attitude priors (on by default; see
+        :func:`.bundle.prior_tests`)
     """
 
     mode: str = "integrated"
@@ -103,6 +105,7 @@ class AerotriConfig:
     default_sigma_position: float = 0.15
     default_sigma_attitude_deg: float = 0.05
     control_tests: bool = True
+    prior_tests: bool = True
 
     def bundle_options(self) -> BundleOptions:
         for g in self.self_calibration:
@@ -120,7 +123,8 @@ class AerotriConfig:
                              mounting=self.mounting, mounting_sigma_deg=self.mounting_sigma_deg,
                              mounting_sigma_m=self.mounting_sigma_m, threads=self.threads,
                              linear_solver=self.linear_solver, settle_stop=self.settle_stop,
-                             marginal_max_images=self.marginal_std_max_images, control_tests=self.control_tests)
+                             marginal_max_images=self.marginal_std_max_images, control_tests=self.control_tests,
+                             prior_tests=self.prior_tests)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
@@ -186,6 +190,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     ctx.progress(2, 2, "done")
     check = report["check_points"]["all"]
     worst = largest_systematic(report["image_residual_fields"])
+    priors_off = sum(len(r["priors_rejected"]) for r in report["runs"])
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
@@ -193,10 +198,11 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],
                  "blunder_percent": report["blunder_percent"], "wall_s": report["wall_s"],
                  "thinned_observations": report["thinned_observations"],
-                 "systematic_residual_px": worst[1] if worst else None},
+                 "systematic_residual_px": worst[1] if worst else None, "priors_rejected": priors_off},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
-                + (f", largest systematic image residual {worst[1]:.3f} px ({worst[0]})" if worst else ""))
+                + (f", largest systematic image residual {worst[1]:.3f} px ({worst[0]})" if worst else "")
+                + (f", {priors_off} GNSS/IMU priors rejected (see report.html)" if priors_off else ""))
 
 
 def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
@@ -211,4 +217,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="4", adjusted_block=False)
+              version="5", adjusted_block=False)

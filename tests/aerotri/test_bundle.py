@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from oblique_city.core.aerotri.bundle import BundleOptions, adjust, resected_start
+from oblique_city.core.aerotri.bundle import BundleOptions, adjust, prior_tests, resected_start
 from oblique_city.core.aerotri.problem import build_problem
 from oblique_city.core.aerotri.report import mounting
 from oblique_city.core.errors import ComputationError
@@ -626,3 +626,35 @@ def test_rig_constraints_with_mounting_calibration_hold_the_true_relative_mounti
     both, s0 = relative_errors(BundleOptions(sigma_px=0.3, rig=True, mounting=True))
     rig_only, s0_rig = relative_errors(BundleOptions(sigma_px=0.3, rig=True))
     assert both < 0.003 and rig_only > 0.05 and abs(s0 - 1.0) < 0.1 < s0_rig - 1.0
+
+
+def test_prior_tests_find_a_wrong_prior_and_scale_to_sigmas_that_are_too_small():
+    """400 images whose tie points fix the pose to 2 mm and 0.001 deg (their normal blocks), priors of 0.05 m and
+    0.005 deg drawn with those sigmas: with the adjusted pose where the ties and the prior meet, the difference of
+    the tie-only pose to the prior is recovered (``d = v + N_t^-1 P v``), so a position 0.3, 0.2, 0.35 m off (6, 4,
+    7 sigma) and an attitude 0.06 deg off (12 sigma) are rejected, nothing else of the 2,400 axes (4.3 sigma: 0.04
+    expected by chance). Priors whose sigmas are stated 3 times too small are tested at the robust scale (3 within
+    10 %): no rejection, where the raw differences would have failed over a third of the images."""
+    rng = np.random.default_rng(5)
+    n = 400
+    s_att, s_pos = np.full((n, 3), np.radians(0.005)), np.full((n, 3), 0.05)
+    q_t = np.diag(np.r_[np.full(3, np.radians(0.001)), np.full(3, 0.002)] ** 2)
+    n_ties = np.tile(np.linalg.inv(q_t), (n, 1, 1))
+    p = np.diag(1.0 / np.r_[s_att[0], s_pos[0]] ** 2)
+    x_t = rng.normal(0.0, 1.0, (n, 6)) * np.sqrt(np.diag(q_t))  # the tie-only poses about the truth (0)
+    prior = rng.normal(0.0, 1.0, (n, 6)) * np.r_[s_att[0], s_pos[0]]
+    prior[7, 3:] += [0.3, -0.2, 0.35]
+    prior[19, :3] += np.radians([0.06, 0.0, 0.0])
+
+    def tested(prior):
+        x = np.linalg.solve(n_ties[0] + p, (n_ties[0] @ x_t.T + p @ prior.T)).T  # where ties and prior meet
+        v = x - prior
+        return prior_tests(v[:, :3], v[:, 3:], s_att, s_pos, n_ties, np.ones((n, 2), bool), 4.3)
+
+    bad, w, scale = tested(prior)
+    assert set(zip(*np.nonzero(bad))) == {(7, 1), (19, 0)}
+    assert w[7, 1] > 5.5 and w[19, 0] > 9 and np.all(scale < 1.15)
+    bad, w, scale = tested(prior * 3)  # three times the errors the sigmas state
+    assert abs(scale[1] / 3 - 1) < 0.1 and abs(scale[0] / 3 - 1) < 0.1
+    assert {(int(k), int(part)) for k, part in zip(*np.nonzero(bad))} <= {(7, 1), (19, 0)}
+    assert np.nanmax(np.where(bad, np.nan, w)) < 4.3

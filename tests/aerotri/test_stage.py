@@ -10,7 +10,7 @@ import numpy as np
 from oblique_city.core.cli import main
 from oblique_city.core.evaluate.aerotri import check_point_errors
 from oblique_city.core.io.geotiff import read_geotiff
-from oblique_city.core.model import TiePoints
+from oblique_city.core.model import Pose, TiePoints
 from oblique_city.core.pipeline import Workspace
 from oblique_city.core.simulate.observations import SimulationConfig, simulate_block
 
@@ -252,3 +252,37 @@ def test_a_wrong_control_point_is_rejected_and_reported(tmp_path):
     untested = json.loads(ws.path("aerotri/report.json").read_text())
     assert not any(g["rejected_coordinates"] for g in untested["ground_points"])
     assert untested["check_points"]["all"]["rms_z_m"] > report["check_points"]["all"]["rms_z_m"]
+
+
+def test_a_wrong_gnss_position_is_rejected_and_reported(tmp_path):
+    """One image's GNSS position 1.5 m too high (19 times its 0.08 m sigma): the aerotri stage rejects that prior
+    alone and reports it (JSON: the run and the image's row; HTML: the rejected priors table; the stage's message),
+    and the image's adjusted centre stays within 0.03 m of the truth (its tie points alone fix it to about 0.02 m
+    on this 60-image block). ``--no-prior-tests`` is stored in the project and keeps the prior, whose residual then
+    enters the RMS of the prior residuals."""
+    from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
+    from oblique_city.core.pipeline import RunContext
+
+    s, ws = _simulated_workspace(tmp_path)
+    block = ws.load_block()
+    iid = sorted(i for i in block.images if i.endswith("_nadir"))[len(block.images) // 10]
+    pose = block.images[iid].pose_approx
+    block.images[iid].pose_approx = Pose(pose.R, pose.C + np.array([0.0, 0.0, 1.5]))
+    ws.save_block(block)
+    result = STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext())
+    assert "1 GNSS/IMU priors rejected" in result.message and result.metrics["priors_rejected"] == 1
+    report = json.loads(ws.path("aerotri/report.json").read_text())
+    assert report["runs"][0]["priors_rejected"] == [[iid, "position"]]
+    row = next(r for r in report["images_table"] if r["image"] == iid)
+    assert row["prior_rejected"] == ["position"] and row["prior_w"][1] > 10
+    assert not any(r["prior_rejected"] for r in report["images_table"] if r is not row)
+    html = ws.path("aerotri/report.html").read_text()
+    assert "Rejected EO priors" in html and f"<td>{iid}</td><td>iat</td><td>GNSS position</td>" in html
+    adjusted = ws.load_block(adjusted=True).images[iid].pose_adjusted.C
+    assert float(np.linalg.norm(adjusted - s.true_poses[iid].C)) < 0.03
+    assert main(["aerotri", str(ws.root), "--no-prior-tests"]) == 0
+    assert Workspace.open(ws.root).stage_options("aerotri")["prior_tests"] is False
+    untested = json.loads(ws.path("aerotri/report.json").read_text())
+    assert untested["runs"][0]["priors_rejected"] == []
+    # the prior residuals' RMS is over the priors kept: 1.5 m among 60 images adds 0.19 m to Z when kept
+    assert report["runs"][0]["rms_prior_position_m"][2] < 0.12 < 0.15 < untested["runs"][0]["rms_prior_position_m"][2]

@@ -44,7 +44,9 @@ def ws(tmp_path, utm_block):
                                         "right": {"systematic_rms_px": None}},
               "ground_points": [{"name": "G1", "rejected_coordinates": True, "rejected_images": []},
                                 {"name": "G2", "rejected_coordinates": False, "rejected_images": ["a", "b"]},
-                                {"name": "C3"}]}
+                                {"name": "C3"}],
+              "runs": [{"name": "nadir", "priors_rejected": [["n1", "position"], ["n2", "attitude"]]},
+                       {"name": "north", "priors_rejected": [["o1", "position"]]}, {"name": "east"}]}
     (w.stage_dir("aerotri") / "report.json").write_text(json.dumps(report))
     (w.stage_dir("aerotri") / "report.html").write_text("<html><body>report</body></html>")
     w.write_state({"aerotri": {"status": "done"}})
@@ -152,6 +154,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Mounting calibrated for 2 cameras, largest boresight 0.0500 deg (left)" in labels
     assert "Largest systematic image residual: 0.084 px (left)" in labels
     assert "Rejected control: 1 points (G1), 2 measurements" in labels
+    assert "Rejected priors: 2 GNSS positions, 1 IMU attitudes" in labels
     assert any(e[0] == "operator" and e[1] == "city.open_report" for e in log)
 
     opened = []
