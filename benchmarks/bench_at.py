@@ -5,6 +5,7 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
     python benchmarks/bench_at.py --images 3000   # the size of the targets
     python benchmarks/bench_at.py --boresight-sigma-deg 0.05 --mounting --connections cba  # boresight calibration
     python benchmarks/bench_at.py --images 3000 --connections cba --repeat 3   # the wall ratio as a median of 3
+    python benchmarks/bench_at.py --connections cba --control-blunders 5 --prior-blunders 5  # Tables 9 and 10
     make bench-at ARGS="--images 3000"
 
 Prints the tables and writes them as JSON (``--out``, default ``build/bench_at_<images>.json``).
