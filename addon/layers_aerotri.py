@@ -158,8 +158,8 @@ def report_summary(path: Path) -> dict:
     the camera with the largest systematic image residual (``systematic``: ``(camera, px)`` or None; reports
     written before it existed have none), and the control points whose coordinates the adjustment rejected with the
     number of control measurements it rejected (``control_rejected``: ``(names, measurements)``), and the GNSS
-    positions and IMU attitudes it rejected (``priors_rejected``: ``(positions, attitudes)`` image counts, None when
-    none). Raises :class:`InputError` naming the file."""
+    positions and IMU attitudes it rejected (``priors_rejected``: ``(positions, attitudes, images)``, two counts and
+    the images concerned in order, None when none). Raises :class:`InputError` naming the file."""
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError:
@@ -174,9 +174,11 @@ def report_summary(path: Path) -> dict:
         ground = doc.get("ground_points") or []
         rejected = ([str(g["name"]) for g in ground if g.get("rejected_coordinates")],
                     sum(len(g.get("rejected_images") or []) for g in ground))
-        priors = [part for r in doc.get("runs") or [] for _, part in r.get("priors_rejected") or []]
+        priors = [(str(i), part) for r in doc.get("runs") or [] for i, part in r.get("priors_rejected") or []]
+        parts = [part for _, part in priors]
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
-                "priors_rejected": (priors.count("position"), priors.count("attitude")) if priors else None,
+                "priors_rejected": (parts.count("position"), parts.count("attitude"),
+                                    sorted({i for i, _ in priors})) if priors else None,
                 "systematic": largest_systematic(doc.get("image_residual_fields") or {}),
                 "control_rejected": rejected if rejected[0] or rejected[1] else None,
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),

@@ -242,10 +242,15 @@ def draw_triangulation(layout, context) -> None:
         col.label(text=f"Rejected control: {len(names)} points{' (' + ', '.join(names) + ')' if names else ''}, "
                        f"{measurements} measurements")
     if s["priors_rejected"]:
-        positions, attitudes = s["priors_rejected"]
-        col.label(text=f"Rejected priors: {positions} GNSS positions, {attitudes} IMU attitudes")
+        positions, attitudes, images = s["priors_rejected"]
+        shown = ", ".join(images[:PRIOR_IMAGES_SHOWN]) + (", ..." if len(images) > PRIOR_IMAGES_SHOWN else "")
+        col.label(text=f"Rejected priors: {positions} GNSS positions, {attitudes} IMU attitudes ({shown})")
     layout.operator("city.open_report", icon="URL")
 
+
+PRIOR_IMAGES_SHOWN = 3
+"""The Triangulation panel names at most this many images whose GNSS/IMU prior the adjustment rejected (all of
+them are in the report)."""
 
 BUILDING_LINES = 15
 """At most this many buildings that need attention (open solids, failures) are listed in the Buildings panel."""

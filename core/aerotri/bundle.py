@@ -1554,7 +1554,8 @@ def _prior_residuals(prob: BundleProblem, r_frame: np.ndarray, c_frame: np.ndarr
 
 
 def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray, sigma_pos: np.ndarray,
-                n_ties: np.ndarray, in_use: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+                n_ties: np.ndarray, in_use: np.ndarray, threshold: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Blunder tests of the images' EO priors (GNSS position, IMU attitude), each against the orientation the
     image's own tie observations give with the points held (a resection, in which the prior takes no part).
 

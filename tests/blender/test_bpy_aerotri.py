@@ -154,7 +154,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Mounting calibrated for 2 cameras, largest boresight 0.0500 deg (left)" in labels
     assert "Largest systematic image residual: 0.084 px (left)" in labels
     assert "Rejected control: 1 points (G1), 2 measurements" in labels
-    assert "Rejected priors: 2 GNSS positions, 1 IMU attitudes" in labels
+    assert "Rejected priors: 2 GNSS positions, 1 IMU attitudes (n1, n2, o1)" in labels
     assert any(e[0] == "operator" and e[1] == "city.open_report" for e in log)
 
     opened = []
