@@ -219,8 +219,8 @@ def _metres(v) -> str:
 
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders, the mounting
-    calibration, the camera with the largest systematic image residual, rejected control data) and Open
-    Report."""
+    calibration, the camera with the largest systematic image residual, rejected control data and EO priors) and
+    Open Report."""
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return

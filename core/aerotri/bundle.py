@@ -77,6 +77,12 @@ number at most this share of the tie observations, else as one 3-row block of py
 images with the CBA's 224 points per oblique run is nothing, but with the ">= 3 rays" selection (40,000 points per
 run) doubled the oblique runs' time (7.8 -> 14.9 s) where the specialisation saves 0.1-0.3 s."""
 
+PRIOR_PARTS = ("attitude", "position")
+"""The parts of an EO prior, in the column order of :attr:`BundleResult.prior_rejected` and ``prior_w``."""
+
+PRIOR_PART_LABELS = ("IMU attitude", "GNSS position")
+"""Their names in logs and reports, in the same order."""
+
 PRIOR_SCALE_NOTE = 1.5
 """A robust scale of the EO prior tests (:func:`prior_tests`) above this goes into the adjustment's log: the priors'
 sigmas look too small. On the simulated 400-image test block it is 1.0 for the attitude and 1.2-1.3 for the
@@ -1171,11 +1177,11 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
                                             opt.blunder_threshold)
             prior_w = np.where(prior_off, prior_w, w_p)
             for part in np.flatnonzero(scale > PRIOR_SCALE_NOTE):
-                log.append(f"round {rnd}: the {('IMU attitude', 'GNSS position')[part]} priors differ from the tie "
+                log.append(f"round {rnd}: the {PRIOR_PART_LABELS[part]} priors differ from the tie "
                            f"points' orientations by {scale[part]:.1f} times their sigmas (robust): tested at that "
                            "scale; check their a priori sigmas")
             for k, part in zip(*np.nonzero(bad_p)):
-                log.append(f"round {rnd}: {('IMU attitude', 'GNSS position')[part]} prior of {prob.image_ids[k]} "
+                log.append(f"round {rnd}: {PRIOR_PART_LABELS[part]} prior of {prob.image_ids[k]} "
                            f"rejected (normalised difference {w_p[k, part]:.1f} to its tie points' orientation)")
             prior_off |= bad_p
             prior_bad = bool(bad_p.any())

@@ -36,6 +36,7 @@ from ..errors import ConfigError
 from ..geometry.views import OBLIQUE_VIEWS
 from ..model import ImageBlock, Pose, TiePoints
 from .bundle import (
+    PRIOR_PARTS,
     BundleOptions,
     BundleProblem,
     BundleResult,
@@ -102,10 +103,6 @@ class Run:
     control_obs_rejected: tuple[tuple[str, str], ...] = ()
     prior_rejected: tuple[tuple[str, str], ...] = ()
     prior_w: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-PRIOR_PARTS = ("attitude", "position")
-"""The parts of an EO prior, in the column order of :attr:`.bundle.BundleResult.prior_rejected`."""
 
 
 @dataclass(eq=False)

@@ -41,7 +41,8 @@ from ..evaluate.aerotri import (
 from ..geometry.projection import project
 from ..geometry.rotations import matrix_to_rotvec
 from ..model import CameraModel, ImageBlock, Raster, TiePoints
-from .hierarchical import PRIOR_PARTS, ATResult, Run
+from .bundle import PRIOR_PART_LABELS, PRIOR_PARTS
+from .hierarchical import ATResult, Run
 from .problem import intersect_ties
 
 FIELD_CELLS = 8
@@ -549,7 +550,7 @@ def _report_extras(report: dict) -> list[str]:
     rejected = [(r, part) for r in images for part in r.get("prior_rejected") or []]
     if rejected:
         rows = "".join(f"<tr><td>{html.escape(str(r['image']))}</td><td>{html.escape(r['run'])}</td>"
-                       f"<td>{('IMU attitude', 'GNSS position')[PRIOR_PARTS.index(part)]}</td>"
+                       f"<td>{PRIOR_PART_LABELS[PRIOR_PARTS.index(part)]}</td>"
                        f"<td>{format_value(r['prior_w'][PRIOR_PARTS.index(part)])}</td>"
                        f"<td>{format_value(r['moved_m'])}</td><td>{format_value(r['turned_deg'])}</td></tr>"
                        for r, part in rejected)
