@@ -94,6 +94,12 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
         "mounting": {"description": "Calibrate each camera's boresight and lever arm against the GNSS/IMU priors"},
         "control_tests": {"description": "Test the control points' measurements and coordinates for blunders"},
         "prior_tests": {"description": "Test each image's GNSS position and IMU attitude prior for blunders"},
+        "gnss_strips": {"items": (("off", "Off", "The GNSS positions carry noise only (a PPK trajectory)"),
+                                  ("shift", "Shift per strip", "Estimate a GNSS offset per flight strip"),
+                                  ("drift", "Shift and drift", "Estimate a GNSS offset and a drift along each "
+                                                               "flight strip"))},
+        "gnss_shift_sigma": {"min": 0.0, "description": "A priori sigma of a strip's GNSS offset (m)"},
+        "gnss_drift_sigma": {"min": 0.0, "description": "A priori sigma of a strip's GNSS drift (m per km)"},
         "blunder_threshold": {"min": 0.0, "description": "Normalised residual above which an observation is "
                                                          "rejected"},
         "linear_solver": {"items": (("auto", "Automatic", "Chosen from the block's size and structure"),

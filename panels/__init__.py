@@ -219,8 +219,8 @@ def _metres(v) -> str:
 
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders, the mounting
-    calibration, the camera with the largest systematic image residual, rejected control data and EO priors) and
-    Open Report."""
+    calibration, the camera with the largest systematic image residual, rejected control data and EO priors, the
+    GNSS strip offsets) and Open Report."""
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return
@@ -245,6 +245,9 @@ def draw_triangulation(layout, context) -> None:
         positions, attitudes, images = s["priors_rejected"]
         shown = ", ".join(images[:PRIOR_IMAGES_SHOWN]) + (", ..." if len(images) > PRIOR_IMAGES_SHOWN else "")
         col.label(text=f"Rejected priors: {positions} GNSS positions, {attitudes} IMU attitudes ({shown})")
+    if s["gnss_strips"]:
+        n, strip, metres = s["gnss_strips"]
+        col.label(text=f"GNSS offsets of {n} strips, largest {_metres(metres)} ({strip})")
     layout.operator("city.open_report", icon="URL")
 
 

@@ -182,6 +182,12 @@ class BundleOptions:
         least-squares rounds follow. When the screening's sigma0 exceeds ``screen_max_sigma0`` (the start is not
         close enough for tests with the cameras held) the robust round runs as usual. ``screen_rounds`` bounds the
         screening's rejection rounds (one ray per track and round; blunders can come several to a track)
+    gnss_strips : ``off``, ``shift`` or ``drift``: estimate per flight strip (``BundleProblem.prior_strip``, see
+        :mod:`.strips`) an offset of the GNSS positions (3-D), or an offset and a drift along the strip (3-D, per km
+        of the image's along-track position), with priors of zero and standard deviations ``gnss_shift_sigma``
+        (metres) and ``gnss_drift_sigma`` (metres per km): the GNSS positions are taken as the centres plus
+        ``a + along b``. With a datum shift the offsets' common part goes to the shift (their priors hold their mean
+        at zero): they are then the strips' offsets from the block's mean
     screen_resect : with ``screen_start``, the images are first moved to their inliers (:func:`resected_start`:
         a screening, one resection step) and the screening that decides runs from there; without it the start is
         taken as resected already (HAT resects its oblique runs while the nadir run finishes) and screened once
@@ -220,6 +226,13 @@ class BundleOptions:
     screen_max_sigma0: float = 2.0
     screen_rounds: int = 10
     screen_resect: bool = True
+    gnss_strips: str = "off"
+    gnss_shift_sigma: float = 1.0
+    gnss_drift_sigma: float = 1.0
+
+
+GNSS_STRIP_MODES = ("off", "shift", "drift")
+"""The values of :attr:`BundleOptions.gnss_strips`."""
 
 
 @dataclass(eq=False)
@@ -240,6 +253,9 @@ class BundleProblem:
     gcp_obs_point, gcp_obs_image : (k,) int64; gcp_obs_uv : (k, 2); gcp_sigma_px : (g,)
     rig_pairs : (q, 2) images (i, j) of one exposure with their calibrated relative pose ``i_from_j``:
         rotation rig_r (q, 3, 3) and translation rig_t (q, 3) (used when ``BundleOptions.rig``)
+    prior_strip : (n,) int64 flight strip of each image (index into ``strip_names``, -1: none; empty: no strips);
+        prior_along : (n,) its along-track position from the strip's middle, km (used when
+        ``BundleOptions.gnss_strips``)
     """
 
     image_ids: list[str]
@@ -267,6 +283,9 @@ class BundleProblem:
     rig_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     rig_r: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     rig_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    prior_strip: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    prior_along: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    strip_names: list[str] = field(default_factory=list)
 
     @property
     def n_images(self) -> int:
@@ -299,6 +318,9 @@ class BundleResult:
         :func:`prior_tests`; prior_w : (n, 2) their largest normalised differences in the last test (a rejected
         part's when it was rejected; NaN: untested)
     datum_shift : (3,) control frame - GNSS frame
+    gnss_strip : (s, 6) per strip of ``BundleProblem.strip_names`` its GNSS offset (metres) and drift (metres per
+        km) as estimated with ``BundleOptions.gnss_strips`` (NaN: not estimated); gnss_strip_std : (s, 6) their
+        standard deviations with the orientations held (conditional, a lower bound)
     mounting : (k, 6) per camera model its mounting correction ``M`` (``BundleOptions.mounting``): rotation vector
         (radians, camera axes) and the camera centre's offset ``-R_M^T t_M`` from the frame's (metres, camera axes);
         NaN rows for cameras without one; mounting_std : (k, 6) their marginal standard deviations (NaN when the
@@ -341,6 +363,8 @@ class BundleResult:
     gcp_w: np.ndarray = field(default_factory=lambda: np.zeros(0))
     prior_rejected: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), bool))
     prior_w: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    gnss_strip: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    gnss_strip_std: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
 
 
 def _quat_xyzw(r: np.ndarray) -> np.ndarray:
@@ -443,33 +467,70 @@ def _write_jacobians(jacobians, w: np.ndarray, blocks: tuple) -> None:
 
 
 @cache
-def _cost_classes() -> tuple[type, type, type]:
-    """The Python cost functions of the mounting calibration (classes made on first use: pyceres loads lazily)."""
+def _cost_classes() -> tuple[type, type, type, type]:
+    """The Python cost functions of the mounting calibration and the GNSS strip offsets (classes made on first use:
+    pyceres loads lazily)."""
     import pyceres
 
-    class MountedPrior(pyceres.CostFunction):
-        """EO prior of an image through its camera's mounting correction: blocks ``cam_from_world`` (7: quaternion
-        x y z w, translation), the correction's quaternion (4) and translation (3); 6 residuals, the rotation
-        error ``log(R_prior^T R_M^T R)`` (world axes) and the centre error ``-R^T (t - t_M) - C_prior``, each
-        divided by its prior standard deviation (world axes) over ``sigma_px``. The Jacobians take
-        ``d log(A exp(x)) / dx = I`` (the errors are a few thousandths of a degree)."""
+    class NavPrior(pyceres.CostFunction):
+        """EO prior of an image: blocks ``cam_from_world`` (7: quaternion x y z w, translation); with ``mounted``
+        its camera's mounting correction, quaternion (4) and translation (3); with ``strip`` its strip's GNSS offset
+        (3) and, with ``along`` (the image's along-track position, km) not None, the strip's drift (3, per km).
+        6 residuals, the rotation error ``log(R_prior^T R_M^T R)`` (world axes) and the centre error
+        ``-R^T (t - t_M) - (C_prior - a - along b)`` (the GNSS positions are the centres plus the
+        strip's error), each divided by its prior standard deviation (world axes) over ``sigma_px``. The Jacobians
+        take ``d log(A exp(x)) / dx = I`` (the errors are a few thousandths of a degree)."""
 
-        def __init__(self, r_prior: np.ndarray, c_prior: np.ndarray, w: np.ndarray) -> None:
+        def __init__(self, r_prior: np.ndarray, c_prior: np.ndarray, w: np.ndarray, mounted: bool = True,
+                     strip: bool = False, along: float | None = None) -> None:
             pyceres.CostFunction.__init__(self)
             self.set_num_residuals(6)
-            self.set_parameter_block_sizes([7, 4, 3])
+            self.set_parameter_block_sizes([7] + [4, 3] * mounted + [3] * strip + [3] * (along is not None))
             self.r_prior, self.c_prior, self.w = r_prior, c_prior, w
+            self.mounted, self.strip, self.along = mounted, strip, along
 
         def Evaluate(self, parameters, residuals, jacobians) -> bool:  # noqa: N802 - pyceres' name
-            pose, qm, tm = parameters
-            r, rm = _matrix_from_quat(pose[:4]), _matrix_from_quat(qm)
+            pose, rest = parameters[0], list(parameters[1:])
+            r = _matrix_from_quat(pose[:4])
+            rt = r.T
+            rm, tm = np.eye(3), np.zeros(3)
+            blocks = []
+            if self.mounted:
+                qm, tm = rest.pop(0), rest.pop(0)
+                rm = _matrix_from_quat(qm)
             u = pose[4:] - tm
+            c_prior = self.c_prior
+            blocks.append((pose, rt, -rt @ skew(u), -rt))
+            if self.mounted:
+                blocks += [(qm, -rt, np.zeros((3, 3)), None), (tm, None, None, rt)]
+            if self.strip:
+                a = rest.pop(0)
+                c_prior = c_prior - a
+                blocks.append((a, None, None, np.eye(3)))
+            if self.along is not None:
+                b = rest.pop(0)
+                c_prior = c_prior - self.along * b
+                blocks.append((b, None, None, self.along * np.eye(3)))
             residuals[:3] = self.w[:3] * matrix_to_rotvec(self.r_prior.T @ rm.T @ r)
-            residuals[3:] = self.w[3:] * (-r.T @ u - self.c_prior)
+            residuals[3:] = self.w[3:] * (-rt @ u - c_prior)
             if jacobians is not None:
-                rt = r.T
-                _write_jacobians(jacobians, self.w, ((pose, rt, -rt @ skew(u), -rt), (qm, -rt, np.zeros((3, 3)), None),
-                                                     (tm, None, None, rt)))
+                _write_jacobians(jacobians, self.w, tuple(blocks))
+            return True
+
+    class OffsetPrior(pyceres.CostFunction):
+        """Prior of zero on a GNSS strip offset or drift (3): residuals the block divided by its standard deviation
+        over ``sigma_px``."""
+
+        def __init__(self, w: float) -> None:
+            pyceres.CostFunction.__init__(self)
+            self.set_num_residuals(3)
+            self.set_parameter_block_sizes([3])
+            self.w = w
+
+        def Evaluate(self, parameters, residuals, jacobians) -> bool:  # noqa: N802 - pyceres' name
+            residuals[:] = self.w * parameters[0]
+            if jacobians is not None and jacobians[0] is not None:
+                jacobians[0][:] = (self.w * np.eye(3)).ravel()
             return True
 
     class MountingPrior(pyceres.CostFunction):
@@ -522,7 +583,7 @@ def _cost_classes() -> tuple[type, type, type]:
                     (tj, None, None, rmi_t @ g)))
             return True
 
-    return MountedPrior, MountingPrior, MountedRelativePrior
+    return NavPrior, MountingPrior, MountedRelativePrior, OffsetPrior
 
 
 def _prior_rows(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -651,7 +712,8 @@ class _Model:
     observations they hold and ``point_ids (p,)`` their ids (-1 for points not in the reconstruction)."""
 
     def __init__(self, prob: BundleProblem, ref: np.ndarray, active: np.ndarray,
-                 start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, mounting: bool = False) -> None:
+                 start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, mounting: bool = False,
+                 gnss_strips: str = "off") -> None:
         import pycolmap
 
         self.prob = prob
@@ -689,6 +751,10 @@ class _Model:
         self.mount = ({ci: (np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3)) for ci in range(len(prob.cameras))}
                       if mounting else {})
         self.mount_used: set[int] = set()
+        # per strip its GNSS offset and drift (None for offsets alone), kept across the rounds
+        strips = np.unique(prob.prior_strip[prob.prior_strip >= 0]) if gnss_strips != "off" else []
+        self.strip_blocks = {int(st): (np.zeros(3), np.zeros(3) if gnss_strips == "drift" else None) for st in strips}
+        self.strip_used: set[int] = set()
 
     def keep_only(self, active: np.ndarray) -> None:
         """Delete the observations not in ``active (m,)`` from the reconstruction; a point left with fewer than
@@ -719,6 +785,27 @@ class _Model:
             xyz[list(self.xyz_views)] = np.array(list(self.xyz_views.values())) + ref
         for ci, p in self.cam_params.items():
             cam_params[ci] = p
+
+    def strip_offsets(self) -> np.ndarray:
+        """The GNSS strip offsets ``(n, 3)`` of the last round at each image (offset plus drift times its
+        along-track position: the error of its GNSS position; zero for images without one)."""
+        prob = self.prob
+        out = np.zeros((prob.n_images, 3))
+        for st in self.strip_used:
+            shift, drift = self.strip_blocks[st]
+            sel = prob.prior_strip == st
+            out[sel] = shift + (0.0 if drift is None else prob.prior_along[sel, None] * drift)
+        return out
+
+    def strips(self) -> np.ndarray:
+        """The GNSS strip offsets and drifts ``(s, 6)`` of the last round as in :class:`BundleResult`."""
+        out = np.full((len(self.prob.strip_names), 6), np.nan)
+        for st in self.strip_used:
+            shift, drift = self.strip_blocks[st]
+            out[st, :3] = shift
+            if drift is not None:
+                out[st, 3:] = drift
+        return out
 
     def mounting(self) -> np.ndarray:
         """The mounting corrections ``(k, 6)`` of the last round as in :class:`BundleResult`."""
@@ -784,8 +871,10 @@ class _Round:
                     problem.set_manifold(p, pyceres.SubsetManifold(12, const))
         # 6-DoF EO priors, through the cameras' mounting corrections when they are estimated
         self.costs = []  # the Python cost functions Ceres calls (kept alive with the problem)
-        mounted, self._mounting_prior, mounted_relative = _cost_classes() if model.mount else (None, None, None)
+        classes = _cost_classes() if model.mount or model.strip_blocks else (None, None, None, None)
+        nav_prior, self._mounting_prior, mounted_relative, self._offset_prior = classes
         model.mount_used = set()
+        model.strip_used = set()
         # a part (attitude, position) a prior test rejected (prior_off) adds no information: the mounted cost gets
         # zero weights and the attitude-only prior an unbounded position variance, their rows counted as padding
         self.padded_rows = 0  # zero rows that pad costs (the priors' blocks, rejected parts; out of the redundancy)
@@ -794,11 +883,21 @@ class _Round:
             if not (np.all(np.isfinite(s_att)) and np.all(np.isfinite(s_pos))) or prior_off[k].all():
                 continue
             rp = prob.prior_r[k]
-            if model.mount:
-                q, t = self._mount_blocks(problem, model, int(prob.image_camera[k]), opt)
+            st = int(prob.prior_strip[k]) if model.strip_blocks and not prior_off[k, 1] else -1
+            if model.mount or st >= 0:
+                blocks = [fp]
+                if model.mount:
+                    blocks += self._mount_blocks(problem, model, int(prob.image_camera[k]), opt)
+                along = None
+                if st >= 0:
+                    shift, drift = self._strip_blocks(problem, model, st, opt)
+                    blocks.append(shift)
+                    if drift is not None:
+                        blocks.append(drift)
+                        along = float(prob.prior_along[k])
                 w = _pose_weights(sp, s_att, s_pos) * np.repeat(~prior_off[k], 3)
-                self.costs.append(mounted(rp, prob.prior_c[k] - ref, w))
-                problem.add_residual_block(self.costs[-1], None, [fp, q, t])
+                self.costs.append(nav_prior(rp, prob.prior_c[k] - ref, w, bool(model.mount), st >= 0, along))
+                problem.add_residual_block(self.costs[-1], None, blocks)
                 self.padded_rows += 3 * int(prior_off[k].sum())
                 continue
             if prior_off[k, 0]:  # the position alone (world frame)
@@ -883,7 +982,7 @@ class _Round:
             problem.set_parameter_block_constant(self.shift)
         self.gcp_seen = gcp_seen
 
-    def _mount_blocks(self, problem, model: _Model, ci: int, opt: BundleOptions) -> tuple[np.ndarray, np.ndarray]:
+    def _mount_blocks(self, problem, model: _Model, ci: int, opt: BundleOptions) -> list[np.ndarray]:
         """Camera ``ci``'s mounting correction (quaternion, translation) as parameter blocks of the problem, added
         with their prior of zero on first use."""
         import pyceres
@@ -897,7 +996,21 @@ class _Round:
             w = _pose_weights(opt.sigma_px, np.radians(opt.mounting_sigma_deg), opt.mounting_sigma_m)
             self.costs.append(self._mounting_prior(w))
             problem.add_residual_block(self.costs[-1], None, [q, t])
-        return q, t
+        return [q, t]
+
+    def _strip_blocks(self, problem, model: _Model, st: int, opt: BundleOptions
+                      ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Strip ``st``'s GNSS offset and drift (None for offsets alone) as parameter blocks of the problem, added
+        with their priors of zero on first use."""
+        shift, drift = model.strip_blocks[st]
+        if st not in model.strip_used:
+            model.strip_used.add(st)
+            for x, sigma in ((shift, opt.gnss_shift_sigma), (drift, opt.gnss_drift_sigma)):
+                if x is not None:
+                    problem.add_parameter_block(x, 3)
+                    self.costs.append(self._offset_prior(opt.sigma_px / sigma))
+                    problem.add_residual_block(self.costs[-1], None, [x])
+        return shift, drift
 
     def solve(self, opt: BundleOptions, kind: str, robust: bool):
         import pyceres
@@ -1034,6 +1147,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     for g in opt.self_calibration:
         if g not in CALIBRATION_GROUPS:
             raise ComputationError(f"unknown self-calibration group '{g}' (use {', '.join(CALIBRATION_GROUPS)})")
+    if opt.gnss_strips not in GNSS_STRIP_MODES:
+        raise ComputationError(f"unknown GNSS strip model '{opt.gnss_strips}' (use {', '.join(GNSS_STRIP_MODES)})")
     has_prior = np.all(np.isfinite(prob.prior_c), axis=1)
     ref = np.round(prob.prior_c[has_prior].mean(0) if has_prior.any() else prob.c_world.mean(0), 0)
     r = np.array(prob.r_cam_from_world, dtype=np.float64)
@@ -1099,7 +1214,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         else:
             log.append(f"screening at the start: sigma0 {s0_s:.3f} above {opt.screen_max_sigma0}: robust round")
         lap("statistics_s")
-    model = _Model(prob, ref, active, (r, c, xyz), mounting=opt.mounting)
+    model = _Model(prob, ref, active, (r, c, xyz), mounting=opt.mounting,
+                   gnss_strips=opt.gnss_strips if len(prob.prior_strip) else "off")
     solver = linear_solver_kind(prob, opt, active)
     log.append(f"linear solver {solver}")
     while True:
@@ -1171,7 +1287,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             gcp_bad = bool(bad_go.any() or bad_g.any())
         prior_bad = False
         if opt.prior_tests and prior_ok.any():
-            att_v, pos_v = _prior_residuals(prob, *frame_poses(r, c, prob.image_camera, model.mounting()))
+            att_v, pos_v = _prior_residuals(prob, *frame_poses(r, c, prob.image_camera, model.mounting()),
+                                            model.strip_offsets())
             bad_p, w_p, scale = prior_tests(att_v, pos_v, prob.prior_sigma_att, prob.prior_sigma_pos, n_ties,
                                             prior_ok[:, None] & ~prior_off & rd.adjusted[:, None],
                                             opt.blunder_threshold)
@@ -1236,6 +1353,12 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             for ci, std in marginal[1].items():
                 mounting_std[ci] = std * opt.sigma_px * sigma0
     mounting = model.mounting()
+    offsets, strips = model.strip_offsets(), model.strips()
+    strips_std = _strip_std(prob, opt, strips, prior_ok & ~prior_off[:, 1] & adjusted, sigma0)
+    if model.strip_used:
+        log.append("GNSS strip offsets (m) and drifts (m/km): " + "; ".join(
+            f"{prob.strip_names[st]} {np.round(strips[st, :3], 3).tolist()} {np.round(strips[st, 3:], 3).tolist()}"
+            for st in sorted(model.strip_used)))
     if opt.mounting:
         log.append("mounting corrections (boresight deg, offset m, camera axes): " + "; ".join(
             f"{prob.cameras[ci].id} {np.round(np.degrees(mounting[ci, :3]), 4).tolist()} "
@@ -1251,7 +1374,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     gcp_out = gcp_xyz + shift
     # prior residuals (adjusted - prior), world frame; with a mounting correction those of the frame it leaves
     r_f, c_f = frame_poses(r, c, prob.image_camera, mounting)
-    att_res, pos_res = _prior_residuals(prob, r_f, c_f)
+    att_res, pos_res = _prior_residuals(prob, r_f, c_f, offsets)
     return BundleResult(
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
@@ -1260,7 +1383,29 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
         timing=timing, gcp_obs_rejected=gcp_obs_bad, gcp_rejected=~gcp_ok, gcp_w=gcp_w,
-        prior_rejected=prior_off, prior_w=prior_w)
+        prior_rejected=prior_off, prior_w=prior_w, gnss_strip=strips, gnss_strip_std=strips_std)
+
+
+def _strip_std(prob: BundleProblem, opt: BundleOptions, strips: np.ndarray, in_use: np.ndarray,
+               sigma0: float) -> np.ndarray:
+    """Standard deviations ``(s, 6)`` of the GNSS strip offsets and drifts ``strips (s, 6)`` (NaN where not
+    estimated) with the orientations held: per strip and axis the inverse of the information of its images' position
+    priors in use (``in_use (n,)``) and of its own priors, times ``sigma0``."""
+    out = np.full(strips.shape, np.nan)
+    for st in np.flatnonzero(np.isfinite(strips[:, 0])):
+        sel = in_use & (prob.prior_strip == st)
+        w = 1.0 / prob.prior_sigma_pos[sel] ** 2
+        u = prob.prior_along[sel, None]
+        drift = bool(np.isfinite(strips[st, 3]))
+        for ax in range(3):
+            info = np.array([[w[:, ax].sum() + opt.gnss_shift_sigma**-2, (w[:, ax] * u[:, 0]).sum()],
+                             [(w[:, ax] * u[:, 0]).sum(), (w[:, ax] * u[:, 0] ** 2).sum() + opt.gnss_drift_sigma**-2]])
+            if not drift:
+                out[st, ax] = sigma0 / np.sqrt(info[0, 0])
+                continue
+            cov = np.linalg.inv(info)
+            out[st, ax], out[st, 3 + ax] = sigma0 * np.sqrt(np.diag(cov))
+    return out
 
 
 def frame_poses(r_cam_from_world: np.ndarray, c_world: np.ndarray, image_camera: np.ndarray,
@@ -1548,15 +1693,17 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
         rhs_all = rhs_all - weight[worst] @ diff[worst]
 
 
-def _prior_residuals(prob: BundleProblem, r_frame: np.ndarray, c_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _prior_residuals(prob: BundleProblem, r_frame: np.ndarray, c_frame: np.ndarray, offsets: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Adjusted minus prior of each image's frame (``r_frame (n, 3, 3)``, ``c_frame (n, 3)``, the navigation frame):
-    the rotation about the world axes ``(n, 3)`` (radians, ``R = R_prior exp([theta]x)``) and the centre ``(n, 3)``;
-    NaN rows for images without a prior."""
+    the rotation about the world axes ``(n, 3)`` (radians, ``R = R_prior exp([theta]x)``) and the centre ``(n, 3)``
+    from the prior corrected by its GNSS strip offset ``offsets (n, 3)`` (the prior minus it); NaN rows for images
+    without a prior."""
     has = np.all(np.isfinite(prob.prior_c), axis=1)
     att = np.full((prob.n_images, 3), np.nan)
     for k in np.flatnonzero(has):
         att[k] = matrix_to_rotvec(prob.prior_r[k].T @ r_frame[k])
-    return att, np.where(has[:, None], c_frame - prob.prior_c, np.nan)
+    return att, np.where(has[:, None], c_frame - prob.prior_c + offsets, np.nan)
 
 
 def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray, sigma_pos: np.ndarray,

@@ -1,5 +1,5 @@
 """CLI command ``oblique-city aerotri WS --mode integrated|hierarchical --connection cba|2|3|5|10 [--mounting]
-[--no-control-tests] [--no-prior-tests]``.
+[--no-control-tests] [--no-prior-tests] [--gnss-strips off|shift|drift]``.
 
 A shortcut for ``oblique-city run WS --stages aerotri --set aerotri.mode=... --set aerotri.connection=...``
 that stores the options in ``project.toml`` and runs the stage (forced, since the options are the point).
@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 
+from .bundle import GNSS_STRIP_MODES
 from .hierarchical import CONNECTIONS
 from .stage import MODES
 
@@ -19,7 +20,7 @@ def cmd_aerotri(args: argparse.Namespace) -> int:
 
     ws = Workspace.open(args.workspace)
     opts = ws.project.setdefault("stages", {}).setdefault("aerotri", {})
-    for key in ("mode", "connection", "cell_size", "sigma_px"):
+    for key in ("mode", "connection", "cell_size", "sigma_px", "gnss_strips"):
         value = getattr(args, key)
         if value is not None:
             opts[key] = value
@@ -46,6 +47,8 @@ def add_commands(sub) -> None:
                    help="test the control points' measurements and coordinates for blunders (on by default)")
     s.add_argument("--prior-tests", dest="prior_tests", action=argparse.BooleanOptionalAction,
                    help="test each image's GNSS position and IMU attitude prior for blunders (on by default)")
+    s.add_argument("--gnss-strips", dest="gnss_strips", choices=GNSS_STRIP_MODES,
+                   help="estimate a GNSS offset (shift) or an offset and a drift (drift) per flight strip")
     s.add_argument("--executor", choices=("inline", "processes", "dask"), default="inline")
     s.add_argument("--workers", type=int, default=2)
     s.add_argument("--scheduler", help="Dask scheduler address")

@@ -60,6 +60,7 @@ from .problem import (
     thin_ties,
     track_shares,
 )
+from .strips import Strips, flight_strips, strip_offsets, strip_table
 
 CONNECTIONS = ("cba", "2", "3", "5", "10")
 
@@ -83,6 +84,8 @@ class Run:
     prior_rejected : (image, ``attitude`` or ``position``) of the EO priors it rejected (see
         :func:`.bundle.prior_tests`); prior_w : image -> (2,) the normalised differences of its attitude and position
         prior in the last test (a rejected part's when it was rejected; NaN: untested)
+    gnss_strips : strip name -> its GNSS offset and drift as estimated by this run (:func:`.strips.strip_table`;
+        empty when the run estimated none)
     """
 
     name: str
@@ -103,6 +106,7 @@ class Run:
     control_obs_rejected: tuple[tuple[str, str], ...] = ()
     prior_rejected: tuple[tuple[str, str], ...] = ()
     prior_w: dict[str, np.ndarray] = field(default_factory=dict)
+    gnss_strips: dict[str, dict] = field(default_factory=dict)
 
 
 @dataclass(eq=False)
@@ -128,6 +132,10 @@ class ATResult:
         """The (image, ``attitude`` or ``position``) EO priors a run rejected."""
         return {o for run in self.runs for o in run.prior_rejected}
 
+    def gnss_strips(self) -> dict[str, dict]:
+        """The GNSS strip offsets and drifts the runs estimated (IAT's, or HAT's nadir run's), by strip name."""
+        return {name: d for run in self.runs for name, d in run.gnss_strips.items()}
+
 
 def rejected_control(runs: list[Run]) -> tuple[set[str], set[tuple[str, str]]]:
     """Over ``runs``: the control points whose coordinates one rejected, and the (point, image) measurements."""
@@ -149,7 +157,8 @@ def _to_run(name: str, sub: SubProblem, res: BundleResult, wall: float) -> Run:
                prior_rejected=tuple((prob.image_ids[k], PRIOR_PARTS[part])
                                     for k, part in zip(*np.nonzero(res.prior_rejected))),
                prior_w={iid: res.prior_w[k] for k, iid in enumerate(prob.image_ids)
-                        if k < len(res.prior_w) and np.isfinite(res.prior_w[k]).any()})
+                        if k < len(res.prior_w) and np.isfinite(res.prior_w[k]).any()},
+               gnss_strips=strip_table(prob.strip_names, prob.prior_strip, res.gnss_strip, res.gnss_strip_std))
 
 
 def initial_tie_coordinates(block: ImageBlock, ties: TiePoints) -> np.ndarray:
@@ -164,7 +173,7 @@ def integrated(block: ImageBlock, ties: TiePoints, opt: BundleOptions,
     """IAT: all images in one adjustment."""
     t0 = time.perf_counter()
     xyz0 = initial_tie_coordinates(block, ties) if xyz0 is None else xyz0
-    sub = build_problem(block, ties, list(block.images), xyz0)
+    sub = build_problem(block, ties, list(block.images), xyz0, strips=_strips(block, opt))
     res = adjust(sub.problem, opt, progress)
     run = _to_run("iat", sub, res, time.perf_counter() - t0)
     xyz = np.full((ties.n_tracks, 3), np.nan)
@@ -174,6 +183,11 @@ def integrated(block: ImageBlock, ties: TiePoints, opt: BundleOptions,
     rej[run.obs_index] = run.obs_rejected
     return ATResult(mode="integrated", poses=run.poses, image_std=run.image_std, xyz=xyz, xyz_cov=cov,
                     obs_rejected=rej, runs=[run], wall_s=time.perf_counter() - t0)
+
+
+def _strips(block: ImageBlock, opt: BundleOptions) -> Strips | None:
+    """The block's flight strips when the adjustment estimates GNSS offsets per strip."""
+    return flight_strips(block) if opt.gnss_strips != "off" else None
 
 
 def select_connections(xyz: np.ndarray, candidate: np.ndarray, rays: np.ndarray, nadir_rays: np.ndarray,
@@ -382,7 +396,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     codes = {v: k for k, v in enumerate(("nadir", *OBLIQUE_VIEWS))}
     code_of_image = {iid: codes[v] for v, ids in views.items() if v in codes for iid in ids}
     view_of_obs = np.array([code_of_image.get(i, -1) for i in ties.image_ids], np.int8)[ties.obs_image]
-    sub_n = build_problem(block, ties, nadir_ids, xyz0, obs_mask=view_of_obs == 0)
+    strips = _strips(block, opt)
+    sub_n = build_problem(block, ties, nadir_ids, xyz0, obs_mask=view_of_obs == 0, strips=strips)
     n = ties.n_tracks
     # the oblique views' observations and the thinning, which do not depend on the nadir run
     pre_views = {}
@@ -417,6 +432,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     # tie points start where the nadir run or the navigation data put them (the screening at the start of each
     # oblique run moves them onto its rays with a Gauss-Newton step)
     start_poses = nadir_propagation(block, nadir.frames)
+    # the GNSS strip offsets the nadir run estimated hold for the other heads of its exposures (one antenna)
+    offsets = strip_offsets(strips, res_n.gnss_strip, list(block.images)) if strips is not None else None
     thinned_obs = np.zeros(ties.n_obs, bool)
     per_view = []
     for v, (ids, in_view, rays_v, kept) in pre_views.items():
@@ -441,7 +458,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     for v, ids, sel, in_run in per_view:
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
-        opt_v = replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True)
+        opt_v = replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True, gnss_strips="off")
         initial, x_v = start_poses, xyz_start
         if v in pre and pre[v][5] <= opt.screen_max_sigma0:
             # moved to its inliers already: the run starts there and screens once
@@ -453,7 +470,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
             opt_v = replace(opt_v, screen_resect=False)
         sub = build_problem(block, ties, ids, x_v, obs_mask=in_run, use_control=oblique_control,
                             point_prior_xyz=prior_xyz, point_prior_cov=prior_cov, prior_shift=res_n.datum_shift,
-                            initial=initial)
+                            initial=initial, prior_offsets=offsets)
         conn_counts[v] = int(sel.sum())
         conn_masks[v] = sel
         items.append((v, sub, opt_v))

@@ -10,6 +10,7 @@ from ..errors import InputError
 from ..model import CameraModel, ImageBlock, Pose, TiePoints
 from .bundle import BundleProblem, BundleResult
 from .precision import safe_inverse, sum_outer
+from .strips import Strips
 
 
 def pose_arrays(block: ImageBlock, image_ids: list[str], poses: dict[str, Pose]
@@ -119,7 +120,8 @@ class SubProblem:
 def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_init: np.ndarray,
                   obs_mask: np.ndarray | None = None, use_control: bool = True,
                   point_prior_xyz: np.ndarray | None = None, point_prior_cov: np.ndarray | None = None,
-                  prior_shift: np.ndarray | None = None, initial: dict[str, Pose] | None = None) -> SubProblem:
+                  prior_shift: np.ndarray | None = None, initial: dict[str, Pose] | None = None,
+                  strips: Strips | None = None, prior_offsets: dict[str, np.ndarray] | None = None) -> SubProblem:
     """Bundle problem for the images ``image_ids`` with the tie observations among them.
 
     Parameters
@@ -129,6 +131,9 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
     point_prior_xyz, point_prior_cov : (n, 3), (n, 3, 3) ground observations of tracks (connection points)
     prior_shift : (3,) added to the GNSS centres (a datum shift known from an earlier adjustment)
     initial : starting orientations (default: the images' approximate ones)
+    strips : the flight strips, for GNSS offsets per strip (:attr:`.bundle.BundleOptions.gnss_strips`)
+    prior_offsets : image id -> (3,) error of its GNSS centre, subtracted from it (strip offsets known from an earlier
+        adjustment)
     """
     index = {iid: k for k, iid in enumerate(ties.image_ids)}
     sub = np.array([index.get(i, -1) for i in image_ids])
@@ -161,7 +166,7 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
                              "(GNSS/IMU or imported exterior orientation)", field="pose")
         r0[k], c0[k] = start.R, start.C
         if img.pose_approx is not None:
-            pr[k], pc[k] = img.pose_approx.R, img.pose_approx.C + shift
+            pr[k], pc[k] = img.pose_approx.R, img.pose_approx.C + shift - (prior_offsets or {}).get(iid, 0.0)
             if img.sigma_position is not None and img.sigma_attitude is not None:
                 s_pos[k], s_att[k] = img.sigma_position, img.sigma_attitude
     prob = BundleProblem(
@@ -174,6 +179,10 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
         prob.point_prior_xyz = point_prior_xyz[tracks]
         prob.point_prior_cov = point_prior_cov[tracks]
     _add_rig_pairs(block, image_ids, prob)
+    if strips is not None:
+        prob.strip_names = list(strips.names)
+        prob.prior_strip = np.array([strips.image_strip.get(i, -1) for i in image_ids], np.int64)
+        prob.prior_along = np.array([strips.image_along_km.get(i, 0.0) for i in image_ids])
     if use_control:
         kidx = {iid: k for k, iid in enumerate(image_ids)}
         names, gxyz, gsig, gsp, op, oi, ouv = [], [], [], [], [], [], []

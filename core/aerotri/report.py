@@ -373,6 +373,7 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
             "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
             "ground_points": ground_point_residuals(block, at.poses, *at.control_rejections()),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at), "wall_s": at.wall_s,
+            "gnss_strips": at.gnss_strips(),
             "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0,
             "tie_point_rays": ray_counts(ties, at), "image_residual_fields": camera_residual_fields(
                 block, ties, obs, v), "images_table": image_statistics(block, ties, at, obs, v)}
@@ -559,6 +560,24 @@ def _report_extras(report: dict) -> list[str]:
                      "them. Moved and turned: from the navigation orientation to the adjusted one.</p><table><tr>"
                      "<th>image</th><th>run</th><th>prior</th><th>normalised difference</th><th>moved [m]</th>"
                      f"<th>turned [deg]</th></tr>{rows}</table>")
+    strips = report.get("gnss_strips") or {}
+    if strips:
+        drift = any(d["drift_m_per_km"] is not None for d in strips.values())
+
+        def triple(v: list[float] | None, sd: list[float] | None) -> str:
+            return "".join(f"<td>{format_value(a)} &plusmn; {format_value(b)}</td>" for a, b in zip(v, sd)) if v \
+                else "<td></td>" * 3
+
+        rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{d['images']}</td>"
+                       + triple(d["offset_m"], d["offset_std_m"])
+                       + (triple(d["drift_m_per_km"], d["drift_std_m_per_km"]) if drift else "") + "</tr>"
+                       for n, d in strips.items())
+        parts.append("<h2>GNSS offsets per strip</h2><p>The error of each flight strip's GNSS positions (GNSS minus "
+                     "adjusted centre), estimated in the adjustment; with a datum shift, from the block's mean "
+                     "(which the shift takes). Standard deviations with the orientations held.</p><table><tr>"
+                     "<th>strip</th><th>images</th><th>offset X [m]</th><th>offset Y [m]</th><th>offset Z [m]</th>"
+                     + ("<th>drift X [m/km]</th><th>drift Y [m/km]</th><th>drift Z [m/km]</th>" if drift else "")
+                     + f"</tr>{rows}</table>")
     rays = report.get("tie_point_rays")
     if rays and rays["mean_rays"] is not None:
         parts.append(f"<h2>Tie point rays</h2><p>Mean {rays['mean_rays']:.2f} rays per adjusted tie point; "

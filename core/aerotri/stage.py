@@ -17,7 +17,7 @@ from ..errors import ConfigError, WorkspaceError
 from ..model import CameraModel, ImageBlock, TiePoints
 from ..pipeline.atomic import write_json, write_text
 from ..pipeline.stage import Stage, StageResult
-from .bundle import CALIBRATION_GROUPS, LINEAR_SOLVERS, BundleOptions
+from .bundle import CALIBRATION_GROUPS, GNSS_STRIP_MODES, LINEAR_SOLVERS, BundleOptions
 from .hierarchical import CONNECTIONS, ATResult, hierarchical, integrated
 from .report import (
     accepted_residuals,
@@ -75,6 +75,10 @@ class AerotriConfig:
         :func:`.bundle.control_point_tests`)
     prior_tests : blunder tests of the images' GNSS position and IMU attitude priors (on by default; see
         :func:`.bundle.prior_tests`)
+    gnss_strips, gnss_shift_sigma, gnss_drift_sigma : ``off``, ``shift`` or ``drift``: estimate a GNSS offset (and a
+        drift along the strip) per flight strip, the strips found from the navigation data (:mod:`.strips`), with
+        priors of zero and these standard deviations (metres; metres per km); see
+        :attr:`.bundle.BundleOptions.gnss_strips`
     """
 
     mode: str = "integrated"
@@ -106,6 +110,9 @@ class AerotriConfig:
     default_sigma_attitude_deg: float = 0.05
     control_tests: bool = True
     prior_tests: bool = True
+    gnss_strips: str = "off"
+    gnss_shift_sigma: float = 1.0
+    gnss_drift_sigma: float = 1.0
 
     def bundle_options(self) -> BundleOptions:
         for g in self.self_calibration:
@@ -115,6 +122,12 @@ class AerotriConfig:
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ConfigError(f"aerotri.linear_solver: unknown solver '{self.linear_solver}' "
                               f"(use {', '.join(LINEAR_SOLVERS)})")
+        if self.gnss_strips not in GNSS_STRIP_MODES:
+            raise ConfigError(f"aerotri.gnss_strips: unknown model '{self.gnss_strips}' "
+                              f"(use {', '.join(GNSS_STRIP_MODES)})")
+        if not (self.gnss_shift_sigma > 0 and self.gnss_drift_sigma > 0):
+            raise ConfigError("aerotri.gnss_shift_sigma and aerotri.gnss_drift_sigma must be positive "
+                              f"(got {self.gnss_shift_sigma}, {self.gnss_drift_sigma})")
         return BundleOptions(sigma_px=self.sigma_px, robust_scale=self.robust_scale,
                              blunder_threshold=self.blunder_threshold,
                              max_rejection_rounds=self.max_rejection_rounds,
@@ -124,7 +137,8 @@ class AerotriConfig:
                              mounting_sigma_m=self.mounting_sigma_m, threads=self.threads,
                              linear_solver=self.linear_solver, settle_stop=self.settle_stop,
                              marginal_max_images=self.marginal_std_max_images, control_tests=self.control_tests,
-                             prior_tests=self.prior_tests)
+                             prior_tests=self.prior_tests, gnss_strips=self.gnss_strips,
+                             gnss_shift_sigma=self.gnss_shift_sigma, gnss_drift_sigma=self.gnss_drift_sigma)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
@@ -191,6 +205,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     check = report["check_points"]["all"]
     worst = largest_systematic(report["image_residual_fields"])
     priors_off = sum(len(r["priors_rejected"]) for r in report["runs"])
+    strips = report["gnss_strips"]
+    largest = max((float(np.linalg.norm(d["offset_m"])) for d in strips.values()), default=None)
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
@@ -198,11 +214,13 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],
                  "blunder_percent": report["blunder_percent"], "wall_s": report["wall_s"],
                  "thinned_observations": report["thinned_observations"],
-                 "systematic_residual_px": worst[1] if worst else None, "priors_rejected": priors_off},
+                 "systematic_residual_px": worst[1] if worst else None, "priors_rejected": priors_off,
+                 "gnss_strips": len(strips), "gnss_strip_offset_max_m": largest},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
                 + (f", largest systematic image residual {worst[1]:.3f} px ({worst[0]})" if worst else "")
-                + (f", {priors_off} GNSS/IMU priors rejected (see report.html)" if priors_off else ""))
+                + (f", {priors_off} GNSS/IMU priors rejected (see report.html)" if priors_off else "")
+                + (f", GNSS offsets of {len(strips)} strips estimated (largest {largest:.3f} m)" if strips else ""))
 
 
 def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
@@ -217,4 +235,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="5", adjusted_block=False)
+              version="6", adjusted_block=False)

@@ -96,6 +96,9 @@ class SimulationConfig:
     noise_px : standard deviation of image measurements (tie and ground points)
     blunder_fraction : share of tie observations moved by gross errors of ``blunder_px`` (min, max) pixels
     gnss_sigma : (3,) GNSS centre noise, metres; gnss_bias : (3,) constant datum offset of the GNSS frame
+    gnss_strip_sigma : metres, an offset per flight strip (3-D, normal), as a trajectory whose ambiguities are fixed
+        again after each turn has; gnss_drift_sigma : metres per km, a drift per strip along it (normal), the error
+        linear in the along-track position from the strip's middle (0: none, the default)
     imu_sigma_deg : (3,) attitude noise (roll, pitch, yaw), degrees
     boresight_sigma_deg, lever_arm_sigma : per-head mounting errors of the true rig against the calibrated one
         (0: the heads are exactly at their calibrated mounting)
@@ -123,6 +126,8 @@ class SimulationConfig:
     blunder_px: tuple[float, float] = (4.0, 40.0)
     gnss_sigma: tuple[float, float, float] = (0.05, 0.05, 0.08)
     gnss_bias: tuple[float, float, float] = (0.06, -0.04, 0.10)
+    gnss_strip_sigma: float = 0.0
+    gnss_drift_sigma: float = 0.0
     imu_sigma_deg: tuple[float, float, float] = (0.004, 0.004, 0.006)
     boresight_sigma_deg: float = 0.0
     lever_arm_sigma: float = 0.0
@@ -150,6 +155,8 @@ class SimulatedBlock:
     gsd : nadir ground sample distance, metres
     city : the city the block was flown over
     area : (4,) world bbox (xmin, ymin, xmax, ymax) given to the flight planner
+    true_gnss_strip : image id -> (3,) the strip offset and drift in its GNSS centre (see
+        ``SimulationConfig.gnss_strip_sigma``; zeros without them)
     """
 
     block: ImageBlock
@@ -162,6 +169,7 @@ class SimulatedBlock:
     city: City
     area: np.ndarray
     config: SimulationConfig
+    true_gnss_strip: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 @lru_cache(maxsize=1)
@@ -367,8 +375,9 @@ def simulate_block(cfg: SimulationConfig = SimulationConfig(), city: City | None
     truth = true_block(system, exposures, city.crs, rig=perturbed_rig(nominal, nav))
     block = approximate_block(truth, exposures, nominal, nav)
     bias = np.asarray(cfg.gnss_bias, np.float64)
+    strip_error = _strip_errors(exposures, cfg)
     for img in block.images.values():  # the datum offset of the GNSS frame, the same for every exposure
-        img.pose_approx = Pose(img.pose_approx.R, img.pose_approx.C + bias)
+        img.pose_approx = Pose(img.pose_approx.R, img.pose_approx.C + bias + strip_error[img.exposure])
     true_poses = {iid: img.pose_approx for iid, img in truth.images.items()}
     ids = list(truth.images)
 
@@ -408,7 +417,26 @@ def simulate_block(cfg: SimulationConfig = SimulationConfig(), city: City | None
                                 check_every=2, seed=cfg.seed):
             block.add_ground_point(gp)
     return SimulatedBlock(block=block, ties=ties, true_poses=true_poses, true_xyz=xyz[used], true_normal=normal[used],
-                          true_semantic=city.semantic[tri[used]], gsd=cfg.gsd, city=city, area=area, config=cfg)
+                          true_semantic=city.semantic[tri[used]], gsd=cfg.gsd, city=city, area=area, config=cfg,
+                          true_gnss_strip={iid: strip_error[img.exposure] for iid, img in block.images.items()})
+
+
+def _strip_errors(exposures: list, cfg: SimulationConfig) -> dict[str, np.ndarray]:
+    """Per exposure name the GNSS error ``(3,)`` of its strip: the strip's offset plus its drift times the
+    exposure's along-track position (km, in the flight direction, from the strip's middle)."""
+    rng = np.random.default_rng([cfg.seed, 303])
+    out = {}
+    for s in sorted({ex.strip for ex in exposures}):
+        members = [ex for ex in exposures if ex.strip == s]  # in flight order
+        shift = rng.normal(0.0, cfg.gnss_strip_sigma, 3)
+        drift = rng.normal(0.0, cfg.gnss_drift_sigma, 3)
+        xy = np.array([ex.center[:2] for ex in members])
+        direction = xy[-1] - xy[0]
+        u = xy @ (direction / max(np.linalg.norm(direction), 1e-9)) / 1000.0
+        u -= 0.5 * (u.min() + u.max())
+        for ex, uk in zip(members, u):
+            out[ex.name] = shift + uk * drift
+    return out
 
 
 def ray_statistics(sim: SimulatedBlock) -> dict:

@@ -507,17 +507,17 @@ def test_mounting_calibration_recovers_the_boresight_hidden_in_the_priors(misali
     assert mounting(s.block, plain) == {}
 
 
-def test_mounting_costs_jacobians_match_finite_differences():
-    """The Python cost functions of the mounting calibration: their Jacobians, taken to Ceres' tangent spaces
-    (quaternion increments ``q' = (d, 1) q``, translations as they are), agree with central differences of their
-    residuals to 1e-3 of the largest entry: the analytic ones take the Jacobian of the rotation logarithm as the
-    identity, which is exact to the size of the residual rotation (here up to 6e-4 rad, about 0.03 deg, the
-    largest misalignment simulated)."""
+def test_mounting_and_strip_costs_jacobians_match_finite_differences():
+    """The Python cost functions of the mounting calibration and the GNSS strip offsets: their Jacobians, taken to
+    Ceres' tangent spaces (quaternion increments ``q' = (d, 1) q``, translations as they are), agree with central
+    differences of their residuals to 1e-3 of the largest entry: the analytic ones take the Jacobian of the rotation
+    logarithm as the identity, which is exact to the size of the residual rotation (here up to 6e-4 rad, about 0.03
+    deg, the largest misalignment simulated)."""
     from oblique_city.core.aerotri.bundle import _cost_classes, _quat_plus_jacobian, _quat_xyzw
     from oblique_city.core.geometry.rotations import rotvec_to_matrix
 
     rng = np.random.default_rng(4)
-    mounted, mounting_prior, mounted_relative = _cost_classes()
+    nav_prior, mounting_prior, mounted_relative, offset_prior = _cost_classes()
 
     def rot(scale):
         return rotvec_to_matrix(rng.normal(0, scale, 3))
@@ -562,8 +562,12 @@ def test_mounting_costs_jacobians_match_finite_differences():
     qm, tm = _quat_xyzw(rot(5e-4)), rng.normal(0, 0.02, 3)
     c = rng.normal(0, 100, 3)
     cam = pose(r_cam, -r_cam @ c)
-    check(mounted(rot(1e-4) @ r_cam, c + rng.normal(0, 0.05, 3), w), [cam, qm, tm])
+    check(nav_prior(rot(1e-4) @ r_cam, c + rng.normal(0, 0.05, 3), w), [cam, qm, tm])
     check(mounting_prior(w), [qm, tm])
+    shift, drift = rng.normal(0, 0.3, 3), rng.normal(0, 0.5, 3)
+    check(nav_prior(rot(1e-4) @ r_cam, c + rng.normal(0, 0.05, 3), w, False, True, 0.37), [cam, shift, drift])
+    check(nav_prior(rot(1e-4) @ r_cam, c + rng.normal(0, 0.05, 3), w, True, True, None), [cam, qm, tm, shift])
+    check(offset_prior(0.3), [shift], n_res=3)
     r_j = rot(1.0)
     cam_j = pose(r_j, -r_j @ (c + rng.normal(0, 0.3, 3)))
     n_r = r_cam @ r_j.T @ rot(2e-4)

@@ -46,7 +46,8 @@ def ws(tmp_path, utm_block):
                                 {"name": "G2", "rejected_coordinates": False, "rejected_images": ["a", "b"]},
                                 {"name": "C3"}],
               "runs": [{"name": "nadir", "priors_rejected": [["n1", "position"], ["n2", "attitude"]]},
-                       {"name": "north", "priors_rejected": [["o1", "position"]]}, {"name": "east"}]}
+                       {"name": "north", "priors_rejected": [["o1", "position"]]}, {"name": "east"}],
+              "gnss_strips": {"L01": {"offset_m": [0.1, -0.2, 0.05]}, "L02": {"offset_m": [0.0, 0.3, -0.4]}}}
     (w.stage_dir("aerotri") / "report.json").write_text(json.dumps(report))
     (w.stage_dir("aerotri") / "report.html").write_text("<html><body>report</body></html>")
     w.write_state({"aerotri": {"status": "done"}})
@@ -155,6 +156,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Largest systematic image residual: 0.084 px (left)" in labels
     assert "Rejected control: 1 points (G1), 2 measurements" in labels
     assert "Rejected priors: 2 GNSS positions, 1 IMU attitudes (n1, n2, o1)" in labels
+    assert "GNSS offsets of 2 strips, largest 0.500 m (L02)" in labels
     assert any(e[0] == "operator" and e[1] == "city.open_report" for e in log)
 
     opened = []
@@ -175,7 +177,8 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
 
 
 def test_triangulation_options_round_trip_through_project_toml(addon, ws):
-    """The Triangulation panel edits ``[stages.aerotri]``: mode, connection and the linear solver as choices, the
+    """The Triangulation panel edits ``[stages.aerotri]``: mode, connection, the linear solver and the GNSS strip
+    model as choices, the
     control tests and the mounting calibration as switches, the self-calibration groups as toggles (a list in the
     file); what it writes is what the stage's config reads."""
     import tomllib
@@ -194,13 +197,16 @@ def test_triangulation_options_round_trip_through_project_toml(addon, ws):
     opts = scene.oblique_city.stage_options.aerotri
     assert opts.mode == "integrated" and opts.connection == "cba" and opts.control_tests
     assert opts.self_calibration == set()
+    assert opts.gnss_strips == "off"
     opts.mode, opts.connection, opts.control_tests, opts.cell_size = "hierarchical", "5", False, 40.0
+    opts.gnss_strips = "drift"
     opts.self_calibration = {"radial", "focal"}
     doc = tomllib.loads((w.root / "project.toml").read_text(encoding="utf-8"))["stages"]["aerotri"]
     assert doc["mode"] == "hierarchical" and doc["connection"] == "5" and doc["control_tests"] is False
     assert doc["self_calibration"] == ["focal", "radial"]
     cfg = get_stage("aerotri").make_config(Workspace.open(w.root).stage_options("aerotri"))
     assert (cfg.mode, cfg.connection, cfg.control_tests, cfg.cell_size) == ("hierarchical", "5", False, 40.0)
+    assert doc["gnss_strips"] == "drift" and cfg.bundle_options().gnss_strips == "drift"
     assert not cfg.bundle_options().control_tests
     assert tuple(cfg.bundle_options().self_calibration) == ("focal", "radial")
     assert opts.self_calibration == {"focal", "radial"}

@@ -1,0 +1,72 @@
+"""Flight strips from the navigation data, against the simulator's flight plan."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from oblique_city.core.aerotri.strips import flight_strips, strip_offsets
+from oblique_city.core.model import Pose
+
+
+def _plan(block) -> dict[str, str]:
+    """Image id -> the simulator's strip (exposures are named ``S<strip>_E<exposure>``)."""
+    return {iid: img.exposure.split("_")[0] for iid, img in block.images.items()}
+
+
+def test_strips_are_the_flight_plans_and_along_track_positions_are_centred(sim):
+    """The 5 strips of the test block, flown both ways, are found exactly: every strip is one strip of the plan with
+    all its 80 images (16 exposures x 5 heads), and the heads of an exposure share its along-track position. The
+    positions run from -s/2 to s/2 over the strip's length s, and along the flight direction for either heading
+    (exposure numbers grow with time)."""
+    strips = flight_strips(sim.block)
+    plan = _plan(sim.block)
+    assert len(strips.names) == 5
+    assert {(strips.image_strip[i], plan[i]) for i in plan} == {(s, plan[strips.members(s)[0]]) for s in range(5)}
+    for s in range(5):
+        members = strips.members(s)
+        assert len(members) == 80
+        along = np.array([strips.image_along_km[i] for i in members])
+        assert abs(along.max() + along.min()) < 1e-9
+        exposure = np.array([int(sim.block.images[i].exposure.split("_E")[1]) for i in members])
+        by_exposure = {e: along[exposure == e] for e in np.unique(exposure)}
+        assert all(np.ptp(a) < 1e-9 for a in by_exposure.values())
+        first, last = by_exposure[exposure.min()][0], by_exposure[exposure.max()][0]
+        ends = [sim.true_poses[next(i for i in members if exposure[members.index(i)] == e)].C[:2]
+                for e in (exposure.min(), exposure.max())]
+        # from the first exposure's to the last's: forward, by their distance (within the plan's 1 m jitter)
+        assert abs((last - first) - np.linalg.norm(ends[1] - ends[0]) / 1000.0) < 0.005
+
+
+def test_a_line_flown_in_two_passes_and_a_cross_strip_are_strips_of_their_own(sim):
+    """Dropping the middle exposures of one strip (a gap of 6 bases) splits it into two strips; turning another
+    strip by 90 degrees about its middle (a cross strip) puts it in a heading group of its own. Strip offsets map
+    back to every image of a strip with its drift times its along-track position."""
+    block = copy.deepcopy(sim.block)
+    plan = _plan(block)
+    for iid in [i for i in block.images if plan[i] == "S02" and 6 <= int(block.images[i].exposure[-3:]) <= 11]:
+        del block.images[iid]
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    cross = [i for i in block.images if plan[i] == "S04"]
+    mid = np.mean([block.images[i].pose_approx.C for i in cross], axis=0)
+    for iid in cross:  # the strip turned by 90 degrees about its middle, heading and line
+        p = block.images[iid].pose_approx
+        block.images[iid].pose_approx = Pose(p.R @ turn.T, mid + turn @ (p.C - mid))
+    strips = flight_strips(block)
+    assert len(strips.names) == 6
+    groups = {}
+    for iid, s in strips.image_strip.items():
+        groups.setdefault(s, set()).add(plan[iid])
+    assert all(len(g) == 1 for g in groups.values())
+    assert sorted(sum(1 for g in groups.values() if g == {p}) for p in ("S01", "S02", "S03", "S04", "S05")) \
+        == [1, 1, 1, 1, 2]
+    values = np.full((len(strips.names), 6), np.nan)
+    values[0] = [0.1, -0.2, 0.3, 1.0, 0.0, -2.0]
+    values[1, :3] = [0.5, 0.5, 0.5]
+    off = strip_offsets(strips, values, list(block.images))
+    assert set(off) == set(strips.members(0)) | set(strips.members(1))
+    for iid in strips.members(0):
+        u = strips.image_along_km[iid]
+        assert np.allclose(off[iid], [0.1 + u, -0.2, 0.3 - 2 * u])
+    assert all(np.allclose(off[i], 0.5) for i in strips.members(1))
