@@ -6,6 +6,7 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
     python benchmarks/bench_at.py --boresight-sigma-deg 0.05 --mounting --connections cba  # boresight calibration
     python benchmarks/bench_at.py --images 3000 --connections cba --repeat 3   # the wall ratio as a median of 3
     python benchmarks/bench_at.py --connections cba --control-blunders 5 --prior-blunders 5  # Tables 9 and 10
+    python benchmarks/bench_at.py --connections cba --gnss-strips 0.3   # Table 11: GNSS offsets per strip
     make bench-at ARGS="--images 3000"
 
 Prints the tables and writes them as JSON (``--out``, default ``build/bench_at_<images>.json``).
@@ -35,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT.parent) not in sys.path:
     sys.path.insert(0, str(ROOT.parent))
 
-from oblique_city.core.aerotri.bundle import BundleOptions, _Model, adjust  # noqa: E402
+from oblique_city.core.aerotri.bundle import GNSS_STRIP_MODES, BundleOptions, _Model, adjust  # noqa: E402
 from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
     direct_georeferencing,
     hierarchical,
@@ -45,6 +46,7 @@ from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
 )
 from oblique_city.core.aerotri.problem import build_problem  # noqa: E402
 from oblique_city.core.aerotri.report import mounting  # noqa: E402
+from oblique_city.core.aerotri.strips import flight_strips  # noqa: E402
 from oblique_city.core.evaluate.aerotri import (  # noqa: E402
     SPLITS,
     blunder_scores,
@@ -57,7 +59,11 @@ from oblique_city.core.geometry.rotations import matrix_to_rotvec, rotvec_to_mat
 from oblique_city.core.model import Pose  # noqa: E402
 from oblique_city.core.pipeline import Executor  # noqa: E402
 from oblique_city.core.simulate.flight import NavErrors, perturbed_rig  # noqa: E402
-from oblique_city.core.simulate.observations import SimulationConfig, simulate_block  # noqa: E402
+from oblique_city.core.simulate.observations import (  # noqa: E402
+    SimulationConfig,
+    plant_strip_errors,
+    simulate_block,
+)
 
 
 class PeakMemory:
@@ -226,6 +232,10 @@ def main(argv=None) -> int:
     ap.add_argument("--prior-blunders", type=int, default=0,
                     help="also adjust a copy of the block with this many exposures given a wrong GNSS position and as "
                          "many others a wrong IMU attitude, on all their heads (Table 10)")
+    ap.add_argument("--gnss-strips", dest="gnss_strips", type=float, default=0.0,
+                    help="also adjust a copy of the block whose GNSS positions carry an offset per strip and a drift "
+                         "along it (normal, this many metres and metres per km), without and with the strip models, "
+                         "with all and with 4 control points (Table 11)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out")
     args = ap.parse_args(argv)
@@ -351,6 +361,9 @@ def main(argv=None) -> int:
         if args.prior_blunders > 0:
             out["prior_blunders"] = prior_blunder_runs(block, ties, xyz0, sim.true_poses, opt, args.prior_blunders,
                                                        args.seed, rows, run_blunder_hat)
+        if args.gnss_strips > 0:
+            out["gnss_strips"] = gnss_strip_runs(block, ties, xyz0, sim.true_poses, opt, args.gnss_strips, args.seed,
+                                                 run_blunder_hat)
     finally:
         if ex is not None:
             ex.close()
@@ -364,6 +377,8 @@ def main(argv=None) -> int:
         print_control_blunders(out["control_blunders"], sim.gsd)
     if "prior_blunders" in out:
         print_prior_blunders(out["prior_blunders"], sim.gsd)
+    if "gnss_strips" in out:
+        print_gnss_strips(out["gnss_strips"], sim.gsd)
     targets(out)
     path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -456,6 +471,68 @@ def prior_blunder_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, 
 
     return {"gnss_images": len(gnss), "imu_images": len(imu),
             "runs": _blunder_runs(bad, ties, xyz0, opt, rows, run_hat, "prior_tests", score)}
+
+
+def corner_control(block, keep: int = 4):
+    """A copy of ``block`` with only the control point nearest each corner of the control points' extent (``keep``
+    = 4; check points all stay), as a block flown with GNSS and few control points."""
+    out = copy.deepcopy(block)
+    ctrl = [g for g in out.ground_points.values() if g.kind == "control" and g.xyz is not None]
+    xy = np.array([g.xyz[:2] for g in ctrl])
+    centre = xy.mean(0)
+    corners = [(sx, sy) for sx in (-1, 1) for sy in (-1, 1)][:keep]
+    chosen = {ctrl[int(np.argmax((xy - centre) @ np.array(c, np.float64)))].name for c in corners}
+    for g in ctrl:
+        if g.name not in chosen:
+            del out.ground_points[g.name]
+    return out
+
+
+def gnss_strip_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, sigma: float, seed: int,
+                    run_hat: Callable[[object, BundleOptions], object]) -> dict:
+    """GNSS errors per strip (Table 11): in a copy of the block every strip's GNSS positions get an offset (normal,
+    ``sigma`` metres per axis) and a drift along the strip (``sigma`` metres per km) by the simulator's
+    :func:`plant_strip_errors`; IAT and HAT-CBA adjust it with the strip model off, ``shift`` and ``drift``, with all
+    control points and with the 4 at the corners. Returns per run the check point RMS, the RMS error of the image
+    centres and attitudes against the truth, and that of the estimated offsets (from their mean, which the datum
+    shift takes) and drifts against the planted ones (a straight-line fit per found strip)."""
+    bad = copy.deepcopy(block)
+    err = plant_strip_errors(bad, sigma, sigma, seed + 3)
+    strips = flight_strips(bad)
+    truth = np.zeros((len(strips.names), 6))
+    for st in range(len(strips.names)):
+        members = strips.members(st)
+        a = np.c_[np.ones(len(members)), [strips.image_along_km[i] for i in members]]
+        truth[st] = np.linalg.lstsq(a, np.array([err[i] for i in members]), rcond=None)[0].ravel()
+    blocks = {"all": bad, "4": corner_control(bad)}
+    out = {"sigma": sigma, "strips": len(strips.names), "runs": []}
+    for control, b in blocks.items():
+        for method in ("IAT", "HAT cba"):
+            for mode in GNSS_STRIP_MODES:
+                o = replace(opt, gnss_strips=mode)
+                t = time.perf_counter()
+                at = integrated(b, ties, o, xyz0=xyz0) if method == "IAT" else run_hat(b, o)
+                wall = time.perf_counter() - t
+                xy, z = rms_xy_z(check_point_errors(b, at.poses)[1])
+                ids = list(at.poses)
+                centre = float(np.sqrt(np.mean([np.sum((at.poses[i].C - true_poses[i].C) ** 2) for i in ids])))
+                angle = float(np.degrees(np.sqrt(np.mean([np.sum(matrix_to_rotvec(true_poses[i].R.T @ at.poses[i].R)
+                                                                 ** 2) for i in ids]))))
+                est = at.gnss_strips()
+                row = {"control": control, "method": method, "model": mode, "check_xy_m": xy, "check_z_m": z,
+                       "centre_rms_m": centre, "attitude_rms_deg": angle, "wall_s": wall, "strips_found": len(est),
+                       "offset_rms_m": None, "drift_rms_m_per_km": None}
+                if len(est) == len(strips.names):
+                    e = np.array([est[n]["offset_m"] for n in strips.names])
+                    d = (e - e.mean(0)) - (truth[:, :3] - truth[:, :3].mean(0))
+                    row["offset_rms_m"] = float(np.sqrt(np.mean(d**2)))
+                    if mode == "drift":
+                        dd = np.array([est[n]["drift_m_per_km"] for n in strips.names]) - truth[:, 3:]
+                        row["drift_rms_m_per_km"] = float(np.sqrt(np.mean(dd**2)))
+                print(f"GNSS strips: {control} control, {method}, {mode}: check XY {xy:.4f} Z {z:.4f} m, centres "
+                      f"{centre:.4f} m, {wall:.1f} s")
+                out["runs"].append(row)
+    return out
 
 
 def _blunder_runs(bad, ties, xyz0, opt: BundleOptions, rows: list[dict],
@@ -653,6 +730,19 @@ def print_prior_blunders(pb: dict, gsd: float) -> None:
               f"{_f(r['clean_check_xy_m'], 1 / gsd):>6s} {_f(r['check_z_m'], 1 / gsd):>6s} "
               f"{_f(r['clean_check_z_m'], 1 / gsd):>6s} {r['gnss_centre_rms_m']:>7.4f} {r['all_centre_rms_m']:>7.4f} "
               f"{r['imu_angle_rms_deg']:>8.4f} {r['all_angle_rms_deg']:>7.4f}")
+
+
+def print_gnss_strips(gs: dict, gsd: float) -> None:
+    print(f"\nTable 11. GNSS errors per strip: {gs['strips']} strips with an offset of {gs['sigma']:g} m and a drift "
+          f"of {gs['sigma']:g} m/km (1 sigma per axis); check point RMS [GSD]; RMS error against the truth of the "
+          "image centres [m] and attitudes [deg], of the estimated strip offsets [m] (from their mean) and drifts "
+          "[m/km]")
+    print(f"{'control':>7s} {'method':8s} {'model':6s} {'XY':>6s} {'Z':>6s} {'centres':>8s} {'attitude':>8s} "
+          f"{'offsets':>8s} {'drifts':>7s} {'wall [s]':>8s}")
+    for r in gs["runs"]:
+        print(f"{r['control']:>7s} {r['method']:8s} {r['model']:6s} {_f(r['check_xy_m'], 1 / gsd):>6s} "
+              f"{_f(r['check_z_m'], 1 / gsd):>6s} {r['centre_rms_m']:>8.4f} {r['attitude_rms_deg']:>8.4f} "
+              f"{_f(r['offset_rms_m'], 1, 4):>8s} {_f(r['drift_rms_m_per_km'], 1, 3):>7s} {r['wall_s']:>8.1f}")
 
 
 def _v(a, nd: int) -> str:

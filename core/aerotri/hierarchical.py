@@ -19,6 +19,8 @@
   (3) Combined statistics by error propagation: a point's information is the nadir information plus each
   oblique block's own contribution (its information minus the connection prior it received); the datum shift is
   refined from all control measurements (the nadir run saw only the nadir ones).
+  GNSS offsets per strip (``BundleOptions.gnss_strips``) are estimated in the nadir run, like the datum shift, and
+  held for the other heads of the same exposures (one antenna) in the oblique runs.
 * Baselines: direct georeferencing (the navigation orientations) and nadir-only AT whose per-exposure
   corrections are propagated to the oblique images of the same exposure.
 """

@@ -156,7 +156,7 @@ class SimulatedBlock:
     city : the city the block was flown over
     area : (4,) world bbox (xmin, ymin, xmax, ymax) given to the flight planner
     true_gnss_strip : image id -> (3,) the strip offset and drift in its GNSS centre (see
-        ``SimulationConfig.gnss_strip_sigma``; zeros without them)
+        ``SimulationConfig.gnss_strip_sigma`` and :func:`plant_strip_errors`; zeros without them)
     """
 
     block: ImageBlock
@@ -375,9 +375,9 @@ def simulate_block(cfg: SimulationConfig = SimulationConfig(), city: City | None
     truth = true_block(system, exposures, city.crs, rig=perturbed_rig(nominal, nav))
     block = approximate_block(truth, exposures, nominal, nav)
     bias = np.asarray(cfg.gnss_bias, np.float64)
-    strip_error = _strip_errors(exposures, cfg)
     for img in block.images.values():  # the datum offset of the GNSS frame, the same for every exposure
-        img.pose_approx = Pose(img.pose_approx.R, img.pose_approx.C + bias + strip_error[img.exposure])
+        img.pose_approx = Pose(img.pose_approx.R, img.pose_approx.C + bias)
+    strip_error = plant_strip_errors(block, cfg.gnss_strip_sigma, cfg.gnss_drift_sigma, cfg.seed)
     true_poses = {iid: img.pose_approx for iid, img in truth.images.items()}
     ids = list(truth.images)
 
@@ -418,24 +418,38 @@ def simulate_block(cfg: SimulationConfig = SimulationConfig(), city: City | None
             block.add_ground_point(gp)
     return SimulatedBlock(block=block, ties=ties, true_poses=true_poses, true_xyz=xyz[used], true_normal=normal[used],
                           true_semantic=city.semantic[tri[used]], gsd=cfg.gsd, city=city, area=area, config=cfg,
-                          true_gnss_strip={iid: strip_error[img.exposure] for iid, img in block.images.items()})
+                          true_gnss_strip=strip_error)
 
 
-def _strip_errors(exposures: list, cfg: SimulationConfig) -> dict[str, np.ndarray]:
-    """Per exposure name the GNSS error ``(3,)`` of its strip: the strip's offset plus its drift times the
-    exposure's along-track position (km, in the flight direction, from the strip's middle)."""
-    rng = np.random.default_rng([cfg.seed, 303])
-    out = {}
-    for s in sorted({ex.strip for ex in exposures}):
-        members = [ex for ex in exposures if ex.strip == s]  # in flight order
-        shift = rng.normal(0.0, cfg.gnss_strip_sigma, 3)
-        drift = rng.normal(0.0, cfg.gnss_drift_sigma, 3)
-        xy = np.array([ex.center[:2] for ex in members])
+def plant_strip_errors(block: ImageBlock, strip_sigma: float, drift_sigma: float, seed: int) -> dict[str, np.ndarray]:
+    """Add to the GNSS centres of a simulated block an error per flight strip: an offset (3-D, normal with
+    ``strip_sigma`` metres) plus a drift (normal with ``drift_sigma`` metres per km) times the exposure's along-track
+    position from the strip's middle (km, in the flight direction). Strips and their order are the flight plan's
+    (:func:`.flight.plan_flight` names the exposures ``S<strip>_E<number>``, numbered in flight order). Returns image
+    id -> its error ``(3,)`` (zeros for both sigmas 0, the block untouched)."""
+    rng = np.random.default_rng([seed, 303])
+    by_strip: dict[str, dict[str, list[str]]] = {}
+    for iid, img in block.images.items():
+        strip, _, number = (img.exposure or "").partition("_E")
+        if number and img.pose_approx is not None:
+            by_strip.setdefault(strip, {}).setdefault(img.exposure, []).append(iid)
+    out = {iid: np.zeros(3) for iid in block.images}
+    if strip_sigma <= 0 and drift_sigma <= 0:
+        return out
+    for strip in sorted(by_strip):
+        exposures = sorted(by_strip[strip], key=lambda e: int(e.partition("_E")[2]))  # in flight order
+        shift = rng.normal(0.0, strip_sigma, 3)
+        drift = rng.normal(0.0, drift_sigma, 3)
+        xy = np.array([np.mean([block.images[i].pose_approx.C[:2] for i in by_strip[strip][e]], axis=0)
+                       for e in exposures])
         direction = xy[-1] - xy[0]
-        u = xy @ (direction / max(np.linalg.norm(direction), 1e-9)) / 1000.0
+        u = xy @ (direction / max(float(np.linalg.norm(direction)), 1e-9)) / 1000.0
         u -= 0.5 * (u.min() + u.max())
-        for ex, uk in zip(members, u):
-            out[ex.name] = shift + uk * drift
+        for e, uk in zip(exposures, u):
+            for iid in by_strip[strip][e]:
+                out[iid] = shift + uk * drift
+                p = block.images[iid].pose_approx
+                block.images[iid].pose_approx = Pose(p.R, p.C + out[iid])
     return out
 
 

@@ -70,3 +70,34 @@ def test_a_line_flown_in_two_passes_and_a_cross_strip_are_strips_of_their_own(si
         u = strips.image_along_km[iid]
         assert np.allclose(off[iid], [0.1 + u, -0.2, 0.3 - 2 * u])
     assert all(np.allclose(off[i], 0.5) for i in strips.members(1))
+
+
+def test_planted_strip_errors_are_an_offset_and_a_drift_per_strip(sim):
+    """The simulator's strip errors (:func:`plant_strip_errors`) move each GNSS centre by the error it
+    returns; all heads of an exposure share it, and per strip it is an offset plus a drift times the along-track
+    position found by :func:`flight_strips`: a straight-line fit leaves less than 0.1 mm of errors up to 0.5 m (the
+    simulator takes the strip's axis from its first and last exposure, flight_strips from the headings, a few
+    milliradians apart: metres of jitter across track shift the positions along it by millimetres, 2 m/km of drift
+    turns them into hundredths of a millimetre), and the drift's sign follows the flight direction, which both take."""
+    from oblique_city.core.simulate.observations import plant_strip_errors
+
+    block = copy.deepcopy(sim.block)
+    err = plant_strip_errors(block, 0.3, 2.0, seed=5)
+    moved = {i: block.images[i].pose_approx.C - sim.block.images[i].pose_approx.C for i in block.images}
+    assert max(float(np.abs(moved[i] - err[i]).max()) for i in block.images) < 1e-8  # UTM rounding
+    strips = flight_strips(block)
+    offsets = []
+    for s in range(len(strips.names)):
+        members = strips.members(s)
+        u = np.array([strips.image_along_km[i] for i in members])
+        e = np.array([err[i] for i in members])
+        a = np.c_[np.ones(len(u)), u]
+        fit = np.linalg.lstsq(a, e, rcond=None)[0]
+        assert np.abs(a @ fit - e).max() < 1e-4
+        offsets.append(fit[0])
+        by_exposure = {}
+        for i in members:
+            by_exposure.setdefault(block.images[i].exposure, []).append(err[i])
+        assert all(np.ptp(np.array(v), axis=0).max() == 0 for v in by_exposure.values())
+    assert 0.05 < np.std(offsets) < 0.6
+    assert plant_strip_errors(copy.deepcopy(sim.block), 0.0, 0.0, seed=5)[members[0]].tolist() == [0.0, 0.0, 0.0]
