@@ -32,8 +32,11 @@ Observations and unknowns
   observation's Jacobian by automatic differentiation, 8 times slower than its plain reprojection cost.
 * Optional GNSS offsets per flight strip (``BundleOptions.gnss_strips``, strips from :mod:`.strips`): a GNSS position
   is the image's centre plus its strip's offset ``a`` (and drift ``b`` times its along-track position), both with
-  priors of zero; the priors of the images of a strip then go through the same Python cost as the mounting
-  calibration's. A trajectory that re-fixes its ambiguities after each turn carries such offsets; unmodelled they
+  priors of zero. The offset is the translation of a strip frame (a pose held at the identity rotation), so that
+  pycolmap's relative pose prior between an image and its strip's frame is the image's EO prior with the offset (in
+  C++); a drift, or a mounting calibration beside it, goes through the Python cost of the mounting calibration. A
+  cost of zero rows (``SchurAnchor`` in :func:`_cost_classes`) keeps the strips' blocks out of Ceres' Schur
+  elimination. A trajectory that re-fixes its ambiguities after each turn carries such offsets; unmodelled they
   bend the block against its control (on a 500-image block with 0.3 m per strip: check points 1.09 GSD in XY
   against 0.13 with them estimated).
 
@@ -473,15 +476,16 @@ def _write_jacobians(jacobians, w: np.ndarray, blocks: tuple) -> None:
 
 
 @cache
-def _cost_classes() -> tuple[type, type, type, type]:
+def _cost_classes() -> tuple[type, type, type, type, type]:
     """The Python cost functions of the mounting calibration and the GNSS strip offsets (classes made on first use:
     pyceres loads lazily)."""
     import pyceres
 
     class NavPrior(pyceres.CostFunction):
         """EO prior of an image: blocks ``cam_from_world`` (7: quaternion x y z w, translation); with ``mounted``
-        its camera's mounting correction, quaternion (4) and translation (3); with ``strip`` its strip's GNSS offset
-        (3) and, with ``along`` (the image's along-track position, km) not None, the strip's drift (3, per km).
+        its camera's mounting correction, quaternion (4) and translation (3); with ``strip`` its strip's GNSS frame
+        (7, a pose held at the identity rotation: its translation ``a`` is the strip's offset) and, with ``along``
+        (the image's along-track position, km) not None, the strip's drift (3, per km).
         6 residuals, the rotation error ``log(R_prior^T R_M^T R)`` (world axes) and the centre error
         ``-R^T (t - t_M) - (C_prior - a - along b)`` (the GNSS positions are the centres plus the
         strip's error), each divided by its prior standard deviation (world axes) over ``sigma_px``. The Jacobians
@@ -491,7 +495,7 @@ def _cost_classes() -> tuple[type, type, type, type]:
                      strip: bool = False, along: float | None = None) -> None:
             pyceres.CostFunction.__init__(self)
             self.set_num_residuals(6)
-            self.set_parameter_block_sizes([7] + [4, 3] * mounted + [3] * strip + [3] * (along is not None))
+            self.set_parameter_block_sizes([7] + [4, 3] * mounted + [7] * strip + [3] * (along is not None))
             self.r_prior, self.c_prior, self.w = r_prior, c_prior, w
             self.mounted, self.strip, self.along = mounted, strip, along
 
@@ -511,7 +515,7 @@ def _cost_classes() -> tuple[type, type, type, type]:
                 blocks += [(qm, -rt, np.zeros((3, 3)), None), (tm, None, None, rt)]
             if self.strip:
                 a = rest.pop(0)
-                c_prior = c_prior - a
+                c_prior = c_prior - a[4:]
                 blocks.append((a, None, None, np.eye(3)))
             if self.along is not None:
                 b = rest.pop(0)
@@ -524,19 +528,40 @@ def _cost_classes() -> tuple[type, type, type, type]:
             return True
 
     class OffsetPrior(pyceres.CostFunction):
-        """Prior of zero on a GNSS strip offset or drift (3): residuals the block divided by its standard deviation
-        over ``sigma_px``."""
+        """Prior of zero on a GNSS strip offset or drift: a block of ``size`` (7: a strip frame, its translation;
+        3: a drift); residuals its last 3 values divided by their standard deviation over ``sigma_px``."""
 
-        def __init__(self, w: float) -> None:
+        def __init__(self, w: float, size: int) -> None:
             pyceres.CostFunction.__init__(self)
             self.set_num_residuals(3)
-            self.set_parameter_block_sizes([3])
+            self.set_parameter_block_sizes([size])
             self.w = w
+            self.jac = np.zeros((3, size))
+            self.jac[:, size - 3:] = w * np.eye(3)
 
         def Evaluate(self, parameters, residuals, jacobians) -> bool:  # noqa: N802 - pyceres' name
-            residuals[:] = self.w * parameters[0]
+            residuals[:] = self.w * parameters[0][-3:]
             if jacobians is not None and jacobians[0] is not None:
-                jacobians[0][:] = (self.w * np.eye(3)).ravel()
+                jacobians[0][:] = self.jac.ravel()
+            return True
+
+    class SchurAnchor(pyceres.CostFunction):
+        """Two zero rows on a point and a strip's blocks (frame 7, drift 3): no information, only an edge in Ceres'
+        graph of the parameter blocks. Ceres eliminates (Schur) a maximal independent set of blocks, the points
+        first; a strip's blocks touch only images, so they would join the points, and the eliminator, sized for
+        2-row residuals on 3-vector points, falls back to dynamic sizes for the whole problem (a 400-image block's
+        linear solves took twice as long). Bound to a point, they stay with the images."""
+
+        def __init__(self, sizes: list[int]) -> None:
+            pyceres.CostFunction.__init__(self)
+            self.set_num_residuals(2)
+            self.set_parameter_block_sizes([3, *sizes])
+
+        def Evaluate(self, parameters, residuals, jacobians) -> bool:  # noqa: N802 - pyceres' name
+            residuals[:] = 0.0
+            for jac in jacobians or []:
+                if jac is not None:
+                    jac[:] = 0.0
             return True
 
     class MountingPrior(pyceres.CostFunction):
@@ -589,7 +614,7 @@ def _cost_classes() -> tuple[type, type, type, type]:
                     (tj, None, None, rmi_t @ g)))
             return True
 
-    return NavPrior, MountingPrior, MountedRelativePrior, OffsetPrior
+    return NavPrior, MountingPrior, MountedRelativePrior, OffsetPrior, SchurAnchor
 
 
 def _prior_rows(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -757,9 +782,11 @@ class _Model:
         self.mount = ({ci: (np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3)) for ci in range(len(prob.cameras))}
                       if mounting else {})
         self.mount_used: set[int] = set()
-        # per strip its GNSS offset and drift (None for offsets alone), kept across the rounds
+        # per strip its GNSS frame (a pose of identity rotation whose translation is the offset) and drift (None for
+        # offsets alone), kept across the rounds
         strips = np.unique(prob.prior_strip[prob.prior_strip >= 0]) if gnss_strips != "off" else []
-        self.strip_blocks = {int(st): (np.zeros(3), np.zeros(3) if gnss_strips == "drift" else None) for st in strips}
+        self.strip_blocks = {int(st): (np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]),
+                                       np.zeros(3) if gnss_strips == "drift" else None) for st in strips}
         self.strip_used: set[int] = set()
 
     def keep_only(self, active: np.ndarray) -> None:
@@ -798,17 +825,17 @@ class _Model:
         prob = self.prob
         out = np.zeros((prob.n_images, 3))
         for st in self.strip_used:
-            shift, drift = self.strip_blocks[st]
+            frame, drift = self.strip_blocks[st]
             sel = prob.prior_strip == st
-            out[sel] = shift + (0.0 if drift is None else prob.prior_along[sel, None] * drift)
+            out[sel] = frame[4:] + (0.0 if drift is None else prob.prior_along[sel, None] * drift)
         return out
 
     def strips(self) -> np.ndarray:
         """The GNSS strip offsets and drifts ``(s, 6)`` of the last round as in :class:`BundleResult`."""
         out = np.full((len(self.prob.strip_names), 6), np.nan)
         for st in self.strip_used:
-            shift, drift = self.strip_blocks[st]
-            out[st, :3] = shift
+            frame, drift = self.strip_blocks[st]
+            out[st, :3] = frame[4:]
             if drift is not None:
                 out[st, 3:] = drift
         return out
@@ -877,8 +904,12 @@ class _Round:
                     problem.set_manifold(p, pyceres.SubsetManifold(12, const))
         # 6-DoF EO priors, through the cameras' mounting corrections when they are estimated
         self.costs = []  # the Python cost functions Ceres calls (kept alive with the problem)
-        classes = _cost_classes() if model.mount or model.strip_blocks else (None, None, None, None)
-        nav_prior, self._mounting_prior, mounted_relative, self._offset_prior = classes
+        classes = _cost_classes() if model.mount or model.strip_blocks else (None,) * 5
+        nav_prior, self._mounting_prior, mounted_relative, self._offset_prior, self._anchor = classes
+        # the point that keeps the strips' blocks out of Ceres' elimination (see SchurAnchor): one of fewest rays
+        in_rec = np.flatnonzero(model.point_ids >= 0)
+        self._anchor_point = (model.xyz_views[int(in_rec[np.argmin(model.track_len[in_rec])])]
+                              if model.strip_blocks and len(in_rec) else None)
         model.mount_used = set()
         model.strip_used = set()
         # a part (attitude, position) a prior test rejected (prior_off) adds no information: the mounted cost gets
@@ -890,14 +921,24 @@ class _Round:
                 continue
             rp = prob.prior_r[k]
             st = int(prob.prior_strip[k]) if model.strip_blocks and not prior_off[k, 1] else -1
+            if st >= 0 and not model.mount and opt.gnss_strips == "shift":
+                # the GNSS position is the centre in the strip's frame (pycolmap's relative pose prior, in C++)
+                frame, _ = self._strip_blocks(problem, model, st, opt)
+                cov = np.zeros((6, 6))
+                cov[:3, :3] = rp @ np.diag(s_att**2) @ rp.T if not prior_off[k, 0] else np.eye(3) * UNBOUNDED_VARIANCE
+                cov[3:, 3:] = rp @ np.diag(s_pos**2) @ rp.T
+                problem.add_residual_block(cf.RelativePosePriorCost(cov / sp**2, _rigid(rp, prob.prior_c[k] - ref)),
+                                           None, [fp, frame])
+                self.padded_rows += 3 * int(prior_off[k, 0])
+                continue
             if model.mount or st >= 0:
                 blocks = [fp]
                 if model.mount:
                     blocks += self._mount_blocks(problem, model, int(prob.image_camera[k]), opt)
                 along = None
                 if st >= 0:
-                    shift, drift = self._strip_blocks(problem, model, st, opt)
-                    blocks.append(shift)
+                    frame, drift = self._strip_blocks(problem, model, st, opt)
+                    blocks.append(frame)
                     if drift is not None:
                         blocks.append(drift)
                         along = float(prob.prior_along[k])
@@ -1006,17 +1047,26 @@ class _Round:
 
     def _strip_blocks(self, problem, model: _Model, st: int, opt: BundleOptions
                       ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Strip ``st``'s GNSS offset and drift (None for offsets alone) as parameter blocks of the problem, added
-        with their priors of zero on first use."""
-        shift, drift = model.strip_blocks[st]
+        """Strip ``st``'s GNSS frame and drift (None for offsets alone) as parameter blocks of the problem, added
+        with their priors of zero and their :class:`SchurAnchor` on first use."""
+        import pyceres
+
+        frame, drift = model.strip_blocks[st]
         if st not in model.strip_used:
             model.strip_used.add(st)
-            for x, sigma in ((shift, opt.gnss_shift_sigma), (drift, opt.gnss_drift_sigma)):
-                if x is not None:
+            problem.add_parameter_block(frame, 7)
+            problem.set_manifold(frame, pyceres.SubsetManifold(7, [0, 1, 2, 3]))  # the rotation held at identity
+            blocks = [frame] if drift is None else [frame, drift]
+            for x, sigma in zip(blocks, (opt.gnss_shift_sigma, opt.gnss_drift_sigma)):
+                if len(x) == 3:
                     problem.add_parameter_block(x, 3)
-                    self.costs.append(self._offset_prior(opt.sigma_px / sigma))
-                    problem.add_residual_block(self.costs[-1], None, [x])
-        return shift, drift
+                self.costs.append(self._offset_prior(opt.sigma_px / sigma, len(x)))
+                problem.add_residual_block(self.costs[-1], None, [x])
+            if self._anchor_point is not None:
+                self.costs.append(self._anchor([len(x) for x in blocks]))
+                problem.add_residual_block(self.costs[-1], None, [self._anchor_point, *blocks])
+                self.padded_rows += 2
+        return frame, drift
 
     def solve(self, opt: BundleOptions, kind: str, robust: bool):
         import pyceres

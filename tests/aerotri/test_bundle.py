@@ -517,7 +517,7 @@ def test_mounting_and_strip_costs_jacobians_match_finite_differences():
     from oblique_city.core.geometry.rotations import rotvec_to_matrix
 
     rng = np.random.default_rng(4)
-    nav_prior, mounting_prior, mounted_relative, offset_prior = _cost_classes()
+    nav_prior, mounting_prior, mounted_relative, offset_prior, anchor = _cost_classes()
 
     def rot(scale):
         return rotvec_to_matrix(rng.normal(0, scale, 3))
@@ -564,10 +564,12 @@ def test_mounting_and_strip_costs_jacobians_match_finite_differences():
     cam = pose(r_cam, -r_cam @ c)
     check(nav_prior(rot(1e-4) @ r_cam, c + rng.normal(0, 0.05, 3), w), [cam, qm, tm])
     check(mounting_prior(w), [qm, tm])
-    shift, drift = rng.normal(0, 0.3, 3), rng.normal(0, 0.5, 3)
-    check(nav_prior(rot(1e-4) @ r_cam, c + rng.normal(0, 0.05, 3), w, False, True, 0.37), [cam, shift, drift])
-    check(nav_prior(rot(1e-4) @ r_cam, c + rng.normal(0, 0.05, 3), w, True, True, None), [cam, qm, tm, shift])
-    check(offset_prior(0.3), [shift], n_res=3)
+    frame, drift = np.r_[0.0, 0.0, 0.0, 1.0, rng.normal(0, 0.3, 3)], rng.normal(0, 0.5, 3)
+    check(nav_prior(rot(1e-4) @ r_cam, c + rng.normal(0, 0.05, 3), w, False, True, 0.37), [cam, frame, drift])
+    check(nav_prior(rot(1e-4) @ r_cam, c + rng.normal(0, 0.05, 3), w, True, True, None), [cam, qm, tm, frame])
+    check(offset_prior(0.3, 7), [frame], n_res=3)
+    check(offset_prior(0.3, 3), [drift], n_res=3)
+    check(anchor([7, 3]), [c, frame, drift], n_res=2)
     r_j = rot(1.0)
     cam_j = pose(r_j, -r_j @ (c + rng.normal(0, 0.3, 3)))
     n_r = r_cam @ r_j.T @ rot(2e-4)
