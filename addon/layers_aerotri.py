@@ -160,8 +160,9 @@ def report_summary(path: Path) -> dict:
     number of control measurements it rejected (``control_rejected``: ``(names, measurements)``), and the GNSS
     positions and IMU attitudes it rejected (``priors_rejected``: ``(positions, attitudes, images)``, two counts and
     the images concerned in order, None when none), and the GNSS offsets per strip (``gnss_strips``: ``(strips,
-    strip, metres)``, their number and the strip with the largest offset, None when none were estimated). Raises
-    :class:`InputError` naming the file."""
+    strip, metres)``, their number and the strip with the largest offset, None when none were estimated), and without
+    them the strips whose GNSS positions share an offset (``strips_suspected``: the same triple, the strip with the
+    largest normalised offset, None when none). Raises :class:`InputError` naming the file."""
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError:
@@ -181,11 +182,16 @@ def report_summary(path: Path) -> dict:
         offsets = {n: float(math.sqrt(sum(float(a) ** 2 for a in d["offset_m"])))
                    for n, d in (doc.get("gnss_strips") or {}).items()}
         strip = max(offsets, key=offsets.get) if offsets else None
+        suspect = {n: d for n, d in (doc.get("gnss_strip_check") or {}).items() if d.get("flagged")}
+        worst = max(suspect, key=lambda n: max(float(w) for w in suspect[n]["w"])) if suspect else None
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
                 "priors_rejected": (parts.count("position"), parts.count("attitude"),
                                     sorted({i for i, _ in priors})) if priors else None,
                 "systematic": largest_systematic(doc.get("image_residual_fields") or {}),
                 "gnss_strips": (len(offsets), strip, offsets[strip]) if strip else None,
+                "strips_suspected": (len(suspect), worst, float(math.sqrt(sum(float(a) ** 2
+                                                                              for a in suspect[worst]["mean_m"]))))
+                if worst else None,
                 "control_rejected": rejected if rejected[0] or rejected[1] else None,
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),

@@ -220,7 +220,7 @@ def _metres(v) -> str:
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders, the mounting
     calibration, the camera with the largest systematic image residual, rejected control data and EO priors, the
-    GNSS strip offsets) and Open Report."""
+    GNSS strip offsets, estimated or suspected) and Open Report."""
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return
@@ -248,6 +248,10 @@ def draw_triangulation(layout, context) -> None:
     if s["gnss_strips"]:
         n, strip, metres = s["gnss_strips"]
         col.label(text=f"GNSS offsets of {n} strips, largest {_metres(metres)} ({strip})")
+    if s["strips_suspected"]:
+        n, strip, metres = s["strips_suspected"]
+        col.label(text=f"GNSS positions of {n} strips share an offset ({strip}: {_metres(metres)}): "
+                       "try Shift per strip")
     layout.operator("city.open_report", icon="URL")
 
 

@@ -44,6 +44,7 @@ from ..model import CameraModel, ImageBlock, Raster, TiePoints
 from .bundle import PRIOR_PART_LABELS, PRIOR_PARTS
 from .hierarchical import ATResult, Run
 from .problem import intersect_ties
+from .strips import flight_strips, strip_check
 
 FIELD_CELLS = 8
 """Cells of the image residual field along the frame's longer side (:func:`residual_field`)."""
@@ -339,6 +340,24 @@ def image_statistics(block: ImageBlock, ties: TiePoints, at: ATResult, obs: np.n
     return rows
 
 
+def gnss_strip_check(block: ImageBlock, at: ATResult) -> dict[str, dict]:
+    """For an adjustment without GNSS offsets per strip: whether its GNSS errors (navigation minus adjusted frame
+    centre, the positions a test rejected left out) share an offset per flight strip (:func:`.strips.strip_check`);
+    empty when it estimated the offsets."""
+    if at.gnss_strips():
+        return {}
+    rejected = {iid for iid, part in at.prior_rejections() if part == "position"}
+    err, sigma, exposure = {}, {}, {}
+    for run in at.runs:
+        for iid, frame in run.frames.items():
+            img = block.images[iid]
+            if img.pose_approx is not None and img.sigma_position is not None and iid not in rejected:
+                err[iid] = img.pose_approx.C - frame.C
+                sigma[iid] = img.sigma_position
+                exposure[iid] = img.exposure or iid
+    return strip_check(flight_strips(block), err, sigma, exposure) if err else {}
+
+
 def ray_counts(ties: TiePoints, at: ATResult, top: int = RAYS_TOP) -> dict:
     """How many rays the adjusted tie points kept: ``points[i]`` tie points with ``rays[i]`` observations not
     rejected (2 .. ``top - 1``, and in the last bin ``top`` or more), their mean, and the share of two-ray points
@@ -373,7 +392,7 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
             "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
             "ground_points": ground_point_residuals(block, at.poses, *at.control_rejections()),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at), "wall_s": at.wall_s,
-            "gnss_strips": at.gnss_strips(),
+            "gnss_strips": at.gnss_strips(), "gnss_strip_check": gnss_strip_check(block, at),
             "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0,
             "tie_point_rays": ray_counts(ties, at), "image_residual_fields": camera_residual_fields(
                 block, ties, obs, v), "images_table": image_statistics(block, ties, at, obs, v)}
@@ -578,6 +597,16 @@ def _report_extras(report: dict) -> list[str]:
                      "<th>strip</th><th>images</th><th>offset X [m]</th><th>offset Y [m]</th><th>offset Z [m]</th>"
                      + ("<th>drift X [m/km]</th><th>drift Y [m/km]</th><th>drift Z [m/km]</th>" if drift else "")
                      + f"</tr>{rows}</table>")
+    check = {n: d for n, d in (report.get("gnss_strip_check") or {}).items() if d["flagged"]}
+    if check:
+        rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{d['images']}</td>"
+                       + "".join(f"<td>{format_value(m)} ({format_value(w)})</td>" for m, w in zip(d["mean_m"], d["w"]))
+                       + "</tr>" for n, d in check.items())
+        parts.append("<h2>GNSS offsets per strip suspected</h2><p>The GNSS errors (navigation minus adjusted centre) "
+                     "of these strips share an offset from the block's mean, in brackets in standard deviations of a "
+                     "strip's mean: the trajectory was probably not processed as one piece. Estimate an offset per "
+                     "strip (aerotri.gnss_strips = shift, or drift).</p><table><tr><th>strip</th><th>images</th>"
+                     f"<th>X [m]</th><th>Y [m]</th><th>Z [m]</th></tr>{rows}</table>")
     rays = report.get("tie_point_rays")
     if rays and rays["mean_rays"] is not None:
         parts.append(f"<h2>Tie point rays</h2><p>Mean {rays['mean_rays']:.2f} rays per adjusted tie point; "

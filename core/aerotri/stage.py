@@ -207,6 +207,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     priors_off = sum(len(r["priors_rejected"]) for r in report["runs"])
     strips = report["gnss_strips"]
     largest = max((float(np.linalg.norm(d["offset_m"])) for d in strips.values()), default=None)
+    suspect = {n: d for n, d in report["gnss_strip_check"].items() if d["flagged"]}
+    strip = max(suspect, key=lambda n: max(suspect[n]["w"]), default=None)
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
@@ -215,12 +217,16 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "blunder_percent": report["blunder_percent"], "wall_s": report["wall_s"],
                  "thinned_observations": report["thinned_observations"],
                  "systematic_residual_px": worst[1] if worst else None, "priors_rejected": priors_off,
-                 "gnss_strips": len(strips), "gnss_strip_offset_max_m": largest},
+                 "gnss_strips": len(strips), "gnss_strip_offset_max_m": largest,
+                 "gnss_strips_suspected": len(suspect)},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
                 + (f", largest systematic image residual {worst[1]:.3f} px ({worst[0]})" if worst else "")
                 + (f", {priors_off} GNSS/IMU priors rejected (see report.html)" if priors_off else "")
-                + (f", GNSS offsets of {len(strips)} strips estimated (largest {largest:.3f} m)" if strips else ""))
+                + (f", GNSS offsets of {len(strips)} strips estimated (largest {largest:.3f} m)" if strips else "")
+                + (f", the GNSS positions of {len(suspect)} strips share an offset (largest in {strip}: "
+                   f"{float(np.linalg.norm(suspect[strip]['mean_m'])):.3f} m, {max(suspect[strip]['w']):.1f} sigma): "
+                   "estimate it with aerotri.gnss_strips = shift" if suspect else ""))
 
 
 def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:

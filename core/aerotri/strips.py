@@ -157,3 +157,33 @@ def strip_table(names: list[str], prior_strip: np.ndarray, values: np.ndarray, s
                           "drift_m_per_km": values[st, 3:].tolist() if drift else None,
                           "drift_std_m_per_km": std[st, 3:].tolist() if drift else None}
     return out
+
+
+STRIP_TEST_THRESHOLD = 4.3
+"""A strip whose mean GNSS residual differs from the block's by more than this many of its standard deviations
+(per axis) is flagged by :func:`strip_check` (the blunder tests' threshold)."""
+
+
+def strip_check(strips: Strips, gnss_error: dict[str, np.ndarray], sigma: dict[str, np.ndarray],
+                exposure: dict[str, str]) -> dict[str, dict]:
+    """Whether the GNSS errors of an adjustment without the strip model share an offset per strip: per strip the mean
+    ``(3,)`` of its images' ``gnss_error`` (GNSS minus adjusted centre, metres) from the mean of all strips' images
+    (a common part is the datum shift's), and that difference over its standard deviation, ``sigma (3,)`` of an
+    image's GNSS position over the square root of the strip's exposures (``exposure``: image id -> exposure; the heads
+    of an exposure share one antenna). Returns strip name -> ``images``, ``mean_m``, ``w`` (3 each) and ``flagged``
+    (any ``w`` above :data:`STRIP_TEST_THRESHOLD`), for the strips with errors."""
+    ids = [i for i in gnss_error if i in strips.image_strip and i in sigma]
+    if not ids:
+        return {}
+    block_mean = np.mean([gnss_error[i] for i in ids], axis=0)
+    out = {}
+    for st, name in enumerate(strips.names):
+        members = [i for i in ids if strips.image_strip[i] == st]
+        if not members:
+            continue
+        mean = np.mean([gnss_error[i] for i in members], axis=0) - block_mean
+        std = np.mean([sigma[i] for i in members], axis=0) / np.sqrt(len({exposure.get(i, i) for i in members}))
+        w = np.abs(mean) / std
+        out[name] = {"images": len(members), "mean_m": mean.tolist(), "w": w.tolist(),
+                     "flagged": bool(np.any(w > STRIP_TEST_THRESHOLD))}
+    return out

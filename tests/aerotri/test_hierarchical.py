@@ -301,14 +301,16 @@ STRIP_OFFSETS = {"S01": (0.25, -0.15, 0.30), "S02": (-0.20, 0.25, -0.10), "S03":
 """GNSS offsets (m) planted per strip of the test block: 3.75-6 times the GNSS sigmas (0.05, 0.05, 0.08 m)."""
 
 
-def test_gnss_strip_offsets_are_estimated_and_correct_the_orientations(sim, xyz0, options):
+def test_gnss_strip_offsets_are_estimated_and_correct_the_orientations(sim, xyz0, options, iat):
     """Each strip's GNSS positions get an offset of 0.1-0.3 m per axis (:data:`STRIP_OFFSETS`). IAT and HAT with
     ``gnss_strips="shift"`` find the 5 strips and estimate the offsets, taken from their mean (which the datum shift
     takes), to within 0.05 m: 2.5 times the standard deviation of a strip's mean GNSS error in Z (0.08 m over its 16
     exposures; measured 0.031 m IAT, 0.030 m HAT). The image centres (RMS against the truth) come out at 0.42 (IAT)
     and 0.62 (HAT) of their error with the offsets unmodelled, HAT's within 1.1 times IAT's, and the check points
     better in XY (0.012 m against 0.024 m IAT, 0.016 m HAT). ``drift`` adds a drift per strip and keeps the offsets
-    as well."""
+    as well. Without the model the report's check (:func:`gnss_strip_check`) flags all 5 strips, and none on the
+    clean block."""
+    from oblique_city.core.aerotri.report import gnss_strip_check
     from oblique_city.core.model import Pose
 
     block = copy.deepcopy(sim.block)
@@ -331,10 +333,12 @@ def test_gnss_strip_offsets_are_estimated_and_correct_the_orientations(sim, xyz0
         return np.abs((e - e.mean(0)) - (planted - planted.mean(0))).max()
 
     off = integrated(block, sim.ties, options, xyz0=xyz0)
+    assert sum(d["flagged"] for d in gnss_strip_check(block, off).values()) == 5
+    assert not any(d["flagged"] for d in gnss_strip_check(sim.block, iat).values())
     shift = integrated(block, sim.ties, replace(options, gnss_strips="shift"), xyz0=xyz0)
     # the strips' blocks stay out of Ceres' elimination: the eliminator keeps its fixed sizes (see SchurAnchor)
     assert all("Schur structure 2,3,d" in line for line in shift.runs[0].result.log if "Schur structure" in line)
-    assert offset_error(shift) < 0.05
+    assert offset_error(shift) < 0.05 and gnss_strip_check(block, shift) == {}
     assert centre_rms(shift) < 0.5 * centre_rms(off)
     assert check_xy(shift) < check_xy(off)
     hat_off = hierarchical(block, sim.ties, options, connection="cba", cell=50.0, xyz0=xyz0)

@@ -294,7 +294,8 @@ def test_gnss_strip_offsets_from_the_cli_are_estimated_and_reported(tmp_path):
     shift`` stores the model in the project, finds the simulated strips and estimates their offsets: their difference
     within 0.12 m of the planted 0.4 m (measured 0.067 m; 2.5 times the 0.046 m standard deviation of the difference
     of two strips' mean GNSS errors in Z, 0.08 m over 6 exposures each). They are in report.json, report.html, the
-    message and the metrics, and the image centres come out closer to the truth than without the offsets (RMS 0.021
+    message and the metrics (without the model: the offsets are suspected, and the message says how to estimate
+    them), and the image centres come out closer to the truth than without the offsets (RMS 0.021
     against 0.023 m: the block's 25 control points hold it already)."""
     s, ws = _simulated_workspace(tmp_path)
     block = ws.load_block()
@@ -311,6 +312,10 @@ def test_gnss_strip_offsets_from_the_cli_are_estimated_and_reported(tmp_path):
 
     assert main(["aerotri", str(ws.root)]) == 0
     plain = centre_rms()
+    # without the model the report flags the offsets and the message points to it
+    state = json.loads(ws.path("state.json").read_text())["aerotri"]
+    assert state["metrics"]["gnss_strips_suspected"] >= 1 and "aerotri.gnss_strips = shift" in state["message"]
+    assert "GNSS offsets per strip suspected" in ws.path("aerotri/report.html").read_text()
     assert main(["aerotri", str(ws.root), "--gnss-strips", "shift"]) == 0
     assert Workspace.open(ws.root).stage_options("aerotri")["gnss_strips"] == "shift"
     report = json.loads(ws.path("aerotri/report.json").read_text())
