@@ -1739,7 +1739,10 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
                 s_i = s_cov @ (rhs_all - weight[i] @ diff[i])
             else:
                 s_cov, s_i = np.zeros((3, 3)), shift
-            w_pt[i] = float(np.max(np.abs(diff[i] - s_i) / np.sqrt(np.diagonal(total[i] + s_cov))))
+            var = np.diagonal(total[i] + s_cov)
+            if np.any(var <= 0):
+                continue  # numerically undetermined (an ill-conditioned point or shift): untested
+            w_pt[i] = float(np.max(np.abs(diff[i] - s_i) / np.sqrt(var)))
         worst = int(np.argmax(np.where(np.isfinite(w_pt), w_pt, -1.0)))
         if not (np.isfinite(w_pt[worst]) and w_pt[worst] > threshold):
             return bad_obs, bad_pt, np.where(bad_pt, w_bad, w_pt)
