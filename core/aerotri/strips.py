@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..geometry.views import cardinal_view
 from ..model import ImageBlock
@@ -98,19 +99,16 @@ def flight_strips(block: ImageBlock) -> Strips:
         down = [p for p in poses if cardinal_view(p.R) == "nadir"] or [min(poses, key=lambda p: p.R[2, 2])]
         up = -down[0].R[1]
         heading[e] = np.arctan2(up[1], up[0])
-    lines = []  # (heading group, across-track position, exposures)
+    lines = []  # (heading group, across-track position, first along-track position, exposures, their positions)
     for g in np.unique(h_group := _circular_groups(heading, np.radians(HEADING_GAP_DEG))):
         members = np.flatnonzero(h_group == g)
         mean = np.arctan2(np.sin(heading[members]).mean(), np.cos(heading[members]).mean())
         along_dir = np.array([np.cos(mean), np.sin(mean)])
         across = centre[members, :2] @ np.array([-along_dir[1], along_dir[0]])
         along = centre[members, :2] @ along_dir
-        if len(members) > 1:
-            dist = np.linalg.norm(centre[members, None, :2] - centre[None, members, :2], axis=2)
-            np.fill_diagonal(dist, np.inf)
-            base = float(np.median(dist.min(1)))
-        else:
-            base = 1.0
+        # the base: the median distance of an exposure to its nearest one of the group
+        base = float(np.median(cKDTree(centre[members, :2]).query(centre[members, :2], k=2)[0][:, 1])) \
+            if len(members) > 1 else 1.0
         a_lab = _split_sorted(across, ACROSS_GAP * base)
         for a in np.unique(a_lab):
             line = np.flatnonzero(a_lab == a)
