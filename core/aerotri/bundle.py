@@ -75,6 +75,7 @@ from ..errors import ComputationError
 from ..geometry.rotations import matrix_to_rotvec, rotvec_to_matrix, skew
 from ..model import CameraModel
 from . import precision
+from .strips import offsets_at
 
 CALIBRATION_GROUPS = {"focal": (0, 1), "principal_point": (2, 3), "radial": (4, 5, 8), "tangential": (6, 7)}
 """Self-calibration groups -> indices in COLMAP's FULL_OPENCV parameter vector."""
@@ -823,12 +824,9 @@ class _Model:
         """The GNSS strip offsets ``(n, 3)`` of the last round at each image (offset plus drift times its
         along-track position: the error of its GNSS position; zero for images without one)."""
         prob = self.prob
-        out = np.zeros((prob.n_images, 3))
-        for st in self.strip_used:
-            frame, drift = self.strip_blocks[st]
-            sel = prob.prior_strip == st
-            out[sel] = frame[4:] + (0.0 if drift is None else prob.prior_along[sel, None] * drift)
-        return out
+        if not len(prob.prior_strip):  # a problem without strips
+            return np.zeros((prob.n_images, 3))
+        return offsets_at(self.strips(), prob.prior_strip, prob.prior_along)
 
     def strips(self) -> np.ndarray:
         """The GNSS strip offsets and drifts ``(s, 6)`` of the last round as in :class:`BundleResult`."""
@@ -907,9 +905,10 @@ class _Round:
         classes = _cost_classes() if model.mount or model.strip_blocks else (None,) * 5
         nav_prior, self._mounting_prior, mounted_relative, self._offset_prior, self._anchor = classes
         # the point that keeps the strips' blocks out of Ceres' elimination (see SchurAnchor): one of fewest rays
-        in_rec = np.flatnonzero(model.point_ids >= 0)
-        self._anchor_point = (model.xyz_views[int(in_rec[np.argmin(model.track_len[in_rec])])]
-                              if model.strip_blocks and len(in_rec) else None)
+        self._anchor_point = None
+        if model.strip_blocks and model.xyz_views:
+            in_rec = np.flatnonzero(model.point_ids >= 0)
+            self._anchor_point = model.xyz_views[int(in_rec[np.argmin(model.track_len[in_rec])])]
         model.mount_used = set()
         model.strip_used = set()
         # a part (attitude, position) a prior test rejected (prior_off) adds no information: the mounted cost gets
@@ -921,17 +920,7 @@ class _Round:
                 continue
             rp = prob.prior_r[k]
             st = int(prob.prior_strip[k]) if model.strip_blocks and not prior_off[k, 1] else -1
-            if st >= 0 and not model.mount and opt.gnss_strips == "shift":
-                # the GNSS position is the centre in the strip's frame (pycolmap's relative pose prior, in C++)
-                frame, _ = self._strip_blocks(problem, model, st, opt)
-                cov = np.zeros((6, 6))
-                cov[:3, :3] = rp @ np.diag(s_att**2) @ rp.T if not prior_off[k, 0] else np.eye(3) * UNBOUNDED_VARIANCE
-                cov[3:, 3:] = rp @ np.diag(s_pos**2) @ rp.T
-                problem.add_residual_block(cf.RelativePosePriorCost(cov / sp**2, _rigid(rp, prob.prior_c[k] - ref)),
-                                           None, [fp, frame])
-                self.padded_rows += 3 * int(prior_off[k, 0])
-                continue
-            if model.mount or st >= 0:
+            if model.mount or (st >= 0 and opt.gnss_strips == "drift"):
                 blocks = [fp]
                 if model.mount:
                     blocks += self._mount_blocks(problem, model, int(prob.image_camera[k]), opt)
@@ -947,16 +936,22 @@ class _Round:
                 problem.add_residual_block(self.costs[-1], None, blocks)
                 self.padded_rows += 3 * int(prior_off[k].sum())
                 continue
-            if prior_off[k, 0]:  # the position alone (world frame)
+            if prior_off[k, 0] and st < 0:  # the position alone (world frame)
                 cost = cf.AbsolutePosePositionPriorCost(np.diag(s_pos**2) / sp**2, prob.prior_c[k] - ref)
                 problem.add_residual_block(cost, None, [fp])
                 continue
+            # pycolmap's pose priors (C++): the absolute one, or with a strip offset the relative one to the strip's
+            # frame (the GNSS position is the centre in that frame); a rejected part gets an unbounded variance
             cov = np.zeros((6, 6))
-            cov[:3, :3] = rp @ np.diag(s_att**2) @ rp.T
+            cov[:3, :3] = rp @ np.diag(s_att**2) @ rp.T if not prior_off[k, 0] else np.eye(3) * UNBOUNDED_VARIANCE
             cov[3:, 3:] = rp @ np.diag(s_pos**2) @ rp.T if not prior_off[k, 1] else np.eye(3) * UNBOUNDED_VARIANCE
-            cost = cf.AbsolutePosePriorCost(cov / sp**2, _rigid(rp, prob.prior_c[k] - ref))
-            problem.add_residual_block(cost, None, [fp])
-            self.padded_rows += 3 * int(prior_off[k, 1])
+            prior = _rigid(rp, prob.prior_c[k] - ref)
+            if st >= 0:
+                frame, _ = self._strip_blocks(problem, model, st, opt)
+                problem.add_residual_block(cf.RelativePosePriorCost(cov / sp**2, prior), None, [fp, frame])
+            else:
+                problem.add_residual_block(cf.AbsolutePosePriorCost(cov / sp**2, prior), None, [fp])
+            self.padded_rows += 3 * int(prior_off[k].sum())
         # rig constraints: relative pose priors between the heads of one exposure
         if opt.rig and len(prob.rig_pairs):
             cov = np.diag([np.radians(opt.rig_sigma_deg) ** 2] * 3 + [opt.rig_sigma_m**2] * 3) / sp**2

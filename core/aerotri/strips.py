@@ -129,18 +129,26 @@ def flight_strips(block: ImageBlock) -> Strips:
     return Strips(tuple(f"L{s + 1:02d}" for s in range(len(lines))), image_strip, image_along)
 
 
-def strip_offsets(strips: Strips, values: np.ndarray, image_ids: list[str]) -> dict[str, np.ndarray]:
-    """Per image of ``image_ids`` in a strip with estimates its GNSS offset ``(3,)``: the strip's offset plus its
-    drift times the image's along-track position, from ``values (s, 6)`` (offset, drift per km; NaN: none; as
-    :attr:`.bundle.BundleResult.gnss_strip`)."""
-    out = {}
-    for iid in image_ids:
-        st = strips.image_strip.get(iid, -1)
-        if st < 0 or st >= len(values) or not np.isfinite(values[st, 0]):
-            continue
-        drift = np.nan_to_num(values[st, 3:])
-        out[iid] = values[st, :3] + strips.image_along_km[iid] * drift
+def offsets_at(values: np.ndarray, strip: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """The GNSS offsets ``(n, 3)`` at images of strips ``strip (n,)`` (-1: none) and along-track positions ``along
+    (n,)`` (km): the strip's offset plus its drift times the position, from ``values (s, 6)`` (offset, drift per km;
+    NaN rows: not estimated, NaN drifts: offsets alone; as :attr:`.bundle.BundleResult.gnss_strip`); zero where the
+    strip has none."""
+    out = np.zeros((len(strip), 3))
+    ok = (strip >= 0) & (strip < len(values))
+    ok[ok] = np.isfinite(values[strip[ok], 0])
+    v = values[strip[ok]]
+    out[ok] = v[:, :3] + along[ok, None] * np.nan_to_num(v[:, 3:])
     return out
+
+
+def strip_offsets(strips: Strips, values: np.ndarray, image_ids: list[str]) -> dict[str, np.ndarray]:
+    """Per image of ``image_ids`` in a strip with estimates its GNSS offset ``(3,)`` (:func:`offsets_at`)."""
+    ids = [i for i in image_ids if strips.image_strip.get(i, -1) >= 0 and strips.image_strip[i] < len(values)
+           and np.isfinite(values[strips.image_strip[i], 0])]
+    out = offsets_at(values, np.array([strips.image_strip[i] for i in ids], np.int64),
+                     np.array([strips.image_along_km[i] for i in ids]))
+    return dict(zip(ids, out))
 
 
 def strip_table(names: list[str], prior_strip: np.ndarray, values: np.ndarray, std: np.ndarray) -> dict[str, dict]:
