@@ -162,7 +162,9 @@ def report_summary(path: Path) -> dict:
     the images concerned in order, None when none), and the GNSS offsets per strip (``gnss_strips``: ``(strips,
     strip, metres)``, their number and the strip with the largest offset, None when none were estimated), and without
     them the strips whose GNSS positions share an offset (``strips_suspected``: the same triple, the strip with the
-    largest normalised offset, None when none). Raises :class:`InputError` naming the file."""
+    largest normalised offset, None when none), and the control point axis with the largest error its test can miss
+    (``weakest_control``: ``(point, axis, metres)``, None without one; see :func:`.core.aerotri.report.reliability`).
+    Raises :class:`InputError` naming the file."""
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError:
@@ -184,6 +186,7 @@ def report_summary(path: Path) -> dict:
         strip = max(offsets, key=offsets.get) if offsets else None
         suspect = {n: d for n, d in (doc.get("gnss_strip_check") or {}).items() if d.get("flagged")}
         worst = max(suspect, key=lambda n: max(float(w) for w in suspect[n]["w"])) if suspect else None
+        weak = doc.get("weakest_control")
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
                 "priors_rejected": (parts.count("position"), parts.count("attitude"),
                                     sorted({i for i, _ in priors})) if priors else None,
@@ -193,6 +196,7 @@ def report_summary(path: Path) -> dict:
                                                                               for a in suspect[worst]["mean_m"]))))
                 if worst else None,
                 "control_rejected": rejected if rejected[0] or rejected[1] else None,
+                "weakest_control": (str(weak["name"]), str(weak["axis"]), float(weak["mdb_m"])) if weak else None,
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),
                 "check_n": int(check["n"]), "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],

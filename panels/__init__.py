@@ -220,7 +220,7 @@ def _metres(v) -> str:
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders, the mounting
     calibration, the camera with the largest systematic image residual, rejected control data and EO priors, the
-    GNSS strip offsets, estimated or suspected) and Open Report."""
+    GNSS strip offsets, estimated or suspected, the weakest control point) and Open Report."""
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return
@@ -252,6 +252,9 @@ def draw_triangulation(layout, context) -> None:
         n, strip, metres = s["strips_suspected"]
         col.label(text=f"GNSS positions of {n} strips share an offset ({strip}: {_metres(metres)}): "
                        "try Shift per strip")
+    if s["weakest_control"]:
+        name, axis, metres = s["weakest_control"]
+        col.label(text=f"Weakest control point: {name}, errors below {_metres(metres)} in {axis} pass its test")
     layout.operator("city.open_report", icon="URL")
 
 

@@ -56,6 +56,9 @@ of the other control points, leave the next round (a wrong point cannot hide in 
 So are the images' EO priors (:func:`prior_tests`, ``BundleOptions.prior_tests``): a GNSS position or IMU attitude
 that does not fit the orientation the image's own tie points give (a loss of the GNSS fix, a time-tag error) leaves
 the next round, the other part of the prior staying.
+Every test also gives the smallest error it finds with the probability :data:`DETECTION_POWER` (internal reliability,
+Baarda's minimal detectable blunder, :func:`detectable_shift`): per tie measurement from its redundancy number, per
+control point axis and per EO prior axis from the standard deviation of its tested difference.
 Coordinates are solved around a local origin (the mean prior centre) so UTM magnitudes cost no digits.
 """
 
@@ -97,6 +100,9 @@ PRIOR_SCALE_NOTE = 1.5
 """A robust scale of the EO prior tests (:func:`prior_tests`) above this goes into the adjustment's log: the priors'
 sigmas look too small. On the simulated 400-image test block it is 1.0 for the attitude and 1.2-1.3 for the
 position, whose 80 exposures drew GNSS errors of 1.22-1.32 times their sigma (median absolute error over 0.6745)."""
+
+DETECTION_POWER = 0.80
+"""Probability with which a blunder of the minimal detectable size is found by its test (Baarda's beta0 = 80 %)."""
 
 UNBOUNDED_VARIANCE = 1e12
 """Variance (m^2) that takes the position out of a 6-DoF pose prior whose position a prior test rejected (1000 km
@@ -327,6 +333,12 @@ class BundleResult:
     prior_rejected : (n, 2) bool, the attitude (column 0) and position (column 1) priors of each image rejected by
         :func:`prior_tests`; prior_w : (n, 2) their largest normalised differences in the last test (a rejected
         part's when it was rejected; NaN: untested)
+    obs_redundancy : (m,) redundancy number of each tie measurement (per coordinate, see :mod:`.precision`; the
+        share of an error that shows in its residual); obs_mdb : (m,) the smallest error of a measurement (pixels)
+        its test finds with probability :data:`DETECTION_POWER` (NaN: not in the solution); gcp_redundancy, gcp_mdb
+        : (g, 3) the same per control point axis (metres; from the last control point test, NaN: untested);
+        prior_mdb : (n, 6) the same per EO prior axis (attitude about world X Y Z in radians, position in metres;
+        from the last prior test, at its robust scale; NaN: untested)
     datum_shift : (3,) control frame - GNSS frame
     gnss_strip : (s, 6) per strip of ``BundleProblem.strip_names`` its GNSS offset (metres) and drift (metres per
         km) as estimated with ``BundleOptions.gnss_strips`` (NaN: not estimated); gnss_strip_std : (s, 6) their
@@ -375,6 +387,11 @@ class BundleResult:
     prior_w: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     gnss_strip: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     gnss_strip_std: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    obs_redundancy: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    obs_mdb: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    gcp_redundancy: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    gcp_mdb: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    prior_mdb: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
 
 
 def _quat_xyzw(r: np.ndarray) -> np.ndarray:
@@ -1217,10 +1234,12 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     gcp_obs_bad = np.zeros(len(prob.gcp_obs_point), bool)
     gcp_ok = np.ones(len(prob.gcp_xyz), bool)
     gcp_w = np.full(len(prob.gcp_xyz), np.nan)
+    gcp_sd = np.full((len(prob.gcp_xyz), 3), np.nan)  # standard deviations of the last test's differences
     # EO priors: the parts (attitude, position) rejected, the largest normalised differences of the last test
     prior_ok = has_prior & np.all(np.isfinite(prob.prior_sigma_att), 1) & np.all(np.isfinite(prob.prior_sigma_pos), 1)
     prior_off = np.zeros((prob.n_images, 2), bool)
     prior_w = np.full((prob.n_images, 2), np.nan)
+    prior_sd = np.full((prob.n_images, 6), np.nan)
     iterations = 0
     log: list[str] = []
     total_rounds = opt.max_rejection_rounds + 1
@@ -1322,7 +1341,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             break
         gcp_bad = False
         if opt.control_tests and len(prob.gcp_xyz):
-            bad_go, bad_g, gcp_w = control_point_tests(
+            bad_go, bad_g, gcp_w, gcp_sd = control_point_tests(
                 cams, prob.image_camera, r, c, prob.gcp_xyz, prob.gcp_sigma, prob.gcp_sigma_px, prob.gcp_obs_point,
                 prob.gcp_obs_image, prob.gcp_obs_uv, gcp_obs_ok & rd.adjusted[prob.gcp_obs_image], gcp_ok, shift,
                 opt.datum_shift, opt.blunder_threshold)
@@ -1340,10 +1359,11 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         if opt.prior_tests and prior_ok.any():
             att_v, pos_v = _prior_residuals(prob, *frame_poses(r, c, prob.image_camera, model.mounting()),
                                             model.strip_offsets())
-            bad_p, w_p, scale = prior_tests(att_v, pos_v, prob.prior_sigma_att, prob.prior_sigma_pos, n_ties,
-                                            prior_ok[:, None] & ~prior_off & rd.adjusted[:, None],
-                                            opt.blunder_threshold)
+            bad_p, w_p, scale, sd_p = prior_tests(att_v, pos_v, prob.prior_sigma_att, prob.prior_sigma_pos, n_ties,
+                                                  prior_ok[:, None] & ~prior_off & rd.adjusted[:, None],
+                                                  opt.blunder_threshold)
             prior_w = np.where(prior_off, prior_w, w_p)
+            prior_sd = np.where(np.repeat(prior_off, 3, axis=1), prior_sd, sd_p)
             for part in np.flatnonzero(scale > PRIOR_SCALE_NOTE):
                 log.append(f"round {rnd}: the {PRIOR_PART_LABELS[part]} priors differ from the tie "
                            f"points' orientations by {scale[part]:.1f} times their sigmas (robust): tested at that "
@@ -1426,6 +1446,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     # prior residuals (adjusted - prior), world frame; with a mounting correction those of the frame it leaves
     r_f, c_f = frame_poses(r, c, prob.image_camera, mounting)
     att_res, pos_res = _prior_residuals(prob, r_f, c_f, offsets)
+    delta = detectable_shift(opt.blunder_threshold)
     return BundleResult(
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
@@ -1434,7 +1455,10 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
         timing=timing, gcp_obs_rejected=gcp_obs_bad, gcp_rejected=~gcp_ok, gcp_w=gcp_w,
-        prior_rejected=prior_off, prior_w=prior_w, gnss_strip=strips, gnss_strip_std=strips_std)
+        prior_rejected=prior_off, prior_w=prior_w, gnss_strip=strips, gnss_strip_std=strips_std,
+        obs_redundancy=red, obs_mdb=np.where(active, detectable_shift(opt.blunder_threshold, 2) * opt.sigma_px * sigma0
+                                             / np.sqrt(red), np.nan),
+        gcp_redundancy=prob.gcp_sigma**2 / gcp_sd**2, gcp_mdb=delta * gcp_sd, prior_mdb=delta * prior_sd)
 
 
 def _strip_std(prob: BundleProblem, opt: BundleOptions, strips: np.ndarray, in_use: np.ndarray,
@@ -1664,7 +1688,7 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
 def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                         given: np.ndarray, sigma: np.ndarray, sigma_px: np.ndarray, op: np.ndarray, oi: np.ndarray,
                         uv: np.ndarray, obs_ok: np.ndarray, point_ok: np.ndarray, shift: np.ndarray,
-                        shift_free: bool, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        shift_free: bool, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Blunder tests of control points with the images held at ``r (n, 3, 3)``, ``c (n, 3)`` (frame of the
     navigation data; ``shift (3,)`` takes it to the control frame).
 
@@ -1683,8 +1707,9 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
        shift's); while a point is above ``threshold``, the worst one is rejected and the others are tested again
        without it (data snooping; the images stay where they are).
 
-    Returns the rejected measurements ``(k,)``, the rejected points ``(g,)`` and each point's largest normalised
-    coordinate difference ``(g,)`` (a rejected point's when it was rejected; NaN where untested)."""
+    Returns the rejected measurements ``(k,)``, the rejected points ``(g,)``, each point's largest normalised
+    coordinate difference ``(g,)`` and the standard deviations of its differences per axis ``(g, 3)`` (metres; both a
+    rejected point's when it was rejected; NaN where untested)."""
     from .problem import intersect_rays, ray_directions  # problem builds on this module
 
     g = len(given)
@@ -1713,8 +1738,9 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
     ok = point_ok & np.all(np.isfinite(x), 1) & np.all(np.isfinite(cov.reshape(g, 9)), 1) \
         & np.all(np.isfinite(given), 1)
     w_pt = np.full(g, np.nan)
+    sd_pt = np.full((g, 3), np.nan)
     if not ok.any():
-        return bad_obs, np.zeros(g, bool), w_pt
+        return bad_obs, np.zeros(g, bool), w_pt, sd_pt
     total = cov + np.einsum("gi,ij->gij", np.nan_to_num(sigma) ** 2, np.eye(3))
     diff = given - x  # each point's own estimate of the shift
     weight = np.zeros((g, 3, 3))
@@ -1722,9 +1748,11 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
     info_all = weight[ok].sum(0)
     rhs_all = np.einsum("gij,gj->i", weight[ok], diff[ok])
     bad_pt = np.zeros(g, bool)
-    w_bad = np.full(g, np.nan)  # a rejected point's figure when it was rejected
+    w_bad = np.full(g, np.nan)  # a rejected point's figures when it was rejected
+    sd_bad = np.full((g, 3), np.nan)
     while True:
         w_pt[:] = np.nan
+        sd_pt[:] = np.nan
         for i in np.flatnonzero(ok):
             if shift_free:
                 info = info_all - weight[i]
@@ -1737,12 +1765,13 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
             var = np.diagonal(total[i] + s_cov)
             if np.any(var <= 0):
                 continue  # numerically undetermined (an ill-conditioned point or shift): untested
-            w_pt[i] = float(np.max(np.abs(diff[i] - s_i) / np.sqrt(var)))
+            sd_pt[i] = np.sqrt(var)
+            w_pt[i] = float(np.max(np.abs(diff[i] - s_i) / sd_pt[i]))
         worst = int(np.argmax(np.where(np.isfinite(w_pt), w_pt, -1.0)))
         if not (np.isfinite(w_pt[worst]) and w_pt[worst] > threshold):
-            return bad_obs, bad_pt, np.where(bad_pt, w_bad, w_pt)
+            return bad_obs, bad_pt, np.where(bad_pt, w_bad, w_pt), np.where(bad_pt[:, None], sd_bad, sd_pt)
         # the worst goes, and the others are tested again without it (its error no longer in their shift)
-        bad_pt[worst], ok[worst], w_bad[worst] = True, False, w_pt[worst]
+        bad_pt[worst], ok[worst], w_bad[worst], sd_bad[worst] = True, False, w_pt[worst], sd_pt[worst]
         info_all = info_all - weight[worst]
         rhs_all = rhs_all - weight[worst] @ diff[worst]
 
@@ -1762,7 +1791,7 @@ def _prior_residuals(prob: BundleProblem, r_frame: np.ndarray, c_frame: np.ndarr
 
 def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray, sigma_pos: np.ndarray,
                 n_ties: np.ndarray, in_use: np.ndarray, threshold: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Blunder tests of the images' EO priors (GNSS position, IMU attitude), each against the orientation the
     image's own tie observations give with the points held (a resection, in which the prior takes no part).
 
@@ -1779,7 +1808,8 @@ def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray,
     priors whose sigmas are too small (a GNSS accuracy taken from a better survey) would otherwise fail by the
     dozen. A part whose largest exceeds ``threshold`` is rejected. An image whose ties do not determine its pose
     (``N_t`` singular) is not tested. Returns the rejected parts ``(n, 2)``, the parts' largest normalised
-    differences ``(n, 2)`` (NaN: not tested) and the two robust scales ``(2,)`` (1 where not above it)."""
+    differences ``(n, 2)`` (NaN: not tested), the two robust scales ``(2,)`` (1 where not above it) and the standard
+    deviations of the differences ``(n, 6)`` times their part's scale (the unit of the test; NaN: not tested)."""
     n = len(att_res)
     use6 = np.repeat(in_use, 3, axis=1)
     sigma = np.concatenate([sigma_att, sigma_pos], 1)
@@ -1787,7 +1817,8 @@ def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray,
     p = np.where(use6, 1.0 / sigma**2, 0.0)
     q_t = precision.safe_inverse(n_ties)
     d = v + np.einsum("nij,nj->ni", q_t, p * v)
-    w6 = np.abs(d) / np.sqrt(np.diagonal(q_t, axis1=1, axis2=2) + sigma**2)
+    sd = np.sqrt(np.diagonal(q_t, axis1=1, axis2=2) + sigma**2)
+    w6 = np.abs(d) / sd
     w6 = np.where(use6 & np.isfinite(w6), w6, np.nan).reshape(n, 2, 3)
     scale = np.ones(2)
     for part in range(2):
@@ -1798,7 +1829,20 @@ def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray,
     w = np.full((n, 2), np.nan)
     tested = np.isfinite(w6).any(2)
     w[tested] = np.nanmax(w6[tested], axis=1)
-    return tested & (np.nan_to_num(w) > threshold), w, scale
+    sd = np.where(np.isfinite(w6.reshape(n, 6)), sd * np.repeat(scale, 3), np.nan)
+    return tested & (np.nan_to_num(w) > threshold), w, scale, sd
+
+
+def detectable_shift(threshold: float, dof: int = 1, power: float = DETECTION_POWER) -> float:
+    """Baarda's non-centrality ``delta0``: a blunder of ``delta0`` standard deviations (of the tested difference,
+    along one axis of it) makes a test of ``dof`` degrees of freedom (the normalised difference's norm against
+    ``threshold``; 1: a coordinate, 2: an image measurement) exceed the threshold with probability ``power``.
+    From the non-central chi-square distribution: 5.14 for 4.3 and 80 % on one degree of freedom (4.13 for
+    Baarda's 3.29 and 80 %), 5.03 on two."""
+    from scipy.optimize import brentq
+    from scipy.stats import ncx2
+
+    return float(np.sqrt(brentq(lambda lam: ncx2.sf(threshold**2, dof, lam) - power, 1e-9, 1e4)))
 
 
 def resected_start(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,

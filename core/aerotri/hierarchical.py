@@ -88,6 +88,7 @@ class Run:
         prior in the last test (a rejected part's when it was rejected; NaN: untested)
     gnss_strips : strip name -> its GNSS offset and drift as estimated by this run (:func:`.strips.strip_table`;
         empty when the run estimated none)
+    control_names : the names of the control points of the run's problem, in the order of its result's arrays
     """
 
     name: str
@@ -109,6 +110,7 @@ class Run:
     prior_rejected: tuple[tuple[str, str], ...] = ()
     prior_w: dict[str, np.ndarray] = field(default_factory=dict)
     gnss_strips: dict[str, dict] = field(default_factory=dict)
+    control_names: tuple[str, ...] = ()
 
 
 @dataclass(eq=False)
@@ -160,7 +162,8 @@ def _to_run(name: str, sub: SubProblem, res: BundleResult, wall: float) -> Run:
                                     for k, part in zip(*np.nonzero(res.prior_rejected))),
                prior_w={iid: res.prior_w[k] for k, iid in enumerate(prob.image_ids)
                         if k < len(res.prior_w) and np.isfinite(res.prior_w[k]).any()},
-               gnss_strips=strip_table(prob.strip_names, prob.prior_strip, res.gnss_strip, res.gnss_strip_std))
+               gnss_strips=strip_table(prob.strip_names, prob.prior_strip, res.gnss_strip, res.gnss_strip_std),
+               control_names=tuple(prob.gcp_names))
 
 
 def initial_tie_coordinates(block: ImageBlock, ties: TiePoints) -> np.ndarray:

@@ -7,6 +7,8 @@
   estimated from the adjusted orientations of each exposure, each camera's mounting correction when the adjustment
   estimated one (``BundleOptions.mounting``), and the forward intersection error of all tie
   points before (navigation orientation) and after adjustment.
+* Per run its internal reliability (:func:`reliability`): the smallest errors the blunder tests find with 80 %
+  probability, of tie measurements by their rays, EO priors and each control point, with redundancy numbers.
 * Per control and check point its intersection minus its given coordinates, and what the adjustment rejected of
   it (coordinates, measurements: :func:`.bundle.control_point_tests`). The EO priors (GNSS position, IMU
   attitude) the adjustment rejected (:func:`.bundle.prior_tests`), with their normalised differences; the prior
@@ -41,7 +43,7 @@ from ..evaluate.aerotri import (
 from ..geometry.projection import project
 from ..geometry.rotations import matrix_to_rotvec
 from ..model import CameraModel, ImageBlock, Raster, TiePoints
-from .bundle import PRIOR_PART_LABELS, PRIOR_PARTS
+from .bundle import DETECTION_POWER, PRIOR_PART_LABELS, PRIOR_PARTS
 from .hierarchical import ATResult, Run
 from .problem import intersect_ties
 from .strips import flight_strips, strip_check
@@ -57,6 +59,9 @@ RAYS_TOP = 12
 WORST_IMAGES = 10
 """The HTML page lists this many images with the largest residuals and this many with the fewest observations
 (report.json has every image)."""
+
+RAY_CLASSES = (("2", 2, 2), ("3", 3, 3), ("4-5", 4, 5), ("6-9", 6, 9), ("10+", 10, None))
+"""Classes of tie points by the rays a run kept of them (label, fewest, most; None: no limit) in :func:`reliability`."""
 
 _VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float64)
 
@@ -155,6 +160,54 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
         "mounting": {cam.id: _mounting_entry(res, ci) for ci, cam in enumerate(res.cameras)
                      if np.all(np.isfinite(res.mounting[ci]))},
     }
+
+
+def reliability(run: Run, ties: TiePoints) -> dict:
+    """Internal reliability of one run: the smallest errors its blunder tests find with probability
+    :data:`.bundle.DETECTION_POWER` (Baarda's minimal detectable blunders, see :func:`.bundle.detectable_shift`).
+
+    ``ties``: per class of tie points by the rays the run kept (:data:`RAY_CLASSES`) the measurements, their mean
+    redundancy number and the median and 95th percentile of their smallest detectable errors (pixels); ``priors``:
+    of the EO priors tested, per axis the median and largest (``attitude_deg`` about world X Y Z, ``position_m``);
+    ``control_points``: per control point tested its redundancy numbers and smallest detectable errors (metres) per
+    axis, the weakest first. Parts a result does not hold are empty."""
+    res = run.result
+    rows = []
+    if len(res.obs_mdb) == len(run.obs_index):
+        used = _used(run) & np.isfinite(res.obs_mdb)
+        track = ties.obs_track[run.obs_index[used]]
+        rays = np.bincount(track, minlength=ties.n_tracks)[track]
+        red, mdb = res.obs_redundancy[used], res.obs_mdb[used]
+        for label, fewest, most in RAY_CLASSES:
+            sel = (rays >= fewest) & (rays <= (most or np.inf))
+            if sel.any():
+                rows.append({"rays": label, "measurements": int(sel.sum()), "redundancy_mean": float(red[sel].mean()),
+                             "mdb_px_median": float(np.median(mdb[sel])),
+                             "mdb_px_p95": float(np.percentile(mdb[sel], 95))})
+    priors = {}
+    for key, cols, unit in (("attitude_deg", slice(0, 3), np.degrees), ("position_m", slice(3, 6), np.asarray)):
+        a = res.prior_mdb[:, cols]
+        a = a[np.all(np.isfinite(a), 1)]
+        if len(a):
+            priors[key] = {"images": len(a), "median": unit(np.median(a, 0)).tolist(), "max": unit(a.max(0)).tolist()}
+    control = []
+    if len(res.gcp_mdb) == len(run.control_names):
+        control = [{"name": run.control_names[g], "redundancy": res.gcp_redundancy[g].tolist(),
+                    "mdb_m": res.gcp_mdb[g].tolist()} for g in np.flatnonzero(np.all(np.isfinite(res.gcp_mdb), 1))]
+        control.sort(key=lambda d: -max(d["mdb_m"]))
+    return {"power": DETECTION_POWER, "ties": rows, "priors": priors, "control_points": control}
+
+
+def weakest_control(runs: list[dict]) -> dict | None:
+    """Of the runs' :func:`reliability` (as in report.json), the control point axis with the largest smallest
+    detectable error: its ``name``, ``run``, ``axis`` (X, Y or Z) and ``mdb_m``; None without one."""
+    best = None
+    for r in runs:
+        for d in (r.get("reliability") or {}).get("control_points") or []:
+            axis = int(np.argmax(d["mdb_m"]))
+            if best is None or d["mdb_m"][axis] > best["mdb_m"]:
+                best = {"name": d["name"], "run": r["name"], "axis": "XYZ"[axis], "mdb_m": float(d["mdb_m"][axis])}
+    return best
 
 
 def _mounting_entry(res, ci: int) -> dict:
@@ -372,7 +425,7 @@ def ray_counts(ties: TiePoints, at: ATResult, top: int = RAYS_TOP) -> dict:
 
 def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float) -> dict:
     """Figures of the whole adjustment (combined over runs)."""
-    runs = [run_statistics(r, sigma_px) for r in at.runs]
+    runs = [run_statistics(r, sigma_px) | {"reliability": reliability(r, ties)} for r in at.runs]
     obs, v = accepted_residuals(at)
     obs_ok = ~at.obs_rejected
     chi = sum(r.result.sigma0**2 * r.result.redundancy for r in at.runs)
@@ -391,6 +444,7 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
     return {"mode": at.mode, "connection": at.connection, "images": len(at.poses), "sigma0": sigma0,
             "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
             "ground_points": ground_point_residuals(block, at.poses, *at.control_rejections()),
+            "weakest_control": weakest_control(runs),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at), "wall_s": at.wall_s,
             "gnss_strips": at.gnss_strips(), "gnss_strip_check": gnss_strip_check(block, at),
             "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0,
@@ -607,12 +661,47 @@ def _report_extras(report: dict) -> list[str]:
                      "strip's mean: the trajectory was probably not processed as one piece. Estimate an offset per "
                      "strip (aerotri.gnss_strips = shift, or drift).</p><table><tr><th>strip</th><th>images</th>"
                      f"<th>X [m]</th><th>Y [m]</th><th>Z [m]</th></tr>{rows}</table>")
+    parts.extend(_reliability_html(report.get("runs") or []))
     rays = report.get("tie_point_rays")
     if rays and rays["mean_rays"] is not None:
         parts.append(f"<h2>Tie point rays</h2><p>Mean {rays['mean_rays']:.2f} rays per adjusted tie point; "
                      f"{100 * rays['two_ray_share']:.1f} % have two.</p>"
                      + _bars_svg(np.array(rays["points"]), "tie points per number of kept rays", "2",
                                  f"{rays['rays'][-1]}+"))
+    return parts
+
+
+def _reliability_html(runs: list[dict]) -> list[str]:
+    """The HTML of the runs' :func:`reliability`: tie measurements by rays, EO priors, control points."""
+    rel = [(r["name"], r["reliability"]) for r in runs if r.get("reliability")]
+    if not any(x["ties"] or x["priors"] or x["control_points"] for _, x in rel):
+        return []
+    power = 100 * rel[0][1]["power"]
+    parts = [f"<h2>Reliability</h2><p>The smallest error each blunder test finds with {power:.0f} % probability at the "
+             "rejection threshold (internal reliability, Baarda's minimal detectable blunder), and redundancy "
+             "numbers: the share of an error that shows in the residual. Smaller errors can pass undetected; below "
+             "a redundancy of 0.1 an observation is hardly controlled by the others.</p>"]
+    rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{t['rays']}</td><td>{t['measurements']}</td>"
+                   f"<td>{format_value(t['redundancy_mean'])}</td><td>{format_value(t['mdb_px_median'])}</td>"
+                   f"<td>{format_value(t['mdb_px_p95'])}</td></tr>" for n, x in rel for t in x["ties"])
+    if rows:
+        parts.append("<h3>Tie measurements</h3><table><tr><th>run</th><th>rays</th><th>measurements</th>"
+                     "<th>mean redundancy</th><th>detectable error, median [px]</th><th>95 % [px]</th></tr>"
+                     f"{rows}</table>")
+    rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{label}</td><td>{p['images']}</td>"
+                   f"<td>{format_value(p['median'])}</td><td>{format_value(p['max'])}</td></tr>"
+                   for n, x in rel for key, label in (("position_m", "GNSS position [m]"),
+                                                      ("attitude_deg", "IMU attitude [deg]"))
+                   if (p := x["priors"].get(key)))
+    if rows:
+        parts.append("<h3>EO priors</h3><table><tr><th>run</th><th>prior</th><th>images</th>"
+                     f"<th>detectable error X Y Z, median</th><th>largest</th></tr>{rows}</table>")
+    rows = "".join(f"<tr><td>{html.escape(d['name'])}</td><td>{html.escape(n)}</td>"
+                   f"<td>{format_value(d['redundancy'])}</td><td>{format_value(d['mdb_m'])}</td></tr>"
+                   for n, x in rel for d in x["control_points"])
+    if rows:
+        parts.append("<h3>Control points</h3><table><tr><th>point</th><th>run</th><th>redundancy X Y Z</th>"
+                     f"<th>detectable error X Y Z [m]</th></tr>{rows}</table>")
     return parts
 
 

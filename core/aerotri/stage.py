@@ -209,6 +209,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     largest = max((float(np.linalg.norm(d["offset_m"])) for d in strips.values()), default=None)
     suspect = {n: d for n, d in report["gnss_strip_check"].items() if d["flagged"]}
     strip = max(suspect, key=lambda n: max(suspect[n]["w"]), default=None)
+    weak = report["weakest_control"]
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
@@ -218,7 +219,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "thinned_observations": report["thinned_observations"],
                  "systematic_residual_px": worst[1] if worst else None, "priors_rejected": priors_off,
                  "gnss_strips": len(strips), "gnss_strip_offset_max_m": largest,
-                 "gnss_strips_suspected": len(suspect)},
+                 "gnss_strips_suspected": len(suspect), "control_mdb_max_m": weak["mdb_m"] if weak else None},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
                 + (f", largest systematic image residual {worst[1]:.3f} px ({worst[0]})" if worst else "")
@@ -226,7 +227,9 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                 + (f", GNSS offsets of {len(strips)} strips estimated (largest {largest:.3f} m)" if strips else "")
                 + (f", the GNSS positions of {len(suspect)} strips share an offset (largest in {strip}: "
                    f"{float(np.linalg.norm(suspect[strip]['mean_m'])):.3f} m, {max(suspect[strip]['w']):.1f} sigma): "
-                   "estimate it with aerotri.gnss_strips = shift" if suspect else ""))
+                   "estimate it with aerotri.gnss_strips = shift" if suspect else "")
+                + (f", weakest control point {weak['name']} (errors below {weak['mdb_m']:.3f} m in {weak['axis']} can "
+                   "pass its test)" if weak else ""))
 
 
 def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
@@ -241,4 +244,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="6", adjusted_block=False)
+              version="7", adjusted_block=False)

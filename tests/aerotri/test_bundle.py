@@ -3,12 +3,20 @@ self-calibration."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from oblique_city.core.aerotri.bundle import BundleOptions, adjust, prior_tests, resected_start
+from oblique_city.core.aerotri.bundle import (
+    DETECTION_POWER,
+    BundleOptions,
+    adjust,
+    detectable_shift,
+    prior_tests,
+    resected_start,
+)
 from oblique_city.core.aerotri.problem import build_problem
 from oblique_city.core.aerotri.report import mounting
 from oblique_city.core.errors import ComputationError
@@ -634,33 +642,69 @@ def test_rig_constraints_with_mounting_calibration_hold_the_true_relative_mounti
     assert both < 0.003 and rig_only > 0.05 and abs(s0 - 1.0) < 0.1 < s0_rig - 1.0
 
 
-def test_prior_tests_find_a_wrong_prior_and_scale_to_sigmas_that_are_too_small():
-    """400 images whose tie points fix the pose to 2 mm and 0.001 deg (their normal blocks), priors of 0.05 m and
-    0.005 deg drawn with those sigmas: with the adjusted pose where the ties and the prior meet, the difference of
-    the tie-only pose to the prior is recovered (``d = v + N_t^-1 P v``), so a position 0.3, 0.2, 0.35 m off (6, 4,
-    7 sigma) and an attitude 0.06 deg off (12 sigma) are rejected, nothing else of the 2,400 axes (4.3 sigma: 0.04
-    expected by chance). Priors whose sigmas are stated 3 times too small are tested at the robust scale (3 within
-    10 %): no rejection, where the raw differences would have failed over a third of the images."""
-    rng = np.random.default_rng(5)
+def _prior_case(seed: int) -> tuple[Callable, np.ndarray]:
+    """400 images whose tie points fix the pose to 2 mm and 0.001 deg (their normal blocks) and priors of 0.05 m and
+    0.005 deg drawn with those sigmas: ``tested(prior (n, 6))`` runs :func:`prior_tests` with the adjusted poses where
+    the ties and ``prior`` meet; returns it and the priors drawn."""
+    rng = np.random.default_rng(seed)
     n = 400
     s_att, s_pos = np.full((n, 3), np.radians(0.005)), np.full((n, 3), 0.05)
     q_t = np.diag(np.r_[np.full(3, np.radians(0.001)), np.full(3, 0.002)] ** 2)
     n_ties = np.tile(np.linalg.inv(q_t), (n, 1, 1))
     p = np.diag(1.0 / np.r_[s_att[0], s_pos[0]] ** 2)
     x_t = rng.normal(0.0, 1.0, (n, 6)) * np.sqrt(np.diag(q_t))  # the tie-only poses about the truth (0)
-    prior = rng.normal(0.0, 1.0, (n, 6)) * np.r_[s_att[0], s_pos[0]]
-    prior[7, 3:] += [0.3, -0.2, 0.35]
-    prior[19, :3] += np.radians([0.06, 0.0, 0.0])
 
     def tested(prior):
         x = np.linalg.solve(n_ties[0] + p, (n_ties[0] @ x_t.T + p @ prior.T)).T  # where ties and prior meet
         v = x - prior
         return prior_tests(v[:, :3], v[:, 3:], s_att, s_pos, n_ties, np.ones((n, 2), bool), 4.3)
 
-    bad, w, scale = tested(prior)
+    return tested, rng.normal(0.0, 1.0, (n, 6)) * np.r_[s_att[0], s_pos[0]]
+
+
+def test_prior_tests_find_a_wrong_prior_and_scale_to_sigmas_that_are_too_small():
+    """On :func:`_prior_case`'s 400 images, with the adjusted pose where the ties and the prior meet, the difference of
+    the tie-only pose to the prior is recovered (``d = v + N_t^-1 P v``), so a position 0.3, 0.2, 0.35 m off (6, 4,
+    7 sigma) and an attitude 0.06 deg off (12 sigma) are rejected, nothing else of the 2,400 axes (4.3 sigma: 0.04
+    expected by chance). Priors whose sigmas are stated 3 times too small are tested at the robust scale (3 within
+    10 %): no rejection, where the raw differences would have failed over a third of the images."""
+    tested, prior = _prior_case(5)
+    prior[7, 3:] += [0.3, -0.2, 0.35]
+    prior[19, :3] += np.radians([0.06, 0.0, 0.0])
+    bad, w, scale, _ = tested(prior)
     assert set(zip(*np.nonzero(bad))) == {(7, 1), (19, 0)}
     assert w[7, 1] > 5.5 and w[19, 0] > 9 and np.all(scale < 1.15)
-    bad, w, scale = tested(prior * 3)  # three times the errors the sigmas state
+    bad, w, scale, _ = tested(prior * 3)  # three times the errors the sigmas state
     assert abs(scale[1] / 3 - 1) < 0.1 and abs(scale[0] / 3 - 1) < 0.1
     assert {(int(k), int(part)) for k, part in zip(*np.nonzero(bad))} <= {(7, 1), (19, 0)}
     assert np.nanmax(np.where(bad, np.nan, w)) < 4.3
+
+
+def test_detectable_shift_is_baardas_and_found_at_its_power():
+    """Baarda's textbook value (3.29, one degree of freedom, 80 %: 4.13) and ours (4.3: 5.14); on two degrees of
+    freedom (an image measurement's test) 400,000 draws of a 2-D normal shifted by it exceed 4.3 in 80.0 % of cases
+    (binomial standard deviation 0.06 %)."""
+    assert abs(detectable_shift(3.29) - 4.13) < 0.005 and abs(detectable_shift(4.3) - 5.14) < 0.005
+    delta = detectable_shift(4.3, 2)
+    x = np.random.default_rng(1).normal(0.0, 1.0, (400_000, 2)) + [delta, 0.0]
+    assert abs(np.mean(np.linalg.norm(x, axis=1) > 4.3) - DETECTION_POWER) < 0.003
+
+
+def test_prior_detectable_errors_are_found_at_the_stated_power():
+    """Each of :func:`_prior_case`'s 2,400 prior axes in turn is given an error of its smallest detectable size (the
+    standard deviation of its test times 5.14), of a random sign: 80 % of them are rejected (here 81.0 %; binomial
+    standard deviation 0.8 %); at half that size 4.8 % (P(|N(2.57, 1)| > 4.3) = 4 %, and the chance of the other
+    axes), at 1.5 times all."""
+    tested, prior = _prior_case(7)
+    bad, _, _, sd = tested(prior)
+    assert not bad.any()
+    mdb = detectable_shift(4.3) * sd * np.random.default_rng(8).choice([-1.0, 1.0], prior.shape)
+    found = {}
+    for factor in (0.5, 1.0, 1.5):
+        hits = []
+        for k, axis in np.ndindex(*prior.shape):
+            planted = prior.copy()
+            planted[k, axis] += factor * mdb[k, axis]
+            hits.append(tested(planted)[0][k, axis // 3])
+        found[factor] = float(np.mean(hits))
+    assert abs(found[1.0] - DETECTION_POWER) < 0.04 and found[0.5] < 0.1 and found[1.5] > 0.99

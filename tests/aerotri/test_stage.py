@@ -228,16 +228,24 @@ def test_a_wrong_control_point_is_rejected_and_reported(tmp_path):
     from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
     from oblique_city.core.pipeline import RunContext
 
-    reports = []
+    reports, results = [], []
     for lift in (0.0, 0.3):
         s, ws = _simulated_workspace(tmp_path / f"lift{lift}")
         block = ws.load_block()
         gp = max((g for g in block.ground_points.values() if g.kind == "control"), key=lambda g: len(g.observations))
         gp.xyz = gp.xyz + np.array([0.0, 0.0, lift])
         ws.save_block(block)
-        STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext())
+        results.append(STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext()))
         reports.append(json.loads(ws.path("aerotri/report.json").read_text()))
     clean, report = reports
+    # the reliability of the clean block: 0.3 m is above the lifted point's smallest detectable error in Z, and the
+    # weakest control point reaches the stage's metric, message and the HTML page
+    points = {d["name"]: d for d in clean["runs"][0]["reliability"]["control_points"]}
+    assert points[gp.name]["mdb_m"][2] < 0.3
+    weak = clean["weakest_control"]
+    assert weak["mdb_m"] == max(max(d["mdb_m"]) for d in points.values())
+    assert results[0].metrics["control_mdb_max_m"] == weak["mdb_m"]
+    assert f"weakest control point {weak['name']}" in results[0].message
     assert not any(g["rejected_coordinates"] or g["rejected_images"] for g in clean["ground_points"])
     assert report["runs"][0]["control_points_rejected"] == [gp.name]
     row = next(g for g in report["ground_points"] if g["name"] == gp.name)
@@ -247,11 +255,13 @@ def test_a_wrong_control_point_is_rejected_and_reported(tmp_path):
         assert report["check_points"]["all"][key] < 1.05 * clean["check_points"]["all"][key]
     html = ws.path("aerotri/report.html").read_text()
     assert f"<td>{gp.name}</td><td>control</td>" in html and "<td>coordinates</td>" in html
+    assert "<h2>Reliability</h2>" in html and "<h3>Control points</h3>" in html
     # switched off from the command line: stored in the project, nothing rejected, the wrong point pulls the block
     assert main(["aerotri", str(ws.root), "--no-control-tests"]) == 0
     assert Workspace.open(ws.root).stage_options("aerotri")["control_tests"] is False
     untested = json.loads(ws.path("aerotri/report.json").read_text())
     assert not any(g["rejected_coordinates"] for g in untested["ground_points"])
+    assert untested["weakest_control"] is None  # untested: nothing to say of their reliability
     assert untested["check_points"]["all"]["rms_z_m"] > report["check_points"]["all"]["rms_z_m"]
 
 

@@ -50,7 +50,8 @@ def ws(tmp_path, utm_block):
               "gnss_strips": {"L01": {"offset_m": [0.1, -0.2, 0.05]}, "L02": {"offset_m": [0.0, 0.3, -0.4]}},
               "gnss_strip_check": {"L01": {"mean_m": [0.0, 0.0, 0.12], "w": [0.1, 0.2, 5.0], "flagged": True},
                                    "L02": {"mean_m": [0.3, 0.0, 0.4], "w": [2.0, 0.1, 4.2], "flagged": False},
-                                   "L03": {"mean_m": [0.0, 0.0, -0.2], "w": [0.0, 0.3, 8.0], "flagged": True}}}
+                                   "L03": {"mean_m": [0.0, 0.0, -0.2], "w": [0.0, 0.3, 8.0], "flagged": True}},
+              "weakest_control": {"name": "G2", "run": "nadir", "axis": "Z", "mdb_m": 0.1364}}
     (w.stage_dir("aerotri") / "report.json").write_text(json.dumps(report))
     (w.stage_dir("aerotri") / "report.html").write_text("<html><body>report</body></html>")
     w.write_state({"aerotri": {"status": "done"}})
@@ -161,6 +162,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Rejected priors: 2 GNSS positions, 1 IMU attitudes (n1, n2, o1)" in labels
     assert "GNSS offsets of 2 strips, largest 0.500 m (L02)" in labels
     assert "GNSS positions of 2 strips share an offset (L03: 0.200 m): try Shift per strip" in labels
+    assert "Weakest control point: G2, errors below 0.136 m in Z pass its test" in labels
     assert any(e[0] == "operator" and e[1] == "city.open_report" for e in log)
 
     opened = []
