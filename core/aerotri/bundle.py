@@ -58,7 +58,8 @@ that does not fit the orientation the image's own tie points give (a loss of the
 the next round, the other part of the prior staying.
 Every test also gives the smallest error it finds with the probability :data:`DETECTION_POWER` (internal reliability,
 Baarda's minimal detectable blunder, :func:`detectable_shift`): per tie measurement from its redundancy number, per
-control point axis and per EO prior axis from the standard deviation of its tested difference.
+control point axis and per EO prior axis from the standard deviation of its tested difference; and of a control
+point's error of that size, how far it would move the datum shift (external reliability).
 Coordinates are solved around a local origin (the mean prior centre) so UTM magnitudes cost no digits.
 """
 
@@ -71,6 +72,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -337,6 +339,8 @@ class BundleResult:
         share of an error that shows in its residual); obs_mdb : (m,) the smallest error of a measurement (pixels)
         its test finds with probability :data:`DETECTION_POWER` (NaN: not in the solution); gcp_redundancy, gcp_mdb
         : (g, 3) the same per control point axis (metres; from the last control point test, NaN: untested);
+        gcp_datum_effect : (g, 3) how far such an error moves the datum shift (external reliability, metres; NaN
+        where untested or the shift is held);
         prior_mdb : (n, 6) the same per EO prior axis (attitude about world X Y Z in radians, position in metres;
         from the last prior test, at its robust scale; NaN: untested)
     datum_shift : (3,) control frame - GNSS frame
@@ -391,6 +395,7 @@ class BundleResult:
     obs_mdb: np.ndarray = field(default_factory=lambda: np.zeros(0))
     gcp_redundancy: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     gcp_mdb: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    gcp_datum_effect: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     prior_mdb: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
 
 
@@ -1234,7 +1239,9 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     gcp_obs_bad = np.zeros(len(prob.gcp_obs_point), bool)
     gcp_ok = np.ones(len(prob.gcp_xyz), bool)
     gcp_w = np.full(len(prob.gcp_xyz), np.nan)
-    gcp_sd = np.full((len(prob.gcp_xyz), 3), np.nan)  # standard deviations of the last test's differences
+    # the last test's standard deviations of the differences and influences on the datum shift
+    gcp_sd = np.full((len(prob.gcp_xyz), 3), np.nan)
+    gcp_infl = np.full((len(prob.gcp_xyz), 3), np.nan)
     # EO priors: the parts (attitude, position) rejected, the largest normalised differences of the last test
     prior_ok = has_prior & np.all(np.isfinite(prob.prior_sigma_att), 1) & np.all(np.isfinite(prob.prior_sigma_pos), 1)
     prior_off = np.zeros((prob.n_images, 2), bool)
@@ -1341,7 +1348,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             break
         gcp_bad = False
         if opt.control_tests and len(prob.gcp_xyz):
-            bad_go, bad_g, gcp_w, gcp_sd = control_point_tests(
+            bad_go, bad_g, gcp_w, gcp_sd, gcp_infl = control_point_tests(
                 cams, prob.image_camera, r, c, prob.gcp_xyz, prob.gcp_sigma, prob.gcp_sigma_px, prob.gcp_obs_point,
                 prob.gcp_obs_image, prob.gcp_obs_uv, gcp_obs_ok & rd.adjusted[prob.gcp_obs_image], gcp_ok, shift,
                 opt.datum_shift, opt.blunder_threshold)
@@ -1458,7 +1465,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         prior_rejected=prior_off, prior_w=prior_w, gnss_strip=strips, gnss_strip_std=strips_std,
         obs_redundancy=red, obs_mdb=np.where(active, detectable_shift(opt.blunder_threshold, 2) * opt.sigma_px * sigma0
                                              / np.sqrt(red), np.nan),
-        gcp_redundancy=prob.gcp_sigma**2 / gcp_sd**2, gcp_mdb=delta * gcp_sd, prior_mdb=delta * prior_sd)
+        gcp_redundancy=prob.gcp_sigma**2 / gcp_sd**2, gcp_mdb=delta * gcp_sd,
+        gcp_datum_effect=delta * gcp_sd * gcp_infl, prior_mdb=delta * prior_sd)
 
 
 def _strip_std(prob: BundleProblem, opt: BundleOptions, strips: np.ndarray, in_use: np.ndarray,
@@ -1685,10 +1693,27 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     return xyz, cov * s0**2, rejected, s0
 
 
+class ControlTests(NamedTuple):
+    """The outcome of :func:`control_point_tests`.
+
+    obs_rejected : (k,) the measurements rejected; rejected : (g,) the points whose coordinates were rejected;
+    w : (g,) each point's largest normalised coordinate difference; sd : (g, 3) the standard deviations of its
+    differences per axis (metres; w and sd a rejected point's when it was rejected; NaN where untested);
+    datum_influence : (g, 3) with the shift estimated from the control points, how far an error along each axis of a
+    point moves that shift, per metre of the error (NaN where untested or the shift is held)
+    """
+
+    obs_rejected: np.ndarray
+    rejected: np.ndarray
+    w: np.ndarray
+    sd: np.ndarray
+    datum_influence: np.ndarray
+
+
 def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                         given: np.ndarray, sigma: np.ndarray, sigma_px: np.ndarray, op: np.ndarray, oi: np.ndarray,
                         uv: np.ndarray, obs_ok: np.ndarray, point_ok: np.ndarray, shift: np.ndarray,
-                        shift_free: bool, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                        shift_free: bool, threshold: float) -> ControlTests:
     """Blunder tests of control points with the images held at ``r (n, 3, 3)``, ``c (n, 3)`` (frame of the
     navigation data; ``shift (3,)`` takes it to the control frame).
 
@@ -1707,9 +1732,8 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
        shift's); while a point is above ``threshold``, the worst one is rejected and the others are tested again
        without it (data snooping; the images stay where they are).
 
-    Returns the rejected measurements ``(k,)``, the rejected points ``(g,)``, each point's largest normalised
-    coordinate difference ``(g,)`` and the standard deviations of its differences per axis ``(g, 3)`` (metres; both a
-    rejected point's when it was rejected; NaN where untested)."""
+    3. With ``shift_free``, each point kept gets its influence on the shift: the columns of ``S W_i`` (``S`` the
+       shift's covariance from all points kept, ``W_i`` the point's weight), how far its error moves the shift."""
     from .problem import intersect_rays, ray_directions  # problem builds on this module
 
     g = len(given)
@@ -1739,8 +1763,9 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
         & np.all(np.isfinite(given), 1)
     w_pt = np.full(g, np.nan)
     sd_pt = np.full((g, 3), np.nan)
+    influence = np.full((g, 3), np.nan)
     if not ok.any():
-        return bad_obs, np.zeros(g, bool), w_pt, sd_pt
+        return ControlTests(bad_obs, np.zeros(g, bool), w_pt, sd_pt, influence)
     total = cov + np.einsum("gi,ij->gij", np.nan_to_num(sigma) ** 2, np.eye(3))
     diff = given - x  # each point's own estimate of the shift
     weight = np.zeros((g, 3, 3))
@@ -1769,7 +1794,11 @@ def control_point_tests(cameras: list[CameraModel], image_camera: np.ndarray, r:
             w_pt[i] = float(np.max(np.abs(diff[i] - s_i) / sd_pt[i]))
         worst = int(np.argmax(np.where(np.isfinite(w_pt), w_pt, -1.0)))
         if not (np.isfinite(w_pt[worst]) and w_pt[worst] > threshold):
-            return bad_obs, bad_pt, np.where(bad_pt, w_bad, w_pt), np.where(bad_pt[:, None], sd_bad, sd_pt)
+            kept = np.flatnonzero(np.isfinite(w_pt))
+            if shift_free and len(kept) and np.linalg.cond(info_all) < 1e12:
+                influence[kept] = np.linalg.norm(np.linalg.inv(info_all) @ weight[kept], axis=1)
+            return ControlTests(bad_obs, bad_pt, np.where(bad_pt, w_bad, w_pt),
+                                np.where(bad_pt[:, None], sd_bad, sd_pt), influence)
         # the worst goes, and the others are tested again without it (its error no longer in their shift)
         bad_pt[worst], ok[worst], w_bad[worst], sd_bad[worst] = True, False, w_pt[worst], sd_pt[worst]
         info_all = info_all - weight[worst]

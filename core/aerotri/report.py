@@ -170,7 +170,8 @@ def reliability(run: Run, ties: TiePoints) -> dict:
     redundancy number and the median and 95th percentile of their smallest detectable errors (pixels); ``priors``:
     of the EO priors tested, per axis the median and largest (``attitude_deg`` about world X Y Z, ``position_m``);
     ``control_points``: per control point tested its redundancy numbers and smallest detectable errors (metres) per
-    axis, the weakest first. Parts a result does not hold are empty."""
+    axis, the weakest first, and how far such an error would move the datum shift (``datum_effect_m``, external
+    reliability; None when the shift is held). Parts a result does not hold are empty."""
     res = run.result
     rows = []
     if len(res.obs_mdb) == len(run.obs_index):
@@ -192,8 +193,12 @@ def reliability(run: Run, ties: TiePoints) -> dict:
             priors[key] = {"images": len(a), "median": unit(np.median(a, 0)).tolist(), "max": unit(a.max(0)).tolist()}
     control = []
     if len(res.gcp_mdb) == len(run.control_names):
+        effect = res.gcp_datum_effect if len(res.gcp_datum_effect) == len(res.gcp_mdb) else np.full_like(res.gcp_mdb,
+                                                                                                         np.nan)
         control = [{"name": run.control_names[g], "redundancy": res.gcp_redundancy[g].tolist(),
-                    "mdb_m": res.gcp_mdb[g].tolist()} for g in np.flatnonzero(np.all(np.isfinite(res.gcp_mdb), 1))]
+                    "mdb_m": res.gcp_mdb[g].tolist(),
+                    "datum_effect_m": None if not np.all(np.isfinite(effect[g])) else effect[g].tolist()}
+                   for g in np.flatnonzero(np.all(np.isfinite(res.gcp_mdb), 1))]
         control.sort(key=lambda d: -max(d["mdb_m"]))
     return {"power": DETECTION_POWER, "ties": rows, "priors": priors, "control_points": control}
 
@@ -697,11 +702,14 @@ def _reliability_html(runs: list[dict]) -> list[str]:
         parts.append("<h3>EO priors</h3><table><tr><th>run</th><th>prior</th><th>images</th>"
                      f"<th>detectable error X Y Z, median</th><th>largest</th></tr>{rows}</table>")
     rows = "".join(f"<tr><td>{html.escape(d['name'])}</td><td>{html.escape(n)}</td>"
-                   f"<td>{format_value(d['redundancy'])}</td><td>{format_value(d['mdb_m'])}</td></tr>"
+                   f"<td>{format_value(d['redundancy'])}</td><td>{format_value(d['mdb_m'])}</td>"
+                   f"<td>{format_value(d.get('datum_effect_m'))}</td></tr>"
                    for n, x in rel for d in x["control_points"])
     if rows:
-        parts.append("<h3>Control points</h3><table><tr><th>point</th><th>run</th><th>redundancy X Y Z</th>"
-                     f"<th>detectable error X Y Z [m]</th></tr>{rows}</table>")
+        parts.append("<h3>Control points</h3><p>Moves the datum: how far an undetected error of the detectable size "
+                     "on each axis would shift the whole block.</p><table><tr><th>point</th><th>run</th>"
+                     "<th>redundancy X Y Z</th><th>detectable error X Y Z [m]</th><th>moves the datum [m]</th></tr>"
+                     f"{rows}</table>")
     return parts
 
 

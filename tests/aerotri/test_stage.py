@@ -242,6 +242,7 @@ def test_a_wrong_control_point_is_rejected_and_reported(tmp_path):
     # weakest control point reaches the stage's metric, message and the HTML page
     points = {d["name"]: d for d in clean["runs"][0]["reliability"]["control_points"]}
     assert points[gp.name]["mdb_m"][2] < 0.3
+    assert 0.0 < points[gp.name]["datum_effect_m"][2] < 0.5 * points[gp.name]["mdb_m"][2]  # the others hold the datum
     weak = clean["weakest_control"]
     assert weak["mdb_m"] == max(max(d["mdb_m"]) for d in points.values())
     assert results[0].metrics["control_mdb_max_m"] == weak["mdb_m"]
