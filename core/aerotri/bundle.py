@@ -339,10 +339,10 @@ class BundleResult:
         share of an error that shows in its residual); obs_mdb : (m,) the smallest error of a measurement (pixels)
         its test finds with probability :data:`DETECTION_POWER` (NaN: not in the solution); gcp_redundancy, gcp_mdb
         : (g, 3) the same per control point axis (metres; from the last control point test, NaN: untested);
-        gcp_datum_effect : (g, 3) how far such an error moves the datum shift (external reliability, metres; NaN
-        where untested or the shift is held);
         prior_mdb : (n, 6) the same per EO prior axis (attitude about world X Y Z in radians, position in metres;
-        from the last prior test, at its robust scale; NaN: untested)
+        from the last prior test, at its robust scale; NaN: untested); gcp_datum_effect : (g, 3) how far a control
+        point error of the size in gcp_mdb moves the datum shift (external reliability, metres; NaN where untested
+        or the shift is held)
     datum_shift : (3,) control frame - GNSS frame
     gnss_strip : (s, 6) per strip of ``BundleProblem.strip_names`` its GNSS offset (metres) and drift (metres per
         km) as estimated with ``BundleOptions.gnss_strips`` (NaN: not estimated); gnss_strip_std : (s, 6) their
@@ -1453,7 +1453,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     # prior residuals (adjusted - prior), world frame; with a mounting correction those of the frame it leaves
     r_f, c_f = frame_poses(r, c, prob.image_camera, mounting)
     att_res, pos_res = _prior_residuals(prob, r_f, c_f, offsets)
-    delta = detectable_shift(opt.blunder_threshold)
+    # the smallest detectable errors: tie measurements tested on 2 degrees of freedom, coordinates on 1 per axis
+    delta_obs, delta = detectable_shift(opt.blunder_threshold, 2), detectable_shift(opt.blunder_threshold)
     return BundleResult(
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
@@ -1463,8 +1464,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
         timing=timing, gcp_obs_rejected=gcp_obs_bad, gcp_rejected=~gcp_ok, gcp_w=gcp_w,
         prior_rejected=prior_off, prior_w=prior_w, gnss_strip=strips, gnss_strip_std=strips_std,
-        obs_redundancy=red, obs_mdb=np.where(active, detectable_shift(opt.blunder_threshold, 2) * opt.sigma_px * sigma0
-                                             / np.sqrt(red), np.nan),
+        obs_redundancy=red, obs_mdb=np.where(active, delta_obs * opt.sigma_px * sigma0 / np.sqrt(red), np.nan),
         gcp_redundancy=prob.gcp_sigma**2 / gcp_sd**2, gcp_mdb=delta * gcp_sd,
         gcp_datum_effect=delta * gcp_sd * gcp_infl, prior_mdb=delta * prior_sd)
 

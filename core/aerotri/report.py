@@ -171,35 +171,30 @@ def reliability(run: Run, ties: TiePoints) -> dict:
     of the EO priors tested, per axis the median and largest (``attitude_deg`` about world X Y Z, ``position_m``);
     ``control_points``: per control point tested its redundancy numbers and smallest detectable errors (metres) per
     axis, the weakest first, and how far such an error would move the datum shift (``datum_effect_m``, external
-    reliability; None when the shift is held). Parts a result does not hold are empty."""
+    reliability; None when the shift is held). Parts with nothing tested are empty."""
     res = run.result
+    used = _used(run) & np.isfinite(res.obs_mdb)
+    track = ties.obs_track[run.obs_index[used]]
+    rays = np.bincount(track, minlength=ties.n_tracks)[track]
+    red, mdb = res.obs_redundancy[used], res.obs_mdb[used]
     rows = []
-    if len(res.obs_mdb) == len(run.obs_index):
-        used = _used(run) & np.isfinite(res.obs_mdb)
-        track = ties.obs_track[run.obs_index[used]]
-        rays = np.bincount(track, minlength=ties.n_tracks)[track]
-        red, mdb = res.obs_redundancy[used], res.obs_mdb[used]
-        for label, fewest, most in RAY_CLASSES:
-            sel = (rays >= fewest) & (rays <= (most or np.inf))
-            if sel.any():
-                rows.append({"rays": label, "measurements": int(sel.sum()), "redundancy_mean": float(red[sel].mean()),
-                             "mdb_px_median": float(np.median(mdb[sel])),
-                             "mdb_px_p95": float(np.percentile(mdb[sel], 95))})
+    for label, fewest, most in RAY_CLASSES:
+        sel = (rays >= fewest) & (rays <= (most or np.inf))
+        if sel.any():
+            rows.append({"rays": label, "measurements": int(sel.sum()), "redundancy_mean": float(red[sel].mean()),
+                         "mdb_px_median": float(np.median(mdb[sel])), "mdb_px_p95": float(np.percentile(mdb[sel], 95))})
     priors = {}
     for key, cols, unit in (("attitude_deg", slice(0, 3), np.degrees), ("position_m", slice(3, 6), np.asarray)):
         a = res.prior_mdb[:, cols]
         a = a[np.all(np.isfinite(a), 1)]
         if len(a):
             priors[key] = {"images": len(a), "median": unit(np.median(a, 0)).tolist(), "max": unit(a.max(0)).tolist()}
-    control = []
-    if len(res.gcp_mdb) == len(run.control_names):
-        effect = res.gcp_datum_effect if len(res.gcp_datum_effect) == len(res.gcp_mdb) else np.full_like(res.gcp_mdb,
-                                                                                                         np.nan)
-        control = [{"name": run.control_names[g], "redundancy": res.gcp_redundancy[g].tolist(),
-                    "mdb_m": res.gcp_mdb[g].tolist(),
-                    "datum_effect_m": None if not np.all(np.isfinite(effect[g])) else effect[g].tolist()}
-                   for g in np.flatnonzero(np.all(np.isfinite(res.gcp_mdb), 1))]
-        control.sort(key=lambda d: -max(d["mdb_m"]))
+    effect = res.gcp_datum_effect
+    control = [{"name": run.control_names[g], "redundancy": res.gcp_redundancy[g].tolist(),
+                "mdb_m": res.gcp_mdb[g].tolist(),
+                "datum_effect_m": effect[g].tolist() if np.all(np.isfinite(effect[g])) else None}
+               for g in np.flatnonzero(np.all(np.isfinite(res.gcp_mdb), 1))]
+    control.sort(key=lambda d: -max(d["mdb_m"]))
     return {"power": DETECTION_POWER, "ties": rows, "priors": priors, "control_points": control}
 
 
