@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -267,14 +267,14 @@ class _EarlyStart:
     nothing printed: the same 78,599 rejections, check point RMS and standard deviations).
 
     Called as ``adjust``'s ``on_robust`` hook with the nadir orientations and points; with ``parallel`` (an
-    executor with workers) the set-up and the sub-blocks, one after the other, run in a thread of this process
-    (mostly numpy, which leaves the interpreter to the nadir run; on the core the nadir run leaves idle in its
-    single-threaded parts), and :meth:`results` takes the sub-blocks the thread has not started yet, so that the
-    core the nadir run freed does not wait; inline otherwise (when :meth:`results` is asked, with the same values).
-    Sending the sub-blocks to the executor's workers instead did not help on 2 cores: the nadir run and the set-up
-    after it took 16.4-19.6 s with the thread (3 runs of the 3,000-image block), 19.5 s with one worker, 17.7-19.3
-    s with both. ``results()`` -> view -> (image ids, tracks ``(p,)``, ``r (k, 3, 3)``, ``c (k, 3)``, points
-    ``(p, 3)``, sigma0), and the start points ``(n, 3)`` of all tracks."""
+    executor with workers) the set-up and the sub-blocks, one after the other and the largest first, run in a
+    thread of this process (mostly numpy, which leaves the interpreter to the nadir run; on the core the nadir run
+    leaves idle in its single-threaded parts), and :meth:`ready` gives them as they are done, taking itself the
+    sub-blocks the thread has not started yet, so that the core the nadir run freed does not wait; each can go to
+    the executor's workers while the others are still being resected. Inline otherwise (when :meth:`ready` is
+    asked, with the same values). Sending the sub-blocks to the executor's workers instead did not help on 2 cores:
+    the nadir run and the set-up after it took 16.4-19.6 s with the thread (3 runs of the 3,000-image block), 19.5
+    s with one worker, 17.7-19.3 s with both."""
 
     block: ImageBlock
     ties: TiePoints
@@ -288,7 +288,8 @@ class _EarlyStart:
     _start: tuple | None = field(default=None, init=False)
     _thread: threading.Thread | None = field(default=None, init=False)
     _error: BaseException | None = field(default=None, init=False)
-    _lock: threading.Lock = field(default_factory=threading.Lock, init=False)
+    _thread_done: bool = field(default=False, init=False)
+    _cond: threading.Condition = field(default_factory=threading.Condition, init=False)
     _xyz_start: np.ndarray | None = field(default=None, init=False)
     _todo: list | None = field(default=None, init=False)  # (view, sub-block) not started yet, once set up
     _outs: dict = field(default_factory=dict, init=False)
@@ -305,36 +306,54 @@ class _EarlyStart:
                 self.before.join()
             self._set_up()
             self._work()
-        except BaseException as e:  # noqa: BLE001 - handed to the caller in results()
+        except BaseException as e:  # noqa: BLE001 - handed to the caller in ready()
             self._error = e
+        finally:
+            with self._cond:
+                self._thread_done = True
+                self._cond.notify_all()
 
-    def results(self) -> tuple[dict, np.ndarray] | None:
-        """The early starts (None when the nadir run had no robust round); raises what the computation raised."""
+    def ready(self) -> Iterator[tuple[str, tuple, np.ndarray]]:
+        """The early starts as they are done: view, (image ids, tracks ``(p,)``, ``r (k, 3, 3)``, ``c (k, 3)``,
+        points ``(p, 3)``, sigma0), and the start points ``(n, 3)`` of all tracks. Raises what the computation
+        raised. Nothing without an early start."""
         if self._start is None:
-            return None
-        if self._thread is not None:
-            try:
-                self._work()
-            finally:
-                self._thread.join()
-        else:
-            if self._todo is None:
-                self._set_up()
-            self._work()
-        if self._error is not None:
-            raise self._error
-        return {v: self._outs[v] for v in self.in_runs}, self._xyz_start
+            return
+        if self._thread is None and self._todo is None:
+            self._set_up()
+        given: set[str] = set()
+        try:
+            while True:
+                with self._cond:
+                    while True:
+                        if self._error is not None:
+                            raise self._error
+                        new = [v for v in self._outs if v not in given]
+                        if new or self._todo or self._thread is None or self._thread_done:
+                            break
+                        self._cond.wait()
+                    task = self._todo.pop(0) if not new and self._todo else None
+                if task is not None:
+                    self._resect(*task)
+                elif not new:
+                    return
+                for v in [v for v in self._outs if v not in given]:
+                    given.add(v)
+                    yield v, self._outs[v], self._xyz_start
+        finally:
+            if self._thread is not None:
+                self.discard()
 
     def discard(self) -> None:
-        """Let a running early start end after the sub-block it is on and drop its outcome (the nadir run failed or
-        was cancelled)."""
+        """Let a running early start end after the sub-block it is on and drop what it has not started (the nadir
+        run failed or was cancelled, or the caller has what it needs)."""
         if self._thread is not None:
-            with self._lock:
+            with self._cond:
                 self._todo = []
             self._thread.join()
 
     def _set_up(self) -> None:
-        """The start orientations and points, the sub-blocks."""
+        """The start orientations and points, the sub-blocks (the largest first)."""
         r, c, xyz = self._start
         block, ties = self.block, self.ties
         prob_n = self.nadir_problem.problem
@@ -342,21 +361,28 @@ class _EarlyStart:
         xyz_start = self.xyz0.copy()
         xyz_start[self.nadir_problem.track_index] = np.where(np.isfinite(xyz[:, :1]), xyz,
                                                              xyz_start[self.nadir_problem.track_index])
-        subs = [(v, build_problem(block, ties, self.views[v], xyz_start, obs_mask=in_run, use_control=False,
-                                  initial=start)) for v, in_run in self.in_runs.items()]
-        with self._lock:
+        views = sorted(self.in_runs, key=lambda v: -int(np.count_nonzero(self.in_runs[v])))
+        subs = [(v, build_problem(block, ties, self.views[v], xyz_start, obs_mask=self.in_runs[v],
+                                  use_control=False, initial=start)) for v in views]
+        with self._cond:
             self._xyz_start = xyz_start
             if self._todo is None:  # (not discarded meanwhile)
                 self._todo = subs
 
     def _work(self) -> None:
-        """Resect the sub-blocks not started yet, one after the other (in the thread and in :meth:`results`)."""
+        """Resect the sub-blocks not started yet, one after the other (the thread)."""
         while True:
-            with self._lock:
+            with self._cond:
                 if not self._todo:
                     return
-                v, sub = self._todo.pop(0)
-            self._outs[v] = (sub.problem.image_ids, sub.track_index, *_resected(sub.problem, self.opt))
+                task = self._todo.pop(0)
+            self._resect(*task)
+
+    def _resect(self, v: str, sub: SubProblem) -> None:
+        out = (sub.problem.image_ids, sub.track_index, *_resected(sub.problem, self.opt))
+        with self._cond:
+            self._outs[v] = out
+            self._cond.notify_all()
 
 
 def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connection: str = "cba",
@@ -449,54 +475,61 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
             in_run = in_view & (kept | sel)[ties.obs_track]
             thinned_obs |= in_view & ~in_run
         per_view.append((v, ids, sel, in_run))
-    # start coordinates of the tracks that enter an oblique run (thinned tracks are intersected at the end): the
-    # nadir run's where it adjusted them, else those of the early start (see _EarlyStart), else intersected from
-    # the navigation data (the connection points above were selected while the early start finished)
-    early_out = early.results()
-    if early_out is not None:
-        pre, xyz_pre = early_out
-        xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
-    else:
-        pre = {}
-        xyz_start = np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz0)
-    items, conn_counts, conn_masks = [], {}, {}
-    for v, ids, sel, in_run in per_view:
+    # the oblique runs' items, made as their early starts are done (see _EarlyStart; in order of readiness, the
+    # largest first) so that the workers start on the first while the others are resected; without an early start
+    # the largest first. Start coordinates of the tracks that enter an oblique run (thinned tracks are intersected
+    # at the end): the nadir run's where it adjusted them, else those of the early start, else intersected from
+    # the navigation data.
+    conn_counts, conn_masks, subs = {}, {}, {}
+    # parallel units share the cores: each gets its part of the threads
+    threads = opt.threads
+    if parallel and len(per_view) > 1:
+        threads = max(1, opt.threads // min(len(per_view), max(1, int(getattr(executor, "workers", 1)))))
+
+    def item(v: str, ids: list[str], sel: np.ndarray, in_run: np.ndarray, pre: tuple | None,
+             xyz_pre: np.ndarray) -> tuple[str, SubProblem, BundleOptions]:
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
-        opt_v = replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True, gnss_strips="off")
-        initial, x_v = start_poses, xyz_start
-        if v in pre and pre[v][5] <= opt.screen_max_sigma0:
+        opt_v = replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True,
+                        gnss_strips="off", threads=threads)
+        initial, x_v = start_poses, np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
+        if pre is not None and pre[5] <= opt.screen_max_sigma0:
             # moved to its inliers already: the run starts there and screens once
-            ids_e, tracks_e, r_e, c_e, x_e, _ = pre[v]
+            ids_e, tracks_e, r_e, c_e, x_e, _ = pre
             initial = {iid: Pose(r_e[k], c_e[k]) for k, iid in enumerate(ids_e)}
             fin = np.isfinite(x_e[:, 0])
-            x_v = xyz_start.copy()
             x_v[tracks_e[fin]] = x_e[fin]
             opt_v = replace(opt_v, screen_resect=False)
         sub = build_problem(block, ties, ids, x_v, obs_mask=in_run, use_control=oblique_control,
                             point_prior_xyz=prior_xyz, point_prior_cov=prior_cov, prior_shift=res_n.datum_shift,
                             initial=initial, prior_offsets=offsets)
-        conn_counts[v] = int(sel.sum())
-        conn_masks[v] = sel
-        items.append((v, sub, opt_v))
+        conn_counts[v], conn_masks[v], subs[v] = int(sel.sum()), sel, sub
+        return v, sub, opt_v
+
+    by_view = {v: (ids, sel, in_run) for v, ids, sel, in_run in per_view}
+
+    def items() -> Iterator[tuple[str, SubProblem, BundleOptions]]:
+        made = set()
+        for v, pre, xyz_pre in early.ready():
+            made.add(v)
+            yield item(v, *by_view[v], pre, xyz_pre)
+        rest = sorted(set(by_view) - made, key=lambda v: -int(np.count_nonzero(by_view[v][2])))
+        for v in rest:
+            yield item(v, *by_view[v], None, xyz0)
+
     release_heap()  # what the nadir run and the set-up freed, before the oblique runs and the intersection
-    # parallel units share the cores: each gets its part of the threads (the largest blocks start first)
     if warm is not None:
         warm.join()
-    if parallel and len(items) > 1:
-        per_unit = max(1, opt.threads // min(len(items), max(1, int(getattr(executor, "workers", 1)))))
-        items = [(v, sub, replace(o, threads=per_unit)) for v, sub, o in items]
     done_cb = None if progress is None else (lambda d, t: progress(t + d, 2 * t, f"oblique blocks {d}/{t}"))
     t2 = time.perf_counter()
     setup_wall = t2 - t1 - nadir.wall_s
-    big_first = sorted(range(len(items)), key=lambda i: -len(items[i][1].obs_index))
-    todo = [items[i] for i in big_first]
-    done = executor.map(_adjust_unit, todo, done_cb) if executor is not None else [_adjust_unit(it) for it in todo]
-    outputs = [done[big_first.index(i)] for i in range(len(items))]
+    outputs = (executor.map(_adjust_unit, items(), done_cb, total=len(per_view)) if executor is not None
+               else [_adjust_unit(it) for it in items()])
+    by_name = {name: (res, wall) for name, res, wall in outputs}
     oblique_wall = time.perf_counter() - t2
     runs = [nadir]
-    for (v, sub, _), (_, res, wall) in zip(items, outputs):
-        run = _to_run(v, sub, res, wall)
+    for v in by_view:
+        run = _to_run(v, subs[v], *by_name[v])
         run.connection_count = conn_counts[v]
         runs.append(run)
     # (3) combination by error propagation

@@ -42,49 +42,46 @@ class Executor:
         return max(1, len(os.sched_getaffinity(0)) // self.workers)
 
     def map(self, fn: Callable[..., Any], items: Sequence[Any] | Iterable[Any],
-            on_done: Callable[[int, int], None] | None = None) -> list[Any]:
+            on_done: Callable[[int, int], None] | None = None, total: int | None = None) -> list[Any]:
         """``[fn(item) for item in items]``, possibly in parallel; results keep the order of ``items``.
 
         ``on_done(done, total)`` is called in this process as units finish (progress and cancellation: the
-        callback may raise :class:`~..errors.Cancelled`, which cancels the remaining units).
+        callback may raise :class:`~..errors.Cancelled`, which cancels the remaining units). A lazy iterable
+        (a generator) is drawn one item at a time and each unit is sent to the workers as soon as it is drawn, so
+        that the workers start on the first units while the later ones are still being made; ``total`` is then
+        its length for ``on_done`` (else counted as drawn).
         """
-        items = list(items)
-        total = len(items)
-        if self.mode == "inline" or total <= 1 and self.mode != "dask":
-            out = []
-            for i, it in enumerate(items):
-                out.append(fn(it))
-                if on_done is not None:
-                    on_done(i + 1, total)
-            return out
+        if isinstance(items, Sequence):
+            total = len(items)
+            if self.mode == "processes" and total <= 1:
+                return self._map_inline(fn, items, on_done, total)
+        if self.mode == "inline":
+            return self._map_inline(fn, items, on_done, total)
         if self.mode == "processes":
-            return self._map_processes(fn, items, on_done)
-        return self._map_dask(fn, items, on_done)
+            return self._map_processes(fn, items, on_done, total)
+        return self._map_dask(fn, items, on_done, total)
 
-    def _map_processes(self, fn, items, on_done):
+    @staticmethod
+    def _map_inline(fn, items, on_done, total):
+        out = []
+        for it in items:
+            out.append(fn(it))
+            if on_done is not None:
+                on_done(len(out), total or len(out))
+        return out
+
+    def _map_processes(self, fn, items, on_done, total):
         import concurrent.futures as cf
         import multiprocessing as mp
 
         if self._pool is None:
             self._pool = cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"),
                                                 initializer=limit_threads, initargs=(self.threads_per_worker,))
-        futures = {self._pool.submit(fn, it): i for i, it in enumerate(items)}
-        out: list[Any] = [None] * len(items)
-        done = 0
-        try:
-            for fut in cf.as_completed(futures):
-                out[futures[fut]] = fut.result()
-                done += 1
-                if on_done is not None:
-                    on_done(done, len(items))
-        except BaseException:
-            for fut in futures:
-                fut.cancel()
-            raise
-        return out
+        return _gather(lambda it: self._pool.submit(fn, it), items, cf.wait, cf.FIRST_COMPLETED,
+                       lambda futs: [f.cancel() for f in futs], on_done, total)
 
-    def _map_dask(self, fn, items, on_done):
-        from distributed import Client, LocalCluster, as_completed
+    def _map_dask(self, fn, items, on_done, total):
+        from distributed import Client, LocalCluster, wait
 
         if self._client is None:
             if self.address:
@@ -93,20 +90,9 @@ class Executor:
                 self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                              dashboard_address=None)
                 self._client = Client(self._cluster)
-        futures = self._client.map(fn, items, pure=False)
-        index = {f.key: i for i, f in enumerate(futures)}
-        out: list[Any] = [None] * len(items)
-        done = 0
-        try:
-            for fut in as_completed(futures):
-                out[index[fut.key]] = fut.result()
-                done += 1
-                if on_done is not None:
-                    on_done(done, len(items))
-        except BaseException:
-            self._client.cancel(futures)
-            raise
-        return out
+        client = self._client
+        return _gather(lambda it: client.submit(fn, it, pure=False), items, wait, "FIRST_COMPLETED",
+                       client.cancel, on_done, total)
 
     def close(self) -> None:
         """Shut down the pool or the Dask client (and its LocalCluster, if this executor started one)."""
@@ -125,6 +111,39 @@ class Executor:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _gather(submit: Callable[[Any], Any], items: Iterable[Any], wait: Callable, first_completed: Any,
+            cancel: Callable[[list], Any], on_done: Callable[[int, int], None] | None, total: int | None) -> list[Any]:
+    """The results of ``submit(item)`` (a future of ``concurrent.futures`` or of Dask, ``wait(futures, timeout,
+    first_completed)`` as theirs) for each item, in order; items are submitted as they are drawn, finished units
+    are reported while later items are drawn. On an error (or a cancellation from ``on_done``) the units not
+    finished are cancelled."""
+    futures: list = []
+    out: dict[int, Any] = {}
+    pending: set = set()
+    index: dict = {}
+
+    def collect(done: set) -> None:
+        for fut in done:
+            out[index[fut]] = fut.result()
+            pending.discard(fut)
+            if on_done is not None:
+                on_done(len(out), total or len(futures))
+
+    try:
+        for it in items:
+            fut = submit(it)
+            index[fut] = len(futures)
+            futures.append(fut)
+            pending.add(fut)
+            collect({f for f in pending if f.done()})
+        while pending:
+            collect(set(wait(list(pending), None, first_completed).done))
+    except BaseException:
+        cancel([f for f in futures if not f.done()])
+        raise
+    return [out[i] for i in range(len(futures))]
 
 
 def limit_threads(threads: int) -> None:

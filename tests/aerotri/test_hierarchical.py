@@ -67,8 +67,9 @@ def test_hat_oblique_runs_in_worker_processes_give_the_same_result(sim, xyz0, op
 
 
 def test_hat_early_start_shares_its_sub_blocks_with_the_caller(sim, xyz0, options, monkeypatch):
-    """With workers, the early start runs in a thread and the set-up, asking for its results, resects the oblique
-    sub-blocks the thread has not started yet: both take sub-blocks, and the result is the inline one."""
+    """With workers, the early start runs in a thread and the set-up, drawing the oblique runs as their early starts
+    are done, resects the sub-blocks the thread has not started yet: both take sub-blocks, and the result is the
+    inline one."""
     import threading
 
     import oblique_city.core.aerotri.hierarchical as hat_module
@@ -77,7 +78,7 @@ def test_hat_early_start_shares_its_sub_blocks_with_the_caller(sim, xyz0, option
         """An executor with workers as far as HAT can tell, running its units in this process."""
         mode, workers = "serial", 1
 
-        def map(self, fn, items, on_done=None):
+        def map(self, fn, items, on_done=None, total=None):
             return [fn(it) for it in items]
 
     inline = hierarchical(sim.block, sim.ties, options, connection="cba", xyz0=xyz0)

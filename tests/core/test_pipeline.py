@@ -51,6 +51,13 @@ def _double(x: int) -> int:
     return 2 * x
 
 
+def _touch(path: str) -> str:
+    from pathlib import Path
+
+    Path(path).write_text("done")
+    return path
+
+
 def _blas_threads(_: int) -> tuple[list[int], str | None]:
     import os
 
@@ -190,6 +197,29 @@ def test_executor_local(mode: str) -> None:
         done = []
         assert ex.map(_double, range(7), on_done=lambda d, t: done.append(d)) == [0, 2, 4, 6, 8, 10, 12]
         assert done[-1] == 7
+
+
+@pytest.mark.parametrize("mode", ["processes", pytest.param("dask", marks=pytest.mark.xdist_group("dask"))])
+def test_executor_runs_units_of_a_generator_as_they_are_drawn(mode: str, tmp_path) -> None:
+    """The second item is drawn only once the first unit has run: an executor that drew all items before starting
+    any unit would wait here until the time-out."""
+    import time
+
+    def items():
+        first = tmp_path / "first"
+        yield str(first)
+        t0 = time.monotonic()
+        while not first.exists():
+            if time.monotonic() - t0 > 60:
+                raise AssertionError("the first unit did not run before the second item was drawn")
+            time.sleep(0.05)
+        yield str(tmp_path / "second")
+
+    with Executor(mode, workers=2) as ex:
+        done = []
+        assert ex.map(_touch, items(), on_done=lambda d, t: done.append((d, t)), total=2) == [
+            str(tmp_path / "first"), str(tmp_path / "second")]
+    assert done[-1] == (2, 2)
 
 
 def test_process_workers_share_the_cores() -> None:
