@@ -342,7 +342,8 @@ class BundleResult:
         prior_mdb : (n, 6) the same per EO prior axis (attitude about world X Y Z in radians, position in metres;
         from the last prior test, at its robust scale; NaN: untested); gcp_datum_effect : (g, 3) how far a control
         point error of the size in gcp_mdb moves the datum shift (external reliability, metres; NaN where untested
-        or the shift is held)
+        or the shift is held); prior_effect : (n, 6) how far a prior error of the size in prior_mdb moves the
+        adjusted orientation along its axis (external reliability, with the points held; NaN: untested)
     datum_shift : (3,) control frame - GNSS frame
     gnss_strip : (s, 6) per strip of ``BundleProblem.strip_names`` its GNSS offset (metres) and drift (metres per
         km) as estimated with ``BundleOptions.gnss_strips`` (NaN: not estimated); gnss_strip_std : (s, 6) their
@@ -397,6 +398,7 @@ class BundleResult:
     gcp_mdb: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     gcp_datum_effect: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     prior_mdb: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    prior_effect: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
 
 
 def _quat_xyzw(r: np.ndarray) -> np.ndarray:
@@ -1247,6 +1249,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     prior_off = np.zeros((prob.n_images, 2), bool)
     prior_w = np.full((prob.n_images, 2), np.nan)
     prior_sd = np.full((prob.n_images, 6), np.nan)
+    prior_share = np.full((prob.n_images, 6), np.nan)
     iterations = 0
     log: list[str] = []
     total_rounds = opt.max_rejection_rounds + 1
@@ -1366,11 +1369,12 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         if opt.prior_tests and prior_ok.any():
             att_v, pos_v = _prior_residuals(prob, *frame_poses(r, c, prob.image_camera, model.mounting()),
                                             model.strip_offsets())
-            bad_p, w_p, scale, sd_p = prior_tests(att_v, pos_v, prob.prior_sigma_att, prob.prior_sigma_pos, n_ties,
-                                                  prior_ok[:, None] & ~prior_off & rd.adjusted[:, None],
-                                                  opt.blunder_threshold)
+            bad_p, w_p, scale, sd_p, share_p = prior_tests(
+                att_v, pos_v, prob.prior_sigma_att, prob.prior_sigma_pos, n_ties,
+                prior_ok[:, None] & ~prior_off & rd.adjusted[:, None], opt.blunder_threshold)
             prior_w = np.where(prior_off, prior_w, w_p)
             prior_sd = np.where(np.repeat(prior_off, 3, axis=1), prior_sd, sd_p)
+            prior_share = np.where(np.repeat(prior_off, 3, axis=1), prior_share, share_p)
             for part in np.flatnonzero(scale > PRIOR_SCALE_NOTE):
                 log.append(f"round {rnd}: the {PRIOR_PART_LABELS[part]} priors differ from the tie "
                            f"points' orientations by {scale[part]:.1f} times their sigmas (robust): tested at that "
@@ -1466,7 +1470,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         prior_rejected=prior_off, prior_w=prior_w, gnss_strip=strips, gnss_strip_std=strips_std,
         obs_redundancy=red, obs_mdb=np.where(active, delta_obs * opt.sigma_px * sigma0 / np.sqrt(red), np.nan),
         gcp_redundancy=prob.gcp_sigma**2 / gcp_sd**2, gcp_mdb=delta * gcp_sd,
-        gcp_datum_effect=delta * gcp_sd * gcp_infl, prior_mdb=delta * prior_sd)
+        gcp_datum_effect=delta * gcp_sd * gcp_infl, prior_mdb=delta * prior_sd,
+        prior_effect=delta * prior_sd * prior_share)
 
 
 def _strip_std(prob: BundleProblem, opt: BundleOptions, strips: np.ndarray, in_use: np.ndarray,
@@ -1818,9 +1823,25 @@ def _prior_residuals(prob: BundleProblem, r_frame: np.ndarray, c_frame: np.ndarr
     return att, np.where(has[:, None], c_frame - prob.prior_c + offsets, np.nan)
 
 
+class PriorTests(NamedTuple):
+    """The outcome of :func:`prior_tests`.
+
+    rejected : (n, 2) the parts (attitude, position) rejected; w : (n, 2) the parts' largest normalised differences
+    (NaN: not tested); scale : (2,) the two robust scales (1 where not above it); sd : (n, 6) the standard
+    deviations of the differences times their part's scale (the unit of the test; NaN: not tested); share : (n, 6)
+    the share of an error in a prior axis that enters the adjusted orientation along that axis with the points held
+    (``[(N_t + P)^-1 P]_ii``, one minus its redundancy number; NaN: not tested)
+    """
+
+    rejected: np.ndarray
+    w: np.ndarray
+    scale: np.ndarray
+    sd: np.ndarray
+    share: np.ndarray
+
+
 def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray, sigma_pos: np.ndarray,
-                n_ties: np.ndarray, in_use: np.ndarray, threshold: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                n_ties: np.ndarray, in_use: np.ndarray, threshold: float) -> PriorTests:
     """Blunder tests of the images' EO priors (GNSS position, IMU attitude), each against the orientation the
     image's own tie observations give with the points held (a resection, in which the prior takes no part).
 
@@ -1836,9 +1857,7 @@ def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray,
     0.6745 (the normal one's), as data snooping assumes few blunders among correctly weighted observations, and
     priors whose sigmas are too small (a GNSS accuracy taken from a better survey) would otherwise fail by the
     dozen. A part whose largest exceeds ``threshold`` is rejected. An image whose ties do not determine its pose
-    (``N_t`` singular) is not tested. Returns the rejected parts ``(n, 2)``, the parts' largest normalised
-    differences ``(n, 2)`` (NaN: not tested), the two robust scales ``(2,)`` (1 where not above it) and the standard
-    deviations of the differences ``(n, 6)`` times their part's scale (the unit of the test; NaN: not tested)."""
+    (``N_t`` singular) is not tested. Returns a :class:`PriorTests`."""
     n = len(att_res)
     use6 = np.repeat(in_use, 3, axis=1)
     sigma = np.concatenate([sigma_att, sigma_pos], 1)
@@ -1858,8 +1877,11 @@ def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray,
     w = np.full((n, 2), np.nan)
     tested = np.isfinite(w6).any(2)
     w[tested] = np.nanmax(w6[tested], axis=1)
-    sd = np.where(np.isfinite(w6.reshape(n, 6)), sd * np.repeat(scale, 3), np.nan)
-    return tested & (np.nan_to_num(w) > threshold), w, scale, sd
+    ok6 = np.isfinite(w6.reshape(n, 6))
+    sd = np.where(ok6, sd * np.repeat(scale, 3), np.nan)
+    share = np.where(ok6, np.diagonal(precision.safe_inverse(n_ties + p[:, :, None] * np.eye(6)), axis1=1, axis2=2) * p,
+                     np.nan)
+    return PriorTests(tested & (np.nan_to_num(w) > threshold), w, scale, sd, share)
 
 
 @cache

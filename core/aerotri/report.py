@@ -168,7 +168,9 @@ def reliability(run: Run, ties: TiePoints) -> dict:
 
     ``ties``: per class of tie points by the rays the run kept (:data:`RAY_CLASSES`) the measurements, their mean
     redundancy number and the median and 95th percentile of their smallest detectable errors (pixels); ``priors``:
-    of the EO priors tested, per axis the median and largest (``attitude_deg`` about world X Y Z, ``position_m``);
+    of the EO priors tested, per axis the median and largest (``attitude_deg`` about world X Y Z, ``position_m``),
+    and how far such an error would move the adjusted orientation (``effect_median``, ``effect_max``: external
+    reliability, with the points held);
     ``control_points``: per control point tested its redundancy numbers and smallest detectable errors (metres) per
     axis, the weakest first, and how far such an error would move the datum shift (``datum_effect_m``, external
     reliability; None when the shift is held). Parts with nothing tested are empty."""
@@ -185,10 +187,11 @@ def reliability(run: Run, ties: TiePoints) -> dict:
                          "mdb_px_median": float(np.median(mdb[sel])), "mdb_px_p95": float(np.percentile(mdb[sel], 95))})
     priors = {}
     for key, cols, unit in (("attitude_deg", slice(0, 3), np.degrees), ("position_m", slice(3, 6), np.asarray)):
-        a = res.prior_mdb[:, cols]
-        a = a[np.all(np.isfinite(a), 1)]
+        ok = np.all(np.isfinite(res.prior_mdb[:, cols]), 1)
+        a, e = res.prior_mdb[ok, cols], res.prior_effect[ok, cols]
         if len(a):
-            priors[key] = {"images": len(a), "median": unit(np.median(a, 0)).tolist(), "max": unit(a.max(0)).tolist()}
+            priors[key] = {"images": len(a), "median": unit(np.median(a, 0)).tolist(), "max": unit(a.max(0)).tolist(),
+                           "effect_median": unit(np.median(e, 0)).tolist(), "effect_max": unit(e.max(0)).tolist()}
     effect = res.gcp_datum_effect
     control = [{"name": run.control_names[g], "redundancy": res.gcp_redundancy[g].tolist(),
                 "mdb_m": res.gcp_mdb[g].tolist(),
@@ -689,13 +692,15 @@ def _reliability_html(runs: list[dict]) -> list[str]:
                      "<th>mean redundancy</th><th>detectable error, median [px]</th><th>95 % [px]</th></tr>"
                      f"{rows}</table>")
     rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{label}</td><td>{p['images']}</td>"
-                   f"<td>{format_value(p['median'])}</td><td>{format_value(p['max'])}</td></tr>"
+                   f"<td>{format_value(p['median'])}</td><td>{format_value(p['max'])}</td>"
+                   f"<td>{format_value(p['effect_median'])}</td><td>{format_value(p['effect_max'])}</td></tr>"
                    for n, x in rel for key, label in (("position_m", "GNSS position [m]"),
                                                       ("attitude_deg", "IMU attitude [deg]"))
                    if (p := x["priors"].get(key)))
     if rows:
         parts.append("<h3>EO priors</h3><table><tr><th>run</th><th>prior</th><th>images</th>"
-                     f"<th>detectable error X Y Z, median</th><th>largest</th></tr>{rows}</table>")
+                     "<th>detectable error X Y Z, median</th><th>largest</th>"
+                     f"<th>its effect on the orientation, median</th><th>largest</th></tr>{rows}</table>")
     rows = "".join(f"<tr><td>{html.escape(d['name'])}</td><td>{html.escape(n)}</td>"
                    f"<td>{format_value(d['redundancy'])}</td><td>{format_value(d['mdb_m'])}</td>"
                    f"<td>{format_value(d.get('datum_effect_m'))}</td></tr>"

@@ -671,10 +671,10 @@ def test_prior_tests_find_a_wrong_prior_and_scale_to_sigmas_that_are_too_small()
     tested, prior = _prior_case(5)
     prior[7, 3:] += [0.3, -0.2, 0.35]
     prior[19, :3] += np.radians([0.06, 0.0, 0.0])
-    bad, w, scale, _ = tested(prior)
+    bad, w, scale, _, _ = tested(prior)
     assert set(zip(*np.nonzero(bad))) == {(7, 1), (19, 0)}
     assert w[7, 1] > 5.5 and w[19, 0] > 9 and np.all(scale < 1.15)
-    bad, w, scale, _ = tested(prior * 3)  # three times the errors the sigmas state
+    bad, w, scale, _, _ = tested(prior * 3)  # three times the errors the sigmas state
     assert abs(scale[1] / 3 - 1) < 0.1 and abs(scale[0] / 3 - 1) < 0.1
     assert {(int(k), int(part)) for k, part in zip(*np.nonzero(bad))} <= {(7, 1), (19, 0)}
     assert np.nanmax(np.where(bad, np.nan, w)) < 4.3
@@ -696,7 +696,7 @@ def test_prior_detectable_errors_are_found_at_the_stated_power():
     standard deviation 0.8 %); at half that size 4.8 % (P(|N(2.57, 1)| > 4.3) = 4 %, and the chance of the other
     axes), at 1.5 times all."""
     tested, prior = _prior_case(7)
-    bad, _, _, sd = tested(prior)
+    bad, _, _, sd, _ = tested(prior)
     assert not bad.any()
     mdb = detectable_shift(4.3) * sd * np.random.default_rng(8).choice([-1.0, 1.0], prior.shape)
     found = {}
