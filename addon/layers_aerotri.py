@@ -163,7 +163,9 @@ def report_summary(path: Path) -> dict:
     strip, metres)``, their number and the strip with the largest offset, None when none were estimated), and without
     them the strips whose GNSS positions share an offset (``strips_suspected``: the same triple, the strip with the
     largest normalised offset, None when none), and the control point axis with the largest error its test can miss
-    (``weakest_control``: ``(point, axis, metres)``, None without one; see :func:`.core.aerotri.report.reliability`).
+    (``weakest_control``: ``(point, axis, metres)``, None without one; see :func:`.core.aerotri.report.reliability`),
+    and how far a GNSS position and an IMU attitude error its test can miss moves an image at most
+    (``prior_effect``: ``(metres, degrees)``, either None where no such prior was tested).
     Raises :class:`InputError` naming the file."""
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
@@ -187,6 +189,9 @@ def report_summary(path: Path) -> dict:
         suspect = {n: d for n, d in (doc.get("gnss_strip_check") or {}).items() if d.get("flagged")}
         worst = max(suspect, key=lambda n: max(float(w) for w in suspect[n]["w"])) if suspect else None
         weak = doc.get("weakest_control")
+        tested = [((r.get("reliability") or {}).get("priors") or {}) for r in doc.get("runs") or []]
+        effect = {key: max((float(a) for p in tested for a in (p.get(key) or {}).get("effect_max", [])), default=None)
+                  for key in ("position_m", "attitude_deg")}
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
                 "priors_rejected": (parts.count("position"), parts.count("attitude"),
                                     sorted({i for i, _ in priors})) if priors else None,
@@ -197,6 +202,8 @@ def report_summary(path: Path) -> dict:
                 if worst else None,
                 "control_rejected": rejected if rejected[0] or rejected[1] else None,
                 "weakest_control": (str(weak["name"]), str(weak["axis"]), float(weak["mdb_m"])) if weak else None,
+                "prior_effect": (effect["position_m"], effect["attitude_deg"])
+                if effect["position_m"] is not None or effect["attitude_deg"] is not None else None,
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),
                 "check_n": int(check["n"]), "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],

@@ -255,6 +255,11 @@ def draw_triangulation(layout, context) -> None:
     if s["weakest_control"]:
         name, axis, metres = s["weakest_control"]
         col.label(text=f"Weakest control point: {name}, errors below {_metres(metres)} in {axis} pass its test")
+    if s["prior_effect"]:
+        metres, degrees = s["prior_effect"]
+        parts = ([f"GNSS {_metres(metres)}"] if metres is not None else []) + (
+            [f"IMU {degrees:.4f} deg"] if degrees is not None else [])
+        col.label(text=f"Prior errors the tests miss move an image by at most: {', '.join(parts)}")
     layout.operator("city.open_report", icon="URL")
 
 

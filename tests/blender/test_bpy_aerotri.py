@@ -45,8 +45,12 @@ def ws(tmp_path, utm_block):
               "ground_points": [{"name": "G1", "rejected_coordinates": True, "rejected_images": []},
                                 {"name": "G2", "rejected_coordinates": False, "rejected_images": ["a", "b"]},
                                 {"name": "C3"}],
-              "runs": [{"name": "nadir", "priors_rejected": [["n1", "position"], ["n2", "attitude"]]},
-                       {"name": "north", "priors_rejected": [["o1", "position"]]}, {"name": "east"}],
+              "runs": [{"name": "nadir", "priors_rejected": [["n1", "position"], ["n2", "attitude"]],
+                        "reliability": {"priors": {"position_m": {"effect_max": [0.01, 0.02, 0.1273]},
+                                                   "attitude_deg": {"effect_max": [0.002, 0.0201, 0.001]}}}},
+                       {"name": "north", "priors_rejected": [["o1", "position"]],
+                        "reliability": {"priors": {"position_m": {"effect_max": [0.05, 0.03, 0.04]}}}},
+                       {"name": "east"}],
               "gnss_strips": {"L01": {"offset_m": [0.1, -0.2, 0.05]}, "L02": {"offset_m": [0.0, 0.3, -0.4]}},
               "gnss_strip_check": {"L01": {"mean_m": [0.0, 0.0, 0.12], "w": [0.1, 0.2, 5.0], "flagged": True},
                                    "L02": {"mean_m": [0.3, 0.0, 0.4], "w": [2.0, 0.1, 4.2], "flagged": False},
@@ -163,6 +167,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "GNSS offsets of 2 strips, largest 0.500 m (L02)" in labels
     assert "GNSS positions of 2 strips share an offset (L03: 0.200 m): try Shift per strip" in labels
     assert "Weakest control point: G2, errors below 0.136 m in Z pass its test" in labels
+    assert "Prior errors the tests miss move an image by at most: GNSS 0.127 m, IMU 0.0201 deg" in labels
     assert any(e[0] == "operator" and e[1] == "city.open_report" for e in log)
 
     opened = []
