@@ -1459,6 +1459,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     att_res, pos_res = _prior_residuals(prob, r_f, c_f, offsets)
     # the smallest detectable errors: tie measurements tested on 2 degrees of freedom, coordinates on 1 per axis
     delta_obs, delta = detectable_shift(opt.blunder_threshold, 2), detectable_shift(opt.blunder_threshold)
+    gcp_mdb, prior_mdb = delta * gcp_sd, delta * prior_sd
     return BundleResult(
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
@@ -1469,9 +1470,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         timing=timing, gcp_obs_rejected=gcp_obs_bad, gcp_rejected=~gcp_ok, gcp_w=gcp_w,
         prior_rejected=prior_off, prior_w=prior_w, gnss_strip=strips, gnss_strip_std=strips_std,
         obs_redundancy=red, obs_mdb=np.where(active, delta_obs * opt.sigma_px * sigma0 / np.sqrt(red), np.nan),
-        gcp_redundancy=prob.gcp_sigma**2 / gcp_sd**2, gcp_mdb=delta * gcp_sd,
-        gcp_datum_effect=delta * gcp_sd * gcp_infl, prior_mdb=delta * prior_sd,
-        prior_effect=delta * prior_sd * prior_share)
+        gcp_redundancy=prob.gcp_sigma**2 / gcp_sd**2, gcp_mdb=gcp_mdb, gcp_datum_effect=gcp_mdb * gcp_infl,
+        prior_mdb=prior_mdb, prior_effect=prior_mdb * prior_share)
 
 
 def _strip_std(prob: BundleProblem, opt: BundleOptions, strips: np.ndarray, in_use: np.ndarray,

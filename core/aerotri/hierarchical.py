@@ -253,6 +253,12 @@ def _resected(prob: BundleProblem, opt: BundleOptions) -> tuple[np.ndarray, np.n
                           prob.obs_point[idx], prob.obs_image[idx], prob.obs_uv[idx], opt)
 
 
+def _largest_first(in_runs: dict[str, np.ndarray]) -> list[str]:
+    """The views of ``in_runs`` (view -> its observations in the run, ``(m,) bool``), the most observations first
+    (the order the oblique runs are started in, so that the last to start is a short one)."""
+    return sorted(in_runs, key=lambda v: -int(np.count_nonzero(in_runs[v])))
+
+
 @dataclass(eq=False)
 class _EarlyStart:
     """The oblique runs moved to their inliers (:func:`.bundle.resected_start`: screening with the cameras held,
@@ -361,7 +367,7 @@ class _EarlyStart:
         xyz_start = self.xyz0.copy()
         xyz_start[self.nadir_problem.track_index] = np.where(np.isfinite(xyz[:, :1]), xyz,
                                                              xyz_start[self.nadir_problem.track_index])
-        views = sorted(self.in_runs, key=lambda v: -int(np.count_nonzero(self.in_runs[v])))
+        views = _largest_first(self.in_runs)
         subs = [(v, build_problem(block, ties, self.views[v], xyz_start, obs_mask=self.in_runs[v],
                                   use_control=False, initial=start)) for v in views]
         with self._cond:
@@ -513,8 +519,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         for v, pre, xyz_pre in early.ready():
             made.add(v)
             yield item(v, *by_view[v], pre, xyz_pre)
-        rest = sorted(set(by_view) - made, key=lambda v: -int(np.count_nonzero(by_view[v][2])))
-        for v in rest:
+        for v in _largest_first({v: by_view[v][2] for v in by_view if v not in made}):
             yield item(v, *by_view[v], None, xyz0)
 
     release_heap()  # what the nadir run and the set-up freed, before the oblique runs and the intersection
