@@ -155,6 +155,20 @@ def quadratic_forms(rows: np.ndarray, q: np.ndarray, index: np.ndarray) -> np.nd
     return out
 
 
+def point_shifts(j_point: np.ndarray, q_point: np.ndarray, obs_point: np.ndarray) -> np.ndarray:
+    """How far an error in an image measurement moves its point, with the images held: the shift ``Q J^T e`` of
+    the point for an error ``e`` of unit weighted length in the error's worst direction, ``sqrt(lambda_max(J Q^2
+    J^T))`` ``(m,)``, for the point Jacobians ``j_point (m, 2, 3)`` and the points' cofactor blocks ``q_point (n,
+    3, 3)`` (inverse normal blocks: times a measurement's weight and its error's length, the shift; NaN blocks give
+    0). The 2 x 2 form ``J Q^2 J^T`` from three of :func:`quadratic_forms` (its diagonal, and the sum of its rows
+    for the off-diagonal entry), its largest eigenvalue in closed form."""
+    q2 = np.nan_to_num(q_point) @ np.nan_to_num(q_point)
+    a = quadratic_forms(j_point[:, :1], q2, obs_point)
+    c = quadratic_forms(j_point[:, 1:], q2, obs_point)
+    b = (quadratic_forms((j_point[:, 0] + j_point[:, 1])[:, None], q2, obs_point) - a - c) / 2.0
+    return np.sqrt(np.maximum((a + c) / 2.0 + np.sqrt(((a - c) / 2.0) ** 2 + b**2), 0.0))
+
+
 def _inv3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Inverse and determinant of a stack ``(k, 3, 3)`` by the adjugate (no LAPACK call per matrix)."""
     c = np.empty_like(a)

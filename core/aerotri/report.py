@@ -8,7 +8,9 @@
   estimated one (``BundleOptions.mounting``), and the forward intersection error of all tie
   points before (navigation orientation) and after adjustment.
 * Per run its internal reliability (:func:`reliability`): the smallest errors the blunder tests find with 80 %
-  probability, of tie measurements by their rays, EO priors and each control point, with redundancy numbers.
+  probability, of tie measurements by their rays, EO priors and each control point, with redundancy numbers; and
+  its external reliability: how far such errors move a tie point (:func:`tie_point_shifts`), an image and the
+  datum, and Baarda's bias-to-noise ratios of the tie measurements.
 * Per control and check point its intersection minus its given coordinates, and what the adjustment rejected of
   it (coordinates, measurements: :func:`.bundle.control_point_tests`). The EO priors (GNSS position, IMU
   attitude) the adjustment rejected (:func:`.bundle.prior_tests`), with their normalised differences; the prior
@@ -43,6 +45,7 @@ from ..evaluate.aerotri import (
 from ..geometry.projection import project
 from ..geometry.rotations import matrix_to_rotvec
 from ..model import CameraModel, ImageBlock, Raster, TiePoints
+from . import precision
 from .bundle import DETECTION_POWER, PRIOR_PART_LABELS, PRIOR_PARTS
 from .hierarchical import ATResult, Run
 from .problem import intersect_ties
@@ -162,12 +165,42 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
     }
 
 
-def reliability(run: Run, ties: TiePoints) -> dict:
-    """Internal reliability of one run: the smallest errors its blunder tests find with probability
-    :data:`.bundle.DETECTION_POWER` (Baarda's minimal detectable blunders, see :func:`.bundle.detectable_shift`).
+def tie_point_shifts(run: Run, ties: TiePoints, block: ImageBlock, sigma_px: float, used: np.ndarray) -> np.ndarray:
+    """External reliability of the run's tie measurements ``used (m,)`` (bool over the run's observations, each with
+    a smallest detectable error ``obs_mdb``): how far an error of that size, in its worst direction, moves the
+    measurement's tie point with the images held (metres, :func:`.precision.point_shifts` with the run's point
+    cofactors ``xyz_cov / sigma0^2`` and the weight ``1 / sigma_px^2``). The Jacobians use the adjusted
+    orientations and the block's focal lengths (a self-calibration changes them by far less than these figures
+    are worth). Returns ``(k,)`` for the ``k`` measurements used."""
+    res = run.result
+    obs = run.obs_index[used]
+    row = np.full(ties.n_tracks, -1, np.int64)
+    row[run.track_index] = np.arange(len(run.track_index))
+    op = row[ties.obs_track[obs]]
+    # the images of the block's tie arrays, those of the run with their adjusted orientation
+    n_img = len(ties.image_ids)
+    r, c, fx, fy = np.tile(np.eye(3), (n_img, 1, 1)), np.zeros((n_img, 3)), np.ones(n_img), np.ones(n_img)
+    for k, iid in enumerate(ties.image_ids):
+        if iid in run.poses:
+            cam = block.cameras[block.images[iid].camera_id]
+            r[k], c[k], fx[k], fy[k] = run.poses[iid].R, run.poses[iid].C, cam.fx, cam.fy
+    oi = ties.obs_image[obs]
+    jp = precision.point_jacobians(r[oi], c[oi], fx[oi], fy[oi], run.xyz[op])
+    q = run.xyz_cov / max(res.sigma0, 1e-12) ** 2
+    return precision.point_shifts(jp, q, op) / sigma_px**2 * res.obs_mdb[used]
+
+
+def reliability(run: Run, ties: TiePoints, block: ImageBlock, sigma_px: float) -> dict:
+    """Internal and external reliability of one run: the smallest errors its blunder tests find with probability
+    :data:`.bundle.DETECTION_POWER` (Baarda's minimal detectable blunders, see :func:`.bundle.detectable_shift`),
+    and what such errors do to the result.
 
     ``ties``: per class of tie points by the rays the run kept (:data:`RAY_CLASSES`) the measurements, their mean
-    redundancy number and the median and 95th percentile of their smallest detectable errors (pixels); ``priors``:
+    redundancy number, the median and 95th percentile of their smallest detectable errors (pixels) and of how far
+    such an error moves its tie point (``point_shift_m_median``, ``point_shift_m_p95``: external reliability with
+    the images held, :func:`tie_point_shifts`), and the median of Baarda's bias-to-noise ratio
+    ``delta0 sqrt((1 - r) / r)`` (``bnr_median``: the most such an error moves any adjusted value, in standard
+    deviations of that value, from the redundancy number ``r``); ``priors``:
     of the EO priors tested, per axis the median and largest (``attitude_deg`` about world X Y Z, ``position_m``),
     and how far such an error would move the adjusted orientation (``effect_median``, ``effect_max``: external
     reliability, with the points held);
@@ -179,12 +212,18 @@ def reliability(run: Run, ties: TiePoints) -> dict:
     track = ties.obs_track[run.obs_index[used]]
     rays = np.bincount(track, minlength=ties.n_tracks)[track]
     red, mdb = res.obs_redundancy[used], res.obs_mdb[used]
+    shift = tie_point_shifts(run, ties, block, sigma_px, used)
+    # delta0 sqrt((1 - r) / r), with delta0 = mdb sqrt(r) / (sigma_px sigma0)
+    bnr = mdb * np.sqrt(1.0 - red) / (sigma_px * max(res.sigma0, 1e-12))
     rows = []
     for label, fewest, most in RAY_CLASSES:
         sel = (rays >= fewest) & (rays <= (most or np.inf))
         if sel.any():
             rows.append({"rays": label, "measurements": int(sel.sum()), "redundancy_mean": float(red[sel].mean()),
-                         "mdb_px_median": float(np.median(mdb[sel])), "mdb_px_p95": float(np.percentile(mdb[sel], 95))})
+                         "mdb_px_median": float(np.median(mdb[sel])), "mdb_px_p95": float(np.percentile(mdb[sel], 95)),
+                         "point_shift_m_median": float(np.median(shift[sel])),
+                         "point_shift_m_p95": float(np.percentile(shift[sel], 95)),
+                         "bnr_median": float(np.median(bnr[sel]))})
     priors = {}
     for key, cols, unit in (("attitude_deg", slice(0, 3), np.degrees), ("position_m", slice(3, 6), np.asarray)):
         ok = np.all(np.isfinite(res.prior_mdb[:, cols]), 1)
@@ -428,7 +467,7 @@ def ray_counts(ties: TiePoints, at: ATResult, top: int = RAYS_TOP) -> dict:
 
 def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float) -> dict:
     """Figures of the whole adjustment (combined over runs)."""
-    runs = [run_statistics(r, sigma_px) | {"reliability": reliability(r, ties)} for r in at.runs]
+    runs = [run_statistics(r, sigma_px) | {"reliability": reliability(r, ties, block, sigma_px)} for r in at.runs]
     obs, v = accepted_residuals(at)
     obs_ok = ~at.obs_rejected
     chi = sum(r.result.sigma0**2 * r.result.redundancy for r in at.runs)
@@ -686,10 +725,16 @@ def _reliability_html(runs: list[dict]) -> list[str]:
              "a redundancy of 0.1 an observation is hardly controlled by the others.</p>"]
     rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{t['rays']}</td><td>{t['measurements']}</td>"
                    f"<td>{format_value(t['redundancy_mean'])}</td><td>{format_value(t['mdb_px_median'])}</td>"
-                   f"<td>{format_value(t['mdb_px_p95'])}</td></tr>" for n, x in rel for t in x["ties"])
+                   f"<td>{format_value(t['mdb_px_p95'])}</td><td>{format_value(t['point_shift_m_median'])}</td>"
+                   f"<td>{format_value(t['point_shift_m_p95'])}</td><td>{format_value(t['bnr_median'])}</td>"
+                   "</tr>" for n, x in rel for t in x["ties"])
     if rows:
-        parts.append("<h3>Tie measurements</h3><table><tr><th>run</th><th>rays</th><th>measurements</th>"
-                     "<th>mean redundancy</th><th>detectable error, median [px]</th><th>95 % [px]</th></tr>"
+        parts.append("<h3>Tie measurements</h3><p>An undetected error of the detectable size, in its worst direction, "
+                     "moves its tie point by the distance given (the images held); the bias-to-noise ratio is the most "
+                     "it moves any adjusted value, in that value's standard deviations.</p>"
+                     "<table><tr><th>run</th><th>rays</th><th>measurements</th>"
+                     "<th>mean redundancy</th><th>detectable error, median [px]</th><th>95 % [px]</th>"
+                     "<th>moves its point, median [m]</th><th>95 % [m]</th><th>bias-to-noise ratio, median</th></tr>"
                      f"{rows}</table>")
     rows = "".join(f"<tr><td>{html.escape(n)}</td><td>{label}</td><td>{p['images']}</td>"
                    f"<td>{format_value(p['median'])}</td><td>{format_value(p['max'])}</td>"
