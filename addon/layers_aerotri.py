@@ -2,9 +2,11 @@
 
 * :func:`build_tie_points`: ``aerotri/ties.npz`` (:class:`core.model.TiePoints`) as a vertex-only mesh "Tie points"
   in the "Tie points" collection, at ``world - origin`` (:mod:`.georef`), with an INT point attribute ``rays``
-  (observations per track not rejected as blunders) and a ``Col`` colour attribute from that count
-  (:data:`RAY_RAMP`: 2 rays blue ... 12 and more red), drawn as points like the dense cloud. Tracks without an
-  intersected position are left out; above :data:`MAX_TIE_POINTS` a fixed random subset is shown.
+  (observations per track not rejected as blunders), a FLOAT one ``residual_px`` (the track's RMS image residual
+  after adjustment, NaN without one) and a ``Col`` colour attribute from the ray count (:data:`RAY_RAMP`: 2 rays
+  blue ... 12 and more red), drawn as points like the dense cloud; :func:`colour_tie_points` colours them by either.
+  Tracks without an intersected position are left out; above :data:`MAX_TIE_POINTS` a fixed random subset is
+  shown.
 * :func:`build_quality_layer`: one quality layer of ``aerotri/layers`` (CBA ray count, tie point standard deviation
   XY or Z, intersection error before/after) as a georeferenced image plane: a single quad whose corners are the
   outer corners of the GeoTIFF grid (``x0``, ``y0`` and ``cell`` of the PixelIsArea transform), at the median
@@ -42,14 +44,61 @@ MAX_TIE_POINTS = 300_000
 RAY_RAMP = ((2, (0.10, 0.25, 0.90)), (3, (0.00, 0.75, 0.90)), (5, (0.10, 0.80, 0.20)), (8, (0.95, 0.85, 0.10)),
             (12, (0.90, 0.15, 0.10)))
 """Ray count -> sRGB colour stops (linear in between, clamped outside)."""
+RESIDUAL_RAMP = ((0.0, (0.10, 0.25, 0.90)), (0.5, (0.00, 0.75, 0.90)), (1.0, (0.10, 0.80, 0.20)),
+                 (2.0, (0.95, 0.85, 0.10)), (3.0, (0.90, 0.15, 0.10)))
+"""A tie point's RMS image residual in units of the adjustment's sigma0 (pixels) -> sRGB colour stops: 1 is
+what the noise leaves, 3 and more a point whose rays do not meet as the others do."""
+NO_VALUE_COLOUR = (0.5, 0.5, 0.5)
+"""The colour of a tie point without the value coloured (no residual kept)."""
+TIE_COLOURINGS = (("rays", "Ray Count", "Colour the tie points by the rays the adjustment kept of them"),
+                  ("residual", "Residual", "Colour the tie points by their RMS image residual, in units of the "
+                                           "adjustment's sigma0"))
+"""The colourings of the tie point cloud (:func:`colour_tie_points`): value, label, description."""
+
+
+def ramp_colours(values: np.ndarray, ramp: tuple) -> np.ndarray:
+    """sRGB colours ``(n, 3)`` float in [0, 1] of ``values (n,)`` along a ramp of (value, colour) stops (linear in
+    between, clamped outside); NaN values get :data:`NO_VALUE_COLOUR`."""
+    stops = np.array([s for s, _ in ramp], np.float64)
+    rgb = np.array([c for _, c in ramp], np.float64)
+    v = np.asarray(values, np.float64)
+    out = np.stack([np.interp(v, stops, rgb[:, k]) for k in range(3)], axis=1)
+    out[~np.isfinite(v)] = NO_VALUE_COLOUR
+    return out
 
 
 def ray_colours(rays: np.ndarray) -> np.ndarray:
     """sRGB colours ``(n, 3)`` float in [0, 1] of ray counts ``(n,)`` along :data:`RAY_RAMP`."""
-    stops = np.array([s for s, _ in RAY_RAMP], np.float64)
-    rgb = np.array([c for _, c in RAY_RAMP], np.float64)
-    r = np.asarray(rays, np.float64)
-    return np.stack([np.interp(r, stops, rgb[:, k]) for k in range(3)], axis=1)
+    return ramp_colours(rays, RAY_RAMP)
+
+
+def colour_tie_points(obj, colouring: str, sigma0_px: float) -> str:
+    """Colour the tie point cloud ``obj`` (made by :func:`build_tie_points`) by ``colouring`` (see
+    :data:`TIE_COLOURINGS`) from its point attributes ``rays`` and ``residual_px``, the residuals in units of the
+    adjustment's ``sigma0_px``. Raises :class:`InputError` for an unknown colouring. Returns a one-line summary."""
+    mesh = obj.data
+    n = len(mesh.vertices)
+    if colouring == "residual" and "residual_px" not in mesh.attributes:
+        raise InputError("these tie points were built without their residuals: build the scene again")
+    if colouring == "rays":
+        values = np.zeros(n, np.int32)
+        mesh.attributes["rays"].data.foreach_get("value", values)
+        rgb = ray_colours(values)
+        summary = f"{n} tie points coloured by ray count"
+    elif colouring == "residual":
+        values = np.zeros(n, np.float32)
+        mesh.attributes["residual_px"].data.foreach_get("value", values)
+        rgb = ramp_colours(values / sigma0_px, RESIDUAL_RAMP)
+        high = int(np.sum(values > RESIDUAL_RAMP[-1][0] * sigma0_px))
+        summary = (f"{n} tie points coloured by RMS residual (sigma0 {sigma0_px:.3f} px; {high} at "
+                   f"{RESIDUAL_RAMP[-1][0]:g} sigma0 or more)")
+    else:
+        names = ", ".join(c for c, _, _ in TIE_COLOURINGS)
+        raise InputError(f"unknown tie point colouring '{colouring}' (use {names})")
+    rgba = np.concatenate([rgb, np.ones((n, 1))], axis=1)
+    mesh.color_attributes["Col"].data.foreach_set("color_srgb", rgba.astype(np.float32).ravel())
+    mesh.update()
+    return summary
 
 
 def load_ties(path: Path) -> TiePoints:
@@ -76,10 +125,12 @@ def build_tie_points(scene, ws: Workspace) -> str:
     coll = layer_collection(scene, "ties", "Tie points")
     mesh = mesh_from_arrays("Tie points", georef.world_to_local(scene, xyz))
     mesh.attributes.new("rays", "INT", "POINT").data.foreach_set("value", rays[keep].astype(np.int32))
-    rgba = np.concatenate([ray_colours(rays[keep]), np.ones((len(keep), 1))], axis=1)
-    mesh.color_attributes.new("Col", "BYTE_COLOR", "POINT").data.foreach_set(
-        "color_srgb", rgba.astype(np.float32).ravel())
+    residual = ties.extra.get("residual_px", np.full(ties.n_tracks, np.nan))
+    mesh.attributes.new("residual_px", "FLOAT", "POINT").data.foreach_set("value",
+                                                                          residual[keep].astype(np.float32))
+    mesh.color_attributes.new("Col", "BYTE_COLOR", "POINT")
     obj = bpy.data.objects.new("Tie points", mesh)
+    colour_tie_points(obj, "rays", 1.0)
     obj["oc_tie_points"] = n_valid
     coll.objects.link(obj)
     if len(xyz) > 1:

@@ -1,13 +1,14 @@
-"""Workspace operators: Open Workspace, Build Scene from Workspace, View Through Image."""
+"""Workspace operators: Open Workspace, Build Scene from Workspace, View Through Image, Colour Tie Points."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import bpy
-from bpy.props import StringProperty
+from bpy.props import EnumProperty, StringProperty
 
 from ..addon import backgrounds, builders, cameras
+from ..addon.layers_aerotri import REPORT_FILE, TIE_COLOURINGS, colour_tie_points, report_summary
 from ..core.errors import CityError
 from ..core.pipeline import Workspace
 from .run import scene_workspace
@@ -90,4 +91,31 @@ class CITY_OT_view_image(bpy.types.Operator):
         area = context.area if context.area is not None and context.area.type == "VIEW_3D" else None
         if area is not None:
             area.spaces.active.region_3d.view_perspective = "CAMERA"
+        return {"FINISHED"}
+
+
+class CITY_OT_colour_tie_points(bpy.types.Operator):
+    """Colour the tie point cloud by the rays the adjustment kept of each point, or by its RMS image residual in
+    units of the adjustment's sigma0"""
+
+    bl_idname = "city.colour_tie_points"
+    bl_label = "Colour Tie Points"
+    bl_options = {"REGISTER", "UNDO"}
+
+    colouring: EnumProperty(name="Colour By", items=TIE_COLOURINGS, default="rays")
+
+    def execute(self, context):
+        obj = next((o for o in context.scene.objects if "oc_tie_points" in o), None)
+        if obj is None:
+            self.report({"ERROR"}, "no tie points in the scene (build it once the 'aerotri' stage has run)")
+            return {"CANCELLED"}
+        try:
+            sigma0_px = 1.0
+            if self.colouring == "residual":
+                sigma0_px = report_summary(Path(scene_workspace(context)) / REPORT_FILE)["sigma0_px"]
+            message = colour_tie_points(obj, self.colouring, sigma0_px)
+        except CityError as e:
+            self.report({"ERROR"}, str(e).splitlines()[0])
+            return {"CANCELLED"}
+        self.report({"INFO"}, message)
         return {"FINISHED"}

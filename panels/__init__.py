@@ -220,7 +220,8 @@ def _metres(v) -> str:
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders, the mounting
     calibration, the camera with the largest systematic image residual, rejected control data and EO priors, the
-    GNSS strip offsets, estimated or suspected, the weakest control point) and Open Report."""
+    GNSS strip offsets, estimated or suspected, the weakest control point), the tie points' colourings and Open
+    Report."""
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return
@@ -260,6 +261,10 @@ def draw_triangulation(layout, context) -> None:
         parts = ([f"GNSS {_metres(metres)}"] if metres is not None else []) + (
             [f"IMU {degrees:.4f} deg"] if degrees is not None else [])
         col.label(text=f"Prior errors the tests miss move an image by at most: {', '.join(parts)}")
+    row = layout.row(align=True)
+    row.label(text="Colour tie points:")
+    for value, label, _ in layers_aerotri.TIE_COLOURINGS:
+        row.operator("city.colour_tie_points", text=label).colouring = value
     layout.operator("city.open_report", icon="URL")
 
 

@@ -340,6 +340,17 @@ def accepted_residuals(at: ATResult) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(idx), np.concatenate(res)
 
 
+def track_residual_rms(ties: TiePoints, at: ATResult) -> np.ndarray:
+    """Per tie track the RMS length of the image residuals of the observations the runs kept (pixels, see
+    :func:`accepted_residuals`) ``(n,)``; NaN for a track without any."""
+    idx, v = accepted_residuals(at)
+    track = ties.obs_track[idx]
+    count = np.bincount(track, minlength=ties.n_tracks)
+    sq = np.bincount(track, weights=np.sum(v**2, axis=1), minlength=ties.n_tracks)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, np.sqrt(sq / count), np.nan)
+
+
 def residual_field(uv: np.ndarray, v: np.ndarray, camera: CameraModel, cells: int = FIELD_CELLS,
                    rings: int = FIELD_RINGS, min_obs: int = FIELD_MIN_OBS) -> dict:
     """Image residuals by position in the frame of one camera: what an adjustment leaves of systematic image

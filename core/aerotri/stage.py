@@ -2,7 +2,8 @@
 
 Reads the imported block and the tie points of the ``match`` stage (``matching/ties.npz``); writes
 ``aerotri/block.json`` (the block with ``pose_adjusted`` set, read by later stages through ``ws.load_block()``),
-``aerotri/ties.npz`` (adjusted tie coordinates, rejected observations flagged), ``aerotri/report.json``,
+``aerotri/ties.npz`` (adjusted tie coordinates, rejected observations flagged; extras: each track's standard
+deviations ``std`` and RMS image residual ``residual_px``), ``aerotri/report.json``,
 ``aerotri/report.html`` and the quality layers ``aerotri/layers/*.tif|png``.
 """
 
@@ -25,6 +26,7 @@ from .report import (
     html_report,
     largest_systematic,
     quality_layers,
+    track_residual_rms,
     write_layers,
 )
 
@@ -192,7 +194,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     ws.save_block(block, "aerotri/block.json")
     adj = TiePoints(xyz=at.xyz, obs_track=ties.obs_track, obs_image=ties.obs_image, obs_uv=ties.obs_uv,
                     image_ids=ties.image_ids, obs_blunder=at.obs_rejected, colour=ties.colour,
-                    extra={"std": np.sqrt(np.abs(np.diagonal(at.xyz_cov, axis1=1, axis2=2)))})
+                    extra={"std": np.sqrt(np.abs(np.diagonal(at.xyz_cov, axis1=1, axis2=2))),
+                           "residual_px": track_residual_rms(ties, at)})
     adj.save(str(out / "ties.npz"))
     ctx.progress(1, 2, "statistics and layers")
     report = block_report(block, ties, at, cfg.sigma_px)

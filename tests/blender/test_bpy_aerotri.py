@@ -1,5 +1,5 @@
-"""Results of ``aerotri`` in Blender: the tie point cloud coloured by ray count, the Triangulation panel's figures
-and Open Report.
+"""Results of ``aerotri`` in Blender: the tie point cloud coloured by ray count or residual, the Triangulation panel's
+figures and Open Report.
 
 Tie points are written with the core's own :class:`TiePoints` writer at UTM coordinates: tracks with 2 to 7
 observations, some observations flagged as blunders (not counted as rays), some tracks never intersected (left
@@ -33,8 +33,11 @@ def ws(tmp_path, utm_block):
     per_track = rng.integers(2, 8, N)
     obs_track = np.repeat(np.arange(N), per_track)
     blunder = rng.random(len(obs_track)) < 0.1
+    residual = rng.uniform(0.0, 1.2, N)  # RMS image residuals (px), some beyond 3 sigma0 (0.888 px)
+    residual[::53] = np.nan  # no residual kept
     ties = TiePoints(xyz=xyz, obs_track=obs_track, obs_image=np.zeros(len(obs_track), np.int64),
-                     obs_uv=np.zeros((len(obs_track), 2)), image_ids=["img0"], obs_blunder=blunder)
+                     obs_uv=np.zeros((len(obs_track), 2)), image_ids=["img0"], obs_blunder=blunder,
+                     extra={"residual_px": residual})
     ties.save(str(w.stage_dir("aerotri") / "ties.npz"))
     rays = np.bincount(obs_track[~blunder], minlength=N)
     report = {"mode": "hierarchical", "connection": "5", "images": 12, "sigma0": 0.987, "sigma0_px": 0.296,
@@ -83,6 +86,44 @@ def test_tie_points(addon, ws):
     assert np.abs(col - layers_aerotri.ray_colours(got)).max() < 1 / 255 + 1e-6
     assert np.abs(col[got <= 2] - [0.10, 0.25, 0.90]).max() < 1 / 255 + 1e-6  # two rays: blue
     assert obj.modifiers["Points"].type == "NODES"
+
+
+def test_tie_points_coloured_by_residual(addon, ws):
+    """Colour Tie Points (the Triangulation panel's row) recolours the cloud by each point's RMS image residual in
+    units of the report's sigma0 (0.296 px): the ``residual_px`` attribute holds the file's values, the colours
+    follow the ramp (grey without a residual, red at 3 sigma0 and more), and Ray Count brings the ray colours back.
+    Without a tie point cloud the operator refuses."""
+    bpy = addon
+    from oblique_city.addon import layers_aerotri
+
+    w, xyz, rays = ws
+    scene = bpy.context.scene
+    scene.oblique_city.workspace = str(w.root)
+    with pytest.raises(RuntimeError, match="no tie points in the scene"):
+        bpy.ops.city.colour_tie_points(colouring="residual")
+    layers_aerotri.build_tie_points(scene, w)
+    obj = bpy.data.objects["Tie points"]
+    valid = np.all(np.isfinite(xyz), axis=1)
+    residual = TiePoints.load(str(w.path("aerotri/ties.npz"))).extra["residual_px"][valid]
+    got = np.empty(len(obj.data.vertices), np.float32)
+    obj.data.attributes["residual_px"].data.foreach_get("value", got)
+    assert np.allclose(got, residual, equal_nan=True, atol=1e-6)
+
+    def colours():
+        col = np.empty(len(obj.data.vertices) * 4, np.float32)
+        obj.data.color_attributes["Col"].data.foreach_get("color_srgb", col)
+        return col.reshape(-1, 4)[:, :3]
+
+    assert bpy.ops.city.colour_tie_points(colouring="residual") == {"FINISHED"}
+    col = colours()
+    ok = np.isfinite(residual)
+    expected = layers_aerotri.ramp_colours(residual / 0.296, layers_aerotri.RESIDUAL_RAMP)
+    assert np.abs(col - expected).max() < 1 / 255 + 1e-6
+    assert np.abs(col[~ok] - layers_aerotri.NO_VALUE_COLOUR).max() < 1 / 255 + 1e-6
+    high = ok & (residual >= 3 * 0.296)
+    assert high.sum() > 10 and np.abs(col[high] - [0.90, 0.15, 0.10]).max() < 1 / 255 + 1e-6
+    assert bpy.ops.city.colour_tie_points(colouring="rays") == {"FINISHED"}
+    assert np.abs(colours() - layers_aerotri.ray_colours(rays[valid])).max() < 1 / 255 + 1e-6
 
 
 def test_large_tie_sets_are_subsampled(addon, ws, monkeypatch):
@@ -169,6 +210,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Weakest control point: G2, errors below 0.136 m in Z pass its test" in labels
     assert "Prior errors the tests miss move an image by at most: GNSS 0.127 m, IMU 0.0201 deg" in labels
     assert any(e[0] == "operator" and e[1] == "city.open_report" for e in log)
+    assert sum(e[0] == "operator" and e[1] == "city.colour_tie_points" for e in log) == 2
 
     opened = []
     monkeypatch.setattr(webbrowser, "open", lambda url: opened.append(url) or True)
