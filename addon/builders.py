@@ -1,13 +1,13 @@
 """Builders: workspace results -> Blender objects, one small function per stage, in a registry.
 
 A builder is ``builder(scene, ws) -> str``: it (re)creates the objects of one stage's results in that stage's own
-collection under the scene's "Oblique City" collection (:func:`.scene_tree.layer_collection`) and returns a
-one-line summary. :data:`BUILDERS` maps a stage name to its builder; ``block`` is the imported block (cameras and
-ground points, also rebuilt after ``aerotri`` with the adjusted orientations, together with the adjusted tie
-points of :mod:`.layers_aerotri`); :mod:`.layers` has the dense points and the DSM, :mod:`.layers_buildings` the
-buildings, :mod:`.layers_windows` the windows. Later stages add theirs with :func:`register_builder` (buildings,
-textures, ...); "Build Scene from Workspace" and the end of a job run every builder whose stage has finished, so
-new layers appear without touching the operators.
+collection under the scene's "Oblique City" collection (:func:`.scene_tree.layer_collection`) and returns a one-line
+summary. :data:`BUILDERS` maps a stage name to its builder; ``block`` is the imported block (cameras and ground
+points, also rebuilt after ``aerotri`` with the adjusted orientations, together with the adjusted tie points of
+:mod:`.layers_aerotri`); :mod:`.layers_match` has the connectivity graph of ``match``, :mod:`.layers` has the dense
+points and the DSM, :mod:`.layers_buildings` the buildings, :mod:`.layers_windows` the windows. Later stages add
+theirs with :func:`register_builder` (buildings, textures, ...); "Build Scene from Workspace" and the end of a job
+run every builder whose stage has finished, so new layers appear without touching the operators.
 
 All positions go through :mod:`.georef` (objects at ``world - origin``).
 """
@@ -24,7 +24,17 @@ from ..core.model import ImageBlock
 from ..core.pipeline import Workspace
 from ..core.pipeline.registry import stage_names
 from ..core.pipeline.runner import is_up_to_date
-from . import backgrounds, cameras, georef, layers, layers_aerotri, layers_buildings, layers_texture, layers_windows
+from . import (
+    backgrounds,
+    cameras,
+    georef,
+    layers,
+    layers_aerotri,
+    layers_buildings,
+    layers_match,
+    layers_texture,
+    layers_windows,
+)
 from .scene_tree import child_collection, layer_collection
 
 Builder = Callable[..., str]
@@ -157,6 +167,7 @@ def build_aerotri(scene, ws: Workspace) -> str:
 
 
 register_builder("block", build_block)
+register_builder("match", layers_match.build_graph)
 register_builder("aerotri", build_aerotri)
 register_builder("dense", layers.build_dense_points)
 register_builder("surface", layers.build_surface)

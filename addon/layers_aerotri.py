@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -27,6 +26,7 @@ import numpy as np
 from ..core.aerotri.report import largest_systematic
 from ..core.errors import InputError
 from ..core.io.geotiff import read_geotiff
+from ..core.io.validate import read_json
 from ..core.model import Raster, TiePoints
 from ..core.pipeline import Workspace
 from . import georef
@@ -218,12 +218,7 @@ def report_summary(path: Path) -> dict:
     and how far a GNSS position and an IMU attitude error its test can miss moves an image at most
     (``prior_effect``: ``(metres, degrees)``, either None where no such prior was tested).
     Raises :class:`InputError` naming the file."""
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except OSError:
-        raise InputError("no triangulation report (run the 'aerotri' stage)", path) from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON ({e.msg})", path, line=e.lineno) from None
+    doc = read_json(path, "no triangulation report (run the 'aerotri' stage)")
     try:
         check = doc["check_points"]["all"]
         angles = {c: float(math.sqrt(sum(float(a) ** 2 for a in m["boresight_deg"])))

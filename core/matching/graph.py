@@ -11,10 +11,13 @@ overlap and matches) so Blender can draw it as lines between camera centres.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from ..geometry.projection import image_footprint
+from ..io.validate import read_json
 from ..model import ImageBlock, Raster
 
 
@@ -67,6 +70,22 @@ class ConnectivityGraph:
         e = d.get("edges", [])
         return cls(image_ids=[n["id"] for n in d["nodes"]], edges=np.array([[x["a"], x["b"]] for x in e]),
                    overlap=np.array([x["overlap"] for x in e]), matches=np.array([x["matches"] for x in e]))
+
+
+def read_graph(path: str | Path) -> tuple[ConnectivityGraph, np.ndarray]:
+    """The graph of ``matching/graph.json`` (as :meth:`ConnectivityGraph.to_dict` writes it) and its nodes' camera
+    centres ``(n, 3)`` (world; NaN for a node without one). Raises :class:`InputError` naming the file, and the line
+    or the field, for a missing, malformed or inconsistent file."""
+    doc = read_json(path, "no connectivity graph (run the 'match' stage)")
+    try:
+        graph = ConnectivityGraph.from_dict(doc)
+        centres = np.array([np.full(3, np.nan) if n.get("centre") is None else np.asarray(n["centre"], np.float64)
+                            for n in doc["nodes"]]).reshape(-1, 3)
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"not a connectivity graph ({e})", path, field=str(e)) from None
+    if len(graph.edges) and (graph.edges.min() < 0 or graph.edges.max() >= len(graph.image_ids)):
+        raise InputError(f"an edge names a node beyond the {len(graph.image_ids)} nodes", path, field="edges")
+    return graph, centres
 
 
 def _polygon_area(poly: np.ndarray) -> float:

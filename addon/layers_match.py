@@ -1,0 +1,49 @@
+"""Results of the ``match`` stage in Blender: the connectivity graph as lines between camera centres.
+
+:func:`build_graph` draws ``matching/graph.json`` (:func:`core.matching.graph.read_graph`) as one mesh of loose
+edges, "Connectivity graph" in the "Connectivity graph" collection: a vertex per image at its camera centre (at
+``world - origin``, :mod:`.georef`) and an edge per image pair the tie points were matched on, with EDGE attributes
+``matches`` (INT, the pair's verified matches; -1 when not matched) and ``overlap`` (FLOAT, the footprints' overlap
+share). Images without a centre are left out with their pairs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..core.matching.graph import read_graph
+from ..core.pipeline import Workspace
+from . import georef
+from .layers import mesh_from_arrays
+from .scene_tree import layer_collection
+
+GRAPH_FILE = "matching/graph.json"
+
+
+def build_graph(scene, ws: Workspace) -> str:
+    """The connectivity graph as lines between camera centres; returns a one-line summary. A missing or bad graph
+    file raises the core's :class:`InputError`."""
+    import bpy
+
+    graph, centres = read_graph(ws.path(GRAPH_FILE))
+    placed = np.all(np.isfinite(centres), axis=1)
+    keep = placed[graph.edges].all(axis=1) if len(graph.edges) else np.zeros(0, bool)
+    index = np.cumsum(placed) - 1  # node -> vertex
+    edges = index[graph.edges[keep]]
+    xyz = centres[placed]
+    coll = layer_collection(scene, "graph", "Connectivity graph")
+    if len(xyz):
+        georef.ensure_georef(scene, ws.crs, xyz)
+    mesh = mesh_from_arrays("Connectivity graph", georef.world_to_local(scene, xyz) if len(xyz) else xyz)
+    mesh.edges.add(len(edges))
+    mesh.edges.foreach_set("vertices", edges.astype(np.int32).ravel())
+    mesh.attributes.new("matches", "INT", "EDGE").data.foreach_set("value", graph.matches[keep].astype(np.int32))
+    mesh.attributes.new("overlap", "FLOAT", "EDGE").data.foreach_set("value",
+                                                                     graph.overlap[keep].astype(np.float32))
+    mesh.update()
+    obj = bpy.data.objects.new("Connectivity graph", mesh)
+    obj["oc_graph_pairs"] = len(edges)
+    coll.objects.link(obj)
+    matched = graph.matches[keep][graph.matches[keep] >= 0]
+    median = f", median {int(np.median(matched))} matches" if len(matched) else ""
+    return f"{len(edges)} image pairs between {len(xyz)} cameras{median}"

@@ -1,0 +1,80 @@
+"""The connectivity graph of the ``match`` stage in Blender: lines between camera centres.
+
+A graph written by the core's own writer (:meth:`ConnectivityGraph.to_dict`) over a three-image UTM block, and a
+fourth image without a centre: checked are the vertices at the camera centres within 1 mm, the edges between the right
+centres with their match counts and overlaps, the pairs of the unplaced image left out, Build Scene running the
+builder once ``match`` is done, and bad files refused with the file and line named."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from oblique_city.core.errors import InputError
+from oblique_city.core.matching.graph import ConnectivityGraph
+from oblique_city.core.pipeline import Workspace
+from oblique_city.core.pipeline.atomic import write_json
+
+pytestmark = pytest.mark.xdist_group("bpy")
+
+
+@pytest.fixture
+def ws(tmp_path, utm_block):
+    w = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
+    w.save_block(utm_block)
+    graph = ConnectivityGraph(image_ids=list(utm_block.images), edges=np.array([[0, 1], [0, 2], [1, 2], [2, 3]]),
+                              overlap=np.array([0.61, 0.42, 0.25, 0.5]), matches=np.array([812, 455, -1, 90]))
+    doc = graph.to_dict(utm_block)
+    doc["nodes"].append({"id": "lost", "view": None, "centre": None})  # an image without a centre
+    w.stage_dir("matching")
+    write_json(w.path("matching/graph.json"), doc)
+    w.write_state({"match": {"status": "done"}})
+    return w, utm_block
+
+
+def test_graph_is_drawn_between_camera_centres(addon, ws):
+    bpy = addon
+    from oblique_city.addon import builders, georef, layers_match
+
+    w, block = ws
+    scene = bpy.context.scene
+    summary = layers_match.build_graph(scene, w)
+    assert summary == "3 image pairs between 3 cameras, median 633 matches"
+    obj = bpy.data.objects["Connectivity graph"]
+    mesh = obj.data
+    centres = np.array([img.pose_approx.C for img in block.images.values()])
+    assert np.abs(georef.mesh_vertices_world(scene, obj) - centres).max() < 1e-3
+    verts = np.empty(len(mesh.edges) * 2, np.int32)
+    mesh.edges.foreach_get("vertices", verts)
+    assert verts.reshape(-1, 2).tolist() == [[0, 1], [0, 2], [1, 2]]
+    matches = np.empty(3, np.int32)
+    mesh.attributes["matches"].data.foreach_get("value", matches)
+    overlap = np.empty(3, np.float32)
+    mesh.attributes["overlap"].data.foreach_get("value", overlap)
+    assert matches.tolist() == [812, 455, -1] and np.allclose(overlap, [0.61, 0.42, 0.25])
+    assert obj["oc_graph_pairs"] == 3
+    # Build Scene runs the builder of a finished match stage
+    messages = builders.build_scene(scene, w)
+    assert "match: 3 image pairs between 3 cameras, median 633 matches" in messages
+    assert len([o for o in bpy.data.objects if o.name.startswith("Connectivity graph")]) == 1
+
+
+def test_bad_graph_files_are_refused(addon, ws):
+    bpy = addon
+    from oblique_city.addon import layers_match
+
+    w = ws[0]
+    path = w.path("matching/graph.json")
+    path.write_text('{"nodes": [\n  {"id": "a"},\n  oops\n]}')
+    with pytest.raises(InputError) as e:
+        layers_match.build_graph(bpy.context.scene, w)
+    assert e.value.line == 3 and str(path) in str(e.value)
+    path.write_text(json.dumps({"nodes": [{"id": "a", "centre": [1.0, 2.0, 3.0]}],
+                                "edges": [{"a": 0, "b": 4, "overlap": 0.3, "matches": 10}]}))
+    with pytest.raises(InputError, match="beyond the 1 nodes"):
+        layers_match.build_graph(bpy.context.scene, w)
+    path.unlink()
+    with pytest.raises(InputError, match="run the 'match' stage"):
+        layers_match.build_graph(bpy.context.scene, w)
