@@ -4,7 +4,8 @@
 edges, "Connectivity graph" in the "Connectivity graph" collection: a vertex per image at its camera centre (at
 ``world - origin``, :mod:`.georef`) and an edge per image pair the tie points were matched on, with EDGE attributes
 ``matches`` (INT, the pair's verified matches; -1 when not matched) and ``overlap`` (FLOAT, the footprints' overlap
-share). Images without a centre are left out with their pairs.
+share). Images without a centre are left out with their pairs. :func:`graph_summary` gives the Triangulation panel
+its line on the graph.
 """
 
 from __future__ import annotations
@@ -47,3 +48,12 @@ def build_graph(scene, ws: Workspace) -> str:
     matched = graph.matches[keep][graph.matches[keep] >= 0]
     median = f", median {int(np.median(matched))} matches" if len(matched) else ""
     return f"{len(edges)} image pairs between {len(xyz)} cameras{median}"
+
+
+def graph_summary(path) -> dict:
+    """Of a graph file: its image pairs (``pairs``), the images they join (``images``) and the median of the matched
+    pairs' match counts (``median_matches``, None when none was matched). Raises the core's :class:`InputError`."""
+    graph, _ = read_graph(path)
+    matched = graph.matches[graph.matches >= 0]
+    return {"pairs": len(graph.edges), "images": len(np.unique(graph.edges)),
+            "median_matches": int(np.median(matched)) if len(matched) else None}

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import bpy
 
-from ..addon import georef, jobs, layers_aerotri, layers_windows
+from ..addon import georef, jobs, layers_aerotri, layers_match, layers_windows
 from ..addon.properties import option_fields
 from ..core.errors import CityError
 from ..core.pipeline.registry import get_stage, stage_names
@@ -217,11 +217,22 @@ def _metres(v) -> str:
     return f"{v:.3f} m" if isinstance(v, (int, float)) and v == v else "-"
 
 
+def graph_summary(root: Path) -> dict:
+    """The connectivity graph's figures (:func:`addon.layers_match.graph_summary`), re-read only when it changed."""
+    path = root / layers_match.GRAPH_FILE
+    return _file_cached(path, {"error": "no connectivity graph yet"}, lambda: layers_match.graph_summary(path))
+
+
 def draw_triangulation(layout, context) -> None:
-    """The Triangulation panel's figures (mode, images, sigma0, check point RMS, blunders, the mounting
-    calibration, the camera with the largest systematic image residual, rejected control data and EO priors, the
-    GNSS strip offsets, estimated or suspected, the weakest control point), the tie points' colourings and Open
-    Report."""
+    """The Triangulation panel's figures (the connectivity graph's pairs; mode, images, sigma0, check point RMS,
+    blunders, the mounting calibration, the camera with the largest systematic image residual, rejected control data
+    and EO priors, the GNSS strip offsets, estimated or suspected, the weakest control point), the tie points'
+    colourings and Open Report."""
+    root = workspace_root(context)
+    g = graph_summary(root) if root is not None else {"error": ""}
+    if "error" not in g:
+        median = f", median {g['median_matches']} matches" if g["median_matches"] is not None else ""
+        layout.label(text=f"Connectivity graph: {g['pairs']} image pairs of {g['images']} images{median}")
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return

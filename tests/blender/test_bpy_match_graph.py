@@ -3,7 +3,8 @@
 A graph written by the core's own writer (:meth:`ConnectivityGraph.to_dict`) over a three-image UTM block, and a
 fourth image without a centre: checked are the vertices at the camera centres within 1 mm, the edges between the right
 centres with their match counts and overlaps, the pairs of the unplaced image left out, Build Scene running the
-builder once ``match`` is done, and bad files refused with the file and line named."""
+builder once ``match`` is done, the Triangulation panel's line on the graph, and bad files refused with the file and
+line named."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import json
 
 import numpy as np
 import pytest
+from test_bpy_ui import draw
 
 from oblique_city.core.errors import InputError
 from oblique_city.core.matching.graph import ConnectivityGraph
@@ -78,3 +80,16 @@ def test_bad_graph_files_are_refused(addon, ws):
     path.unlink()
     with pytest.raises(InputError, match="run the 'match' stage"):
         layers_match.build_graph(bpy.context.scene, w)
+
+
+def test_triangulation_panel_shows_the_graph(addon, ws):
+    """Before any adjustment the Triangulation panel already tells the graph's size: 4 pairs of 4 images, the median
+    of the three matched pairs' counts (812, 455, 90)."""
+    bpy = addon
+    from oblique_city.panels import STAGE_PANEL_CLASSES
+
+    bpy.context.scene.oblique_city.workspace = str(ws[0].root)
+    panel = next(c for c in STAGE_PANEL_CLASSES if c.bl_label == "Triangulation")
+    labels = [e[1] for e in draw(panel, bpy.context) if e[0] == "label"]
+    assert "Connectivity graph: 4 image pairs of 4 images, median 455 matches" in labels
+    assert "no triangulation report yet" in labels
