@@ -62,6 +62,11 @@ def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
     assert set(table) == set(adjusted)
     ties = TiePoints.load(str(ws.path("aerotri/ties.npz")))
     idx = {iid: k for k, iid in enumerate(ties.image_ids)}
+    # each adjusted track's RMS image residual (Blender colours the cloud by it): about the 0.3 px noise, none for a
+    # track the adjustment dropped
+    res = ties.extra["residual_px"]
+    assert 0.25 < np.sqrt(np.nanmean(res**2)) < 0.5
+    assert np.all(np.isfinite(res) <= np.isfinite(ties.xyz[:, 0]))
     for iid in adjusted[:10]:
         mine = ties.obs_image == idx[iid]
         assert table[iid]["observations"] == int((mine & ~ties.obs_blunder).sum())
