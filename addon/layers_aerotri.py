@@ -78,14 +78,14 @@ def colour_tie_points(obj, colouring: str, sigma0_px: float) -> str:
     adjustment's ``sigma0_px``. Raises :class:`InputError` for an unknown colouring. Returns a one-line summary."""
     mesh = obj.data
     n = len(mesh.vertices)
-    if colouring == "residual" and "residual_px" not in mesh.attributes:
-        raise InputError("these tie points were built without their residuals: build the scene again")
     if colouring == "rays":
         values = np.zeros(n, np.int32)
         mesh.attributes["rays"].data.foreach_get("value", values)
         rgb = ray_colours(values)
         summary = f"{n} tie points coloured by ray count"
     elif colouring == "residual":
+        if "residual_px" not in mesh.attributes:
+            raise InputError("these tie points were built without their residuals: build the scene again")
         values = np.zeros(n, np.float32)
         mesh.attributes["residual_px"].data.foreach_get("value", values)
         rgb = ramp_colours(values / sigma0_px, RESIDUAL_RAMP)

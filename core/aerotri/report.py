@@ -46,9 +46,9 @@ from ..geometry.projection import project
 from ..geometry.rotations import matrix_to_rotvec
 from ..model import CameraModel, ImageBlock, Raster, TiePoints
 from . import precision
-from .bundle import DETECTION_POWER, PRIOR_PART_LABELS, PRIOR_PARTS
+from .bundle import DETECTION_POWER, PRIOR_PART_LABELS, PRIOR_PARTS, image_focals
 from .hierarchical import ATResult, Run
-from .problem import intersect_ties
+from .problem import intersect_ties, pose_arrays
 from .strips import flight_strips, strip_check
 
 FIELD_CELLS = 8
@@ -177,13 +177,9 @@ def tie_point_shifts(run: Run, ties: TiePoints, block: ImageBlock, sigma_px: flo
     row = np.full(ties.n_tracks, -1, np.int64)
     row[run.track_index] = np.arange(len(run.track_index))
     op = row[ties.obs_track[obs]]
-    # the images of the block's tie arrays, those of the run with their adjusted orientation
-    n_img = len(ties.image_ids)
-    r, c, fx, fy = np.tile(np.eye(3), (n_img, 1, 1)), np.zeros((n_img, 3)), np.ones(n_img), np.ones(n_img)
-    for k, iid in enumerate(ties.image_ids):
-        if iid in run.poses:
-            cam = block.cameras[block.images[iid].camera_id]
-            r[k], c[k], fx[k], fy[k] = run.poses[iid].R, run.poses[iid].C, cam.fx, cam.fy
+    # the images of the block's tie arrays with the run's adjusted orientations (all of those observed)
+    cameras, image_camera, r, c = pose_arrays(block, ties.image_ids, run.poses)
+    fx, fy = image_focals(cameras, image_camera)
     oi = ties.obs_image[obs]
     jp = precision.point_jacobians(r[oi], c[oi], fx[oi], fy[oi], run.xyz[op])
     q = run.xyz_cov / max(res.sigma0, 1e-12) ** 2
