@@ -274,6 +274,8 @@ class BundleProblem:
     prior_strip : (n,) int64 flight strip of each image (index into ``strip_names``, -1: none; empty: no strips);
         prior_along : (n,) its along-track position from the strip's middle, km (used when
         ``BundleOptions.gnss_strips``)
+    image_exposure : (n,) int64 the exposure of each image (images of one exposure share one GNSS/IMU
+        measurement), -1 for an image of its own; empty: every image its own
     """
 
     image_ids: list[str]
@@ -304,6 +306,7 @@ class BundleProblem:
     prior_strip: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     prior_along: np.ndarray = field(default_factory=lambda: np.zeros(0))
     strip_names: list[str] = field(default_factory=list)
+    image_exposure: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def n_images(self) -> int:
@@ -347,7 +350,8 @@ class BundleResult:
     datum_shift : (3,) control frame - GNSS frame
     gnss_strip : (s, 6) per strip of ``BundleProblem.strip_names`` its GNSS offset (metres) and drift (metres per
         km) as estimated with ``BundleOptions.gnss_strips`` (NaN: not estimated); gnss_strip_std : (s, 6) their
-        standard deviations with the orientations held (conditional, a lower bound)
+        standard deviations with the orientations held (conditional, a lower bound), the heads of one exposure
+        counting as one GNSS position
     mounting : (k, 6) per camera model its mounting correction ``M`` (``BundleOptions.mounting``): rotation vector
         (radians, camera axes) and the camera centre's offset ``-R_M^T t_M`` from the frame's (metres, camera axes);
         NaN rows for cameras without one; mounting_std : (k, 6) their marginal standard deviations (NaN when the
@@ -1478,11 +1482,21 @@ def _strip_std(prob: BundleProblem, opt: BundleOptions, strips: np.ndarray, in_u
                sigma0: float) -> np.ndarray:
     """Standard deviations ``(s, 6)`` of the GNSS strip offsets and drifts ``strips (s, 6)`` (NaN where not
     estimated) with the orientations held: per strip and axis the inverse of the information of its images' position
-    priors in use (``in_use (n,)``) and of its own priors, times ``sigma0``."""
+    priors in use (``in_use (n,)``) and of its own priors, times ``sigma0``.
+
+    The heads of one exposure (``BundleProblem.image_exposure``) share one GNSS position, so their priors count as
+    one: each of the ``h`` in use carries ``1 / h`` of its weight. Counted per image, the 5 heads of a penta camera
+    made the offsets and drifts look sqrt(5) times more precise than they are: on 4 simulated 400-image blocks
+    (IAT, 5 strips of 16 exposures, planted offsets and drifts) their errors were 1.4-2.8 times (RMS per axis) the
+    standard deviations counted per image."""
     out = np.full(strips.shape, np.nan)
+    exposure = prob.image_exposure if len(prob.image_exposure) else np.full(prob.n_images, -1)
     for st in np.flatnonzero(np.isfinite(strips[:, 0])):
         sel = in_use & (prob.prior_strip == st)
-        w = 1.0 / prob.prior_sigma_pos[sel] ** 2
+        e = exposure[sel]
+        heads = np.ones(len(e))
+        heads[e >= 0] = np.bincount(e[e >= 0])[e[e >= 0]]
+        w = 1.0 / (prob.prior_sigma_pos[sel] ** 2 * heads[:, None])
         u = prob.prior_along[sel, None]
         drift = bool(np.isfinite(strips[st, 3]))
         for ax in range(3):

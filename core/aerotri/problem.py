@@ -179,6 +179,8 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
         prob.point_prior_xyz = point_prior_xyz[tracks]
         prob.point_prior_cov = point_prior_cov[tracks]
     _add_rig_pairs(block, image_ids, prob)
+    exposures = {e: k for k, e in enumerate(sorted({block.images[i].exposure for i in image_ids} - {None}))}
+    prob.image_exposure = np.array([exposures.get(block.images[i].exposure, -1) for i in image_ids], np.int64)
     if strips is not None:
         prob.strip_names = list(strips.names)
         prob.prior_strip = np.array([strips.image_strip.get(i, -1) for i in image_ids], np.int64)

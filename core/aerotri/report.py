@@ -696,7 +696,8 @@ def _report_extras(report: dict) -> list[str]:
                        for n, d in strips.items())
         parts.append("<h2>GNSS offsets per strip</h2><p>The error of each flight strip's GNSS positions (GNSS minus "
                      "adjusted centre), estimated in the adjustment; with a datum shift, from the block's mean "
-                     "(which the shift takes). Standard deviations with the orientations held.</p><table><tr>"
+                     "(which the shift takes). Standard deviations with the orientations held, the heads of one "
+                     "exposure counted as one GNSS position.</p><table><tr>"
                      "<th>strip</th><th>images</th><th>offset X [m]</th><th>offset Y [m]</th><th>offset Z [m]</th>"
                      + ("<th>drift X [m/km]</th><th>drift Y [m/km]</th><th>drift Z [m/km]</th>" if drift else "")
                      + f"</tr>{rows}</table>")
