@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.io.validate import read_json
+from ..core.matching import targets
 from ..core.matching.graph import read_graph
 from ..core.pipeline import Workspace
 from . import georef
@@ -19,6 +21,7 @@ from .layers import mesh_from_arrays
 from .scene_tree import layer_collection
 
 GRAPH_FILE = "matching/graph.json"
+TARGETS_FILE = targets.TARGETS_FILE
 
 
 def build_graph(scene, ws: Workspace) -> str:
@@ -57,3 +60,9 @@ def graph_summary(path) -> dict:
     matched = graph.matches[graph.matches >= 0]
     return {"pairs": len(graph.edges), "images": len(np.unique(graph.edges)),
             "median_matches": int(np.median(matched)) if len(matched) else None}
+
+
+def targets_summary(path) -> dict:
+    """Of the match stage's target measurements (``matching/targets.json``): :func:`.core.matching.targets.
+    target_summary`. Raises the core's :class:`InputError` for a file that is missing or not JSON."""
+    return targets.target_summary(read_json(path))

@@ -72,10 +72,21 @@ class CityPreferences(bpy.types.AddonPreferences):
         row.prop(self, "scheduler")
 
 
-OPTION_STAGES = ("aerotri", "dense", "surface", "buildings", "windows")
+OPTION_STAGES = ("match", "aerotri", "dense", "surface", "buildings", "windows")
 """The stages whose options their panel edits (``Scene.oblique_city.stage_options.<stage>``)."""
 
 OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
+    "match": {
+        "targets": {"items": (("none", "None", "The ground points' image measurements as imported"),
+                              ("missing", "Missing", "Measure the signalised targets where the import has no "
+                                                     "measurement"),
+                              ("all", "All", "Measure every signalised target in every image, in place of the "
+                                             "imported measurements"))},
+        "target_disc_radius_m": {"min": 0.0, "description": "Radius of the targets' bright disc (m)"},
+        "target_square_half_m": {"min": 0.0, "description": "Half side of the targets' dark square (m)"},
+        "target_search_px": {"min": 0.0, "description": "Search radius around the predicted position (px)"},
+        "target_min_score": {"min": 0.0, "max": 1.0, "description": "Correlation a target measurement needs"},
+    },
     "aerotri": {
         "mode": {"items": (("integrated", "Integrated (IAT)", "All images in one adjustment"),
                            ("hierarchical", "Hierarchical (HAT)", "Nadir block first, then each oblique view tied "

@@ -59,7 +59,9 @@ def _set_demo_options(ws: Workspace, sim: Path) -> None:
     * Dense matching and surfaces cover the simulated city (the planned flight area plus its inset), not the whole
       ground under the extended strips.
     * The triangulation calibrates each camera's mounting: the simulated heads are mounted off their nominal
-      boresight, as real ones are, and the imported block has one camera per head."""
+      boresight, as real ones are, and the imported block has one camera per head.
+    * The control and check points are measured in the images (the rendered targets, ``match.targets = all``): the
+      simulator's own image measurements (true projections plus noise) serve only to compare with."""
     doc = json.loads((sim / "truth" / "simulation.json").read_text())
     x0, y0, x1, y1 = doc["summary"]["area"]
     m = float(doc["config"]["area_inset"])
@@ -73,6 +75,9 @@ def _set_demo_options(ws: Workspace, sim: Path) -> None:
             changed = True
     if "mounting" not in stages.setdefault("aerotri", {}):
         stages["aerotri"]["mounting"] = True
+        changed = True
+    if "targets" not in stages.setdefault("match", {}):
+        stages["match"]["targets"] = "all"
         changed = True
     if changed:
         ws.save_project()

@@ -223,16 +223,27 @@ def graph_summary(root: Path) -> dict:
     return _file_cached(path, {"error": "no connectivity graph yet"}, lambda: layers_match.graph_summary(path))
 
 
+def targets_summary(root: Path) -> dict:
+    """The target measurements' figures (:func:`addon.layers_match.targets_summary`), re-read only when they
+    changed."""
+    path = root / layers_match.TARGETS_FILE
+    return _file_cached(path, {"error": "no target measurements yet"}, lambda: layers_match.targets_summary(path))
+
+
 def draw_triangulation(layout, context) -> None:
-    """The Triangulation panel's figures (the connectivity graph's pairs; mode, images, sigma0, check point RMS,
-    blunders, the mounting calibration, the camera with the largest systematic image residual, rejected control data
-    and EO priors, the GNSS strip offsets, estimated or suspected, the weakest control point), the tie points'
-    colourings and Open Report."""
+    """The Triangulation panel's figures (the connectivity graph's pairs, the targets measured; mode, images, sigma0,
+    check point RMS, blunders, the mounting calibration, the camera with the largest systematic image residual,
+    rejected control data and EO priors, the GNSS strip offsets, estimated or suspected, the weakest control point),
+    the tie points' colourings and Open Report."""
     root = workspace_root(context)
     g = graph_summary(root) if root is not None else {"error": ""}
     if "error" not in g:
         median = f", median {g['median_matches']} matches" if g["median_matches"] is not None else ""
         layout.label(text=f"Connectivity graph: {g['pairs']} image pairs of {g['images']} images{median}")
+    t = targets_summary(root) if root is not None else {"error": ""}
+    if "error" not in t and t["mode"] != "none":
+        versus = f", {t['imported_rms_px']:.2f} px RMS from imported" if t["imported_rms_px"] is not None else ""
+        layout.label(text=f"Targets measured: {t['measured']} ({t['missed']} not found{versus})")
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:
         return

@@ -1,6 +1,7 @@
 """The ``aerotri`` stage: integrated or hierarchical aerial triangulation of the workspace's block.
 
-Reads the imported block and the tie points of the ``match`` stage (``matching/ties.npz``); writes
+Reads the imported block and the tie points of the ``match`` stage (``matching/ties.npz``), with the ground points'
+image measurements it leaves (``matching/targets.json``: measured targets, :mod:`..matching.targets`); writes
 ``aerotri/block.json`` (the block with ``pose_adjusted`` set, read by later stages through ``ws.load_block()``),
 ``aerotri/ties.npz`` (adjusted tie coordinates, rejected observations flagged; extras: each track's standard
 deviations ``std`` and RMS image residual ``residual_px``), ``aerotri/report.json``,
@@ -15,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError, WorkspaceError
+from ..io.validate import read_json
+from ..matching.targets import TARGETS_FILE, apply_targets
 from ..model import CameraModel, ImageBlock, TiePoints
 from ..pipeline.atomic import write_json, write_text
 from ..pipeline.stage import Stage, StageResult
@@ -173,6 +176,9 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                           "only the native block.json carries one (the simulator writes it beside block.xml): "
                           "import that, or turn aerotri.rig off")
     ties = _multi_ray(TiePoints.load(str(ties_path)), cfg.min_rays)
+    targets_path = ws.path(TARGETS_FILE)
+    if targets_path.exists():  # the ground points' image measurements as the match stage left them
+        apply_targets(block, read_json(targets_path), targets_path)
     for img in block.images.values():
         if img.sigma_position is None or img.sigma_attitude is None:
             img.sigma_position = np.full(3, cfg.default_sigma_position)
@@ -247,4 +253,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="10", adjusted_block=False)
+              version="11", adjusted_block=False)

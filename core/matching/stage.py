@@ -3,8 +3,10 @@
 the pair matching (:data:`PAIRS_PER_UNIT` consecutive edges a unit) go through the run's executor.
 
 Writes ``matching/graph.json`` (nodes, edges with overlap and match counts; weak pairs dropped),
-``matching/ties.npz`` (tracks with their image observations) and ``matching/features/<n>.npz`` (keypoints and
-descriptors per image, reused when the stage reruns with the same feature count).
+``matching/ties.npz`` (tracks with their image observations), ``matching/features/<n>.npz`` (keypoints and
+descriptors per image, reused when the stage reruns with the same feature count) and ``matching/targets.json``
+(option ``targets``: the signalised ground points measured in the images, :mod:`.targets`; the ``aerotri`` stage
+adjusts with the image measurements it lists).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from ..pipeline.atomic import atomic_path, write_json
 from ..pipeline.stage import Stage, StageResult
 from .features import MatchOptions, guided_match, sift_features, verify
 from .graph import GraphOptions, build_graph
+from .targets import TARGETS_FILE
 from .tracks import build_tracks
 
 FEATURES_VERSION = 2
@@ -40,7 +43,14 @@ class MatchConfig:
     observation simulator: only the graph is built, its edges counting the shared tracks). ``lsm_refine``:
     least-squares matching of each track's observations against its most nadir-like one (:mod:`.lsm`);
     observations it cannot confirm are dropped. On the rendered demo block it halved sigma0 (0.326 -> 0.147 px)
-    and cut the tracks that miss their true point by 1.5 px from 7.3% to 2.5%, for about 3 minutes."""
+    and cut the tracks that miss their true point by 1.5 px from 7.3% to 2.5%, for about 3 minutes.
+
+    ``targets``: measure the ground points' signalised targets in the images (:mod:`.targets`): ``none`` (the
+    imported measurements as they are), ``missing`` (where the import has no measurement of a point in an image
+    that sees it) or ``all`` (every point in every image, in place of the imported measurements); the targets are
+    a bright disc of ``target_disc_radius_m`` on a dark square of half side ``target_square_half_m``, searched up to
+    ``target_search_px`` around the position the navigation data predict, kept from a correlation of
+    ``target_min_score``."""
 
     min_overlap: float = 0.2
     max_axis_angle_deg: float = 50.0
@@ -56,6 +66,11 @@ class MatchConfig:
     height_range: float = 60.0
     tie_source: str = "images"
     lsm_refine: bool = True
+    targets: str = "none"
+    target_disc_radius_m: float = 0.5
+    target_square_half_m: float = 0.8
+    target_search_px: float = 20.0
+    target_min_score: float = 0.9
 
 
 def _ground_height(block, cfg: MatchConfig) -> float:
@@ -190,8 +205,9 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
                                             z_ref=z0, max_neighbours=cfg.max_neighbours))
     ids = graph.image_ids
     out = ws.stage_dir("matching")
+    target_metrics = _measure_targets(ws, block, cfg, ctx)
     if cfg.tie_source == "file":
-        return _graph_from_ties(ws, block, graph, cfg, ctx)
+        return _graph_from_ties(ws, block, graph, cfg, ctx, target_metrics)
     if cfg.tie_source != "images":
         raise ConfigError(f"match.tie_source '{cfg.tie_source}' unknown (use images or file)")
     feat_dir = out / "features"
@@ -234,14 +250,38 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     rays = ties.ray_counts()
     ctx.progress(1, 1, "done")
     return StageResult(
-        outputs=("matching/graph.json", "matching/ties.npz"),
+        outputs=("matching/graph.json", "matching/ties.npz", TARGETS_FILE),
         metrics={"edges": len(graph.edges), "dropped_edges": dropped, "tracks": ties.n_tracks,
-                 "observations": ties.n_obs, "mean_rays": float(rays.mean()) if len(rays) else 0.0, **lsm_metrics},
+                 "observations": ties.n_obs, "mean_rays": float(rays.mean()) if len(rays) else 0.0, **lsm_metrics,
+                 **target_metrics},
         message=f"{len(graph.edges)} pairs ({dropped} weak dropped), {ties.n_tracks} tracks, "
-                f"{ties.n_obs} observations")
+                f"{ties.n_obs} observations" + _targets_message(target_metrics))
 
 
-def _graph_from_ties(ws, block, graph, cfg: MatchConfig, ctx) -> StageResult:
+def _measure_targets(ws, block, cfg: MatchConfig, ctx) -> dict:
+    """Measure the signalised ground points (option ``targets``), write :data:`.targets.TARGETS_FILE`, return its
+    figures (:func:`.targets.target_summary`) as metrics, none when nothing was to be measured."""
+    from .targets import TargetShape, measure_targets, target_summary
+
+    shape = TargetShape(disc_radius_m=cfg.target_disc_radius_m, square_half_m=cfg.target_square_half_m)
+    record = measure_targets(block, lambda iid: _read_grey(_image_path(block, iid), iid), cfg.targets, shape,
+                             cfg.target_search_px, cfg.target_min_score, progress=ctx.progress)
+    write_json(ws.path(TARGETS_FILE), record)
+    if cfg.targets == "none":
+        return {}
+    return {"targets_" + k: v for k, v in target_summary(record).items() if k != "mode"}
+
+
+def _targets_message(metrics: dict) -> str:
+    if not metrics:
+        return ""
+    text = f"; {metrics['targets_measured']} target measurements ({metrics['targets_missed']} not found"
+    if metrics["targets_imported_rms_px"] is not None:
+        text += f", {metrics['targets_imported_rms_px']:.2f} px RMS from the imported ones"
+    return text + ")"
+
+
+def _graph_from_ties(ws, block, graph, cfg: MatchConfig, ctx, target_metrics: dict) -> StageResult:
     """Graph edges weighted by the tracks two images share in existing tie points."""
     from ..model import TiePoints
 
@@ -254,11 +294,11 @@ def _graph_from_ties(ws, block, graph, cfg: MatchConfig, ctx) -> StageResult:
     dropped = graph.drop_weak(cfg.min_matches)
     write_json(ws.path("matching/graph.json"), graph.to_dict(block))
     ctx.progress(1, 1, "done")
-    return StageResult(outputs=("matching/graph.json", "matching/ties.npz"),
+    return StageResult(outputs=("matching/graph.json", "matching/ties.npz", TARGETS_FILE),
                        metrics={"edges": len(graph.edges), "dropped_edges": dropped, "tracks": ties.n_tracks,
-                                "observations": ties.n_obs},
+                                "observations": ties.n_obs, **target_metrics},
                        message=f"{len(graph.edges)} pairs ({dropped} weak dropped), {ties.n_tracks} tracks "
-                               "from matching/ties.npz")
+                               "from matching/ties.npz" + _targets_message(target_metrics))
 
 
 def pair_counts(ties, image_ids: list[str], edges: np.ndarray) -> np.ndarray:
@@ -275,6 +315,7 @@ def pair_counts(ties, image_ids: list[str], edges: np.ndarray) -> np.ndarray:
 
 
 STAGE = Stage(name="match", run=run, config=MatchConfig, requires=("block",),
-              description="connectivity graph, SIFT, guided matching along graph edges, tracks, LSM refinement",
-              version="4",
+              description="connectivity graph, SIFT, guided matching along graph edges, tracks, LSM refinement, "
+                          "signalised targets",
+              version="5",
               adjusted_block=False)

@@ -347,3 +347,35 @@ def test_gnss_strip_offsets_from_the_cli_are_estimated_and_reported(tmp_path):
     assert state["metrics"]["gnss_strips"] == len(strips)
     assert f"GNSS offsets of {len(strips)} strips" in state["message"]
     assert centre_rms() < plain
+
+
+def test_aerotri_adjusts_with_the_ground_point_measurements_the_match_stage_leaves(tmp_path):
+    """The match stage writes ``matching/targets.json`` (here nothing measured: the import's measurements); the
+    aerotri stage takes the ground points' image measurements from it: a check point the file leaves without
+    measurements is not checked, and the adjusted block keeps the file's measurements. A malformed file is refused
+    with its name and the field."""
+    import pytest
+
+    from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
+    from oblique_city.core.errors import InputError
+    from oblique_city.core.pipeline import RunContext
+
+    s, ws = _simulated_workspace(tmp_path)
+    assert main(["run", str(ws.root), "--stages", "match"]) == 0
+    record = json.loads(ws.path("matching/targets.json").read_text())
+    assert record["mode"] == "none"
+    block = ws.load_block(adjusted=False)
+    assert {n: sorted(o) for n, o in record["observations"].items()} == {
+        n: sorted(g.observations) for n, g in block.ground_points.items()}
+    check = sorted(n for n, g in block.ground_points.items() if g.kind == "check" and len(g.observations) >= 2)
+    STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext())
+    n_before = json.loads(ws.path("aerotri/report.json").read_text())["check_points"]["all"]["n"]
+    record["observations"][check[0]] = {}
+    ws.path("matching/targets.json").write_text(json.dumps(record))
+    STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext())
+    assert json.loads(ws.path("aerotri/report.json").read_text())["check_points"]["all"]["n"] == n_before - 1
+    assert ws.load_block().ground_points[check[0]].observations == {}
+    record["observations"][check[1]] = {next(iter(block.images)): [1.0]}
+    ws.path("matching/targets.json").write_text(json.dumps(record))
+    with pytest.raises(InputError, match=f"targets.json.*observations.{check[1]}"):
+        STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext())

@@ -93,3 +93,29 @@ def test_triangulation_panel_shows_the_graph(addon, ws):
     labels = [e[1] for e in draw(panel, bpy.context) if e[0] == "label"]
     assert "Connectivity graph: 4 image pairs of 4 images, median 455 matches" in labels
     assert "no triangulation report yet" in labels
+
+
+def test_triangulation_panel_shows_the_target_measurements_and_match_options_reach_the_project(addon, ws):
+    """With ``matching/targets.json`` written by the core (``all`` mode: two measurements, one of them beside an
+    imported one 0.3 px away, one image without the target), the panel tells what was measured; the match stage's
+    options are edited in its panel and land in ``project.toml``."""
+    bpy = addon
+    from oblique_city.core.pipeline.registry import get_stage
+    from oblique_city.panels import STAGE_PANEL_CLASSES
+
+    w = ws[0]
+    record = {"mode": "all", "points": {"T1": {"kind": "control", "imported": ["a"], "missed": ["c"], "measured": {
+        "a": {"uv": [10.3, 20.0], "predicted": [11, 19], "score": 0.97, "std_px": 0.02, "imported_difference_px": 0.3},
+        "b": {"uv": [30.0, 40.0], "predicted": [31, 39], "score": 0.95, "std_px": 0.03}}}},
+        "observations": {"T1": {"a": [10.3, 20.0], "b": [30.0, 40.0]}}}
+    write_json(w.path("matching/targets.json"), record)
+    bpy.context.scene.oblique_city.workspace = str(w.root)
+    panel = next(c for c in STAGE_PANEL_CLASSES if c.bl_label == "Triangulation")
+    labels = [e[1] for e in draw(panel, bpy.context) if e[0] == "label"]
+    assert "Targets measured: 2 (1 not found, 0.30 px RMS from imported)" in labels
+    opts = bpy.context.scene.oblique_city.stage_options.match
+    opts.targets = "missing"
+    opts.target_search_px = 12.0
+    stored = Workspace.open(w.root).stage_options("match")
+    assert stored["targets"] == "missing" and stored["target_search_px"] == 12.0
+    assert get_stage("match").make_config(stored).targets == "missing"

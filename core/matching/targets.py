@@ -1,0 +1,308 @@
+"""Automatic measurement of signalised ground points (control and check targets) in the images.
+
+A signalised target is a bright disc centred on a dark square laid on the ground (the usual painted or panel target;
+the simulator's are a 0.5 m disc on a 1.6 m square). For each ground point and each image where its projection from
+the approximate orientation falls inside the frame:
+
+1. the target is rendered as the image sees it from that orientation (:func:`render_target`): each pixel's shares
+   of the square and of the disc, from the cut of its ray with the horizontal plane through the point; a pixel's
+   grey value is modelled as ``c0 + c1 square + c2 disc`` (ground, square and disc levels unknown: any exposure);
+2. that model is fitted to the image at every integer shift up to ``search_px`` (the error of the navigation
+   data's prediction) over the pixels of the target and a two-pixel ring around it, and the best fit (multiple
+   correlation, with the disc brighter than the ground) is taken;
+3. from there, least-squares template matching refines the shift (sub-pixel) with the three levels, the target
+   rendered again at each shifted position (the ellipse an oblique view makes of the disc stays exact);
+4. the measurement is the predicted position plus that shift, kept when the final correlation reaches
+   ``min_score`` (an occluded or missing target does not) with the disc brighter than the square and the ground
+   (the square may be no darker than the asphalt under it), with its standard deviation from the fit.
+
+The shape is the template's: a perspective view is rendered, not assumed round, so the position is that of the
+disc's centre itself (the centroid of an oblique ellipse is not).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError, InputError
+from ..geometry.projection import intersect_with_plane_z, project
+from ..model import CameraModel, ImageBlock, Pose
+
+TARGETS_FILE = "matching/targets.json"
+"""Where the ``match`` stage writes the :func:`measure_targets` record, which the ``aerotri`` stage applies."""
+
+TARGET_MODES = ("none", "missing", "all")
+"""``none``: keep the imported measurements; ``missing``: measure a point in the images where the import has no
+measurement of it; ``all``: measure every point in every image, in place of the imported measurements."""
+
+@dataclass(frozen=True)
+class TargetShape:
+    """A bright disc of ``disc_radius_m`` on a dark square of half side ``square_half_m``, level on the ground."""
+
+    disc_radius_m: float = 0.5
+    square_half_m: float = 0.8
+
+
+@dataclass(frozen=True)
+class TargetMeasurement:
+    """One target measured in one image: ``uv`` (2,) pixels (centre of the top-left pixel at 0, 0), ``predicted``
+    (2,) from the approximate orientation, ``score`` the final normalised correlation, ``std_px`` the standard
+    deviation of the position from the fit (the larger axis)."""
+
+    uv: np.ndarray
+    predicted: np.ndarray
+    score: float
+    std_px: float
+
+
+def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: TargetShape, u: np.ndarray,
+                  v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The target as the image sees it at pixels ``u``, ``v`` (any equal shapes, floats): the shares of each pixel on
+    the square and on the disc, ``(square, disc)``.
+
+    A pixel's share of a shape is ``0.5 + s`` clipped to 0..1, with ``s`` the signed distance of the pixel's centre
+    from the shape's edge in pixels (the ground distance over the rate at which it changes across the image, from the
+    ray's cut with the ground plane and its derivatives): an edge crossing a pixel covers it in proportion, and the
+    shares change smoothly with the target's position, which the least-squares fit needs. The square's share is the
+    product of its two sides' (exact but at the corners)."""
+    shp = np.shape(u)
+    uv = np.column_stack([np.ravel(u), np.ravel(v)]).astype(np.float64)
+    z = float(centre[2])
+    step = 0.5
+    g = intersect_with_plane_z(camera, pose, uv, z)[:, :2] - np.asarray(centre, np.float64)[:2]
+    gu = (intersect_with_plane_z(camera, pose, uv + [step, 0.0], z)[:, :2] - centre[:2] - g) / step
+    gv = (intersect_with_plane_z(camera, pose, uv + [0.0, step], z)[:, :2] - centre[:2] - g) / step
+
+    def share(dist: np.ndarray, grad_u: np.ndarray, grad_v: np.ndarray) -> np.ndarray:
+        """Share inside ``dist >= 0`` (metres) with its derivatives along the image axes (metres per pixel)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.clip(0.5 + dist / np.hypot(grad_u, grad_v), 0.0, 1.0)
+
+    sides = []
+    for ax in range(2):
+        sign = np.sign(g[:, ax])
+        sides.append(share(shape.square_half_m - np.abs(g[:, ax]), -sign * gu[:, ax], -sign * gv[:, ax]))
+    square = sides[0] * sides[1]
+    r = np.hypot(g[:, 0], g[:, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nx, ny = g[:, 0] / r, g[:, 1] / r
+    disc = share(shape.disc_radius_m - r, -(nx * gu[:, 0] + ny * gu[:, 1]), -(nx * gv[:, 0] + ny * gv[:, 1]))
+    return np.nan_to_num(square).reshape(shp), np.nan_to_num(disc).reshape(shp)
+
+
+def _design(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: TargetShape, u: np.ndarray,
+            v: np.ndarray) -> np.ndarray:
+    """The grey-value model's design ``(n, 3)`` at pixels ``u``, ``v`` ``(n,)``: background, square, disc (a pixel's
+    grey value is ``c0 + c1 square + c2 disc``, with its shares on them)."""
+    sq, disc = render_target(camera, pose, centre, shape, u, v)
+    return np.column_stack([np.ones_like(sq), sq, disc])
+
+
+def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np.ndarray,
+                   shape: TargetShape = TargetShape(), search_px: float = 20.0, min_score: float = 0.9,
+                   iterations: int = 10) -> TargetMeasurement | None:
+    """Measure the target at world point ``centre (3,)`` in the grey image ``grey (h, w)`` seen from the approximate
+    orientation ``pose`` (see the module docstring). None when its projection is outside the image (with the search
+    and the target around it), the target spans less than two pixels across, or the match fails or scores below
+    ``min_score``."""
+    centre = np.asarray(centre, np.float64)
+    pred, depth = project(camera, pose, centre[None])
+    pred = pred[0]
+    if depth[0] <= 0 or not np.all(np.isfinite(pred)):
+        return None
+    h = shape.square_half_m
+    corners = centre + np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]])
+    cuv, _ = project(camera, pose, corners)
+    if not np.all(np.isfinite(cuv)):
+        return None
+    half = int(np.ceil(np.abs(cuv - pred).max())) + 2
+    if half < 3:
+        return None
+    s = int(np.ceil(search_px))
+    p0 = np.round(pred).astype(int)
+    rows, cols = grey.shape[:2]
+    if p0[0] - half < 0 or p0[1] - half < 0 or p0[0] + half >= cols or p0[1] + half >= rows:
+        return None
+    # the search window, NaN beyond the image's border (the shifts that reach there are not tried)
+    x0, y0 = p0[0] - half - s - 2, p0[1] - half - s - 2
+    img = np.full((2 * (half + s + 2) + 1,) * 2, np.nan)
+    cx0, cy0 = max(x0, 0), max(y0, 0)
+    cx1, cy1 = min(x0 + img.shape[1], cols), min(y0 + img.shape[0], rows)
+    img[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0] = grey[cy0:cy1, cx0:cx1]
+    gu, gv = np.meshgrid(np.arange(-half, half + 1) + p0[0], np.arange(-half, half + 1) + p0[1])
+    # the pixels the target covers at the prediction, with a ring of two pixels around it
+    sq, _ = render_target(camera, pose, centre, shape, gu, gv)
+    near = sq > 0
+    for _ in range(2):
+        near[1:] |= near[:-1]
+        near[:-1] |= near[1:]
+        near[:, 1:] |= near[:, :-1]
+        near[:, :-1] |= near[:, 1:]
+    u, v = gu[near].astype(np.float64), gv[near].astype(np.float64)
+    a = _design(camera, pose, centre, shape, u, v)
+    if np.linalg.matrix_rank(a) < 3:
+        return None
+    # integer search: how well the grey-value model fits (multiple correlation) at every shift
+    iy, ix = v.astype(int) - y0, u.astype(int) - x0
+    shifts = np.array([(dx, dy) for dy in range(-s, s + 1) for dx in range(-s, s + 1)])
+    patches = img[iy[:, None] + shifts[None, :, 1], ix[:, None] + shifts[None, :, 0]]
+    inside = np.all(np.isfinite(patches), axis=0)
+    patches = np.nan_to_num(patches)
+    coef = np.linalg.lstsq(a, patches, rcond=None)[0]
+    fit = a @ coef
+    centred = patches - patches.mean(0)
+    total = np.einsum("ij,ij->j", centred, centred)
+    resid = patches - fit
+    r2 = 1.0 - np.einsum("ij,ij->j", resid, resid) / np.maximum(total, 1e-12)
+    r2[~inside] = -1.0
+    # the disc must be brighter than the ground around the target
+    r2[coef[1] + coef[2] <= 0] = -1.0
+    k = int(np.argmax(r2))
+    if r2[k] < (0.8 * min_score) ** 2:
+        return None
+    shift = shifts[k]
+    obs = patches[:, k]
+    su, sv = u + shift[0], v + shift[1]
+    # least-squares template matching from there: the shift and the three grey levels
+    d = shift.astype(np.float64)
+    eps = 0.05
+
+    def model(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a0 = _design(camera, pose, centre, shape, su - d[0], sv - d[1])
+        c = np.linalg.lstsq(a0, obs, rcond=None)[0]
+        au = _design(camera, pose, centre, shape, su - d[0] - eps, sv - d[1])
+        av = _design(camera, pose, centre, shape, su - d[0], sv - d[1] - eps)
+        jac = np.column_stack([(au - a0) @ c / eps, (av - a0) @ c / eps, a0])
+        return obs - a0 @ c, jac, c
+
+    for _ in range(iterations):
+        res, jac, _ = model(d)
+        step = np.linalg.lstsq(jac, res, rcond=None)[0]
+        d += step[:2]
+        if np.abs(d - shift).max() > 1.5:
+            return None
+        if np.abs(step[:2]).max() < 1e-3:
+            break
+    res, jac, c = model(d)
+    if c[2] <= 0 or c[1] + c[2] <= 0:  # the disc brighter than the square and the ground (the square can be as
+        return None                   # dark as the asphalt it lies on)
+    centred = obs - obs.mean()
+    score = float(np.sqrt(max(0.0, 1.0 - float(res @ res) / max(float(centred @ centred), 1e-12))))
+    if score < min_score:
+        return None
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * float(res @ res) / max(len(obs) - 5, 1)
+    except np.linalg.LinAlgError:
+        return None
+    std = float(np.sqrt(max(cov[0, 0], cov[1, 1])))
+    return TargetMeasurement(uv=pred + d, predicted=pred, score=score, std_px=std)
+
+
+def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], mode: str = "missing",
+                    shape: TargetShape = TargetShape(), search_px: float = 20.0, min_score: float = 0.9,
+                    margin_px: float = 2.0, progress: Callable[[int, int, str], None] | None = None) -> dict:
+    """Measure the block's ground points with coordinates (control and check) in its images (``mode``, see
+    :data:`TARGET_MODES`; ``none`` measures nothing and keeps the imported measurements). ``read_grey(image_id)``
+    gives an image as ``(h, w)`` grey values. ``progress(done, total, message)`` is called per image and may
+    raise to cancel.
+
+    Returns a JSON-ready record: ``mode``, ``shape``, ``search_px``, ``min_score``; ``points``: per point name its
+    ``kind``, ``imported`` (images measured by the import), ``measured`` (image -> ``uv``, ``predicted``, ``score``,
+    ``std_px`` and, where the import measured it there too, ``imported_difference_px``) and ``missed`` (images
+    where its projection lies in the frame and no target was found: occluded, outside the search or too small);
+    ``observations``: per point the image measurements to adjust with (the
+    measured ones in ``all`` mode, the imported ones plus those measured where the import had none in ``missing``
+    mode)."""
+    if mode not in TARGET_MODES:
+        raise ConfigError(f"unknown target measurement mode '{mode}' (use one of {', '.join(TARGET_MODES)})")
+    points = {name: gp for name, gp in block.ground_points.items()
+              if gp.xyz is not None and np.all(np.isfinite(gp.xyz))}
+    record: dict = {"mode": mode, "shape": {"disc_radius_m": shape.disc_radius_m,
+                                            "square_half_m": shape.square_half_m},
+                    "search_px": search_px, "min_score": min_score,
+                    "points": {name: {"kind": gp.kind, "imported": sorted(gp.observations), "measured": {},
+                                      "missed": []} for name, gp in points.items()}}
+    todo: dict[str, list[str]] = {}
+    if mode != "none" and points:
+        names = list(points)
+        xyz = np.array([points[n].xyz for n in names], np.float64)
+        for iid, img in block.images.items():
+            if img.pose_approx is None or img.file is None:
+                continue
+            cam = block.camera_of(img)
+            uv, depth = project(cam, img.pose_approx, xyz)
+            inside = (depth > 0) & cam.contains(np.nan_to_num(uv, nan=-1e9), margin=margin_px)
+            want = [names[k] for k in np.flatnonzero(inside)
+                    if mode == "all" or iid not in points[names[k]].observations]
+            if want:
+                todo[iid] = want
+    for done, (iid, want) in enumerate(todo.items()):
+        if progress is not None:
+            progress(done, len(todo), f"targets: image {done + 1}/{len(todo)}")
+        img = block.images[iid]
+        grey = read_grey(iid)
+        for name in want:
+            m = measure_target(grey, block.camera_of(img), img.pose_approx, points[name].xyz, shape, search_px,
+                               min_score)
+            entry = record["points"][name]
+            if m is None:
+                entry["missed"].append(iid)
+                continue
+            entry["measured"][iid] = {"uv": m.uv.tolist(), "predicted": m.predicted.tolist(),
+                                      "score": round(m.score, 4), "std_px": round(m.std_px, 4)}
+            imported = points[name].observations.get(iid)
+            if imported is not None:
+                entry["measured"][iid]["imported_difference_px"] = round(float(np.hypot(*(m.uv - imported))), 4)
+    if progress is not None:
+        progress(len(todo), len(todo), "targets measured")
+    observations = {}
+    for name, gp in points.items():
+        measured = {iid: d["uv"] for iid, d in record["points"][name]["measured"].items()}
+        kept = {} if mode == "all" else {iid: list(map(float, uv)) for iid, uv in gp.observations.items()}
+        observations[name] = {**kept, **measured}
+    record["observations"] = observations
+    return record
+
+
+def target_summary(record: dict) -> dict:
+    """The figures of a :func:`measure_targets` record: ``mode``, the measurements made (``measured``), the points'
+    images where none was found (``missed``), the median correlation (``score_median``) and the RMS difference to
+    the imported measurements of the same points in the same images (``imported_rms_px``; None without any)."""
+    entries = [e for p in record.get("points", {}).values() for e in p.get("measured", {}).values()]
+    scores = [e["score"] for e in entries]
+    diffs = [e["imported_difference_px"] for e in entries if "imported_difference_px" in e]
+    return {"mode": record.get("mode"), "measured": len(entries),
+            "missed": sum(len(p.get("missed", [])) for p in record.get("points", {}).values()),
+            "score_median": float(np.median(scores)) if scores else None,
+            "imported_rms_px": float(np.sqrt(np.mean(np.square(diffs)))) if diffs else None}
+
+
+def apply_targets(block: ImageBlock, record: dict, path: str | Path | None = None) -> int:
+    """Give the block's ground points the image measurements of a :func:`measure_targets` record (its
+    ``observations``; a point it does not name keeps its own). Returns the number of measurements set. A record
+    that is not one raises :class:`InputError` naming ``path`` and the field."""
+    observations = record.get("observations") if isinstance(record, dict) else None
+    if not isinstance(observations, dict):
+        raise InputError("not a target measurement record", path, field="observations")
+    n = 0
+    for name, obs in observations.items():
+        gp = block.ground_points.get(name)
+        if gp is None:
+            continue
+        if not isinstance(obs, dict):
+            raise InputError("expected image measurements (image -> [u, v])", path, field=f"observations.{name}")
+        new = {}
+        for iid, uv in obs.items():
+            ok = isinstance(uv, list) and len(uv) == 2 and all(isinstance(x, (int, float)) for x in uv)
+            value = np.asarray(uv, np.float64) if ok else None
+            if value is None or not np.all(np.isfinite(value)):
+                raise InputError("expected a pixel position [u, v]", path, field=f"observations.{name}.{iid}")
+            if iid in block.images:
+                new[iid] = value
+        gp.observations = new
+        n += len(new)
+    return n
