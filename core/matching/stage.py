@@ -264,8 +264,11 @@ def _measure_targets(ws, block, cfg: MatchConfig, ctx) -> dict:
     from .targets import TargetShape, measure_targets, target_summary
 
     shape = TargetShape(disc_radius_m=cfg.target_disc_radius_m, square_half_m=cfg.target_square_half_m)
-    record = measure_targets(block, lambda iid: _read_grey(_image_path(block, iid), iid), cfg.targets, shape,
-                             cfg.target_search_px, cfg.target_min_score, progress=ctx.progress)
+    measuring = cfg.targets != "none"
+    paths = {iid: _image_path(block, iid) for iid, img in block.images.items() if measuring and img.file is not None}
+    record = measure_targets(block, partial(_read_image_of, paths), cfg.targets, shape, cfg.target_search_px,
+                             cfg.target_min_score, progress=ctx.progress,
+                             executor=ctx.get_executor() if measuring else None)
     write_json(ws.path(TARGETS_FILE), record)
     if cfg.targets == "none":
         return {}

@@ -202,21 +202,30 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     return TargetMeasurement(uv=pred + d, predicted=pred, score=score, std_px=std)
 
 
+def _measure_image(item: tuple) -> list[TargetMeasurement | None]:
+    """Executor unit: the targets of one image, ``(read_grey, image id, camera, pose, centres (k, 3), shape,
+    search_px, min_score)`` -> a measurement or None per target."""
+    read_grey, iid, camera, pose, centres, shape, search_px, min_score = item
+    grey = read_grey(iid)
+    return [measure_target(grey, camera, pose, c, shape, search_px, min_score) for c in centres]
+
+
 def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], mode: str = "missing",
                     shape: TargetShape = TargetShape(), search_px: float = 20.0, min_score: float = 0.9,
-                    margin_px: float = 2.0, progress: Callable[[int, int, str], None] | None = None) -> dict:
+                    margin_px: float = 2.0, progress: Callable[[int, int, str], None] | None = None,
+                    executor=None) -> dict:
     """Measure the block's ground points with coordinates (control and check) in its images (``mode``, see
     :data:`TARGET_MODES`; ``none`` measures nothing and keeps the imported measurements). ``read_grey(image_id)``
-    gives an image as ``(h, w)`` grey values. ``progress(done, total, message)`` is called per image and may
-    raise to cancel.
+    gives an image as ``(h, w)`` grey values (picklable, e.g. a :func:`functools.partial`, for an ``executor`` with
+    worker processes: one unit per image). ``progress(done, total, message)`` is called per image and may raise to
+    cancel.
 
     Returns a JSON-ready record: ``mode``, ``shape``, ``search_px``, ``min_score``; ``points``: per point name its
     ``kind``, ``imported`` (images measured by the import), ``measured`` (image -> ``uv``, ``predicted``, ``score``,
     ``std_px`` and, where the import measured it there too, ``imported_difference_px``) and ``missed`` (images
     where its projection lies in the frame and no target was found: occluded, outside the search or too small);
-    ``observations``: per point the image measurements to adjust with (the
-    measured ones in ``all`` mode, the imported ones plus those measured where the import had none in ``missing``
-    mode)."""
+    ``observations``: per point the image measurements to adjust with (the measured ones in ``all`` mode, the
+    imported ones plus those measured where the import had none in ``missing`` mode)."""
     if mode not in TARGET_MODES:
         raise ConfigError(f"unknown target measurement mode '{mode}' (use one of {', '.join(TARGET_MODES)})")
     points = {name: gp for name, gp in block.ground_points.items()
@@ -240,14 +249,23 @@ def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], m
                     if mode == "all" or iid not in points[names[k]].observations]
             if want:
                 todo[iid] = want
-    for done, (iid, want) in enumerate(todo.items()):
+    items = [(read_grey, iid, block.camera_of(block.images[iid]), block.images[iid].pose_approx,
+              np.array([points[n].xyz for n in want], np.float64), shape, search_px, min_score)
+             for iid, want in todo.items()]
+
+    def done(d: int, t: int) -> None:
         if progress is not None:
-            progress(done, len(todo), f"targets: image {done + 1}/{len(todo)}")
-        img = block.images[iid]
-        grey = read_grey(iid)
-        for name in want:
-            m = measure_target(grey, block.camera_of(img), img.pose_approx, points[name].xyz, shape, search_px,
-                               min_score)
+            progress(d, t, f"targets: {d}/{t} images")
+
+    if executor is not None:
+        found = executor.map(_measure_image, items, done)
+    else:
+        found = []
+        for it in items:
+            done(len(found), len(items))
+            found.append(_measure_image(it))
+    for (iid, want), results in zip(todo.items(), found, strict=True):
+        for name, m in zip(want, results, strict=True):
             entry = record["points"][name]
             if m is None:
                 entry["missed"].append(iid)
@@ -257,8 +275,7 @@ def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], m
             imported = points[name].observations.get(iid)
             if imported is not None:
                 entry["measured"][iid]["imported_difference_px"] = round(float(np.hypot(*(m.uv - imported))), 4)
-    if progress is not None:
-        progress(len(todo), len(todo), "targets measured")
+    done(len(items), len(items))
     observations = {}
     for name, gp in points.items():
         measured = {iid: d["uv"] for iid, d in record["points"][name]["measured"].items()}

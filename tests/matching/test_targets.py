@@ -11,6 +11,7 @@ from oblique_city.core.geometry.projection import project
 from oblique_city.core.geometry.rotations import rotvec_to_matrix
 from oblique_city.core.matching.targets import apply_targets, measure_target, measure_targets
 from oblique_city.core.model import CameraModel, GroundPoint, Image, ImageBlock, Pose
+from oblique_city.core.pipeline.executor import Executor
 from oblique_city.core.simulate.observations import look_rotation
 
 CAMERA = CameraModel(id="c", width=600, height=450, fx=6500.0, fy=6500.0, cx=299.5, cy=224.5)
@@ -79,7 +80,8 @@ def test_targets_are_measured_to_a_tenth_of_a_pixel_from_the_navigation_data(vie
 
 def test_measure_targets_keeps_imported_measurements_as_asked_and_apply_refuses_bad_records(views):
     """``missing`` measures a point only in the images the import did not measure it in, ``all`` everywhere in
-    place of the import, ``none`` nowhere; the record's observations are what the adjustment gets."""
+    place of the import (in worker processes as inline), ``none`` nowhere; the record's observations are what the
+    adjustment gets."""
     (xyz, _, _, a_pose, a_grey, _), (_, _, _, b_pose, b_grey, _) = views[6], views[7]
     block = ImageBlock(crs="EPSG:25832")
     block.add_camera(CAMERA)
@@ -92,6 +94,8 @@ def test_measure_targets_keeps_imported_measurements_as_asked_and_apply_refuses_
     assert missing["observations"]["T04"]["a"] == [1.0, 2.0]
     every = measure_targets(block, greys.__getitem__, "all")
     assert sorted(every["observations"]["T04"]) == ["a", "b"] and every["observations"]["T04"]["a"] != [1.0, 2.0]
+    with Executor("processes", workers=2) as ex:  # one unit per image in worker processes: the same record
+        assert measure_targets(block, greys.__getitem__, "all", executor=ex) == every
     assert measure_targets(block, greys.__getitem__, "none")["points"]["T04"]["measured"] == {}
     with pytest.raises(ConfigError, match="unknown target measurement mode"):
         measure_targets(block, greys.__getitem__, "some")
