@@ -39,6 +39,7 @@ TARGET_MODES = ("none", "missing", "all")
 """``none``: keep the imported measurements; ``missing``: measure a point in the images where the import has no
 measurement of it; ``all``: measure every point in every image, in place of the imported measurements."""
 
+
 @dataclass(frozen=True)
 class TargetShape:
     """A bright disc of ``disc_radius_m`` on a dark square of half side ``square_half_m``, level on the ground."""
@@ -50,8 +51,8 @@ class TargetShape:
 @dataclass(frozen=True)
 class TargetMeasurement:
     """One target measured in one image: ``uv`` (2,) pixels (centre of the top-left pixel at 0, 0), ``predicted``
-    (2,) from the approximate orientation, ``score`` the final normalised correlation, ``std_px`` the standard
-    deviation of the position from the fit (the larger axis)."""
+    (2,) from the approximate orientation, ``score`` the multiple correlation of the final fit (the grey-value model
+    against the image), ``std_px`` the standard deviation of the position from the fit (the larger axis)."""
 
     uv: np.ndarray
     predicted: np.ndarray
@@ -106,9 +107,9 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
                    shape: TargetShape = TargetShape(), search_px: float = 20.0, min_score: float = 0.9,
                    iterations: int = 10) -> TargetMeasurement | None:
     """Measure the target at world point ``centre (3,)`` in the grey image ``grey (h, w)`` seen from the approximate
-    orientation ``pose`` (see the module docstring). None when its projection is outside the image (with the search
-    and the target around it), the target spans less than two pixels across, or the match fails or scores below
-    ``min_score``."""
+    orientation ``pose`` (see the module docstring). None when the target's window is not inside the image (the
+    shifts of the search that leave the image are not tried), the target spans less than two pixels across, or the
+    match fails, moves more than 1.5 px from the best integer shift or scores below ``min_score``."""
     centre = np.asarray(centre, np.float64)
     pred, depth = project(camera, pose, centre[None])
     pred = pred[0]
