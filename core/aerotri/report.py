@@ -793,10 +793,17 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
                        f"<td>{format_value(g['dx_m'])}</td><td>{format_value(g['dy_m'])}</td>"
                        f"<td>{format_value(g['dz_m'])}</td><td>{format_value(g['image_rms_px'])}</td>"
                        f"<td>{_rejection_text(g)}</td></tr>" for g in report["ground_points"])
+        t = report.get("target_measurements")
+        measured = "" if not t else (
+            f"<p>Image measurements: {t['measured']} measured in the images (signalised targets, mode {t['mode']}, "
+            f"median correlation {format_value(t['score_median'])}); {t['missed']} projections inside an image where "
+            "no target was found" + ("" if t["imported_rms_px"] is None else
+                                     f"; {format_value(t['imported_rms_px'])} px RMS from the imported measurements")
+            + ".</p>")
         parts.append("<h2>Ground points (intersected from every image with its adjusted orientation, minus the "
-                     "given coordinates)</h2><table><tr><th>point</th><th>kind</th><th>images</th><th>dX [m]</th>"
-                     f"<th>dY [m]</th><th>dZ [m]</th><th>image RMS [px]</th><th>rejected by the adjustment</th></tr>"
-                     f"{rows}</table>")
+                     f"given coordinates)</h2>{measured}<table><tr><th>point</th><th>kind</th><th>images</th>"
+                     "<th>dX [m]</th><th>dY [m]</th><th>dZ [m]</th><th>image RMS [px]</th>"
+                     f"<th>rejected by the adjustment</th></tr>{rows}</table>")
     if report.get("boresight"):
         rows = "".join(f"<tr><td>{h}</td><td>{format_value(b['mean_deg'])}</td>"
                        f"<td>{format_value(b['std_deg'])}</td></tr>"

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import ConfigError, WorkspaceError
 from ..io.validate import read_json
-from ..matching.targets import TARGETS_FILE, apply_targets
+from ..matching.targets import TARGETS_FILE, apply_targets, target_summary
 from ..model import CameraModel, ImageBlock, TiePoints
 from ..pipeline.atomic import write_json, write_text
 from ..pipeline.stage import Stage, StageResult
@@ -177,8 +177,9 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                           "import that, or turn aerotri.rig off")
     ties = _multi_ray(TiePoints.load(str(ties_path)), cfg.min_rays)
     targets_path = ws.path(TARGETS_FILE)
-    if targets_path.exists():  # the ground points' image measurements as the match stage left them
-        apply_targets(block, read_json(targets_path), targets_path)
+    targets = read_json(targets_path) if targets_path.exists() else None
+    if targets is not None:  # the ground points' image measurements as the match stage left them
+        apply_targets(block, targets, targets_path)
     for img in block.images.values():
         if img.sigma_position is None or img.sigma_attitude is None:
             img.sigma_position = np.full(3, cfg.default_sigma_position)
@@ -206,6 +207,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     ctx.progress(1, 2, "statistics and layers")
     report = block_report(block, ties, at, cfg.sigma_px)
     report["thinned_observations"] = int(at.extra.get("thinned_observations", 0))
+    report["target_measurements"] = (target_summary(targets) if targets is not None and targets.get("mode") != "none"
+                                     else None)
     layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size, cfg.layer_views)
     files = write_layers(layers, out / "layers")
     write_json(out / "report.json", report)

@@ -352,8 +352,9 @@ def test_gnss_strip_offsets_from_the_cli_are_estimated_and_reported(tmp_path):
 def test_aerotri_adjusts_with_the_ground_point_measurements_the_match_stage_leaves(tmp_path):
     """The match stage writes ``matching/targets.json`` (here nothing measured: the import's measurements); the
     aerotri stage takes the ground points' image measurements from it: a check point the file leaves without
-    measurements is not checked, and the adjusted block keeps the file's measurements. A malformed file is refused
-    with its name and the field."""
+    measurements is not checked, the adjusted block keeps the file's measurements, and the report (JSON and HTML)
+    tells what was measured in the images once something was to be measured. A malformed file is refused with its
+    name and the field."""
     import pytest
 
     from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
@@ -369,11 +370,21 @@ def test_aerotri_adjusts_with_the_ground_point_measurements_the_match_stage_leav
         n: sorted(g.observations) for n, g in block.ground_points.items()}
     check = sorted(n for n, g in block.ground_points.items() if g.kind == "check" and len(g.observations) >= 2)
     STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext())
-    n_before = json.loads(ws.path("aerotri/report.json").read_text())["check_points"]["all"]["n"]
+    report = json.loads(ws.path("aerotri/report.json").read_text())
+    n_before = report["check_points"]["all"]["n"]
+    assert report["target_measurements"] is None  # nothing measured: the report says nothing of it
     record["observations"][check[0]] = {}
+    record["mode"] = "all"
+    record["points"][check[0]]["missed"] = sorted(block.ground_points[check[0]].observations)
     ws.path("matching/targets.json").write_text(json.dumps(record))
     STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext())
-    assert json.loads(ws.path("aerotri/report.json").read_text())["check_points"]["all"]["n"] == n_before - 1
+    report = json.loads(ws.path("aerotri/report.json").read_text())
+    assert report["check_points"]["all"]["n"] == n_before - 1
+    missed = len(block.ground_points[check[0]].observations)
+    assert report["target_measurements"] == {"mode": "all", "measured": 0, "missed": missed, "score_median": None,
+                                             "imported_rms_px": None}
+    assert f"{missed} projections inside an image where no target was found" in ws.path(
+        "aerotri/report.html").read_text()
     assert ws.load_block().ground_points[check[0]].observations == {}
     record["observations"][check[1]] = {next(iter(block.images)): [1.0]}
     ws.path("matching/targets.json").write_text(json.dumps(record))
