@@ -243,6 +243,7 @@ def draw_triangulation(layout, context) -> None:
     t = targets_summary(root) if root is not None else {"error": ""}
     if "error" not in t and t["mode"] != "none":
         versus = f", {t['imported_rms_px']:.2f} px RMS from imported" if t["imported_rms_px"] is not None else ""
+        versus += f", {len(t['suspect'])} imported suspect" if t["suspect"] else ""
         layout.label(text=f"Targets measured: {t['measured']} ({t['missed']} not found{versus})")
     figures = _figures_column(layout, context, triangulation_summary)
     if figures is None:

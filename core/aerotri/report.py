@@ -44,6 +44,7 @@ from ..evaluate.aerotri import (
 )
 from ..geometry.projection import project
 from ..geometry.rotations import matrix_to_rotvec
+from ..matching.targets import SUSPECT_PX
 from ..model import CameraModel, ImageBlock, Raster, TiePoints
 from . import precision
 from .bundle import DETECTION_POWER, PRIOR_PART_LABELS, PRIOR_PARTS, image_focals
@@ -799,7 +800,11 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
             f"median correlation {format_value(t['score_median'])}); {t['missed']} projections inside an image where "
             "no target was found" + ("" if t["imported_rms_px"] is None else
                                      f"; {format_value(t['imported_rms_px'])} px RMS from the imported measurements")
-            + ".</p>")
+            + "." + ("" if not t.get("suspect") else
+                     f" {len(t['suspect'])} imported measurements lie more than {SUSPECT_PX:g} px from the target "
+                     "measured in the same image (the wrong spot or point, or a wrong match): "
+                     + ", ".join(f"{html.escape(n)} in {html.escape(i)} ({d:.1f} px)" for n, i, d in t["suspect"][:10])
+                     + ("..." if len(t["suspect"]) > 10 else "") + ".") + "</p>")
         parts.append("<h2>Ground points (intersected from every image with its adjusted orientation, minus the "
                      f"given coordinates)</h2>{measured}<table><tr><th>point</th><th>kind</th><th>images</th>"
                      "<th>dX [m]</th><th>dY [m]</th><th>dZ [m]</th><th>image RMS [px]</th>"

@@ -26,7 +26,7 @@ from ..pipeline.atomic import atomic_path, write_json
 from ..pipeline.stage import Stage, StageResult
 from .features import MatchOptions, guided_match, sift_features, verify
 from .graph import GraphOptions, build_graph
-from .targets import TARGETS_FILE
+from .targets import SUSPECT_PX, TARGETS_FILE
 from .tracks import build_tracks
 
 FEATURES_VERSION = 2
@@ -46,8 +46,9 @@ class MatchConfig:
     and cut the tracks that miss their true point by 1.5 px from 7.3% to 2.5%, for about 3 minutes.
 
     ``targets``: measure the ground points' signalised targets in the images (:mod:`.targets`): ``none`` (the
-    imported measurements as they are), ``missing`` (where the import has no measurement of a point in an image
-    that sees it) or ``all`` (every point in every image, in place of the imported measurements); the targets are
+    imported measurements as they are), ``missing`` (measured ones where the import has no measurement of a point
+    in an image that sees it; the imported ones are checked against the measured ones) or ``all`` (every point in
+    every image, in place of the imported measurements); the targets are
     a bright disc of ``target_disc_radius_m`` on a dark square of half side ``target_square_half_m``, searched up to
     ``target_search_px`` around the position the navigation data predict, kept from a correlation of
     ``target_min_score``."""
@@ -272,7 +273,10 @@ def _measure_targets(ws, block, cfg: MatchConfig, ctx) -> dict:
     write_json(ws.path(TARGETS_FILE), record)
     if cfg.targets == "none":
         return {}
-    return {"targets_" + k: v for k, v in target_summary(record).items() if k != "mode"}
+    summary = target_summary(record)
+    return {"targets_measured": summary["measured"], "targets_missed": summary["missed"],
+            "targets_score_median": summary["score_median"], "targets_imported_rms_px": summary["imported_rms_px"],
+            "targets_suspect": len(summary["suspect"])}
 
 
 def _targets_message(metrics: dict) -> str:
@@ -281,6 +285,8 @@ def _targets_message(metrics: dict) -> str:
     text = f"; {metrics['targets_measured']} target measurements ({metrics['targets_missed']} not found"
     if metrics["targets_imported_rms_px"] is not None:
         text += f", {metrics['targets_imported_rms_px']:.2f} px RMS from the imported ones"
+    if metrics["targets_suspect"]:
+        text += f", {metrics['targets_suspect']} imported ones more than {SUSPECT_PX:g} px off"
     return text + ")"
 
 

@@ -36,8 +36,14 @@ TARGETS_FILE = "matching/targets.json"
 """Where the ``match`` stage writes the :func:`measure_targets` record, which the ``aerotri`` stage applies."""
 
 TARGET_MODES = ("none", "missing", "all")
-"""``none``: keep the imported measurements; ``missing``: measure a point in the images where the import has no
-measurement of it; ``all``: measure every point in every image, in place of the imported measurements."""
+"""``none``: keep the imported measurements; ``missing``: measure every point in every image, and adjust with the
+imported measurements where there are some and with the measured ones where the import has none (the imported ones
+are checked against the measured ones: :func:`target_summary`); ``all``: adjust with the measured ones only."""
+
+SUSPECT_PX = 1.0
+"""An imported measurement more than this many pixels from the target measured in the same image is counted as
+suspect (:func:`target_summary`): a manual measurement on the wrong spot or of the wrong point, or a target matched
+wrongly."""
 
 
 @dataclass(frozen=True)
@@ -226,7 +232,8 @@ def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], m
     ``std_px`` and, where the import measured it there too, ``imported_difference_px``) and ``missed`` (images
     where its projection lies in the frame and no target was found: occluded, outside the search or too small);
     ``observations``: per point the image measurements to adjust with (the measured ones in ``all`` mode, the
-    imported ones plus those measured where the import had none in ``missing`` mode)."""
+    imported ones plus those measured where the import had none in ``missing`` mode: there every point is measured in
+    every image all the same, so that the imported measurements are checked)."""
     if mode not in TARGET_MODES:
         raise ConfigError(f"unknown target measurement mode '{mode}' (use one of {', '.join(TARGET_MODES)})")
     points = {name: gp for name, gp in block.ground_points.items()
@@ -246,8 +253,7 @@ def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], m
             cam = block.camera_of(img)
             uv, depth = project(cam, img.pose_approx, xyz)
             inside = (depth > 0) & cam.contains(np.nan_to_num(uv, nan=-1e9), margin=margin_px)
-            want = [names[k] for k in np.flatnonzero(inside)
-                    if mode == "all" or iid not in points[names[k]].observations]
+            want = [names[k] for k in np.flatnonzero(inside)]
             if want:
                 todo[iid] = want
     items = [(read_grey, iid, block.camera_of(block.images[iid]), block.images[iid].pose_approx,
@@ -281,22 +287,26 @@ def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], m
     for name, gp in points.items():
         measured = {iid: d["uv"] for iid, d in record["points"][name]["measured"].items()}
         kept = {} if mode == "all" else {iid: list(map(float, uv)) for iid, uv in gp.observations.items()}
-        observations[name] = {**kept, **measured}
+        observations[name] = {**measured, **kept}
     record["observations"] = observations
     return record
 
 
 def target_summary(record: dict) -> dict:
     """The figures of a :func:`measure_targets` record: ``mode``, the measurements made (``measured``), the points'
-    images where none was found (``missed``), the median correlation (``score_median``) and the RMS difference to
-    the imported measurements of the same points in the same images (``imported_rms_px``; None without any)."""
-    entries = [e for p in record.get("points", {}).values() for e in p.get("measured", {}).values()]
-    scores = [e["score"] for e in entries]
-    diffs = [e["imported_difference_px"] for e in entries if "imported_difference_px" in e]
+    images where none was found (``missed``), the median correlation (``score_median``), the RMS difference to
+    the imported measurements of the same points in the same images (``imported_rms_px``; None without any) and
+    those imported measurements more than :data:`SUSPECT_PX` from the measured ones (``suspect``: ``[point, image,
+    pixels]``, the largest first)."""
+    entries = [(name, iid, e) for name, p in record.get("points", {}).items()
+               for iid, e in p.get("measured", {}).items()]
+    scores = [e["score"] for _, _, e in entries]
+    diffs = [(name, iid, e["imported_difference_px"]) for name, iid, e in entries if "imported_difference_px" in e]
     return {"mode": record.get("mode"), "measured": len(entries),
             "missed": sum(len(p.get("missed", [])) for p in record.get("points", {}).values()),
             "score_median": float(np.median(scores)) if scores else None,
-            "imported_rms_px": float(np.sqrt(np.mean(np.square(diffs)))) if diffs else None}
+            "imported_rms_px": float(np.sqrt(np.mean(np.square([d for *_, d in diffs])))) if diffs else None,
+            "suspect": sorted(([n, i, d] for n, i, d in diffs if d > SUSPECT_PX), key=lambda x: -x[2])}
 
 
 def apply_targets(block: ImageBlock, record: dict, path: str | Path | None = None) -> int:

@@ -376,15 +376,20 @@ def test_aerotri_adjusts_with_the_ground_point_measurements_the_match_stage_leav
     record["observations"][check[0]] = {}
     record["mode"] = "all"
     record["points"][check[0]]["missed"] = sorted(block.ground_points[check[0]].observations)
+    image = sorted(block.ground_points[check[1]].observations)[0]
+    record["points"][check[1]]["measured"] = {image: {"uv": [1.0, 2.0], "predicted": [1.0, 2.0], "score": 0.95,
+                                                      "std_px": 0.02, "imported_difference_px": 2.5}}
     ws.path("matching/targets.json").write_text(json.dumps(record))
     STAGE.run(ws, AerotriConfig(sigma_px=0.3), RunContext())
     report = json.loads(ws.path("aerotri/report.json").read_text())
     assert report["check_points"]["all"]["n"] == n_before - 1
     missed = len(block.ground_points[check[0]].observations)
-    assert report["target_measurements"] == {"mode": "all", "measured": 0, "missed": missed, "score_median": None,
-                                             "imported_rms_px": None}
-    assert f"{missed} projections inside an image where no target was found" in ws.path(
-        "aerotri/report.html").read_text()
+    assert report["target_measurements"] == {"mode": "all", "measured": 1, "missed": missed, "score_median": 0.95,
+                                             "imported_rms_px": 2.5, "suspect": [[check[1], image, 2.5]]}
+    html = ws.path("aerotri/report.html").read_text()
+    assert f"{missed} projections inside an image where no target was found" in html
+    assert "1 imported measurements lie more than 1 px from the target measured in the same image" in html
+    assert f"{check[1]} in {image} (2.5 px)" in html
     assert ws.load_block().ground_points[check[0]].observations == {}
     record["observations"][check[1]] = {next(iter(block.images)): [1.0]}
     ws.path("matching/targets.json").write_text(json.dumps(record))

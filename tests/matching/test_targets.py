@@ -9,7 +9,7 @@ import pytest
 from oblique_city.core.errors import ConfigError, InputError
 from oblique_city.core.geometry.projection import project
 from oblique_city.core.geometry.rotations import rotvec_to_matrix
-from oblique_city.core.matching.targets import apply_targets, measure_target, measure_targets
+from oblique_city.core.matching.targets import apply_targets, measure_target, measure_targets, target_summary
 from oblique_city.core.model import CameraModel, GroundPoint, Image, ImageBlock, Pose
 from oblique_city.core.pipeline.executor import Executor
 from oblique_city.core.simulate.observations import look_rotation
@@ -79,9 +79,10 @@ def test_targets_are_measured_to_a_tenth_of_a_pixel_from_the_navigation_data(vie
 
 
 def test_measure_targets_keeps_imported_measurements_as_asked_and_apply_refuses_bad_records(views):
-    """``missing`` measures a point only in the images the import did not measure it in, ``all`` everywhere in
-    place of the import (in worker processes as inline), ``none`` nowhere; the record's observations are what the
-    adjustment gets."""
+    """``missing`` adjusts with the imported measurements and the measured ones where the import has none, and flags
+    an imported measurement far from the target (here a bogus one); ``all`` adjusts with the measured ones only (in
+    worker processes as inline), ``none`` measures nothing; the record's observations are what the adjustment
+    gets."""
     (xyz, _, _, a_pose, a_grey, _), (_, _, _, b_pose, b_grey, _) = views[6], views[7]
     block = ImageBlock(crs="EPSG:25832")
     block.add_camera(CAMERA)
@@ -90,8 +91,13 @@ def test_measure_targets_keeps_imported_measurements_as_asked_and_apply_refuses_
         block.add_image(Image(id=iid, camera_id="c", file=f"{iid}.png", pose_approx=pose))
     block.add_ground_point(GroundPoint(name="T04", kind="control", xyz=xyz, observations={"a": np.array([1.0, 2.0])}))
     missing = measure_targets(block, greys.__getitem__, "missing")
-    assert sorted(missing["points"]["T04"]["measured"]) == ["b"]
+    assert sorted(missing["points"]["T04"]["measured"]) == ["a", "b"]  # measured everywhere, to check the import
     assert missing["observations"]["T04"]["a"] == [1.0, 2.0]
+    assert missing["observations"]["T04"]["b"] == missing["points"]["T04"]["measured"]["b"]["uv"]
+    true_a, _ = project(CAMERA, views[6][2], xyz[None])
+    suspect = target_summary(missing)["suspect"]
+    assert len(suspect) == 1 and suspect[0][:2] == ["T04", "a"]
+    assert abs(suspect[0][2] - np.hypot(*(true_a[0] - [1.0, 2.0]))) < 0.2  # the bogus import is that far off
     every = measure_targets(block, greys.__getitem__, "all")
     assert sorted(every["observations"]["T04"]) == ["a", "b"] and every["observations"]["T04"]["a"] != [1.0, 2.0]
     with Executor("processes", workers=2) as ex:  # one unit per image in worker processes: the same record
