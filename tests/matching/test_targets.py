@@ -55,9 +55,9 @@ def views():
 def test_targets_are_measured_to_a_tenth_of_a_pixel_from_the_navigation_data(views):
     """From the approximate orientations (predictions up to 11 px off), the targets in sight are found (measured: all
     11) at their true projections within 0.1 px (measured: RMS 0.05 px, worst 0.095 px, the oblique ones' ellipses
-    included); the one out of sight (a building in front) is not (its best fit elsewhere correlates at 0.79). The test takes 9 found, each within 0.2
-    px and an RMS within 0.1 px; a wrong match would be pixels off. A search radius smaller than the prediction's
-    error finds nothing rather than something else."""
+    included); the one out of sight (a building in front) is not (its best fit elsewhere correlates at 0.79). The
+    test takes 9 found, each within 0.2 px and an RMS within 0.1 px; a wrong match would be pixels off. A search
+    radius smaller than the prediction's error finds nothing rather than something else."""
     errors, found, seen = [], 0, 0
     for xyz, _, pose, approx, grey, visible in views:
         m = measure_target(grey, CAMERA, approx, xyz)
