@@ -40,6 +40,11 @@ TARGET_MODES = ("none", "missing", "all")
 imported measurements where there are some and with the measured ones where the import has none (the imported ones
 are checked against the measured ones: :func:`target_summary`); ``all``: adjust with the measured ones only."""
 
+RING_PX = 2
+"""Pixels of ground around the target's square that the fit takes (the ground level for the pixels the square's
+edges cross). On the demo one pixel found one more target (167 of the 171 in sight against 166) but let a wrong match
+reach a correlation of 0.81; with two the wrong ones stay below 0.75, well under the 0.9 a measurement needs."""
+
 SUSPECT_PX = 1.0
 """An imported measurement more than this many pixels from the target measured in the same image is counted as
 suspect (:func:`target_summary`): a manual measurement on the wrong spot or of the wrong point, or a target matched
@@ -141,10 +146,10 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     cx1, cy1 = min(x0 + img.shape[1], cols), min(y0 + img.shape[0], rows)
     img[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0] = grey[cy0:cy1, cx0:cx1]
     gu, gv = np.meshgrid(np.arange(-half, half + 1) + p0[0], np.arange(-half, half + 1) + p0[1])
-    # the pixels the target covers at the prediction, with a ring of two pixels around it
+    # the pixels the target covers at the prediction, with a ring of RING_PX pixels around it
     sq, _ = render_target(camera, pose, centre, shape, gu, gv)
     near = sq > 0
-    for _ in range(2):
+    for _ in range(RING_PX):
         near[1:] |= near[:-1]
         near[:-1] |= near[1:]
         near[:, 1:] |= near[:, :-1]
