@@ -26,7 +26,7 @@ from ..pipeline.atomic import atomic_path, write_json
 from ..pipeline.stage import Stage, StageResult
 from .features import MatchOptions, guided_match, sift_features, verify
 from .graph import GraphOptions, build_graph
-from .targets import SUSPECT_PX, TARGETS_FILE
+from .targets import SUSPECT_PX, TARGETS_FILE, TargetShape, measure_targets, target_summary
 from .tracks import build_tracks
 
 FEATURES_VERSION = 2
@@ -48,10 +48,9 @@ class MatchConfig:
     ``targets``: measure the ground points' signalised targets in the images (:mod:`.targets`): ``none`` (the
     imported measurements as they are), ``missing`` (measured ones where the import has no measurement of a point
     in an image that sees it; the imported ones are checked against the measured ones) or ``all`` (every point in
-    every image, in place of the imported measurements); the targets are
-    a bright disc of ``target_disc_radius_m`` on a dark square of half side ``target_square_half_m``, searched up to
-    ``target_search_px`` around the position the navigation data predict, kept from a correlation of
-    ``target_min_score``."""
+    every image, in place of the imported measurements); the targets are a bright disc of ``target_disc_radius_m``
+    on a dark square of half side ``target_square_half_m``, searched up to ``target_search_px`` around the position
+    the navigation data predict, kept from a correlation of ``target_min_score``."""
 
     min_overlap: float = 0.2
     max_axis_angle_deg: float = 50.0
@@ -262,8 +261,6 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
 def _measure_targets(ws, block, cfg: MatchConfig, ctx) -> dict:
     """Measure the signalised ground points (option ``targets``), write :data:`.targets.TARGETS_FILE`, return its
     figures (:func:`.targets.target_summary`) as metrics, none when nothing was to be measured."""
-    from .targets import TargetShape, measure_targets, target_summary
-
     shape = TargetShape(disc_radius_m=cfg.target_disc_radius_m, square_half_m=cfg.target_square_half_m)
     measuring = cfg.targets != "none"
     paths = {iid: _image_path(block, iid) for iid, img in block.images.items() if measuring and img.file is not None}

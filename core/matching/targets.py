@@ -174,7 +174,7 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     # the disc must be brighter than the ground around the target
     r2[coef[1] + coef[2] <= 0] = -1.0
     k = int(np.argmax(r2))
-    if r2[k] < (0.8 * min_score) ** 2:
+    if r2[k] < (0.8 * min_score) ** 2:  # far from a target even before the sub-pixel fit
         return None
     shift = shifts[k]
     obs = patches[:, k]
