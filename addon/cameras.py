@@ -116,3 +116,24 @@ def pixel_from_blender(scene, cam_obj, xyz_world: np.ndarray) -> np.ndarray:
         out[i] = (v.x * cam.width - 0.5, (1.0 - v.y) * cam.height - 0.5)
     return out
 
+
+
+def pixel_from_direction(scene, cam_obj, direction: np.ndarray) -> np.ndarray:
+    """The pixel ``(2,)`` (core convention, lens distortion included) of the image ``cam_obj`` shows in the direction
+    ``direction (3,)`` (scene axes, from the camera: what ``view3d_utils.region_2d_to_vector_3d`` gives for a click
+    in the camera view). The background Blender draws is the image undistorted to the pinhole, so the click's
+    pinhole position is distorted back to the image's own pixel, where its measurements live."""
+    from ..core.geometry.projection import project
+
+    pose = pose_of(scene, cam_obj)
+    d = np.asarray(direction, np.float64).reshape(3)
+    uv, depth = project(intrinsics_of(cam_obj.data), pose, (pose.C + 100.0 * d / np.linalg.norm(d))[None])
+    return uv[0] if depth[0] > 0 else np.full(2, np.nan)
+
+
+def viewed_image(scene) -> tuple[object, str] | None:
+    """The scene camera and its image id when it is a camera imported by Oblique City, else None."""
+    cam = scene.camera
+    if cam is None or cam.type != "CAMERA" or "oc_image_id" not in cam:
+        return None
+    return cam, str(cam["oc_image_id"])

@@ -342,6 +342,10 @@ class CitySceneSettings(bpy.types.PropertyGroup):
         name="Undistort Backgrounds", default=True,
         description="When looking through an image, show it resampled to Blender's distortion-free camera")
     force: BoolProperty(name="Force", default=False, description="Run stages again even if they are up to date")
+    measure_refine: BoolProperty(
+        name="Fit Target", default=True,
+        description="A ground point clicked in an image is taken at the centre of its target fitted near the click "
+                    "(off: where the click is)")
     stage_options: PointerProperty(type=CityStageOptions)
     building_list: CollectionProperty(type=CityBuildingItem)
     building_index: IntProperty(name="Active Building", default=-1, update=_select_active_building)

@@ -17,7 +17,7 @@ from typing import Any
 
 from .errors import Cancelled, CityError, ConfigError
 
-COMMAND_MODULES: list[str] = [".aerotri.cli", ".simulate.cli", ".demo", ".export.command", ".report"]
+COMMAND_MODULES: list[str] = [".aerotri.cli", ".matching.cli", ".simulate.cli", ".demo", ".export.command", ".report"]
 """Modules (relative to ``core``) that add sub-commands: each defines ``add_commands(subparsers)`` and sets
 ``func`` on its parsers with ``parser.set_defaults(func=...)``."""
 

@@ -4,8 +4,9 @@ Stage panels show each stage's status from ``state.json`` and Run buttons that c
 ``city.run_stages`` operator, so they work for whichever stages are registered in ``core.pipeline.registry``; a
 stage that is not registered yet is listed as such. The stages of ``addon.properties.STAGE_OPTION_GROUPS`` also show
 their options, which read and write ``[stages.<stage>]`` of ``project.toml``. The Buildings panel lists the
-buildings (:class:`CITY_UL_buildings`); making one active selects its object. Panels only read cached summaries
-(re-read when ``block.json`` or ``state.json`` change), never the workspace on every redraw.
+buildings (:class:`CITY_UL_buildings`); making one active selects its object. The Ground Point Measurement panel
+lists the ground points of the image the viewport looks through, to measure them by hand. Panels only read cached
+summaries (re-read when the files they come from change), never the workspace on every redraw.
 """
 
 from __future__ import annotations
@@ -15,9 +16,10 @@ from pathlib import Path
 
 import bpy
 
-from ..addon import georef, jobs, layers_aerotri, layers_match, layers_windows
+from ..addon import cameras, georef, jobs, layers_aerotri, layers_match, layers_windows
 from ..addon.properties import option_fields
 from ..core.errors import CityError
+from ..core.matching.manual import MANUAL_FILE, ground_points_in_image
 from ..core.pipeline.registry import get_stage, stage_names
 from ..core.pipeline.workspace import ADJUSTED_BLOCK_FILE, BLOCK_FILE, STATE_FILE, Workspace
 
@@ -413,6 +415,59 @@ def _stage_panel(label: str, names: tuple[str, ...]) -> type:
                 {"bl_idname": ident, "bl_label": label, "bl_options": {"DEFAULT_CLOSED"}, "draw": draw})
 
 
+MEASURE_LINES = 20
+"""The Ground Point Measurement panel lists at most this many points of the image looked through."""
+
+
+def ground_point_rows(root: Path, image_id: str) -> dict:
+    """``{"rows": [...]}``: :func:`core.matching.manual.ground_points_in_image` of ``image_id``, re-read only when the
+    block, the target measurements or the manual measurements changed."""
+    files = (BLOCK_FILE, ADJUSTED_BLOCK_FILE, layers_match.TARGETS_FILE, MANUAL_FILE)
+    key = ("ground points", str(root), image_id, *(_mtime(root / f) for f in files))
+    if key[3] is None:
+        return {"error": "no block imported yet"}
+    return _cached(key, lambda: {"rows": ground_points_in_image(Workspace.open(root), image_id)})
+
+
+class CITY_PT_ground_points(CityPanel, bpy.types.Panel):
+    """The ground points of the image the viewport looks through: where each is measured and from what (imported,
+    targets, manual, removed), with buttons to measure one by clicking its target, remove or reset a measurement."""
+
+    bl_idname = "CITY_PT_ground_points"
+    bl_label = "Ground Point Measurement"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        root = workspace_root(context)
+        viewed = cameras.viewed_image(context.scene)
+        if root is None or viewed is None:
+            layout.label(text="Look through an image (View Through Image) to measure its ground points", icon="INFO")
+            return
+        layout.label(text=f"Image {viewed[1]}")
+        layout.prop(context.scene.oblique_city, "measure_refine")
+        found = ground_point_rows(root, viewed[1])
+        if "error" in found:
+            layout.label(text=found["error"], icon="INFO")
+            return
+        rows = found["rows"]
+        if not rows:
+            layout.label(text="No ground point in this image")
+        for r in rows[:MEASURE_LINES]:
+            row = layout.row(align=True)
+            where = "not measured" if r.uv is None else f"({r.uv[0]:.1f}, {r.uv[1]:.1f})"
+            row.label(text=f"{r.name} ({r.kind}): {where}, {r.source}")
+            row.operator("city.measure_ground_point", text="", icon="RESTRICT_SELECT_OFF").point = r.name
+            if r.uv is not None:
+                op = row.operator("city.edit_ground_measurement", text="", icon="X")
+                op.point, op.action = r.name, "remove"
+            if r.source in ("manual", "removed"):
+                op = row.operator("city.edit_ground_measurement", text="", icon="LOOP_BACK")
+                op.point, op.action = r.name, "reset"
+        if len(rows) > MEASURE_LINES:
+            layout.label(text=f"... and {len(rows) - MEASURE_LINES} more (oblique-city measure lists them all)")
+
+
 class CITY_PT_more_stages(CityPanel, bpy.types.Panel):
     bl_idname = "CITY_PT_more_stages"
     bl_label = "More Stages"
@@ -432,4 +487,5 @@ class CITY_PT_more_stages(CityPanel, bpy.types.Panel):
 
 
 STAGE_PANEL_CLASSES = tuple(_stage_panel(label, names) for label, names in STAGE_PANELS)
-CLASSES = (CITY_UL_buildings, CITY_PT_block, CITY_PT_job, *STAGE_PANEL_CLASSES, CITY_PT_more_stages)
+CLASSES = (CITY_UL_buildings, CITY_PT_block, CITY_PT_job, *STAGE_PANEL_CLASSES, CITY_PT_ground_points,
+           CITY_PT_more_stages)

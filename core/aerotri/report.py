@@ -805,6 +805,10 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
                      "measured in the same image (the wrong spot or point, or a wrong match): "
                      + ", ".join(f"{html.escape(n)} in {html.escape(i)} ({d:.1f} px)" for n, i, d in t["suspect"][:10])
                      + ("..." if len(t["suspect"]) > 10 else "") + ".") + "</p>")
+        m = report.get("manual_measurements") or {}
+        if m.get("set") or m.get("removed"):
+            measured += (f"<p>Manual measurements (block/manual_measurements.json): {m['set']} set by the operator, "
+                         f"{m['removed']} removed.</p>")
         parts.append("<h2>Ground points (intersected from every image with its adjusted orientation, minus the "
                      f"given coordinates)</h2>{measured}<table><tr><th>point</th><th>kind</th><th>images</th>"
                      "<th>dX [m]</th><th>dY [m]</th><th>dZ [m]</th><th>image RMS [px]</th>"

@@ -1,7 +1,8 @@
 """The ``aerotri`` stage: integrated or hierarchical aerial triangulation of the workspace's block.
 
 Reads the imported block and the tie points of the ``match`` stage (``matching/ties.npz``), with the ground points'
-image measurements it leaves (``matching/targets.json``: measured targets, :mod:`..matching.targets`); writes
+image measurements it leaves (``matching/targets.json``: measured targets, :mod:`..matching.targets`) and the
+operator's manual measurements over them (``block/manual_measurements.json``, :mod:`..matching.manual`); writes
 ``aerotri/block.json`` (the block with ``pose_adjusted`` set, read by later stages through ``ws.load_block()``),
 ``aerotri/ties.npz`` (adjusted tie coordinates, rejected observations flagged; extras: each track's standard
 deviations ``std`` and RMS image residual ``residual_px``), ``aerotri/report.json``,
@@ -17,6 +18,7 @@ import numpy as np
 
 from ..errors import ConfigError, WorkspaceError
 from ..io.validate import read_json
+from ..matching.manual import MANUAL_FILE, apply_manual, read_manual
 from ..matching.targets import TARGETS_FILE, apply_targets, target_summary
 from ..model import CameraModel, ImageBlock, TiePoints
 from ..pipeline.atomic import write_json, write_text
@@ -180,6 +182,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     targets = read_json(targets_path) if targets_path.exists() else None
     if targets is not None:  # the ground points' image measurements as the match stage left them
         apply_targets(block, targets, targets_path)
+    manual = apply_manual(block, read_manual(ws.path(MANUAL_FILE)))  # the operator's, last
     for img in block.images.values():
         if img.sigma_position is None or img.sigma_attitude is None:
             img.sigma_position = np.full(3, cfg.default_sigma_position)
@@ -209,6 +212,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     report["thinned_observations"] = int(at.extra.get("thinned_observations", 0))
     report["target_measurements"] = (target_summary(targets) if targets is not None and targets.get("mode") != "none"
                                      else None)
+    report["manual_measurements"] = {"set": manual[0], "removed": manual[1]}
     layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size, cfg.layer_views)
     files = write_layers(layers, out / "layers")
     write_json(out / "report.json", report)
@@ -256,4 +260,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="11", adjusted_block=False)
+              version="11", adjusted_block=False, inputs=(MANUAL_FILE,))

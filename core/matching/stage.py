@@ -96,6 +96,11 @@ def _read_grey(path: str, iid: str) -> np.ndarray:
     return grey
 
 
+def read_block_grey(block, iid: str) -> np.ndarray:
+    """Image ``iid`` of ``block`` as grey values ``(h, w)`` from its file; :class:`InputError` naming it otherwise."""
+    return _read_grey(_image_path(block, iid), iid)
+
+
 def _read_image_of(paths: dict[str, str], iid: str) -> np.ndarray:
     """The grey image ``iid`` from its file in ``paths`` (picklable with :func:`functools.partial`: LSM units)."""
     return _read_grey(paths[iid], iid)

@@ -116,11 +116,13 @@ def _design(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: TargetSh
 
 def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np.ndarray,
                    shape: TargetShape = TargetShape(), search_px: float = 20.0, min_score: float = 0.9,
-                   iterations: int = 10) -> TargetMeasurement | None:
+                   iterations: int = 10, near: np.ndarray | None = None) -> TargetMeasurement | None:
     """Measure the target at world point ``centre (3,)`` in the grey image ``grey (h, w)`` seen from the approximate
-    orientation ``pose`` (see the module docstring). None when the target's window is not inside the image (the
-    shifts of the search that leave the image are not tried), the target spans less than two pixels across, or the
-    match fails, moves more than 1.5 px from the best integer shift or scores below ``min_score``."""
+    orientation ``pose`` (see the module docstring). The search spans ``search_px`` around the projection, or around
+    ``near (2,)`` pixels when given (an operator's click: the target is rendered as the orientation sees it and
+    searched there). None when the target's window is not inside the image (the shifts of the search that leave the
+    image are not tried), the target spans less than two pixels across, or the match fails, moves more than 1.5 px
+    from the best integer shift or scores below ``min_score``."""
     centre = np.asarray(centre, np.float64)
     pred, depth = project(camera, pose, centre[None])
     pred = pred[0]
@@ -136,11 +138,14 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
         return None
     s = int(np.ceil(search_px))
     p0 = np.round(pred).astype(int)
+    # the search's centre as a whole-pixel shift from the projection
+    base = np.zeros(2, int) if near is None else np.round(np.asarray(near, np.float64) - pred).astype(int)
     rows, cols = grey.shape[:2]
-    if p0[0] - half < 0 or p0[1] - half < 0 or p0[0] + half >= cols or p0[1] + half >= rows:
+    q0 = p0 + base
+    if q0[0] - half < 0 or q0[1] - half < 0 or q0[0] + half >= cols or q0[1] + half >= rows:
         return None
     # the search window, NaN beyond the image's border (the shifts that reach there are not tried)
-    x0, y0 = p0[0] - half - s - 2, p0[1] - half - s - 2
+    x0, y0 = q0[0] - half - s - 2, q0[1] - half - s - 2
     img = np.full((2 * (half + s + 2) + 1,) * 2, np.nan)
     cx0, cy0 = max(x0, 0), max(y0, 0)
     cx1, cy1 = min(x0 + img.shape[1], cols), min(y0 + img.shape[0], rows)
@@ -160,7 +165,7 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
         return None
     # integer search: how well the grey-value model fits (multiple correlation) at every shift
     iy, ix = v.astype(int) - y0, u.astype(int) - x0
-    shifts = np.array([(dx, dy) for dy in range(-s, s + 1) for dx in range(-s, s + 1)])
+    shifts = base + np.array([(dx, dy) for dy in range(-s, s + 1) for dx in range(-s, s + 1)])
     patches = img[iy[:, None] + shifts[None, :, 1], ix[:, None] + shifts[None, :, 0]]
     inside = np.all(np.isfinite(patches), axis=0)
     patches = np.nan_to_num(patches)

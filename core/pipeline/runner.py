@@ -1,9 +1,10 @@
 """The runner: the single entry point that runs stages for the CLI, batch scripts, Blender jobs and tests.
 
 A stage is skipped when its fingerprint (stage version, config, the fingerprints and finishing times of the stages
-it requires, and the block it reads: the imported one and, once aerial triangulation has written it, the adjusted
-one) matches the last successful run recorded in ``state.json`` and its outputs still exist. A dependency that
-ran again (forced, or after a change of its own inputs) therefore makes every stage after it stale.
+it requires, the block it reads: the imported one and, once aerial triangulation has written it, the adjusted one,
+and the operator's files it reads, such as manual measurements) matches the last successful run recorded in
+``state.json`` and its outputs still exist. A dependency that ran again (forced, or after a change of its own
+inputs) therefore makes every stage after it stale.
 """
 
 from __future__ import annotations
@@ -52,6 +53,9 @@ def fingerprint(ws: Workspace, name: str, state: dict) -> str:
         else:
             rec = state.get(dep, {})
             doc["deps"][dep] = [rec.get("fingerprint"), rec.get("finished")]
+    for rel in stage.inputs:  # (absent: the fingerprint of a workspace without the file is unchanged)
+        if ws.path(rel).exists():
+            doc["deps"][f"file:{rel}"] = _file_digest(ws.path(rel))
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
 
 

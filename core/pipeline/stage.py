@@ -33,6 +33,8 @@ class Stage:
     version : bump when the algorithm changes so finished runs are redone
     adjusted_block : with ``block`` in ``requires``: the stage reads ``ws.load_block()``, the adjusted block once
         aerial triangulation has written it (False for the stages before and of aerial triangulation)
+    inputs : workspace files the operator edits that the stage reads (e.g. manual measurements): their content
+        enters its fingerprint when they exist
     """
 
     name: str
@@ -42,6 +44,7 @@ class Stage:
     description: str = ""
     version: str = "1"
     adjusted_block: bool = True
+    inputs: tuple[str, ...] = ()
 
     def make_config(self, values: dict[str, Any] | None = None, source: str = "project.toml") -> Any:
         """Build the config dataclass from a dict, rejecting unknown keys and wrong types."""

@@ -7,6 +7,7 @@ they share one worker and bpy is imported once. Each test starts from factory se
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 
@@ -24,3 +25,24 @@ def addon():
     finally:
         oblique_city.unregister()
 
+
+
+@pytest.fixture
+def grid_ws(tmp_path, utm_block):
+    """A workspace of the three-image UTM block (distorted camera) with grid images (white lines every 50 px)."""
+    import cv2
+
+    from oblique_city.core.pipeline import Workspace
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for img in utm_block.images.values():
+        cam = utm_block.camera_of(img)
+        canvas = np.zeros((cam.height, cam.width), np.uint8)
+        canvas[::50, :] = 255  # a grid: undistortion bends it, so the copy differs from the original
+        canvas[:, ::50] = 255
+        cv2.imwrite(str(images / img.file), canvas)
+    utm_block.image_root = str(images)
+    w = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
+    w.save_block(utm_block)
+    return w

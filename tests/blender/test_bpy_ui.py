@@ -65,28 +65,9 @@ def draw(panel_cls, context) -> list:
     return layout.log
 
 
-@pytest.fixture
-def ws(tmp_path, utm_block):
-    import cv2
-
-    from oblique_city.core.pipeline import Workspace
-
-    images = tmp_path / "images"
-    images.mkdir()
-    for img in utm_block.images.values():
-        cam = utm_block.camera_of(img)
-        canvas = np.zeros((cam.height, cam.width), np.uint8)
-        canvas[::50, :] = 255  # a grid: undistortion bends it, so the copy differs from the original
-        canvas[:, ::50] = 255
-        cv2.imwrite(str(images / img.file), canvas)
-    utm_block.image_root = str(images)
-    w = Workspace.create(tmp_path / "ws", crs=utm_block.crs)
-    w.save_block(utm_block)
-    return w
-
-
-def test_open_workspace_and_view_through_image(addon, ws, utm_block):
+def test_open_workspace_and_view_through_image(addon, grid_ws, utm_block):
     bpy = addon
+    ws = grid_ws
     import cv2
 
     assert bpy.ops.city.open_workspace(directory=str(ws.root)) == {"FINISHED"}
@@ -117,7 +98,8 @@ def test_open_workspace_refuses_a_plain_folder(addon, tmp_path):
         bpy.ops.city.open_workspace(directory=str(tmp_path))
 
 
-def test_panels_draw(addon, ws):
+def test_panels_draw(addon, grid_ws):
+    ws = grid_ws
     bpy = addon
     from oblique_city import panels
     from oblique_city.core.pipeline.registry import stage_names

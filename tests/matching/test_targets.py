@@ -111,3 +111,49 @@ def test_measure_targets_keeps_imported_measurements_as_asked_and_apply_refuses_
         apply_targets(block, {"observations": {"T04": {"a": [1.0, "x"]}}}, "targets.json")
     with pytest.raises(InputError, match="observations"):
         apply_targets(block, [], "targets.json")
+
+
+def test_a_click_near_a_target_is_refined_to_its_centre(views, tmp_path):
+    """The operator's click (:func:`.manual.set_manual` with ``refine``), 4 px off in a random direction, lands on the
+    target's true projection within 0.1 px (measured: 0.009-0.048 px on three nadir views and a 45-degree one, the
+    fit's correlation 0.96-0.98); a plain click is recorded where it is; a click on bare ground 40 px away finds no
+    target and changes nothing; a position outside the frame is refused naming the field."""
+    import cv2
+
+    from oblique_city.core.matching.manual import MANUAL_FILE, read_manual, set_manual
+    from oblique_city.core.pipeline import Workspace
+
+    ws = Workspace.create(tmp_path / "ws", "EPSG:25832")
+    block = ImageBlock(crs="EPSG:25832", image_root=str(ws.path("images")))
+    block.add_camera(CAMERA)
+    ws.path("images").mkdir()
+    used = [k for k, (*_, visible) in enumerate(views) if visible][:4]
+    for k in used:
+        xyz, _, _, approx, grey, _ = views[k]
+        cv2.imwrite(str(ws.path("images", f"v{k}.png")), np.clip(np.round(grey), 0, 255).astype(np.uint8))
+        block.add_image(Image(id=f"v{k}", camera_id="c", file=f"v{k}.png", pose_approx=approx))
+        block.add_ground_point(GroundPoint(name=f"T{k}", kind="control", xyz=xyz))
+    ws.save_block(block)
+    rng = np.random.default_rng(3)
+    for k in used:
+        xyz, tilt, pose, *_ = views[k]
+        true = project(CAMERA, pose, xyz[None])[0][0]
+        a = rng.uniform(0, 2 * np.pi)
+        click = true + 4.0 * np.array([np.cos(a), np.sin(a)])
+        assert "target fitted" in set_manual(ws, f"T{k}", f"v{k}", click, refine=True)
+        entry = read_manual(ws.path(MANUAL_FILE))[f"T{k}"][f"v{k}"]
+        assert entry["method"] == "target" and entry["score"] > 0.9
+        assert np.hypot(*(np.array(entry["uv"]) - true)) < 0.1, (tilt, entry, true)
+    k = used[0]
+    true = project(CAMERA, views[k][2], views[k][0][None])[0][0]
+    set_manual(ws, f"T{k}", f"v{k}", true + [2.0, 1.0])
+    entry = read_manual(ws.path(MANUAL_FILE))[f"T{k}"][f"v{k}"]
+    assert entry["method"] == "click" and entry["score"] is None and np.allclose(entry["uv"], true + [2.0, 1.0],
+                                                                                 atol=1e-4)
+    before = ws.path(MANUAL_FILE).read_bytes()
+    with pytest.raises(InputError, match="no target of"):
+        set_manual(ws, f"T{k}", f"v{k}", true + [40.0, 0.0], refine=True)
+    with pytest.raises(InputError, match="outside image") as e:
+        set_manual(ws, f"T{k}", f"v{k}", [-5.0, 10.0])
+    assert e.value.field == "uv"
+    assert ws.path(MANUAL_FILE).read_bytes() == before
