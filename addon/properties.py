@@ -82,8 +82,12 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                                      "measurement"),
                               ("all", "All", "Measure every signalised target in every image, in place of the "
                                              "imported measurements"))},
-        "target_disc_radius_m": {"min": 0.0, "description": "Radius of the targets' bright disc (m)"},
-        "target_square_half_m": {"min": 0.0, "description": "Half side of the targets' dark square (m)"},
+        "target_disc_radius_m": {"min": 0.0, "description": "Radius of the targets' bright disc (m; 0: a bright "
+                                                             "square alone)"},
+        "target_square_half_m": {"min": 0.0, "description": "Half side of the targets' dark square (m; 0: a disc "
+                                                             "alone)"},
+        "target_square_azimuth": {"description": "Direction of the squares' sides, degrees counterclockwise from the "
+                                                 "grid's x axis, or 'estimate' (found in each image)"},
         "target_search_px": {"min": 0.0, "description": "Search radius around the predicted position (px)"},
         "target_min_score": {"min": 0.0, "max": 1.0, "description": "Correlation a target measurement needs"},
     },

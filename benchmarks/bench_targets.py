@@ -3,8 +3,9 @@
     python benchmarks/bench_targets.py --workspace demo/workspace            # truth found via the block's image root
     python benchmarks/bench_targets.py --workspace WS --truth SIM/truth --offsets 2,4,6
 
-Against the simulator's truth (true orientations and target centres), over the ground points' projections the
-simulator itself counts in sight (its imported measurements: visible, 8 px inside the frame):
+Against the simulator's truth (true orientations and target centres: the given coordinates carry survey errors),
+over the projections of the ground points the simulator marked as targets that it counts in sight (its imported
+measurements: visible, 8 px inside the frame):
 
 * automatic: :func:`core.matching.targets.measure_targets` in ``all`` mode from the navigation orientations, as the
   ``match`` stage runs it: found, missed, wrong (more than 1 px from the true projection), RMS and worst error, and
@@ -62,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--offsets", default="2,4,6", help="click distances from the true projection, pixels")
     ap.add_argument("--disc-radius", type=float, default=0.5, help="target disc radius, metres")
     ap.add_argument("--square-half", type=float, default=0.8, help="target square half side, metres")
+    ap.add_argument("--square-azimuth", default="0", help="the squares' azimuth, degrees, or 'estimate'")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", help="JSON output (default <workspace>/matching/bench_targets.json)")
@@ -71,15 +73,18 @@ def main(argv: list[str] | None = None) -> int:
     ws = Workspace.open(args.workspace)
     block = ws.load_block(adjusted=False)
     truth = load_truth(Path(args.truth) if args.truth else Path(block.image_root or ".") / "truth")
-    shape = TargetShape(args.disc_radius, args.square_half)
-    true_xyz = {name: np.asarray(truth.block.ground_points[name].xyz if name in truth.block.ground_points
-                                 else gp.xyz, np.float64) for name, gp in block.ground_points.items()}
+    shape = TargetShape(args.disc_radius, args.square_half,
+                        None if args.square_azimuth == "estimate" else float(args.square_azimuth))
+    centres = truth.targets["targets"]  # the targets' true centres (the given coordinates carry survey errors)
+    if truth.targets.get("crs") != block.crs:
+        raise SystemExit(f"the truth's targets are in {truth.targets.get('crs')}, the block in {block.crs}")
+    true_xyz = {name: np.asarray(centres[name], np.float64) for name in block.ground_points if name in centres}
 
     def true_uv(name: str, iid: str) -> np.ndarray:
         img = truth.block.images[iid]
         return project(truth.block.camera_of(img), img.pose_approx, true_xyz[name][None])[0][0]
 
-    in_sight = [(name, iid) for name, gp in sorted(block.ground_points.items()) if gp.xyz is not None
+    in_sight = [(name, iid) for name, gp in sorted(block.ground_points.items()) if name in true_xyz
                 for iid in sorted(gp.observations)]
     simulator = [float(np.hypot(*(block.ground_points[n].observations[i] - true_uv(n, i)))) for n, i in in_sight]
 
@@ -89,15 +94,15 @@ def main(argv: list[str] | None = None) -> int:
     auto_s = time.perf_counter() - t0
     auto, extra, sight = [], [], set(in_sight)
     for name, p in record["points"].items():
-        for iid, m in p["measured"].items():
-            e = float(np.hypot(*(np.asarray(m["uv"]) - true_uv(name, iid))))
+        for iid, m in p["measured"].items():  # (a point without a target: every measurement is wrong)
+            e = float(np.hypot(*(np.asarray(m["uv"]) - true_uv(name, iid)))) if name in true_xyz else np.inf
             (auto if (name, iid) in sight else extra).append(e)
     measured = {(n, i) for n, p in record["points"].items() for i in p["measured"]}
     missed = [o for o in in_sight if o not in measured]
     n_auto = sum(len(p["measured"]) for p in record["points"].values())
     rows = [errors_row("simulator's measurements", simulator, len(in_sight)),
             errors_row("automatic (in sight)", auto, len(in_sight), auto_s / max(n_auto + len(missed), 1)),
-            errors_row("automatic (not in sight)", extra, 0)]
+            errors_row("automatic (not in sight, or no target)", extra, 0)]
 
     rng = np.random.default_rng(args.seed)
     greys: dict[str, np.ndarray] = {}
@@ -130,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"workspace": str(ws.root), "in_sight": len(in_sight),
                                "automatic_missed": [list(o) for o in missed], "rows": rows,
-                               "snap_search_px": SNAP_SEARCH_PX, "snap_min_score": SNAP_MIN_SCORE}, indent=1))
+                               "snap_search_px": SNAP_SEARCH_PX, "snap_min_score": SNAP_MIN_SCORE,
+                               "args": vars(args)}, indent=1))
     print(f"\nwritten {out}")
     return 0
 

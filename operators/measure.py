@@ -65,10 +65,12 @@ class CITY_OT_measure_ground_point(bpy.types.Operator):
             return {"CANCELLED"}
         if event.type != "LEFTMOUSE" or event.value != "PRESS":
             return {"PASS_THROUGH"}  # zoom and pan the view to find the target
-        # the view's main region under the mouse (the operator may have been started from the sidebar)
-        region = next((r for r in self._area.regions if r.type == "WINDOW" and r.x <= event.mouse_x < r.x + r.width
-                       and r.y <= event.mouse_y < r.y + r.height), None)
-        if region is None:
+        # the view's main region under the mouse (the operator may have been started from the sidebar); the sidebar,
+        # header and toolbar drawn over it keep their clicks
+        under = {r.type: r for r in self._area.regions
+                 if r.x <= event.mouse_x < r.x + r.width and r.y <= event.mouse_y < r.y + r.height}
+        region = under.get("WINDOW")
+        if region is None or set(under) - {"WINDOW"}:
             return {"PASS_THROUGH"}
         from bpy_extras import view3d_utils
 

@@ -29,7 +29,8 @@ from ..geometry.projection import project
 from ..io.validate import read_json
 from ..model import ImageBlock
 from ..pipeline.atomic import write_json
-from .stage import read_block_grey
+from .stage import STAGE as MATCH_STAGE
+from .stage import read_block_grey, target_shape
 from .targets import TARGETS_FILE, TargetShape, apply_targets, measure_target
 
 MANUAL_FILE = "block/manual_measurements.json"
@@ -163,12 +164,13 @@ def _write(ws, manual: dict) -> None:
 
 
 def set_manual(ws, point: str, image_id: str, uv: np.ndarray | None, refine: bool = False,
-               shape: TargetShape = TargetShape()) -> str:
+               shape: TargetShape | None = None) -> str:
     """Record the operator's measurement of ground point ``point`` in image ``image_id``: ``uv (2,)`` pixels, or None
     to remove the point's measurement there. With ``refine`` the target is fitted around ``uv`` (searched
     :data:`SNAP_SEARCH_PX` around it in the image's file, with the orientation the adjustment starts from) and its
-    centre recorded, or :class:`InputError` when no target of ``shape`` is found there
-    (correlation below :data:`SNAP_MIN_SCORE`). Returns a one-line message. The file is written atomically."""
+    centre recorded, or :class:`InputError` when no target of ``shape`` (the match stage's options when None) is
+    found there (correlation below :data:`SNAP_MIN_SCORE`). Returns a one-line message. The file is written
+    atomically."""
     block, _, manual = _block_and_sources(ws)
     path = ws.path(MANUAL_FILE)
     gp = block.ground_points.get(point)
@@ -189,6 +191,8 @@ def set_manual(ws, point: str, image_id: str, uv: np.ndarray | None, refine: boo
             if gp.xyz is None or img.pose_approx is None or img.file is None:
                 raise InputError(f"'{point}' cannot be refined in '{image_id}': it needs the point's coordinates, "
                                  "the image's orientation and its file", path, field="uv")
+            if shape is None:  # the targets as the match stage's options describe them
+                shape = target_shape(MATCH_STAGE.make_config(ws.stage_options("match")))
             m = measure_target(read_block_grey(block, image_id), cam, img.pose_approx, gp.xyz, shape, SNAP_SEARCH_PX,
                                SNAP_MIN_SCORE, near=uv)
             if m is None:

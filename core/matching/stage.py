@@ -49,8 +49,10 @@ class MatchConfig:
     imported measurements as they are), ``missing`` (measured ones where the import has no measurement of a point
     in an image that sees it; the imported ones are checked against the measured ones) or ``all`` (every point in
     every image, in place of the imported measurements); the targets are a bright disc of ``target_disc_radius_m``
-    on a dark square of half side ``target_square_half_m``, searched up to ``target_search_px`` around the position
-    the navigation data predict, kept from a correlation of ``target_min_score``."""
+    on a dark square of half side ``target_square_half_m`` (0: a disc alone; a disc of 0: a bright square alone)
+    whose sides lie at ``target_square_azimuth`` (degrees from the grid's x axis, counterclockwise, or ``estimate``:
+    found in each image), searched up to ``target_search_px`` around the position the navigation data predict, kept
+    from a correlation of ``target_min_score``."""
 
     min_overlap: float = 0.2
     max_axis_angle_deg: float = 50.0
@@ -69,8 +71,22 @@ class MatchConfig:
     targets: str = "none"
     target_disc_radius_m: float = 0.5
     target_square_half_m: float = 0.8
+    target_square_azimuth: str = "0"
     target_search_px: float = 20.0
     target_min_score: float = 0.9
+
+
+def target_shape(cfg: MatchConfig) -> TargetShape:
+    """The signalised targets' shape of the match options; :class:`ConfigError` for an azimuth that is neither a
+    number nor ``estimate``, or sizes that make no target."""
+    azimuth = None
+    if cfg.target_square_azimuth.strip().lower() != "estimate":
+        try:
+            azimuth = float(cfg.target_square_azimuth)
+        except ValueError:
+            raise ConfigError(f"match.target_square_azimuth '{cfg.target_square_azimuth}' should be degrees or "
+                              "'estimate'") from None
+    return TargetShape(cfg.target_disc_radius_m, cfg.target_square_half_m, azimuth)
 
 
 def _ground_height(block, cfg: MatchConfig) -> float:
@@ -266,7 +282,7 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
 def _measure_targets(ws, block, cfg: MatchConfig, ctx) -> dict:
     """Measure the signalised ground points (option ``targets``), write :data:`.targets.TARGETS_FILE`, return its
     figures (:func:`.targets.target_summary`) as metrics, none when nothing was to be measured."""
-    shape = TargetShape(disc_radius_m=cfg.target_disc_radius_m, square_half_m=cfg.target_square_half_m)
+    shape = target_shape(cfg)
     measuring = cfg.targets != "none"
     paths = {iid: _image_path(block, iid) for iid, img in block.images.items() if measuring and img.file is not None}
     record = measure_targets(block, partial(_read_image_of, paths), cfg.targets, shape, cfg.target_search_px,

@@ -1,20 +1,24 @@
 """Automatic measurement of signalised ground points (control and check targets) in the images.
 
-A signalised target is a bright disc centred on a dark square laid on the ground (the usual painted or panel target;
-the simulator's are a 0.5 m disc on a 1.6 m square). For each ground point and each image where its projection from
-the approximate orientation falls inside the frame:
+A signalised target (:class:`TargetShape`) is a bright disc centred on a dark square laid on the ground (the usual
+panel target; the simulator's are a 0.5 m disc on a 1.6 m square, its sides along the grid), a bright disc alone or
+a bright square alone (painted on the asphalt). A square may lie at any azimuth, given or estimated. For each ground
+point and each image where its projection from the approximate orientation falls inside the frame:
 
 1. the target is rendered as the image sees it from that orientation (:func:`render_target`): each pixel's shares
    of the square and of the disc, from the cut of its ray with the horizontal plane through the point; a pixel's
    grey value is modelled as ``c0 + c1 square + c2 disc`` (ground, square and disc levels unknown: any exposure);
 2. that model is fitted to the image at every integer shift up to ``search_px`` (the error of the navigation
    data's prediction) over the pixels of the target and a two-pixel ring around it, and the best fit (multiple
-   correlation, with the disc brighter than the ground) is taken;
-3. from there, least-squares template matching refines the shift (sub-pixel) with the three levels, the target
-   rendered again at each shifted position (the ellipse an oblique view makes of the disc stays exact);
-4. the measurement is the predicted position plus that shift, kept when the final correlation reaches
-   ``min_score`` (an occluded or missing target does not) with the disc brighter than the square and the ground
-   (the square may be no darker than the asphalt under it), with its standard deviation from the fit.
+   correlation, with the innermost element brighter than the ground) is taken;
+3. a square of unknown azimuth is turned there to the best fit of :data:`AZIMUTH_STEPS` (a square repeats every 90
+   degrees), refined by a parabola through the best and its neighbours;
+4. from there, least-squares template matching refines the shift (sub-pixel) with the levels, the target rendered
+   again at each shifted position (the ellipse an oblique view makes of the disc stays exact);
+5. the measurement is the predicted position plus that shift, kept when the final correlation reaches
+   ``min_score`` (an occluded or missing target does not) with the innermost element (the disc, or a square alone)
+   brighter than what surrounds it (a square under a disc may be no darker than the asphalt under it), with its
+   standard deviation from the fit.
 
 The shape is the template's: a perspective view is rendered, not assumed round, so the position is that of the
 disc's centre itself (the centroid of an oblique ellipse is not).
@@ -51,30 +55,57 @@ suspect (:func:`target_summary`): a manual measurement on the wrong spot or of t
 wrongly."""
 
 
+AZIMUTH_STEPS = 6
+"""Azimuths of a square tried when its azimuth is estimated: every 15 degrees of the 90 after which a square repeats.
+A square 7.5 degrees off (the most between two steps) lowers the fit's correlation by about 0.01 (rendered views of a
+disc on a square); the parabola through the best step and its neighbours comes closer."""
+
+
 @dataclass(frozen=True)
 class TargetShape:
-    """A bright disc of ``disc_radius_m`` on a dark square of half side ``square_half_m``, level on the ground."""
+    """A target level on the ground: a bright disc of ``disc_radius_m`` on a dark square of half side
+    ``square_half_m``; without a square (``square_half_m = 0``) a bright disc on the ground, without a disc
+    (``disc_radius_m = 0``) a bright square. ``square_azimuth_deg``: the direction of the square's sides, degrees
+    counterclockwise from the grid's x axis (east), or None when unknown (estimated in each image)."""
 
     disc_radius_m: float = 0.5
     square_half_m: float = 0.8
+    square_azimuth_deg: float | None = 0.0
+
+    def __post_init__(self) -> None:
+        ok = (self.disc_radius_m >= 0 and self.square_half_m >= 0 and max(self.disc_radius_m, self.square_half_m) > 0
+              and (self.square_half_m == 0 or self.disc_radius_m < self.square_half_m))
+        if not ok:
+            raise ConfigError(f"target shape: disc radius {self.disc_radius_m} m, square half side "
+                              f"{self.square_half_m} m (a disc, a square or a disc inside a square)")
+        if self.square_azimuth_deg is not None and not np.isfinite(self.square_azimuth_deg):
+            raise ConfigError(f"target shape: square azimuth {self.square_azimuth_deg} is not a number")
+
+    @property
+    def columns(self) -> tuple[bool, bool]:
+        """Whether the grey-value model has a square and a disc level."""
+        return self.square_half_m > 0, self.disc_radius_m > 0
 
 
 @dataclass(frozen=True)
 class TargetMeasurement:
     """One target measured in one image: ``uv`` (2,) pixels (centre of the top-left pixel at 0, 0), ``predicted``
     (2,) from the approximate orientation, ``score`` the multiple correlation of the final fit (the grey-value model
-    against the image), ``std_px`` the standard deviation of the position from the fit (the larger axis)."""
+    against the image), ``std_px`` the standard deviation of the position from the fit (the larger axis),
+    ``azimuth_deg`` the square's azimuth the fit took (0 to 90; None without a square)."""
 
     uv: np.ndarray
     predicted: np.ndarray
     score: float
     std_px: float
+    azimuth_deg: float | None = None
 
 
 def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: TargetShape, u: np.ndarray,
-                  v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  v: np.ndarray, azimuth_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The target as the image sees it at pixels ``u``, ``v`` (any equal shapes, floats): the shares of each pixel on
-    the square and on the disc, ``(square, disc)``.
+    the square and on the disc, ``(square, disc)`` (zeros for an element the shape does not have). The square's
+    sides lie at ``azimuth_deg`` (the shape's own when None; 0 when the shape's is unknown).
 
     A pixel's share of a shape is ``0.5 + s`` clipped to 0..1, with ``s`` the signed distance of the pixel's centre
     from the shape's edge in pixels (the ground distance over the rate at which it changes across the image, from the
@@ -94,11 +125,14 @@ def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: Ta
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.clip(0.5 + dist / np.hypot(grad_u, grad_v), 0.0, 1.0)
 
+    az = np.radians(azimuth_deg if azimuth_deg is not None else shape.square_azimuth_deg or 0.0)
+    turn = np.array([[np.cos(az), np.sin(az)], [-np.sin(az), np.cos(az)]])  # grid -> the square's axes
+    ga, gua, gva = g @ turn.T, gu @ turn.T, gv @ turn.T
     sides = []
     for ax in range(2):
-        sign = np.sign(g[:, ax])
-        sides.append(share(shape.square_half_m - np.abs(g[:, ax]), -sign * gu[:, ax], -sign * gv[:, ax]))
-    square = sides[0] * sides[1]
+        sign = np.sign(ga[:, ax])
+        sides.append(share(shape.square_half_m - np.abs(ga[:, ax]), -sign * gua[:, ax], -sign * gva[:, ax]))
+    square = sides[0] * sides[1] if shape.square_half_m > 0 else np.zeros(len(g))
     r = np.hypot(g[:, 0], g[:, 1])
     with np.errstate(invalid="ignore", divide="ignore"):
         nx, ny = g[:, 0] / r, g[:, 1] / r
@@ -107,11 +141,23 @@ def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: Ta
 
 
 def _design(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: TargetShape, u: np.ndarray,
-            v: np.ndarray) -> np.ndarray:
-    """The grey-value model's design ``(n, 3)`` at pixels ``u``, ``v`` ``(n,)``: background, square, disc (a pixel's
-    grey value is ``c0 + c1 square + c2 disc``, with its shares on them)."""
-    sq, disc = render_target(camera, pose, centre, shape, u, v)
-    return np.column_stack([np.ones_like(sq), sq, disc])
+            v: np.ndarray, azimuth_deg: float | None = None) -> np.ndarray:
+    """The grey-value model's design ``(n, k)`` at pixels ``u``, ``v`` ``(n,)``: background, then square and disc as
+    the shape has them (a pixel's grey value is ``c0 + c1 square + c2 disc``, with its shares on them)."""
+    sq, disc = render_target(camera, pose, centre, shape, u, v, azimuth_deg)
+    has = shape.columns
+    return np.column_stack([np.ones_like(sq)] + [x for x, h in zip((sq, disc), has, strict=True) if h])
+
+
+def _brighter_inside(c: np.ndarray, shape: TargetShape) -> np.ndarray:
+    """Whether fitted levels ``c (k, ...)`` (:func:`_design`'s order) make the innermost element brighter than what
+    surrounds it: the disc than the square and the ground (a square may be as dark as the asphalt), or a square alone
+    than the ground."""
+    square, disc = shape.columns
+    if not disc:
+        return c[1] > 0
+    d = c[-1]
+    return (d > 0) & (d + c[1] > 0) if square else d > 0
 
 
 def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np.ndarray,
@@ -128,8 +174,13 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     pred = pred[0]
     if depth[0] <= 0 or not np.all(np.isfinite(pred)):
         return None
-    h = shape.square_half_m
-    corners = centre + np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]])
+    # the target's outline: the square's corners, or points round its circle when its azimuth is unknown, or the disc
+    if shape.square_half_m > 0 and shape.square_azimuth_deg is not None:
+        radius = shape.square_half_m * np.sqrt(2.0)
+        angles = np.radians(shape.square_azimuth_deg + 45.0 + 90.0 * np.arange(4))
+    else:
+        radius, angles = max(shape.square_half_m * np.sqrt(2.0), shape.disc_radius_m), np.arange(8) * np.pi / 4
+    corners = centre + radius * np.column_stack([np.cos(angles), np.sin(angles), np.zeros(len(angles))])
     cuv, _ = project(camera, pose, corners)
     if not np.all(np.isfinite(cuv)):
         return None
@@ -152,16 +203,19 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     img[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0] = grey[cy0:cy1, cx0:cx1]
     gu, gv = np.meshgrid(np.arange(-half, half + 1) + p0[0], np.arange(-half, half + 1) + p0[1])
     # the pixels the target covers at the prediction, with a ring of RING_PX pixels around it
-    sq, _ = render_target(camera, pose, centre, shape, gu, gv)
-    near = sq > 0
+    sq, disc = render_target(camera, pose, centre, shape, gu, gv)
+    if shape.square_half_m > 0 and shape.square_azimuth_deg is None:  # any azimuth: the square's circumcircle
+        sq = render_target(camera, pose, centre, TargetShape(shape.square_half_m * np.sqrt(2.0), 0.0), gu, gv)[1]
+    near = (sq > 0) | (disc > 0)
     for _ in range(RING_PX):
         near[1:] |= near[:-1]
         near[:-1] |= near[1:]
         near[:, 1:] |= near[:, :-1]
         near[:, :-1] |= near[:, 1:]
     u, v = gu[near].astype(np.float64), gv[near].astype(np.float64)
-    a = _design(camera, pose, centre, shape, u, v)
-    if np.linalg.matrix_rank(a) < 3:
+    azimuth = shape.square_azimuth_deg or 0.0
+    a = _design(camera, pose, centre, shape, u, v, azimuth)
+    if np.linalg.matrix_rank(a) < a.shape[1]:
         return None
     # integer search: how well the grey-value model fits (multiple correlation) at every shift
     iy, ix = v.astype(int) - y0, u.astype(int) - x0
@@ -176,23 +230,24 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     resid = patches - fit
     r2 = 1.0 - np.einsum("ij,ij->j", resid, resid) / np.maximum(total, 1e-12)
     r2[~inside] = -1.0
-    # the disc must be brighter than the ground around the target
-    r2[coef[1] + coef[2] <= 0] = -1.0
+    r2[~_brighter_inside(coef, shape)] = -1.0
     k = int(np.argmax(r2))
     if r2[k] < (0.8 * min_score) ** 2:  # far from a target even before the sub-pixel fit
         return None
     shift = shifts[k]
     obs = patches[:, k]
+    if shape.square_half_m > 0 and shape.square_azimuth_deg is None:
+        azimuth = _best_azimuth(camera, pose, centre, shape, u, v, obs)
     su, sv = u + shift[0], v + shift[1]
-    # least-squares template matching from there: the shift and the three grey levels
+    # least-squares template matching from there: the shift and the grey levels
     d = shift.astype(np.float64)
     eps = 0.05
 
     def model(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        a0 = _design(camera, pose, centre, shape, su - d[0], sv - d[1])
+        a0 = _design(camera, pose, centre, shape, su - d[0], sv - d[1], azimuth)
         c = np.linalg.lstsq(a0, obs, rcond=None)[0]
-        au = _design(camera, pose, centre, shape, su - d[0] - eps, sv - d[1])
-        av = _design(camera, pose, centre, shape, su - d[0], sv - d[1] - eps)
+        au = _design(camera, pose, centre, shape, su - d[0] - eps, sv - d[1], azimuth)
+        av = _design(camera, pose, centre, shape, su - d[0], sv - d[1] - eps, azimuth)
         jac = np.column_stack([(au - a0) @ c / eps, (av - a0) @ c / eps, a0])
         return obs - a0 @ c, jac, c
 
@@ -205,18 +260,38 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
         if np.abs(step[:2]).max() < 1e-3:
             break
     res, jac, c = model(d)
-    if c[2] <= 0 or c[1] + c[2] <= 0:  # the disc brighter than the square and the ground (the square can be as
-        return None                   # dark as the asphalt it lies on)
+    if not _brighter_inside(c, shape):
+        return None
     centred = obs - obs.mean()
     score = float(np.sqrt(max(0.0, 1.0 - float(res @ res) / max(float(centred @ centred), 1e-12))))
     if score < min_score:
         return None
     try:
-        cov = np.linalg.inv(jac.T @ jac) * float(res @ res) / max(len(obs) - 5, 1)
+        cov = np.linalg.inv(jac.T @ jac) * float(res @ res) / max(len(obs) - jac.shape[1], 1)
     except np.linalg.LinAlgError:
         return None
     std = float(np.sqrt(max(cov[0, 0], cov[1, 1])))
-    return TargetMeasurement(uv=pred + d, predicted=pred, score=score, std_px=std)
+    return TargetMeasurement(uv=pred + d, predicted=pred, score=score, std_px=std,
+                             azimuth_deg=float(azimuth % 90.0) if shape.square_half_m > 0 else None)
+
+
+def _best_azimuth(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: TargetShape, u: np.ndarray,
+                  v: np.ndarray, obs: np.ndarray) -> float:
+    """The square's azimuth (degrees, 0 to 90) that best fits the grey values ``obs (n,)`` of the target's pixels at
+    the prediction ``u``, ``v`` ``(n,)`` (taken from the image at the best whole-pixel shift): the best of
+    :data:`AZIMUTH_STEPS`, then the vertex of the parabola through it and its neighbours (the steps repeat after 90
+    degrees)."""
+    step = 90.0 / AZIMUTH_STEPS
+    fits = []
+    for k in range(AZIMUTH_STEPS):
+        a = _design(camera, pose, centre, shape, u, v, k * step)
+        res = obs - a @ np.linalg.lstsq(a, obs, rcond=None)[0]
+        fits.append(float(res @ res))
+    k = int(np.argmin(fits))
+    lo, mid, hi = fits[k - 1], fits[k], fits[(k + 1) % AZIMUTH_STEPS]
+    curve = lo - 2 * mid + hi
+    offset = 0.5 * (lo - hi) / curve if curve > 0 else 0.0
+    return (k + float(np.clip(offset, -0.5, 0.5))) * step
 
 
 def _measure_image(item: tuple) -> list[TargetMeasurement | None]:
@@ -249,7 +324,8 @@ def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], m
     points = {name: gp for name, gp in block.ground_points.items()
               if gp.xyz is not None and np.all(np.isfinite(gp.xyz))}
     record: dict = {"mode": mode, "shape": {"disc_radius_m": shape.disc_radius_m,
-                                            "square_half_m": shape.square_half_m},
+                                            "square_half_m": shape.square_half_m,
+                                            "square_azimuth_deg": shape.square_azimuth_deg},
                     "search_px": search_px, "min_score": min_score,
                     "points": {name: {"kind": gp.kind, "imported": sorted(gp.observations), "measured": {},
                                       "missed": []} for name, gp in points.items()}}
@@ -288,7 +364,8 @@ def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], m
                 entry["missed"].append(iid)
                 continue
             entry["measured"][iid] = {"uv": m.uv.tolist(), "predicted": m.predicted.tolist(),
-                                      "score": round(m.score, 4), "std_px": round(m.std_px, 4)}
+                                      "score": round(m.score, 4), "std_px": round(m.std_px, 4),
+                                      **({} if m.azimuth_deg is None else {"azimuth_deg": round(m.azimuth_deg, 2)})}
             imported = points[name].observations.get(iid)
             if imported is not None:
                 entry["measured"][iid]["imported_difference_px"] = round(float(np.hypot(*(m.uv - imported))), 4)
