@@ -86,6 +86,10 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                                              "square alone)"},
         "target_square_half_m": {"min": 0.0, "description": "Half side of the targets' dark square (m; 0: a disc "
                                                              "alone)"},
+        "target_pattern": {"items": (("disc", "Disc", "A bright disc on a dark square, a disc or a bright square "
+                                                      "alone"),
+                                     ("checker", "Checkerboard", "A square in two by two fields, opposite ones "
+                                                                 "alike"))},
         "target_square_azimuth": {"description": "Direction of the squares' sides, degrees counterclockwise from the "
                                                  "grid's x axis, or 'estimate' (found in each image)"},
         "target_search_px": {"min": 0.0, "description": "Search radius around the predicted position (px)"},

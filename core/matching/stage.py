@@ -49,8 +49,9 @@ class MatchConfig:
     imported measurements as they are), ``missing`` (measured ones where the import has no measurement of a point
     in an image that sees it; the imported ones are checked against the measured ones) or ``all`` (every point in
     every image, in place of the imported measurements); the targets are a bright disc of ``target_disc_radius_m``
-    on a dark square of half side ``target_square_half_m`` (0: a disc alone; a disc of 0: a bright square alone)
-    whose sides lie at ``target_square_azimuth`` (degrees from the grid's x axis, counterclockwise, or ``estimate``:
+    on a dark square of half side ``target_square_half_m`` (0: a disc alone; a disc of 0: a bright square alone),
+    or with ``target_pattern = checker`` a checkerboard square of that half side (the disc radius is not used), whose
+    sides lie at ``target_square_azimuth`` (degrees from the grid's x axis, counterclockwise, or ``estimate``:
     found in each image), searched up to ``target_search_px`` around the position the navigation data predict, kept
     from a correlation of ``target_min_score``."""
 
@@ -72,6 +73,7 @@ class MatchConfig:
     target_disc_radius_m: float = 0.5
     target_square_half_m: float = 0.8
     target_square_azimuth: str = "0"
+    target_pattern: str = "disc"
     target_search_px: float = 20.0
     target_min_score: float = 0.9
 
@@ -86,7 +88,8 @@ def target_shape(cfg: MatchConfig) -> TargetShape:
         except ValueError:
             raise ConfigError(f"match.target_square_azimuth '{cfg.target_square_azimuth}' should be degrees or "
                               "'estimate'") from None
-    return TargetShape(cfg.target_disc_radius_m, cfg.target_square_half_m, azimuth)
+    disc = 0.0 if cfg.target_pattern == "checker" else cfg.target_disc_radius_m
+    return TargetShape(disc, cfg.target_square_half_m, azimuth, cfg.target_pattern)
 
 
 def _ground_height(block, cfg: MatchConfig) -> float:

@@ -1,13 +1,15 @@
 """Automatic measurement of signalised ground points (control and check targets) in the images.
 
 A signalised target (:class:`TargetShape`) is a bright disc centred on a dark square laid on the ground (the usual
-panel target; the simulator's are a 0.5 m disc on a 1.6 m square, its sides along the grid), a bright disc alone or
-a bright square alone (painted on the asphalt). A square may lie at any azimuth, given or estimated. For each ground
+panel target; the simulator's are a 0.5 m disc on a 1.6 m square, its sides along the grid), a bright disc alone, a
+bright square alone (painted on the asphalt) or a checkerboard square (two by two fields, measured at its crossing).
+A square may lie at any azimuth, given or estimated. For each ground
 point and each image where its projection from the approximate orientation falls inside the frame:
 
 1. the target is rendered as the image sees it from that orientation (:func:`render_target`): each pixel's shares
-   of the square and of the disc, from the cut of its ray with the horizontal plane through the point; a pixel's
-   grey value is modelled as ``c0 + c1 square + c2 disc`` (ground, square and disc levels unknown: any exposure);
+   of the square and of the disc (of a checkerboard: of two opposite fields), from the cut of its ray with the
+   horizontal plane through the point; a pixel's grey value is modelled as ``c0 + c1 square + c2 disc`` (ground,
+   square and disc levels unknown: any exposure);
 2. that model is fitted to the image at every integer shift up to ``search_px`` (the error of the navigation
    data's prediction) over the pixels of the target and a two-pixel ring around it, and the best fit (multiple
    correlation, with the innermost element brighter than the ground) is taken;
@@ -17,8 +19,8 @@ point and each image where its projection from the approximate orientation falls
    again at each shifted position (the ellipse an oblique view makes of the disc stays exact);
 5. the measurement is the predicted position plus that shift, kept when the final correlation reaches
    ``min_score`` (an occluded or missing target does not) with the innermost element (the disc, or a square alone)
-   brighter than what surrounds it (a square under a disc may be no darker than the asphalt under it), with its
-   standard deviation from the fit.
+   brighter than what surrounds it (a square under a disc may be no darker than the asphalt under it; a
+   checkerboard's fields may be either way round), with its standard deviation from the fit.
 
 The shape is the template's: a perspective view is rendered, not assumed round, so the position is that of the
 disc's centre itself (the centroid of an oblique ellipse is not).
@@ -61,30 +63,42 @@ A square 7.5 degrees off (the most between two steps) lowers the fit's correlati
 disc on a square); the parabola through the best step and its neighbours comes closer."""
 
 
+PATTERNS = ("disc", "checker")
+"""Target patterns (:class:`TargetShape`): a disc on a square (or either alone), a checkerboard square."""
+
+
 @dataclass(frozen=True)
 class TargetShape:
-    """A target level on the ground: a bright disc of ``disc_radius_m`` on a dark square of half side
-    ``square_half_m``; without a square (``square_half_m = 0``) a bright disc on the ground, without a disc
-    (``disc_radius_m = 0``) a bright square. ``square_azimuth_deg``: the direction of the square's sides, degrees
-    counterclockwise from the grid's x axis (east), or None when unknown (estimated in each image)."""
+    """A target level on the ground. ``pattern`` ``disc``: a bright disc of ``disc_radius_m`` on a dark square of
+    half side ``square_half_m``; without a square (``square_half_m = 0``) a bright disc on the ground, without a disc
+    (``disc_radius_m = 0``) a bright square. ``checker``: a square of half side ``square_half_m`` in two by two
+    fields, opposite ones alike (no disc: ``disc_radius_m = 0``). ``square_azimuth_deg``: the direction of the
+    square's sides, degrees counterclockwise from the grid's x axis (east), or None when unknown (estimated in each
+    image)."""
 
     disc_radius_m: float = 0.5
     square_half_m: float = 0.8
     square_azimuth_deg: float | None = 0.0
+    pattern: str = "disc"
 
     def __post_init__(self) -> None:
         ok = (self.disc_radius_m >= 0 and self.square_half_m >= 0 and max(self.disc_radius_m, self.square_half_m) > 0
               and (self.square_half_m == 0 or self.disc_radius_m < self.square_half_m))
+        if self.pattern not in PATTERNS:
+            raise ConfigError(f"target shape: pattern '{self.pattern}' (use one of {', '.join(PATTERNS)})")
+        if self.pattern == "checker":
+            ok = self.square_half_m > 0 and self.disc_radius_m == 0
         if not ok:
             raise ConfigError(f"target shape: disc radius {self.disc_radius_m} m, square half side "
-                              f"{self.square_half_m} m (a disc, a square or a disc inside a square)")
+                              f"{self.square_half_m} m (a disc, a square or a disc inside a square; a checkerboard "
+                              "square without a disc)")
         if self.square_azimuth_deg is not None and not np.isfinite(self.square_azimuth_deg):
             raise ConfigError(f"target shape: square azimuth {self.square_azimuth_deg} is not a number")
 
     @property
     def columns(self) -> tuple[bool, bool]:
-        """Whether the grey-value model has a square and a disc level."""
-        return self.square_half_m > 0, self.disc_radius_m > 0
+        """Whether the grey-value model has a square level and an inner one (the disc, or a checkerboard's fields)."""
+        return self.square_half_m > 0, self.disc_radius_m > 0 or self.pattern == "checker"
 
 
 @dataclass(frozen=True)
@@ -104,14 +118,16 @@ class TargetMeasurement:
 def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: TargetShape, u: np.ndarray,
                   v: np.ndarray, azimuth_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The target as the image sees it at pixels ``u``, ``v`` (any equal shapes, floats): the shares of each pixel on
-    the square and on the disc, ``(square, disc)`` (zeros for an element the shape does not have). The square's
-    sides lie at ``azimuth_deg`` (the shape's own when None; 0 when the shape's is unknown).
+    the square and on the inner element, ``(square, inner)`` (zeros for an element the shape does not have): the disc,
+    or of a checkerboard the fields in the square's first and third quadrants. The square's sides lie at
+    ``azimuth_deg`` (the shape's own when None; 0 when the shape's is unknown).
 
     A pixel's share of a shape is ``0.5 + s`` clipped to 0..1, with ``s`` the signed distance of the pixel's centre
     from the shape's edge in pixels (the ground distance over the rate at which it changes across the image, from the
     ray's cut with the ground plane and its derivatives): an edge crossing a pixel covers it in proportion, and the
     shares change smoothly with the target's position, which the least-squares fit needs. The square's share is the
-    product of its two sides' (exact but at the corners)."""
+    product of its two sides' (exact but at the corners); a checkerboard field's, the product of the shares on the
+    two half-planes through the centre that bound it, within the square."""
     shp = np.shape(u)
     uv = np.column_stack([np.ravel(u), np.ravel(v)]).astype(np.float64)
     z = float(centre[2])
@@ -133,6 +149,10 @@ def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: Ta
         sign = np.sign(ga[:, ax])
         sides.append(share(shape.square_half_m - np.abs(ga[:, ax]), -sign * gua[:, ax], -sign * gva[:, ax]))
     square = sides[0] * sides[1] if shape.square_half_m > 0 else np.zeros(len(g))
+    if shape.pattern == "checker":
+        half_x, half_y = (share(ga[:, ax], gua[:, ax], gva[:, ax]) for ax in range(2))  # shares on x >= 0, y >= 0
+        fields = square * (half_x * half_y + (1.0 - half_x) * (1.0 - half_y))
+        return np.nan_to_num(square).reshape(shp), np.nan_to_num(fields).reshape(shp)
     r = np.hypot(g[:, 0], g[:, 1])
     with np.errstate(invalid="ignore", divide="ignore"):
         nx, ny = g[:, 0] / r, g[:, 1] / r
@@ -142,18 +162,20 @@ def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: Ta
 
 def _design(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: TargetShape, u: np.ndarray,
             v: np.ndarray, azimuth_deg: float | None = None) -> np.ndarray:
-    """The grey-value model's design ``(n, k)`` at pixels ``u``, ``v`` ``(n,)``: background, then square and disc as
-    the shape has them (a pixel's grey value is ``c0 + c1 square + c2 disc``, with its shares on them)."""
-    sq, disc = render_target(camera, pose, centre, shape, u, v, azimuth_deg)
+    """The grey-value model's design ``(n, k)`` at pixels ``u``, ``v`` ``(n,)``: background, then square and inner
+    element as the shape has them (a pixel's grey value is ``c0 + c1 square + c2 inner``, with its shares on them)."""
+    sq, inner = render_target(camera, pose, centre, shape, u, v, azimuth_deg)
     has = shape.columns
-    return np.column_stack([np.ones_like(sq)] + [x for x, h in zip((sq, disc), has, strict=True) if h])
+    return np.column_stack([np.ones_like(sq)] + [x for x, h in zip((sq, inner), has, strict=True) if h])
 
 
 def _brighter_inside(c: np.ndarray, shape: TargetShape) -> np.ndarray:
     """Whether fitted levels ``c (k, ...)`` (:func:`_design`'s order) make the innermost element brighter than what
     surrounds it: the disc than the square and the ground (a square may be as dark as the asphalt), or a square alone
-    than the ground."""
+    than the ground. A checkerboard's fields differ either way round."""
     square, disc = shape.columns
+    if shape.pattern == "checker":
+        return c[-1] != 0
     if not disc:
         return c[1] > 0
     d = c[-1]
@@ -203,36 +225,42 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     img[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0] = grey[cy0:cy1, cx0:cx1]
     gu, gv = np.meshgrid(np.arange(-half, half + 1) + p0[0], np.arange(-half, half + 1) + p0[1])
     # the pixels the target covers at the prediction, with a ring of RING_PX pixels around it
-    sq, disc = render_target(camera, pose, centre, shape, gu, gv)
+    sq, inner = render_target(camera, pose, centre, shape, gu, gv)
     if shape.square_half_m > 0 and shape.square_azimuth_deg is None:  # any azimuth: the square's circumcircle
         sq = render_target(camera, pose, centre, TargetShape(shape.square_half_m * np.sqrt(2.0), 0.0), gu, gv)[1]
-    near = (sq > 0) | (disc > 0)
+    near = (sq > 0) | (inner > 0)
     for _ in range(RING_PX):
         near[1:] |= near[:-1]
         near[:-1] |= near[1:]
         near[:, 1:] |= near[:, :-1]
         near[:, :-1] |= near[:, 1:]
     u, v = gu[near].astype(np.float64), gv[near].astype(np.float64)
-    azimuth = shape.square_azimuth_deg or 0.0
-    a = _design(camera, pose, centre, shape, u, v, azimuth)
-    if np.linalg.matrix_rank(a) < a.shape[1]:
-        return None
-    # integer search: how well the grey-value model fits (multiple correlation) at every shift
+    # integer search: how well the grey-value model fits (multiple correlation) at every shift; a checkerboard of
+    # unknown azimuth at each azimuth step (its fields at the wrong azimuth do not correlate), other shapes at 0 (the
+    # disc or the square's bulk finds them at any azimuth)
+    turned = shape.pattern == "checker" and shape.square_azimuth_deg is None
+    azimuths = [k * 90.0 / AZIMUTH_STEPS for k in range(AZIMUTH_STEPS)] if turned else [shape.square_azimuth_deg or 0.0]
     iy, ix = v.astype(int) - y0, u.astype(int) - x0
     shifts = base + np.array([(dx, dy) for dy in range(-s, s + 1) for dx in range(-s, s + 1)])
     patches = img[iy[:, None] + shifts[None, :, 1], ix[:, None] + shifts[None, :, 0]]
     inside = np.all(np.isfinite(patches), axis=0)
     patches = np.nan_to_num(patches)
-    coef = np.linalg.lstsq(a, patches, rcond=None)[0]
-    fit = a @ coef
     centred = patches - patches.mean(0)
-    total = np.einsum("ij,ij->j", centred, centred)
-    resid = patches - fit
-    r2 = 1.0 - np.einsum("ij,ij->j", resid, resid) / np.maximum(total, 1e-12)
-    r2[~inside] = -1.0
-    r2[~_brighter_inside(coef, shape)] = -1.0
-    k = int(np.argmax(r2))
-    if r2[k] < (0.8 * min_score) ** 2:  # far from a target even before the sub-pixel fit
+    total = np.maximum(np.einsum("ij,ij->j", centred, centred), 1e-12)
+    best, azimuth = np.full(len(shifts), -1.0), azimuths[0]
+    for az in azimuths:
+        a = _design(camera, pose, centre, shape, u, v, az)
+        if np.linalg.matrix_rank(a) < a.shape[1]:
+            return None
+        coef = np.linalg.lstsq(a, patches, rcond=None)[0]
+        resid = patches - a @ coef
+        r2 = 1.0 - np.einsum("ij,ij->j", resid, resid) / total
+        r2[~inside | ~_brighter_inside(coef, shape)] = -1.0
+        if r2.max() > best.max():
+            azimuth = az
+        best = np.maximum(best, r2)
+    k = int(np.argmax(best))
+    if best[k] < (0.8 * min_score) ** 2:  # far from a target even before the sub-pixel fit
         return None
     shift = shifts[k]
     obs = patches[:, k]
@@ -325,7 +353,8 @@ def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], m
               if gp.xyz is not None and np.all(np.isfinite(gp.xyz))}
     record: dict = {"mode": mode, "shape": {"disc_radius_m": shape.disc_radius_m,
                                             "square_half_m": shape.square_half_m,
-                                            "square_azimuth_deg": shape.square_azimuth_deg},
+                                            "square_azimuth_deg": shape.square_azimuth_deg,
+                                            "pattern": shape.pattern},
                     "search_px": search_px, "min_score": min_score,
                     "points": {name: {"kind": gp.kind, "imported": sorted(gp.observations), "measured": {},
                                       "missed": []} for name, gp in points.items()}}
