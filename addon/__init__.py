@@ -1,7 +1,8 @@
 """The Blender side of Oblique City: registration, preferences and properties, georeference, builders, jobs.
 
 :func:`register` registers one ordered tuple of classes (properties first, then operators, then panels) and adds
-the File > Import and File > Export menu entries and a ``load_pre`` handler that cancels a running job;
+the File > Import and File > Export menu entries, a ``load_pre`` handler that cancels a running job and the ground
+point overlay's draw handler of the 3D view;
 :func:`unregister` undoes it in reverse order, cancelling a running job first.
 This package and the modules it registers are the only ones that import bpy; ``core`` never does.
 """
@@ -30,6 +31,7 @@ def cancel_job_on_load(*_args) -> None:
 
 def register() -> None:
     from ..operators import menu_export, menu_import
+    from ..panels import overlay
     from . import properties
 
     for cls in classes():
@@ -38,16 +40,19 @@ def register() -> None:
     bpy.types.TOPBAR_MT_file_import.append(menu_import)
     bpy.types.TOPBAR_MT_file_export.append(menu_export)
     bpy.app.handlers.load_pre.append(cancel_job_on_load)
+    overlay.add_handler()
 
 
 def unregister() -> None:
     from ..operators import menu_export, menu_import
+    from ..panels import overlay
     from . import jobs, properties
 
     jobs.cancel_active()
     job = jobs.active_job()
     if job is not None:
         jobs.forget_job(job)
+    overlay.remove_handler()
     bpy.app.handlers.load_pre.remove(cancel_job_on_load)
     bpy.types.TOPBAR_MT_file_export.remove(menu_export)
     bpy.types.TOPBAR_MT_file_import.remove(menu_import)

@@ -137,3 +137,12 @@ def viewed_image(scene) -> tuple[object, str] | None:
     if cam is None or cam.type != "CAMERA" or "oc_image_id" not in cam:
         return None
     return cam, str(cam["oc_image_id"])
+
+
+def direction_from_pixel(scene, cam_obj, uv: np.ndarray) -> np.ndarray:
+    """Unit directions ``(n, 3)`` (scene axes, from the camera) of pixels ``uv (n, 2)`` of the original, distorted
+    image ``cam_obj`` shows (the inverse of :func:`pixel_from_direction`): where its measurements appear over the
+    undistorted background Blender draws."""
+    from ..core.geometry.projection import pixel_rays
+
+    return pixel_rays(intrinsics_of(cam_obj.data), pose_of(scene, cam_obj), np.atleast_2d(uv))

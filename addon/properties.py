@@ -350,6 +350,9 @@ class CitySceneSettings(bpy.types.PropertyGroup):
         name="Undistort Backgrounds", default=True,
         description="When looking through an image, show it resampled to Blender's distortion-free camera")
     force: BoolProperty(name="Force", default=False, description="Run stages again even if they are up to date")
+    show_ground_points: BoolProperty(
+        name="Show Ground Points", default=True,
+        description="Draw the ground points' predicted and measured positions over the image looked through")
     measure_refine: BoolProperty(
         name="Fit Target", default=True,
         description="A ground point clicked in an image is taken at the centre of its target fitted near the click "

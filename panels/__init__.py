@@ -5,7 +5,8 @@ Stage panels show each stage's status from ``state.json`` and Run buttons that c
 stage that is not registered yet is listed as such. The stages of ``addon.properties.STAGE_OPTION_GROUPS`` also show
 their options, which read and write ``[stages.<stage>]`` of ``project.toml``. The Buildings panel lists the
 buildings (:class:`CITY_UL_buildings`); making one active selects its object. The Ground Point Measurement panel
-lists the ground points of the image the viewport looks through, to measure them by hand. Panels only read cached
+lists the ground points of the image the viewport looks through, to measure them by hand (:mod:`.overlay` draws them
+over the image). Panels only read cached
 summaries (re-read when the files they come from change), never the workspace on every redraw.
 """
 
@@ -445,7 +446,9 @@ class CITY_PT_ground_points(CityPanel, bpy.types.Panel):
             layout.label(text="Look through an image (View Through Image) to measure its ground points", icon="INFO")
             return
         layout.label(text=f"Image {viewed[1]}")
-        layout.prop(context.scene.oblique_city, "measure_refine")
+        row = layout.row()
+        row.prop(context.scene.oblique_city, "measure_refine")
+        row.prop(context.scene.oblique_city, "show_ground_points")
         found = ground_point_rows(root, viewed[1])
         if "error" in found:
             layout.label(text=found["error"], icon="INFO")

@@ -93,3 +93,34 @@ def test_measure_remove_and_reset_from_the_panel(addon, gws):
         assert bpy.ops.city.edit_ground_measurement(point=name, action="reset") == {"FINISHED"}
     assert read_manual(ws.path(MANUAL_FILE)) == {}
     assert rows() == {"G1": "G1 (control): (640.0, 420.0), imported", "G2": "G2 (check): not measured, none"}
+
+
+def test_the_overlay_marks_each_ground_point_over_its_pixel(addon, gws, utm_block):
+    """The overlay's marks (predicted positions, imported and manual measurements) are scene points that the core
+    projects back onto their pixels of the original image (within 1e-6 px) and that Blender's own camera projection
+    puts on the same pixels of the undistorted background (within 1e-3 px); its draw handler is installed while the
+    add-on is registered."""
+    bpy = addon
+    from oblique_city.addon import cameras, georef
+    from oblique_city.panels import overlay
+
+    assert overlay._handle is not None
+    assert bpy.ops.city.open_workspace(directory=str(gws.root)) == {"FINISHED"}
+    assert bpy.ops.city.view_image(camera="img0") == {"FINISHED"}
+    scene = bpy.context.scene
+    scene.oblique_city.measure_refine = False
+    assert bpy.ops.city.measure_ground_point(point="G2", u=512.25, v=300.5) == {"FINISHED"}
+    cam_obj = bpy.data.objects["img0"]
+    cam = utm_block.camera_of("img0")
+    pose = cameras.pose_of(scene, cam_obj)
+    block = gws.load_block()
+    marks = overlay.overlay_points(scene, gws.root, "img0")
+    assert {(n, k) for n, k, _ in marks} == {("G1", "predicted"), ("G1", "imported"), ("G2", "predicted"),
+                                             ("G2", "measured")}
+    expected = {("G1", "imported"): (640.0, 420.0), ("G2", "measured"): (512.25, 300.5),
+                **{(n, "predicted"): project(cam, pose, block.ground_points[n].xyz[None])[0][0] for n in ("G1", "G2")}}
+    for name, kind, xyz in marks:
+        world = georef.local_to_world(scene, xyz[None])
+        assert np.allclose(project(cam, pose, world)[0][0], expected[name, kind], atol=1e-6)
+        assert np.allclose(cameras.pixel_from_blender(scene, cam_obj, world)[0],
+                           project(cam, pose, world, distort=False)[0][0], atol=1e-3)
