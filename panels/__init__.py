@@ -20,7 +20,7 @@ import bpy
 from ..addon import cameras, georef, jobs, layers_aerotri, layers_match, layers_windows
 from ..addon.properties import option_fields
 from ..core.errors import CityError
-from ..core.matching.manual import MANUAL_FILE, ground_points_in_image
+from ..core.matching.manual import MANUAL_FILE, measurement_state, points_in_image
 from ..core.pipeline.registry import get_stage, stage_names
 from ..core.pipeline.workspace import ADJUSTED_BLOCK_FILE, BLOCK_FILE, STATE_FILE, Workspace
 
@@ -421,13 +421,17 @@ MEASURE_LINES = 20
 
 
 def ground_point_rows(root: Path, image_id: str) -> dict:
-    """``{"rows": [...]}``: :func:`core.matching.manual.ground_points_in_image` of ``image_id``, re-read only when the
-    block, the target measurements or the manual measurements changed."""
+    """``{"rows": [...]}``: :func:`core.matching.manual.points_in_image` of ``image_id``, from the workspace's
+    measurement state re-read only when the block, the target measurements or the manual measurements changed (a
+    block of thousands of images is not read again for every image looked through)."""
     files = (BLOCK_FILE, ADJUSTED_BLOCK_FILE, layers_match.TARGETS_FILE, MANUAL_FILE)
-    key = ("ground points", str(root), image_id, *(_mtime(root / f) for f in files))
-    if key[3] is None:
+    key = ("ground points", str(root), *(_mtime(root / f) for f in files))
+    if key[2] is None:
         return {"error": "no block imported yet"}
-    return _cached(key, lambda: {"rows": ground_points_in_image(Workspace.open(root), image_id)})
+    state = _cached(key, lambda: {"state": measurement_state(Workspace.open(root))})
+    if "error" in state:
+        return state
+    return _cached((*key, image_id), lambda: {"rows": points_in_image(state["state"], image_id)})
 
 
 class CITY_PT_ground_points(CityPanel, bpy.types.Panel):

@@ -12,9 +12,10 @@ with ``entry`` either ``{"uv": [u, v], "method": "click" | "target", "score": fl
 top-left pixel at 0, 0; ``target``: the click refined by fitting the target there, with the fit's correlation) or
 ``null``: the point is not measured in that image (a wrong measurement removed).
 
-:func:`ground_points_in_image` lists what an image shows of the ground points (the prediction from the best
-orientation known, the measurement the adjustment will take and where it comes from), for the CLI and the Blender
-panel; :func:`set_manual` and :func:`reset_manual` edit the file atomically.
+:func:`points_in_image` lists what an image shows of the ground points (the prediction from the best orientation
+known, the measurement the adjustment will take and where it comes from), for the CLI and the Blender panel, from a
+:class:`MeasurementState` read once (a panel keeps it while the files do not change); :func:`set_manual` and
+:func:`reset_manual` edit the file atomically.
 """
 
 from __future__ import annotations
@@ -134,16 +135,32 @@ def _block_and_sources(ws) -> tuple[ImageBlock, dict[str, dict[str, str]], dict]
     return block, sources, manual
 
 
-def ground_points_in_image(ws, image_id: str, margin_px: float = 0.0) -> list[PointInImage]:
-    """The ground points of the workspace's block whose projection falls inside image ``image_id`` (with the best
-    orientation known: the adjusted block's when aerial triangulation has run), or that are measured there, in name
-    order."""
+@dataclass(frozen=True)
+class MeasurementState:
+    """What :func:`points_in_image` needs of a workspace, read once (:func:`measurement_state`): the imported block
+    with the measurements the ``aerotri`` stage will take, their sources (point -> image -> source), the block with
+    the best orientations known (the adjusted one once aerial triangulation has run) and the block file's path."""
+
+    block: ImageBlock
+    sources: dict[str, dict[str, str]]
+    oriented: ImageBlock
+    path: Path
+
+
+def measurement_state(ws) -> MeasurementState:
+    """Read the blocks, the target and the manual measurements of the workspace (see :class:`MeasurementState`)."""
     block, sources, _ = _block_and_sources(ws)
+    return MeasurementState(block, sources, ws.load_block(), ws.path("block", "block.json"))
+
+
+def points_in_image(state: MeasurementState, image_id: str, margin_px: float = 0.0) -> list[PointInImage]:
+    """The ground points whose projection falls inside image ``image_id`` (with the best orientation known), or that
+    are measured there, in name order."""
+    block = state.block
     if image_id not in block.images:
-        raise InputError(f"no image '{image_id}' in the block", ws.path("block", "block.json"), field="images")
-    adjusted = ws.load_block()
-    img = adjusted.images.get(image_id, block.images[image_id])
-    cam = adjusted.camera_of(img)
+        raise InputError(f"no image '{image_id}' in the block", state.path, field="images")
+    img = state.oriented.images.get(image_id, block.images[image_id])
+    cam = state.oriented.camera_of(img)
     pose = img.pose
     out = []
     for name, gp in sorted(block.ground_points.items()):
@@ -152,11 +169,16 @@ def ground_points_in_image(ws, image_id: str, margin_px: float = 0.0) -> list[Po
             uv, depth = project(cam, pose, gp.xyz[None])
             if depth[0] > 0:
                 pred = uv[0]
-        source = sources.get(name, {}).get(image_id, "none")
+        source = state.sources.get(name, {}).get(image_id, "none")
         seen = np.all(np.isfinite(pred)) and cam.contains(pred[None], margin=margin_px)[0]
         if seen or source != "none":
             out.append(PointInImage(name, gp.kind, pred, gp.observations.get(image_id), source))
     return out
+
+
+def ground_points_in_image(ws, image_id: str, margin_px: float = 0.0) -> list[PointInImage]:
+    """:func:`points_in_image` of the workspace ``ws`` (read for this one image)."""
+    return points_in_image(measurement_state(ws), image_id, margin_px)
 
 
 def _write(ws, manual: dict) -> None:
