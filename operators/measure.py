@@ -76,12 +76,17 @@ class CITY_OT_measure_ground_point(bpy.types.Operator):
 
         direction = view3d_utils.region_2d_to_vector_3d(region, self._area.spaces.active.region_3d,
                                                         (event.mouse_x - region.x, event.mouse_y - region.y))
-        uv = cameras.pixel_from_direction(context.scene, cameras.viewed_image(context.scene)[0], np.array(direction))
         context.workspace.status_text_set(None)
+        viewed = cameras.viewed_image(context.scene)
+        if viewed is None:  # the scene camera changed meanwhile
+            self.report({"ERROR"}, "look through an image first (View Through Image)")
+            return {"CANCELLED"}
+        uv = cameras.pixel_from_direction(context.scene, viewed[0], np.array(direction))
         if not np.all(np.isfinite(uv)):
             self.report({"ERROR"}, "the click is not in front of the camera")
             return {"CANCELLED"}
         self.u, self.v = float(uv[0]), float(uv[1])
+        self._area.tag_redraw()  # the overlay shows the new measurement
         return self.execute(context)
 
 
