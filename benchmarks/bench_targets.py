@@ -63,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--offsets", default="2,4,6", help="click distances from the true projection, pixels")
     ap.add_argument("--disc-radius", type=float, default=0.5, help="target disc radius, metres")
     ap.add_argument("--square-half", type=float, default=0.8, help="target square half side, metres")
-    ap.add_argument("--square-azimuth", default="0", help="the squares' azimuth, degrees, or 'estimate'")
+    ap.add_argument("--square-azimuth", default="estimate",
+                    help="the squares' azimuth, degrees, or 'estimate' (the match stage's default)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", help="JSON output (default <workspace>/matching/bench_targets.json)")

@@ -215,7 +215,7 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     base = np.zeros(2, int) if near is None else np.round(np.asarray(near, np.float64) - pred).astype(int)
     rows, cols = grey.shape[:2]
     q0 = p0 + base
-    if q0[0] - half < 0 or q0[1] - half < 0 or q0[0] + half >= cols or q0[1] + half >= rows:
+    if not (0 <= q0[0] < cols and 0 <= q0[1] < rows):
         return None
     # the search window, NaN beyond the image's border (the shifts that reach there are not tried)
     x0, y0 = q0[0] - half - s - 2, q0[1] - half - s - 2
@@ -224,17 +224,24 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     cx1, cy1 = min(x0 + img.shape[1], cols), min(y0 + img.shape[0], rows)
     img[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0] = grey[cy0:cy1, cx0:cx1]
     gu, gv = np.meshgrid(np.arange(-half, half + 1) + p0[0], np.arange(-half, half + 1) + p0[1])
-    # the pixels the target covers at the prediction, with a ring of RING_PX pixels around it
-    sq, inner = render_target(camera, pose, centre, shape, gu, gv)
-    if shape.square_half_m > 0 and shape.square_azimuth_deg is None:  # any azimuth: the square's circumcircle
-        sq = render_target(camera, pose, centre, TargetShape(shape.square_half_m * np.sqrt(2.0), 0.0), gu, gv)[1]
-    near = (sq > 0) | (inner > 0)
-    for _ in range(RING_PX):
-        near[1:] |= near[:-1]
-        near[:-1] |= near[1:]
-        near[:, 1:] |= near[:, :-1]
-        near[:, :-1] |= near[:, 1:]
-    u, v = gu[near].astype(np.float64), gv[near].astype(np.float64)
+    def support(azimuth_deg: float | None = None, circle_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels ``u``, ``v`` the target covers at the prediction with a ring of RING_PX pixels around it, its
+        square at ``azimuth_deg`` or replaced by a circle of radius ``circle_m`` (a square of unknown azimuth)."""
+        sq, inner = render_target(camera, pose, centre, shape, gu, gv, azimuth_deg)
+        if circle_m is not None:
+            sq = render_target(camera, pose, centre, TargetShape(circle_m, 0.0), gu, gv)[1]
+        near = (sq > 0) | (inner > 0)
+        for _ in range(RING_PX):
+            near[1:] |= near[:-1]
+            near[:-1] |= near[1:]
+            near[:, 1:] |= near[:, :-1]
+            near[:, :-1] |= near[:, 1:]
+        return gu[near].astype(np.float64), gv[near].astype(np.float64)
+
+    unknown = shape.square_half_m > 0 and shape.square_azimuth_deg is None
+    # a square of unknown azimuth is searched over its inscribed circle (the part every azimuth covers), so that a
+    # target near the border is not lost to the corners a wrong azimuth puts beyond it
+    u, v = support(circle_m=shape.square_half_m if unknown else None)
     # integer search: how well the grey-value model fits (multiple correlation) at every shift; a checkerboard of
     # unknown azimuth at each azimuth step (its fields at the wrong azimuth do not correlate), other shapes at 0 (the
     # disc or the square's bulk finds them at any azimuth)
@@ -264,8 +271,17 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
         return None
     shift = shifts[k]
     obs = patches[:, k]
-    if shape.square_half_m > 0 and shape.square_azimuth_deg is None:
-        azimuth = _best_azimuth(camera, pose, centre, shape, u, v, obs)
+    if unknown:
+        # the azimuth from the circle round the square (where its corners are), the pixels of it in the image
+        cu, cv = support(circle_m=shape.square_half_m * np.sqrt(2.0))
+        found = img[cv.astype(int) - y0 + shift[1], cu.astype(int) - x0 + shift[0]]
+        seen = np.isfinite(found)
+        azimuth = _best_azimuth(camera, pose, centre, shape, cu[seen], cv[seen], found[seen])
+        # from here the square as it lies: its own pixels and ring
+        u, v = support(azimuth)
+        obs = img[v.astype(int) - y0 + shift[1], u.astype(int) - x0 + shift[0]]
+        if not np.all(np.isfinite(obs)):
+            return None
     su, sv = u + shift[0], v + shift[1]
     # least-squares template matching from there: the shift and the grey levels
     d = shift.astype(np.float64)

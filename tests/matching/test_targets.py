@@ -193,7 +193,7 @@ def test_squares_at_any_azimuth_discs_squares_alone_and_checkerboards_are_measur
     by 0-45 degrees with its azimuth unknown, a disc alone, a bright square alone turned by 30 degrees and a
     checkerboard turned by 10 and 60 degrees are all found within 0.05 px of their true projections (measured: worst
     0.009 px), the square's azimuth within 3 degrees (measured: 1.2 at most), the fit's correlation above 0.99
-    (measured: 0.9956 at least). Held at azimuth 0, a
+    (measured: 0.9956 at least), also 9 px from the image's edge. Held at azimuth 0, a
     square turned by 45 degrees costs the fit 0.06 of its correlation (measured: 0.94). Shapes that are no target are
     refused, and so is an azimuth option that is neither degrees nor ``estimate``."""
     camera = CameraModel(id="c", width=240, height=200, fx=6500.0, fy=6500.0, cx=119.5, cy=99.5)
@@ -221,6 +221,11 @@ def test_squares_at_any_azimuth_discs_squares_alone_and_checkerboards_are_measur
         image = supersampled_target(camera, pose, centre, 0.5, 0.8, 45.0, rng)
         held = measure_target(image, camera, approx, centre, TargetShape(0.5, 0.8, 0.0))
         assert held is not None and held.score < 0.96 and held.azimuth_deg == 0.0
+        # 9 px from the image's edge (the circle round the square reaches beyond it): still found
+        edge = CameraModel(id="e", width=240, height=200, fx=6500.0, fy=6500.0, cx=119.5, cy=190.0)
+        image = supersampled_target(edge, pose, centre, 0.5, 0.8, 30.0, rng)
+        m = measure_target(image, edge, approx, centre, TargetShape(0.5, 0.8, None))
+        assert m is not None and np.hypot(*(m.uv - project(edge, pose, centre[None])[0][0])) < 0.05
     for bad in ((0.0, 0.0), (0.9, 0.8), (-0.5, 0.8), (0.5, 0.8, 0.0, "checker"), (0.0, 0.8, 0.0, "cross")):
         with pytest.raises(ConfigError, match="target shape"):
             TargetShape(*bad)
@@ -228,6 +233,6 @@ def test_squares_at_any_azimuth_discs_squares_alone_and_checkerboards_are_measur
 
     assert target_shape(MatchConfig(target_square_azimuth="estimate")).square_azimuth_deg is None
     assert target_shape(MatchConfig(target_square_azimuth="30", target_square_half_m=0)) == TargetShape(0.5, 0, 30.0)
-    assert target_shape(MatchConfig(target_pattern="checker")) == TargetShape(0.0, 0.8, 0.0, "checker")
+    assert target_shape(MatchConfig(target_pattern="checker")) == TargetShape(0.0, 0.8, None, "checker")
     with pytest.raises(ConfigError, match="target_square_azimuth 'north'"):
         target_shape(MatchConfig(target_square_azimuth="north"))
