@@ -806,9 +806,10 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
                      + ", ".join(f"{html.escape(n)} in {html.escape(i)} ({d:.1f} px)" for n, i, d in t["suspect"][:10])
                      + ("..." if len(t["suspect"]) > 10 else "") + ".") + "</p>")
         m = report.get("manual_measurements") or {}
-        if m.get("set") or m.get("removed"):
+        if m.get("set") or m.get("removed") or m.get("skipped"):
             measured += (f"<p>Manual measurements (block/manual_measurements.json): {m['set']} set by the operator, "
-                         f"{m['removed']} removed.</p>")
+                         f"{m['removed']} removed" + (f"; {m['skipped']} skipped: their points or images are not in "
+                                                      "the block" if m.get("skipped") else "") + ".</p>")
         parts.append("<h2>Ground points (intersected from every image with its adjusted orientation, minus the "
                      f"given coordinates)</h2>{measured}<table><tr><th>point</th><th>kind</th><th>images</th>"
                      "<th>dX [m]</th><th>dY [m]</th><th>dZ [m]</th><th>image RMS [px]</th>"

@@ -212,7 +212,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     report["thinned_observations"] = int(at.extra.get("thinned_observations", 0))
     report["target_measurements"] = (target_summary(targets) if targets is not None and targets.get("mode") != "none"
                                      else None)
-    report["manual_measurements"] = {"set": manual[0], "removed": manual[1]}
+    report["manual_measurements"] = {"set": manual[0], "removed": manual[1], "skipped": manual[2]}
     layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size, cfg.layer_views)
     files = write_layers(layers, out / "layers")
     write_json(out / "report.json", report)

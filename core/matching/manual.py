@@ -93,24 +93,23 @@ def read_manual(path: str | Path) -> dict[str, dict[str, dict | None]]:
     return observations
 
 
-def apply_manual(block: ImageBlock, observations: dict[str, dict[str, dict | None]]) -> tuple[int, int]:
+def apply_manual(block: ImageBlock, observations: dict[str, dict[str, dict | None]]) -> tuple[int, int, int]:
     """Give the block's ground points the manual measurements (:func:`read_manual`): an entry replaces the point's
-    measurement in that image, ``null`` removes it. Points or images the block does not have are skipped. Returns
-    the measurements set and removed."""
-    n_set = n_removed = 0
+    measurement in that image, ``null`` removes it. Entries of points or images the block does not have (a block
+    imported again since) are skipped. Returns the measurements set, removed and skipped."""
+    n_set = n_removed = n_skipped = 0
     for name, per_image in observations.items():
         gp = block.ground_points.get(name)
-        if gp is None:
-            continue
         for iid, entry in per_image.items():
-            if iid not in block.images:
+            if gp is None or iid not in block.images:
+                n_skipped += 1
                 continue
             if entry is None:
                 n_removed += gp.observations.pop(iid, None) is not None
             else:
                 gp.observations[iid] = np.asarray(entry["uv"], np.float64)
                 n_set += 1
-    return n_set, n_removed
+    return n_set, n_removed, n_skipped
 
 
 def _block_and_sources(ws) -> tuple[ImageBlock, dict[str, dict[str, str]], dict]:

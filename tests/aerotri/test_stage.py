@@ -404,7 +404,8 @@ def test_manual_measurements_override_the_others_and_make_the_adjustment_stale(t
     (0.34 px with the simulated 0.3 px noise, 0.013 m; the test takes 1 px and 3 GSD), and removed it no longer
     counts. Each edit
     makes the ``aerotri`` stage stale (the file enters its fingerprint); the report, its HTML and the listing say
-    where each measurement comes from. A malformed file is refused naming the field."""
+    where each measurement comes from; entries of points or images the block does not have are skipped and
+    counted. A malformed file is refused naming the field."""
     import pytest
 
     from oblique_city.core.geometry.projection import project
@@ -427,7 +428,7 @@ def test_manual_measurements_override_the_others_and_make_the_adjustment_stale(t
         return report, next(g for g in report["ground_points"] if g["name"] == name)
 
     report, bad = check_point()
-    assert bad["image_rms_px"] > 5.0 and report["manual_measurements"] == {"set": 0, "removed": 0}
+    assert bad["image_rms_px"] > 5.0 and report["manual_measurements"] == {"set": 0, "removed": 0, "skipped": 0}
     assert {r["stage"]: r["status"] for r in status(Workspace.open(ws.root))}["aerotri"] == "done"
     assert main(["measure", str(ws.root), image, "--point", name, "--uv", *map(str, true_uv)]) == 0
     assert {r["stage"]: r["status"] for r in status(Workspace.open(ws.root))}["aerotri"] == "stale"
@@ -435,7 +436,7 @@ def test_manual_measurements_override_the_others_and_make_the_adjustment_stale(t
     assert good["image_rms_px"] < 1.0 and good["images"] == bad["images"]
     err = np.hypot(good["dx_m"], good["dy_m"]), np.hypot(bad["dx_m"], bad["dy_m"])
     assert err[0] < err[1] and err[0] < 3 * s.gsd
-    assert report["manual_measurements"] == {"set": 1, "removed": 0}
+    assert report["manual_measurements"] == {"set": 1, "removed": 0, "skipped": 0}
     assert "1 set by the operator, 0 removed" in ws.path("aerotri/report.html").read_text()
     capsys.readouterr()
     assert main(["measure", str(ws.root), image]) == 0
@@ -443,12 +444,20 @@ def test_manual_measurements_override_the_others_and_make_the_adjustment_stale(t
     assert row[-1] == "manual" and np.allclose([float(x) for x in row[4:6]], true_uv, atol=0.01)
     assert main(["measure", str(ws.root), other, "--point", name, "--remove"]) == 0
     report, removed = check_point()
-    assert removed["images"] == good["images"] - 1 and report["manual_measurements"] == {"set": 1, "removed": 1}
+    assert removed["images"] == good["images"] - 1
+    assert report["manual_measurements"] == {"set": 1, "removed": 1, "skipped": 0}
     assert main(["measure", str(ws.root), image, "--point", name, "--reset"]) == 0
     assert main(["measure", str(ws.root), other, "--point", name, "--reset"]) == 0
     assert json.loads(ws.path(MANUAL_FILE).read_text())["observations"] == {}
     report, again = check_point()
     assert again["image_rms_px"] == pytest.approx(bad["image_rms_px"], rel=1e-6)
+    # entries of a point or an image the block does not have (imported again since) are skipped, and reported
+    ws.path(MANUAL_FILE).write_text(json.dumps({"format": "oblique-city-manual-measurements", "version": 1,
+                                                "observations": {"NOPE": {image: {"uv": [1.0, 2.0], "method": "click"}},
+                                                                 name: {"gone": None}}}))
+    report, _ = check_point()
+    assert report["manual_measurements"] == {"set": 0, "removed": 0, "skipped": 2}
+    assert "2 skipped: their points or images are not in the block" in ws.path("aerotri/report.html").read_text()
     ws.path(MANUAL_FILE).write_text(json.dumps({"format": "oblique-city-manual-measurements", "version": 1,
                                                 "observations": {name: {image: {"uv": [1.0], "method": "click"}}}}))
     capsys.readouterr()
