@@ -442,6 +442,8 @@ def test_manual_measurements_override_the_others_and_make_the_adjustment_stale(t
     assert main(["measure", str(ws.root), image]) == 0
     row = next(line.split() for line in capsys.readouterr().out.splitlines() if line.startswith(name + " "))
     assert row[-1] == "manual" and np.allclose([float(x) for x in row[4:6]], true_uv, atol=0.01)
+    assert main(["measure", str(ws.root), "no-such-image"]) == 2
+    assert "no image 'no-such-image' in the block" in capsys.readouterr().err
     assert main(["measure", str(ws.root), other, "--point", name, "--remove"]) == 0
     report, removed = check_point()
     assert removed["images"] == good["images"] - 1
