@@ -117,7 +117,6 @@ def pixel_from_blender(scene, cam_obj, xyz_world: np.ndarray) -> np.ndarray:
     return out
 
 
-
 def pixel_from_direction(scene, cam_obj, direction: np.ndarray) -> np.ndarray:
     """The pixel ``(2,)`` (core convention, lens distortion included) of the image ``cam_obj`` shows in the direction
     ``direction (3,)`` (scene axes, from the camera: what ``view3d_utils.region_2d_to_vector_3d`` gives for a click

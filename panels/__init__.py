@@ -6,8 +6,8 @@ stage that is not registered yet is listed as such. The stages of ``addon.proper
 their options, which read and write ``[stages.<stage>]`` of ``project.toml``. The Buildings panel lists the
 buildings (:class:`CITY_UL_buildings`); making one active selects its object. The Ground Point Measurement panel
 lists the ground points of the image the viewport looks through, to measure them by hand (:mod:`.overlay` draws them
-over the image). Panels only read cached
-summaries (re-read when the files they come from change), never the workspace on every redraw.
+over the image). Panels only read cached summaries (re-read when the files they come from change), never the
+workspace on every redraw.
 """
 
 from __future__ import annotations

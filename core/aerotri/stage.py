@@ -17,9 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError, WorkspaceError
-from ..io.validate import read_json
-from ..matching.manual import MANUAL_FILE, apply_manual, read_manual
-from ..matching.targets import TARGETS_FILE, apply_targets, target_summary
+from ..matching.manual import MANUAL_FILE, apply_measurements
+from ..matching.targets import target_summary
 from ..model import CameraModel, ImageBlock, TiePoints
 from ..pipeline.atomic import write_json, write_text
 from ..pipeline.stage import Stage, StageResult
@@ -178,11 +177,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                           "only the native block.json carries one (the simulator writes it beside block.xml): "
                           "import that, or turn aerotri.rig off")
     ties = _multi_ray(TiePoints.load(str(ties_path)), cfg.min_rays)
-    targets_path = ws.path(TARGETS_FILE)
-    targets = read_json(targets_path) if targets_path.exists() else None
-    if targets is not None:  # the ground points' image measurements as the match stage left them
-        apply_targets(block, targets, targets_path)
-    manual = apply_manual(block, read_manual(ws.path(MANUAL_FILE)))  # the operator's, last
+    # the ground points' image measurements: the match stage's over the imported ones, the operator's last
+    targets, manual, _ = apply_measurements(ws, block)
     for img in block.images.values():
         if img.sigma_position is None or img.sigma_attitude is None:
             img.sigma_position = np.full(3, cfg.default_sigma_position)

@@ -112,23 +112,27 @@ def apply_manual(block: ImageBlock, observations: dict[str, dict[str, dict | Non
     return n_set, n_removed, n_skipped
 
 
+def apply_measurements(ws, block: ImageBlock) -> tuple[dict | None, tuple[int, int, int], dict]:
+    """Give ``block``'s ground points the image measurements the ``aerotri`` stage adjusts with: the ``match``
+    stage's record (:data:`.targets.TARGETS_FILE`, over the imported ones), then the operator's (:data:`MANUAL_FILE`).
+    Returns the targets record (None without one), :func:`apply_manual`'s counts and the manual observations."""
+    targets_path = ws.path(TARGETS_FILE)
+    targets = read_json(targets_path) if targets_path.exists() else None
+    if targets is not None:
+        apply_targets(block, targets, targets_path)
+    manual = read_manual(ws.path(MANUAL_FILE))
+    return targets, apply_manual(block, manual), manual
+
+
 def _block_and_sources(ws) -> tuple[ImageBlock, dict[str, dict[str, str]], dict]:
-    """The imported block with the measurements the ``aerotri`` stage will take (import, targets, manual), where
+    """The imported block with the measurements the ``aerotri`` stage will take (:func:`apply_measurements`), where
     each comes from (point -> image -> source), and the manual observations."""
     block = ws.load_block(adjusted=False)
-    sources = {name: dict.fromkeys(gp.observations, "imported") for name, gp in block.ground_points.items()}
-    targets_path = ws.path(TARGETS_FILE)
-    if targets_path.exists():
-        targets = read_json(targets_path)
-        apply_targets(block, targets, targets_path)
-        if targets.get("mode") != "none":
-            for name, gp in block.ground_points.items():
-                measured = targets.get("points", {}).get(name, {}).get("measured", {})
-                sources[name] = {iid: "targets" if iid in measured else sources[name].get(iid, "imported")
-                                 for iid in gp.observations}
-    manual = read_manual(ws.path(MANUAL_FILE))
-    apply_manual(block, manual)
-    for name, per_image in manual.items():
+    targets, _, manual = apply_measurements(ws, block)
+    measured = {} if targets is None or targets.get("mode") == "none" else targets.get("points", {})
+    sources = {name: {iid: "targets" if iid in measured.get(name, {}).get("measured", {}) else "imported"
+                      for iid in gp.observations} for name, gp in block.ground_points.items()}
+    for name, per_image in manual.items():  # (over the others)
         if name in sources:
             sources[name].update({iid: "manual" if e is not None else "removed" for iid, e in per_image.items()})
     return block, sources, manual
