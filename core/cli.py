@@ -86,6 +86,7 @@ def cmd_new(args: argparse.Namespace) -> int:
 def cmd_import(args: argparse.Namespace) -> int:
     from .geometry.crs import normalize_crs
     from .io.formats import read_block
+    from .model.exposures import describe_system
     from .pipeline import Workspace
 
     block = read_block(args.format, args.source, **parse_options(args.option))
@@ -101,6 +102,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     views = ", ".join(f"{k} {v}" for k, v in s["views"].items())
     print(f"imported {s['images']} images ({views}), {s['cameras']} cameras, {s['control_points']} control and "
           f"{s['check_points']} check points into {ws.root} [{ws.crs}]")
+    system = describe_system(block)
+    if system:
+        print(system)
     return 0
 
 

@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 
 import bpy
-from bpy.props import EnumProperty, StringProperty
+from bpy.props import EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from ..addon import builders
@@ -21,6 +21,7 @@ from ..core.geometry.crs import normalize_crs, transform_points
 from ..core.io.formats import READERS, read_block
 from ..core.io.reproject import reproject_block
 from ..core.model import ImageBlock
+from ..core.model.exposures import describe_system
 from ..core.pipeline import Workspace
 
 FORMAT_LABELS = {
@@ -106,6 +107,19 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
                                       description="Ground point measurements in the images (optional)")
     image_folder: StringProperty(name="Image Folder", subtype="DIR_PATH",
                                  description="Folder relative image paths start from (optional)")
+    exposures: EnumProperty(
+        name="Exposures", description="Which images one trigger of a multi-head camera took (HAT and rig constraints "
+                                       "need them); a rig is then estimated from the orientations",
+        items=[("given", "As Given", "As the file gives them (OPK columns exposure and head; Oblique City blocks)"),
+               ("time", "By Time", "Images whose times (OPK column time) lie within the tolerance of each other"),
+               ("name", "By Name", "A regular expression over the image name; its first group (or the group "
+                                   "named exposure) names the exposure, a group named head the head")],
+        default="given",
+    )
+    exposure_pattern: StringProperty(name="Name Pattern", default=r"(?P<exposure>.+)_(?P<head>[^_]+)",
+                                     description="Regular expression matched against the whole image name")
+    exposure_tolerance: FloatProperty(name="Tolerance", default=0.01, min=0.0, unit="TIME_ABSOLUTE",
+                                      description="Largest time step between the images of one exposure, seconds")
     options: StringProperty(name="Options", description="More reader options: key=value; key=value")
     workspace: StringProperty(name="Workspace", subtype="DIR_PATH",
                               description="Workspace folder (created if needed); empty: the scene's workspace, "
@@ -120,6 +134,11 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
         layout.prop(self, "gcp_file")
         layout.prop(self, "measurements_file")
         layout.prop(self, "image_folder")
+        layout.prop(self, "exposures")
+        if self.exposures == "name":
+            layout.prop(self, "exposure_pattern")
+        elif self.exposures == "time":
+            layout.prop(self, "exposure_tolerance")
         layout.prop(self, "options")
         layout.prop(self, "workspace")
 
@@ -135,6 +154,10 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
             opts["measurements"] = bpy.path.abspath(self.measurements_file)
         if self.image_folder:
             opts["image_root"] = bpy.path.abspath(self.image_folder)
+        if self.exposures == "time":
+            opts.update(exposures="time", exposure_tolerance=self.exposure_tolerance)
+        elif self.exposures == "name":
+            opts.update(exposures="name", exposure_pattern=self.exposure_pattern)
         opts.update(parse_options(self.options))
         return opts
 
@@ -161,5 +184,7 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
             self.report({"ERROR"}, str(e).splitlines()[0])
             return {"CANCELLED"}
         s = block.summary()
-        self.report({"INFO"}, f"Imported {s['images']} images into {ws.root}: {'; '.join(messages)}")
+        system = describe_system(block)
+        self.report({"INFO"}, f"Imported {s['images']} images into {ws.root}: {'; '.join(messages)}"
+                    + (f"; {system}" if system else ""))
         return {"FINISHED"}

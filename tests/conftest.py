@@ -32,3 +32,41 @@ def utm_block(camera: CameraModel) -> ImageBlock:
                               sigma_position=np.array([0.05, 0.05, 0.1]),
                               sigma_attitude=np.radians([0.005, 0.005, 0.008])))
     return block
+
+
+@pytest.fixture(scope="session")
+def penta_block() -> ImageBlock:
+    """A penta camera flown over 600 m x 400 m in strips (image ids ``S01_E001_nadir`` ...), navigation
+    orientations through the nominal rig ``penta``, exposure times from the flight."""
+    from oblique_city.core.simulate.cameras import penta
+    from oblique_city.core.simulate.flight import FlightConfig, NavErrors, approximate_block, plan_flight, true_block
+
+    system = penta()
+    exposures = plan_flight(system, np.array([0.0, 0.0, 600.0, 400.0]), 0.0, FlightConfig(gsd=0.1))
+    truth = true_block(system, exposures, "EPSG:25832")
+    return approximate_block(truth, exposures, system.rig(), NavErrors(seed=5))
+
+
+@pytest.fixture
+def plain_opk():
+    """``plain_opk(block, dest, jitter_s=0.0)`` writes ``block`` as an OPK list without its exposure and head columns
+    (as most exchanged lists are: one orientation and a time per image), each time moved by up to ``jitter_s`` (the
+    heads' triggers are not exactly simultaneous); returns the path of the list."""
+    from oblique_city.core.io.formats import write_block
+
+    def write(block: ImageBlock, dest, jitter_s: float = 0.0):
+        write_block("opk", block, dest)
+        lines = dest.read_text().splitlines()
+        head = next(k for k, t in enumerate(lines) if not t.startswith("#"))
+        cols = lines[head].split()
+        keep = [k for k, c in enumerate(cols) if c not in ("exposure", "head")]
+        rng = np.random.default_rng(1)
+        out = lines[:head] + [" ".join(cols[k] for k in keep)]
+        for t in lines[head + 1:]:
+            f = t.split()
+            f[cols.index("time")] = repr(float(f[cols.index("time")]) + rng.uniform(-jitter_s, jitter_s))
+            out.append(" ".join(f[k] for k in keep))
+        dest.write_text("\n".join(out) + "\n")
+        return dest
+
+    return write

@@ -143,10 +143,15 @@ def cam_from_world_to_ypr(
     return yaw, pitch, roll
 
 
-def rotation_angle(r_a: np.ndarray, r_b: np.ndarray) -> float:
-    """Angle in radians of the relative rotation ``r_a @ r_b.T``."""
-    c = (np.trace(np.asarray(r_a) @ np.asarray(r_b).T) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+def rotation_angle(r_a: np.ndarray, r_b: np.ndarray) -> float | np.ndarray:
+    """Angle in radians of the relative rotation ``r_a @ r_b.T``: ``r_a``, ``r_b`` (3, 3) -> float, or stacks
+    ``(k, 3, 3)`` (either may be one rotation) -> ``(k,)``. From the sine and the cosine, so that it is exact near
+    zero, where the cosine alone loses half the digits."""
+    d = np.asarray(r_a, np.float64) @ np.swapaxes(np.asarray(r_b, np.float64), -1, -2)
+    sin = 0.5 * np.linalg.norm(np.stack([d[..., 2, 1] - d[..., 1, 2], d[..., 0, 2] - d[..., 2, 0],
+                                         d[..., 1, 0] - d[..., 0, 1]], -1), axis=-1)
+    angle = np.arctan2(sin, 0.5 * (np.trace(d, axis1=-2, axis2=-1) - 1.0))
+    return float(angle) if angle.ndim == 0 else angle
 
 
 def skew(v: np.ndarray) -> np.ndarray:

@@ -9,7 +9,13 @@
 * ``image_root=DIR`` folder that relative image paths start from; ``check_images=true`` checks that every image
   file exists and has its camera's size (default: true when ``image_root`` is given);
 * ``pose=approx`` (default: the imported orientation is a prior for aerial triangulation) or ``pose=adjusted``
-  (it is final: stored as adjusted, and as approximate too).
+  (it is final: stored as adjusted, and as approximate too);
+* ``exposures=given`` (default: as the format gives them), ``time`` (images whose times follow each other within
+  ``exposure_tolerance`` seconds, default 0.01) or ``name`` (``exposure_pattern``, a regular expression over the
+  whole image id whose group ``exposure``, else its first, names the exposure and whose group ``head`` names the
+  head), see :mod:`..model.exposures`;
+* ``rig=auto`` (default: a block with exposures of two or more heads and no rig gets one estimated from its
+  approximate orientations, :func:`..model.exposures.estimate_rig`) or ``rig=none``.
 
 Unknown options are an error, so a typo never passes silently.
 """
@@ -21,12 +27,13 @@ from typing import Any
 
 from ..errors import InputError
 from ..model import ImageBlock
+from ..model.exposures import EXPOSURE_MODES, assign_exposures, estimate_rig
 from .gcp import merge_ground_points, merge_measurements, read_ground_points, read_measurements
 from .validate import check_block, check_image_files, parse_bool, parse_float, reject_unknown
 
 COMMON_OPTIONS = ("gcps", "gcp_columns", "gcp_delimiter", "gcp_crs", "gcp_sigma", "gcp_kind", "measurements",
                   "measurement_columns", "measurement_delimiter", "measurement_origin", "sigma_px", "image_root",
-                  "check_images", "pose")
+                  "check_images", "pose", "exposures", "exposure_pattern", "exposure_tolerance", "rig")
 
 
 def finish_block(block: ImageBlock, source: str | Path, options: dict[str, Any], fmt: str,
@@ -63,7 +70,30 @@ def finish_block(block: ImageBlock, source: str | Path, options: dict[str, Any],
     meas_kw = {"columns": opts.pop("measurement_columns", None), "delimiter": opts.pop("measurement_delimiter", None),
                "origin": opts.pop("measurement_origin", "center")}
     sigma_px = opts.pop("sigma_px", None)
+    exposures = str(opts.pop("exposures", "given")).lower()
+    if exposures not in EXPOSURE_MODES:
+        raise InputError(f"exposures must be one of {', '.join(EXPOSURE_MODES)}, got '{exposures}'", path=source,
+                         field="exposures")
+    pattern = opts.pop("exposure_pattern", None)
+    tolerance = parse_float(opts.pop("exposure_tolerance", 0.01), source, None, "exposure_tolerance")
+    rig = str(opts.pop("rig", "auto")).lower()
+    if rig not in ("auto", "none"):
+        raise InputError(f"rig must be auto or none, got '{rig}'", path=source, field="rig")
     reject_unknown(opts, fmt)
+
+    if exposures != "given":
+        assign_exposures(block, exposures, None if pattern is None else str(pattern), tolerance, source, lines)
+    for img in block.images.values():
+        if img.exposure is not None and img.head is None:
+            img.head = img.camera_id  # each head of a camera system has its own calibration
+    if rig == "auto" and not block.rigs and len({img.head for img in block.images.values()
+                                                 if img.exposure is not None}) >= 2:
+        try:
+            est, _ = estimate_rig(block)
+        except InputError as e:
+            raise InputError(f"{e.reason} (rig=none imports the block without a rig)", path=source,
+                             field=e.field) from None
+        block.rigs[est.name] = est
 
     if gcps is not None:
         merge_ground_points(block, read_ground_points(str(gcps), **gcp_kw), str(gcps), crs=gcp_crs)

@@ -41,7 +41,7 @@ def block_to_dict(block: ImageBlock) -> dict[str, Any]:
                                               "lever_arm": h.lever_arm.tolist()} for h in r.heads]}
                  for r in block.rigs.values()],
         "images": [{"id": i.id, "camera_id": i.camera_id, "file": i.file, "head": i.head, "exposure": i.exposure,
-                    "pose_approx": _pose(i.pose_approx), "pose_adjusted": _pose(i.pose_adjusted),
+                    "time": i.time, "pose_approx": _pose(i.pose_approx), "pose_adjusted": _pose(i.pose_adjusted),
                     "sigma_position": _arr(i.sigma_position), "sigma_attitude": _arr(i.sigma_attitude)}
                    for i in block.images.values()],
         "ground_points": [{"name": g.name, "xyz": _arr(g.xyz), "sigma": _arr(g.sigma), "kind": g.kind,
@@ -89,6 +89,7 @@ def block_from_dict(d: dict[str, Any], path: str = "<dict>") -> ImageBlock:
             block.add_image(Image(
                 id=i["id"], camera_id=i["camera_id"], file=i.get("file"), head=i.get("head"),
                 exposure=i.get("exposure"),
+                time=None if i.get("time") is None else float(_finite(i["time"], where + ".time", path, ())),
                 pose_approx=_read_pose(i.get("pose_approx"), where + ".pose_approx", path),
                 pose_adjusted=_read_pose(i.get("pose_adjusted"), where + ".pose_adjusted", path),
                 sigma_position=None if i.get("sigma_position") is None else np.asarray(i["sigma_position"]),

@@ -1,10 +1,13 @@
 """Plain OPK lists: one image per row with its projection centre and omega-phi-kappa angles.
 
 Rows hold ``name X Y Z omega phi kappa`` (order set by the ``columns`` option or a header row) and optionally
-``sx sy sz`` (metres), ``somega sphi skappa`` (same unit as the angles), ``camera`` (camera id) and ``file``
-(image path, default: the name plus the ``image_ext`` option). Omega-phi-kappa follow the PATB/BINGO convention
-(``M = Rx(omega) Ry(phi) Rz(kappa)`` maps the image frame x right/y up/z back into the world, see
-``core.geometry.rotations``), in the unit given by the ``angles`` option (``deg``, ``gon`` or ``rad``).
+``sx sy sz`` (metres), ``somega sphi skappa`` (same unit as the angles), ``camera`` (camera id), ``file``
+(image path, default: the name plus the ``image_ext`` option), and for a multi-head camera system ``exposure``
+(the trigger's id, shared by its heads' images), ``head`` and ``time`` (seconds; with ``-o exposures=time`` the
+exposures are found from it, see :mod:`.common`); ``-`` or an empty field leaves one of these unknown.
+Omega-phi-kappa follow the PATB/BINGO convention (``M = Rx(omega) Ry(phi) Rz(kappa)`` maps the image frame x
+right/y up/z back into the world, see ``core.geometry.rotations``), in the unit given by the ``angles`` option
+(``deg``, ``gon`` or ``rad``).
 
 The intrinsics come from a camera file (``cameras`` option, see :mod:`.camerafile`). Lines starting with the
 comment character (``#``) are skipped, except directives the writer puts there and the reader honours when no
@@ -60,6 +63,11 @@ COLUMN_ALIASES = {
     "skappa": "skappa", "sigma_kappa": "skappa",
     "camera": "camera", "cam": "camera", "camera_id": "camera", "sensor": "camera",
     "file": "file", "path": "file", "image_path": "file", "filename": "file",
+    "exposure": "exposure", "exposure_id": "exposure", "event": "exposure", "shot": "exposure",
+    "trigger": "exposure",
+    "head": "head", "camera_head": "head",
+    "time": "time", "gps_time": "time", "gpstime": "time", "gnss_time": "time", "timestamp": "time",
+    "seconds": "time",
 }
 REQUIRED = ("name", "x", "y", "z", "omega", "phi", "kappa")
 DEFAULT_COLUMNS = "name,x,y,z,omega,phi,kappa"
@@ -100,6 +108,12 @@ def _is_header(fields: list[str], columns: list[str] | None) -> bool:
         except ValueError:
             return True
     return False
+
+
+def _optional(rec: dict[str, str], column: str) -> str | None:
+    """An optional column's value (None where the column is missing, ``-`` or empty)."""
+    v = rec.get(column, "").strip()
+    return None if v in ("", "-") else v
 
 
 def _sigmas(rec: dict[str, str], names: tuple[str, str, str], path: Path, line: int,
@@ -198,7 +212,10 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
             if sig is not None and np.any(sig < 0):
                 raise InputError("standard deviations must not be negative", path=path, line=line_no,
                                  field=names[int(np.argmin(sig))])
+        exposure, head, time = (_optional(rec, c) for c in ("exposure", "head", "time"))
         block.add_image(Image(id=name, camera_id=cam_id, file=rec.get("file") or name + image_ext,
+                              head=head, exposure=exposure,
+                              time=None if time is None else parse_float(time, path, line_no, "time"),
                               pose_approx=Pose(opk_to_cam_from_world(*angles), xyz),
                               sigma_position=sig_pos, sigma_attitude=sig_att))
     if not block.images:
@@ -236,6 +253,10 @@ def write_opk(block: ImageBlock, dest: str, angles: str = "deg", delimiter: str 
         cols += ["sx", "sy", "sz"]
     if with_att:
         cols += ["somega", "sphi", "skappa"]
+    system = [c for c, on in (("exposure", any(img.exposure is not None for img in images)),
+                              ("head", any(img.head is not None for img in images)),
+                              ("time", any(img.time is not None for img in images))) if on]
+    cols += system
     join = (lambda f: " ".join(f)) if sep is None else sep.join
     rel_cam = cam_path.name if cam_path.parent.resolve() == dest_path.parent.resolve() else str(cam_path)
     out = ["# Oblique City OPK list: omega-phi-kappa as PATB (M = Rx(omega) Ry(phi) Rz(kappa), image x right, "
@@ -244,10 +265,10 @@ def write_opk(block: ImageBlock, dest: str, angles: str = "deg", delimiter: str 
         out.append(f"# image_root: {block.image_root}")
     out.append(join(cols))
     for img in images:
-        text = img.id + (img.file or "") + img.camera_id
+        text = img.id + (img.file or "") + img.camera_id + (img.exposure or "") + (img.head or "")
         if any(ch.isspace() for ch in text) if sep is None else sep in text:
-            raise InputError(f"image '{img.id}': its name, file or camera contains the delimiter; choose another "
-                             "delimiter", path=dest, field="delimiter")
+            raise InputError(f"image '{img.id}': its name, file, camera, exposure or head contains the delimiter; "
+                             "choose another delimiter", path=dest, field="delimiter")
         o, p, k = cam_from_world_to_opk(img.pose.R)
         row = [img.id, *(_fmt(c) for c in img.pose.C), *(_fmt(from_radians(a, unit)) for a in (o, p, k)),
                img.camera_id, img.file or img.id]
@@ -257,5 +278,8 @@ def write_opk(block: ImageBlock, dest: str, angles: str = "deg", delimiter: str 
         if with_att:
             s = img.sigma_attitude
             row += ["-"] * 3 if s is None else [_fmt(from_radians(v, unit)) for v in s]
+        for c in system:
+            v = getattr(img, c)
+            row.append("-" if v is None else _fmt(v) if c == "time" else v)
         out.append(join(row))
     write_text(dest, "\n".join(out) + "\n")

@@ -64,6 +64,7 @@ class Image:
     file : image file path (relative to the block's ``image_root`` or absolute), or None
     head : name of the rig head that took it, if any
     exposure : id shared by the images of one rig exposure, if any
+    time : time of the exposure, seconds (GNSS time, any epoch), if known
     pose_approx : approximate exterior orientation (GNSS/IMU or imported), or None
     pose_adjusted : orientation after aerial triangulation, or None
     sigma_position : (3,) prior standard deviation of the centre, metres (X, Y, Z), or None
@@ -75,6 +76,7 @@ class Image:
     file: str | None = None
     head: str | None = None
     exposure: str | None = None
+    time: float | None = None
     pose_approx: Pose | None = None
     pose_adjusted: Pose | None = None
     sigma_position: np.ndarray | None = None
@@ -185,6 +187,7 @@ class ImageBlock:
             "views": dict(sorted(views.items())),
             "cameras": len(self.cameras),
             "rigs": len(self.rigs),
+            "exposures": len({img.exposure for img in self.images.values() if img.exposure is not None}),
             "control_points": kinds.get("control", 0),
             "check_points": kinds.get("check", 0),
             "adjusted": sum(img.pose_adjusted is not None for img in self.images.values()),

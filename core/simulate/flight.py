@@ -41,6 +41,8 @@ class FlightConfig:
     extend_along, extend_across : metres added beyond the area at both strip ends / both sides, so oblique heads
         also cover the area's border (about the flying height is needed for full oblique coverage)
     attitude_jitter_deg, position_jitter : true deviations of the aircraft from the plan (1 sigma)
+    ground_speed, turn_s, start_time : the exposures' times (seconds): the strips are flown at ``ground_speed``
+        (m/s) in plan order from ``start_time``, with ``turn_s`` from the end of one strip to the start of the next
     seed : seeds the jitter
     """
 
@@ -54,6 +56,9 @@ class FlightConfig:
     extend_across: float = 0.0
     attitude_jitter_deg: float = 0.5
     position_jitter: float = 1.0
+    ground_speed: float = 60.0
+    turn_s: float = 90.0
+    start_time: float = 36000.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -63,6 +68,9 @@ class FlightConfig:
                 raise ConfigError(f"{k} must be a fraction in [0, 0.95), got {v}")
         if self.gsd <= 0:
             raise ConfigError(f"gsd must be positive, got {self.gsd}")
+        if self.ground_speed <= 0 or self.turn_s < 0:
+            raise ConfigError(f"ground_speed must be positive and turn_s not negative, got {self.ground_speed} and "
+                              f"{self.turn_s}")
 
 
 @dataclass(frozen=True)
@@ -70,7 +78,7 @@ class Exposure:
     """One trigger of the camera system: true rig (body) pose.
 
     name : ``S<strip>_E<index>``; center : (3,) world position of the rig origin; yaw, pitch, roll : radians,
-    navigation convention of :mod:`..geometry.rotations` (yaw = heading clockwise from grid north)
+    navigation convention of :mod:`..geometry.rotations` (yaw = heading clockwise from grid north); time : seconds
     """
 
     name: str
@@ -80,6 +88,7 @@ class Exposure:
     yaw: float
     pitch: float
     roll: float
+    time: float = 0.0
 
     def world_from_body(self) -> np.ndarray:
         """(3, 3) rotation of body vectors (x forward, y right, z down) into the world (east, north, up)."""
@@ -118,6 +127,7 @@ def plan_flight(system: CameraSystem, area: np.ndarray, ground_z: float, config:
     out: list[Exposure] = []
     azimuths = [config.direction_deg] + ([config.direction_deg + 90.0] if config.cross_strips else [])
     strip_no = 0
+    clock = config.start_time
     for az_deg in azimuths:
         az = math.radians(az_deg)
         a = np.array([math.sin(az), math.cos(az)])   # along track
@@ -142,7 +152,8 @@ def plan_flight(system: CameraSystem, area: np.ndarray, ground_z: float, config:
                 att = np.radians(rng.normal(0, config.attitude_jitter_deg, 3))
                 out.append(Exposure(f"S{strip_no:02d}_E{ei + 1:03d}", strip_no, ei + 1, np.array([*xy, z]),
                                     float((yaw + att[0] + math.pi) % (2 * math.pi) - math.pi), float(att[1]),
-                                    float(att[2])))
+                                    float(att[2]), clock + ei * base / config.ground_speed))
+            clock = out[-1].time + config.turn_s
     return out
 
 
@@ -167,7 +178,7 @@ def true_block(system: CameraSystem, exposures: list[Exposure], crs: str, rig: R
         for head in rig.heads:
             iid = f"{ex.name}_{head.name}"
             block.add_image(Image(id=iid, camera_id=head.camera_id, file=f"images/{iid}{image_ext}", head=head.name,
-                                  exposure=ex.name, pose_approx=image_pose(ex, head)))
+                                  exposure=ex.name, time=ex.time, pose_approx=image_pose(ex, head)))
     return block
 
 
@@ -224,7 +235,8 @@ def approximate_block(truth: ImageBlock, exposures: list[Exposure], nominal_rig:
         ex = noisy[img.exposure] if img.exposure in by_name else None
         pose = image_pose(ex, nominal_rig.head(img.head)) if ex is not None else img.pose_approx
         block.add_image(Image(id=img.id, camera_id=img.camera_id, file=img.file, head=img.head, exposure=img.exposure,
-                              pose_approx=pose, sigma_position=sig_pos.copy(), sigma_attitude=sig_att.copy()))
+                              time=img.time, pose_approx=pose, sigma_position=sig_pos.copy(),
+                              sigma_attitude=sig_att.copy()))
     return block
 
 

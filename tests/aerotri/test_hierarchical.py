@@ -508,3 +508,25 @@ def test_gnss_strip_offsets_are_estimated_and_correct_the_orientations(sim, xyz0
     assert all(d["drift_m_per_km"] is not None for d in drift.gnss_strips().values())
     drift_z = np.array([np.array(d["drift_m_per_km"]) / d["drift_std_m_per_km"] for d in drift.gnss_strips().values()])
     assert 0.5 < offset_z(drift) < 1.4 and 0.5 < float(np.sqrt(np.mean(drift_z**2))) < 1.6
+
+
+def test_hat_on_a_plain_opk_list_with_exposures_found_by_time(tmp_path, sim, options, plain_opk):
+    """A penta block exchanged as a plain OPK list (no exposure or head column, times only): with the exposures found
+    by time HAT gives the native block's result; without them its oblique runs cannot start from the nadir
+    corrections propagated to their heads, and each needs a robust round."""
+    from oblique_city.core.io.formats import read_block
+
+    plain_opk(sim.block, tmp_path / "plain.txt")
+    native = hierarchical(sim.block, sim.ties, options, connection="cba")
+    for by, screened in (("time", True), ("given", False)):
+        block = read_block("opk", str(tmp_path / "plain.txt"), exposures=by)
+        assert list(block.images) == list(sim.block.images)
+        block.ground_points = sim.block.ground_points
+        hat = hierarchical(block, sim.ties, options, connection="cba")
+        logs = [r.result.log[0] for r in hat.runs[1:]]
+        if screened:
+            assert all("robust" not in t for t in logs)
+            assert max(np.linalg.norm(hat.poses[i].C - p.C) for i, p in native.poses.items()) < 1e-6
+            assert max(rotation_angle(hat.poses[i].R, p.R) for i, p in native.poses.items()) < 1e-9
+        else:
+            assert all(t.endswith("robust round") for t in logs)

@@ -206,3 +206,27 @@ def test_adjusted_orientations_only_while_current(addon, tmp_path, utm_block):
         assert np.abs(centre("img0") - moved.images["img0"].pose_approx.C).max() < 1e-3
     finally:
         unregister("aerotri")
+
+
+def test_exposures_field_restores_the_camera_system(addon, tmp_path, penta_block, plain_opk):
+    """A penta block's OPK list without exposure and head columns: the Exposures field (by name, by time) gives the
+    workspace's block its exposures and a rig estimated from the orientations; left as given, it has neither."""
+    bpy = addon
+    from oblique_city.core.pipeline import Workspace
+
+    plain_opk(penta_block, tmp_path / "eo.txt")
+    exposures = {img.id: img.exposure for img in penta_block.images.values()}
+    for k, fields in enumerate(({"exposures": "name", "exposure_pattern": r"(S\d+_E\d+)_(?P<head>[a-z]+)"},
+                                {"exposures": "time", "exposure_tolerance": 0.001}, {})):
+        ws = tmp_path / f"ws{k}"
+        assert bpy.ops.city.import_block(filepath=str(tmp_path / "eo.txt"), block_format="opk", workspace=str(ws),
+                                         **fields) == {"FINISHED"}
+        block = Workspace.open(ws).load_block()
+        if not fields:
+            assert not block.rigs and all(img.exposure is None for img in block.images.values())
+            continue
+        groups = {}
+        for img in block.images.values():
+            groups.setdefault(img.exposure, set()).add(exposures[img.id])
+        assert all(len(g) == 1 for g in groups.values()) and len(groups) == len(set(exposures.values()))
+        assert [h.name for h in block.rigs["system"].heads][0] in ("nadir", "penta_nadir")
