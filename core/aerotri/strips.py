@@ -5,11 +5,17 @@ an older differential solution) carries an offset that is constant along a strip
 often a drift along it. Classic AT programs (BINGO, Match-AT, inpho) estimate a shift, or a shift and a drift, per
 strip; :mod:`.bundle` does so with :attr:`.bundle.BundleOptions.gnss_strips`.
 
-The blocks the field exchanges seldom say which strip an exposure belongs to, nor its time, so the strips are found
-from the approximate orientations: exposures are grouped by heading (strips flown in opposite directions are apart),
-then by their position across track (gaps wider than half the base between exposures), then along track (gaps wider
-than :data:`ALONG_GAP` bases: one line flown in two passes). An exposure is an image's ``exposure`` (all heads of a
-camera system share one GNSS antenna), or the image itself. The heading is that of the top of the exposure's nadir
+With exposure times (every image has one, e.g. an OPK list's time column) the strips follow from them: the exposures
+in time order, a new strip after a step of more than :data:`TIME_GAP` median exposure intervals (a turn, or a line
+flown in two passes), named in flight order. The along-track position is the time from the strip's middle times the
+strip's ground speed (its path length over its duration), so a curved line (a corridor along a river or a road) is
+one strip, with positions along its path.
+
+Without times, the strips are found from the approximate orientations: exposures are grouped by heading (strips
+flown in opposite directions are apart), then by their position across track (gaps wider than half the base between
+exposures), then along track (gaps wider than :data:`ALONG_GAP` bases: one line flown in two passes), so a strip is a
+straight line. An exposure is an image's ``exposure`` (all heads of a camera system share one GNSS antenna), or the
+image itself. The heading is that of the top of the exposure's nadir
 image (its image ``-y`` axis), the flight direction for a camera mounted with the image top forward (the simulator's
 and most frame cameras; a camera mounted otherwise reverses the drift's sign, not the strips). The along-track
 position in that direction stands for the time (constant speed), measured from the strip's middle, in kilometres.
@@ -36,6 +42,11 @@ below the forward overlap)."""
 
 ALONG_GAP = 3.0
 """A gap along a line of more than this many bases starts a new strip (the line was flown in two passes)."""
+
+TIME_GAP = 5.0
+"""With exposure times: a step of more than this many median exposure intervals starts a new strip. A turn takes a
+minute or more against a few seconds between exposures; a pause in the triggering within a line splits it too, and
+each part gets its own offset (a little redundancy lost, no bias)."""
 
 
 @dataclass(frozen=True)
@@ -90,6 +101,11 @@ def flight_strips(block: ImageBlock) -> Strips:
     if not by_exposure:
         return Strips((), {}, {})
     keys = list(by_exposure)
+    times = [[block.images[i].time for i in by_exposure[key]] for key in keys]
+    if len(keys) > 1 and all(t is not None for ts in times for t in ts):
+        return _strips_by_time(keys, by_exposure, np.array([np.mean(ts) for ts in times]),
+                               np.array([np.mean([block.images[i].pose_approx.C for i in by_exposure[key]], axis=0)
+                                         for key in keys]))
     centre = np.zeros((len(keys), 3))
     heading = np.zeros(len(keys))
     for e, key in enumerate(keys):
@@ -127,6 +143,29 @@ def flight_strips(block: ImageBlock) -> Strips:
                 image_strip[iid] = s
                 image_along[iid] = float((u - mid) / 1000.0)
     return Strips(tuple(f"L{s + 1:02d}" for s in range(len(lines))), image_strip, image_along)
+
+
+def _strips_by_time(keys: list[str], by_exposure: dict[str, list[str]], time: np.ndarray, centre: np.ndarray
+                    ) -> Strips:
+    """The strips of exposures ``keys`` (their images ``by_exposure``) from their times ``(e,)`` (seconds) and centres
+    ``(e, 3)``, see the module docstring."""
+    order = np.argsort(time, kind="stable")
+    step = np.diff(time[order])
+    interval = float(np.median(step[step > 0])) if np.any(step > 0) else 1.0
+    label = np.cumsum(np.r_[0, step > TIME_GAP * interval])
+    image_strip: dict[str, int] = {}
+    image_along: dict[str, float] = {}
+    for s in range(int(label[-1]) + 1):
+        part = order[label == s]
+        t = time[part]
+        duration = float(t[-1] - t[0])
+        path = float(np.sum(np.linalg.norm(np.diff(centre[part, :2], axis=0), axis=1)))
+        along = (t - 0.5 * (t[0] + t[-1])) * (path / duration if duration > 0 else 0.0) / 1000.0
+        for e, u in zip(part, along):
+            for iid in by_exposure[keys[e]]:
+                image_strip[iid] = s
+                image_along[iid] = float(u)
+    return Strips(tuple(f"L{s + 1:02d}" for s in range(int(label[-1]) + 1)), image_strip, image_along)
 
 
 def offsets_at(values: np.ndarray, strip: np.ndarray, along: np.ndarray) -> np.ndarray:

@@ -424,7 +424,9 @@ def simulate_block(cfg: SimulationConfig = SimulationConfig(), city: City | None
 def plant_strip_errors(block: ImageBlock, strip_sigma: float, drift_sigma: float, seed: int) -> dict[str, np.ndarray]:
     """Add to the GNSS centres of a simulated block an error per flight strip: an offset (3-D, normal with
     ``strip_sigma`` metres) plus a drift (normal with ``drift_sigma`` metres per km) times the exposure's along-track
-    position from the strip's middle (km, in the flight direction). Strips and their order are the flight plan's
+    position from the strip's middle (km, in the flight direction: the time from the middle at the strip's mean speed
+    along the line from its first to its last exposure where the images have times, as a GNSS drift grows with time,
+    else the position projected on that line). Strips and their order are the flight plan's
     (:func:`.flight.plan_flight` names the exposures ``S<strip>_E<number>``, numbered in flight order). Returns image
     id -> its error ``(3,)`` (zeros for both sigmas 0, the block untouched)."""
     rng = np.random.default_rng([seed, 303])
@@ -443,8 +445,14 @@ def plant_strip_errors(block: ImageBlock, strip_sigma: float, drift_sigma: float
         xy = np.array([np.mean([block.images[i].pose_approx.C[:2] for i in by_strip[strip][e]], axis=0)
                        for e in exposures])
         direction = xy[-1] - xy[0]
-        u = xy @ (direction / max(float(np.linalg.norm(direction)), 1e-9)) / 1000.0
-        u -= 0.5 * (u.min() + u.max())
+        length = max(float(np.linalg.norm(direction)), 1e-9)
+        times = [[block.images[i].time for i in by_strip[strip][e]] for e in exposures]
+        if len(exposures) > 1 and all(t is not None for ts in times for t in ts):
+            t = np.array([np.mean(ts) for ts in times])
+            u = (t - 0.5 * (t[0] + t[-1])) * length / max(float(t[-1] - t[0]), 1e-9) / 1000.0
+        else:
+            u = xy @ (direction / length) / 1000.0
+            u -= 0.5 * (u.min() + u.max())
         for e, uk in zip(exposures, u):
             for iid in by_strip[strip][e]:
                 out[iid] = shift + uk * drift

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import copy
+import math
 
 import numpy as np
+import pytest
 
 from oblique_city.core.aerotri.strips import flight_strips, strip_offsets
-from oblique_city.core.model import Pose
+from oblique_city.core.model import Image, ImageBlock, Pose
+from oblique_city.core.simulate.flight import Exposure, image_pose
 
 
 def _plan(block) -> dict[str, str]:
@@ -39,11 +42,16 @@ def test_strips_are_the_flight_plans_and_along_track_positions_are_centred(sim):
         assert abs((last - first) - np.linalg.norm(ends[1] - ends[0]) / 1000.0) < 0.005
 
 
-def test_a_line_flown_in_two_passes_and_a_cross_strip_are_strips_of_their_own(sim):
-    """Dropping the middle exposures of one strip (a gap of 6 bases) splits it into two strips; turning another
-    strip by 90 degrees about its middle (a cross strip) puts it in a heading group of its own. Strip offsets map
-    back to every image of a strip with its drift times its along-track position."""
+@pytest.mark.parametrize("times", [True, False])
+def test_a_line_flown_in_two_passes_and_a_cross_strip_are_strips_of_their_own(sim, times):
+    """Dropping the middle exposures of one strip (a gap of 6 bases, and of 6 exposure intervals) splits it into two
+    strips; turning another strip by 90 degrees about its middle (a cross strip) keeps it one strip (by time; by
+    geometry it is in a heading group of its own). Strip offsets map back to every image of a strip with its drift
+    times its along-track position. With the exposures' times and without (straight-line geometry)."""
     block = copy.deepcopy(sim.block)
+    if not times:
+        for img in block.images.values():
+            img.time = None
     plan = _plan(block)
     for iid in [i for i in block.images if plan[i] == "S02" and 6 <= int(block.images[i].exposure[-3:]) <= 11]:
         del block.images[iid]
@@ -101,3 +109,35 @@ def test_planted_strip_errors_are_an_offset_and_a_drift_per_strip(sim):
         assert all(np.ptp(np.array(v), axis=0).max() == 0 for v in by_exposure.values())
     assert 0.05 < np.std(offsets) < 0.6
     assert plant_strip_errors(copy.deepcopy(sim.block), 0.0, 0.0, seed=5)[members[0]].tolist() == [0.0, 0.0, 0.0]
+
+
+def test_a_curved_line_is_one_strip_by_time_with_positions_along_its_path(penta_block):
+    """A corridor flown along a quarter circle of 1.5 km radius and back, 90 s of turn between: by the exposures'
+    times it is two strips of all their exposures, in flight order, and the along-track positions follow the arc (each
+    step the 60 m between exposures within 0.1 %, centred); without times the straight-line geometry cuts the arc into
+    pieces."""
+    rig = penta_block.rigs["penta"]
+    radius, base, speed = 1500.0, 60.0, 60.0
+    steps = int(radius * math.pi / 2 / base)
+    block = ImageBlock(crs=penta_block.crs, cameras=penta_block.cameras)
+    t = 0.0
+    for p, angles in enumerate((np.arange(steps + 1) * base / radius, (np.arange(steps + 1) * base / radius)[::-1])):
+        for k, a in enumerate(angles):
+            yaw = -a if p == 0 else math.pi - a  # the tangent, counter-clockwise then back
+            ex = Exposure(f"P{p}_E{k:03d}", p, k, np.array([radius * math.cos(a), radius * math.sin(a), 800.0]),
+                          yaw, 0.0, 0.0, t)
+            for h in rig.heads:
+                block.add_image(Image(f"{ex.name}_{h.name}", h.camera_id, head=h.name, exposure=ex.name, time=t,
+                                      pose_approx=image_pose(ex, h)))
+            t += base / speed
+        t += 90.0
+    strips = flight_strips(block)
+    assert len(strips.names) == 2
+    for s in range(2):
+        members = strips.members(s)
+        assert {m.split("_")[0] for m in members} == {f"P{s}"} and len(members) == 5 * (steps + 1)
+        along = np.array([strips.image_along_km[f"P{s}_E{k:03d}_nadir"] for k in range(steps + 1)]) * 1000.0
+        assert np.allclose(np.diff(along), base, rtol=1e-3) and abs(along[0] + along[-1]) < 1e-6
+    for img in block.images.values():
+        img.time = None
+    assert len(flight_strips(block).names) > 4
