@@ -216,7 +216,9 @@ def report_summary(path: Path) -> dict:
     largest normalised offset, None when none), and the control point axis with the largest error its test can miss
     (``weakest_control``: ``(point, axis, metres)``, None without one; see :func:`.core.aerotri.report.reliability`),
     and how far a GNSS position and an IMU attitude error its test can miss moves an image at most
-    (``prior_effect``: ``(metres, degrees)``, either None where no such prior was tested).
+    (``prior_effect``: ``(metres, degrees)``, either None where no such prior was tested), and the oblique images
+    HAT could not start from the nadir run's corrections (``oblique_without_nadir``: no nadir image in their
+    exposure; 0 in reports written before it existed).
     Raises :class:`InputError` naming the file."""
     doc = read_json(path, "no triangulation report (run the 'aerotri' stage)")
     try:
@@ -250,6 +252,7 @@ def report_summary(path: Path) -> dict:
                 "weakest_control": (str(weak["name"]), str(weak["axis"]), float(weak["mdb_m"])) if weak else None,
                 "prior_effect": (effect["position_m"], effect["attitude_deg"])
                 if effect["position_m"] is not None or effect["attitude_deg"] is not None else None,
+                "oblique_without_nadir": int(doc.get("oblique_without_nadir") or 0),
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),
                 "check_n": int(check["n"]), "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],

@@ -258,6 +258,9 @@ def draw_triangulation(layout, context) -> None:
     col.label(text=f"Check points ({s['check_n']}): RMS XY {_metres(s['check_rms_xy_m'])}, "
                    f"Z {_metres(s['check_rms_z_m'])}")
     col.label(text=f"Rejected observations: {s['blunder_percent']:.2f} %")
+    if s["oblique_without_nadir"]:
+        col.label(text=f"{s['oblique_without_nadir']} oblique images without a nadir image in their exposure: "
+                       "import the exposures", icon="ERROR")
     if s["mounting"]:
         n, cam, angle = s["mounting"]
         col.label(text=f"Mounting calibrated for {n} cameras, largest boresight {angle:.4f} deg ({cam})")

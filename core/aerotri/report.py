@@ -774,6 +774,11 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
              f"<p>{report['images']} images; sigma0 {report['sigma0']:.3f} "
              f"({report['sigma0_px']:.3f} px); wall time {report['wall_s']:.1f} s; "
              f"rejected {report['blunder_percent']:.2f} % of the observations.</p>"]
+    if report.get("oblique_without_nadir"):
+        parts.append(f"<p>{report['oblique_without_nadir']} oblique images have no nadir image in their exposure: "
+                     "their runs started from the navigation data, not from the nadir run's corrections, and needed "
+                     "a robust round. Import the block with its exposures (OPK columns exposure and head, or "
+                     "<code>-o exposures=time</code> or <code>-o exposures=name</code>).</p>")
     keys = ["images", "points", "observations", "connection_points", "sigma0", "sigma0_px", "iterations", "rounds",
             "blunder_percent", "rms_image_px", "rms_control_m", "rms_prior_position_m", "rms_prior_attitude_deg",
             "datum_shift_m", "median_std_attitude_deg", "median_std_position_m", "std_kind", "point_std_xy_m",

@@ -173,9 +173,9 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
         raise WorkspaceError(f"{ties_path}: no tie points (run the 'match' stage first)")
     if cfg.rig and not (block.rigs and any(img.exposure is not None for img in block.images.values())):
         raise ConfigError(f"aerotri.rig is on, but the block in {ws.path('block', 'block.json')} has no rig "
-                          "(heads with boresight and lever arm, images grouped by exposure); of the import formats "
-                          "only the native block.json carries one (the simulator writes it beside block.xml): "
-                          "import that, or turn aerotri.rig off")
+                          "(heads with boresight and lever arm, images grouped by exposure): import the block with "
+                          "its exposures (OPK columns exposure and head, or -o exposures=time or -o exposures=name; "
+                          "a rig is then estimated from the orientations), or turn aerotri.rig off")
     ties = _multi_ray(TiePoints.load(str(ties_path)), cfg.min_rays)
     # the ground points' image measurements: the match stage's over the imported ones, the operator's last
     targets, manual, _ = apply_measurements(ws, block)
@@ -184,6 +184,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
             img.sigma_position = np.full(3, cfg.default_sigma_position)
             img.sigma_attitude = np.full(3, np.radians(cfg.default_sigma_attitude_deg))
     opt = cfg.bundle_options()
+    unpaired = oblique_without_nadir(block) if cfg.mode == "hierarchical" else 0
     ctx.progress(0, 1, "forward intersection")
     if cfg.mode == "integrated":
         at = integrated(block, ties, opt, progress=ctx.progress)
@@ -209,6 +210,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     report["target_measurements"] = (target_summary(targets) if targets is not None and targets.get("mode") != "none"
                                      else None)
     report["manual_measurements"] = {"set": manual[0], "removed": manual[1], "skipped": manual[2]}
+    report["oblique_without_nadir"] = unpaired
     layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size, cfg.layer_views)
     files = write_layers(layers, out / "layers")
     write_json(out / "report.json", report)
@@ -231,7 +233,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "thinned_observations": report["thinned_observations"],
                  "systematic_residual_px": worst[1] if worst else None, "priors_rejected": priors_off,
                  "gnss_strips": len(strips), "gnss_strip_offset_max_m": largest,
-                 "gnss_strips_suspected": len(suspect), "control_mdb_max_m": weak["mdb_m"] if weak else None},
+                 "gnss_strips_suspected": len(suspect), "control_mdb_max_m": weak["mdb_m"] if weak else None,
+                 "oblique_without_nadir": unpaired},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
                 + (f", largest systematic image residual {worst[1]:.3f} px ({worst[0]})" if worst else "")
@@ -241,7 +244,19 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                    f"{float(np.linalg.norm(suspect[strip]['mean_m'])):.3f} m, {max(suspect[strip]['w']):.1f} sigma): "
                    "estimate it with aerotri.gnss_strips = shift" if suspect else "")
                 + (f", weakest control point {weak['name']} (errors below {weak['mdb_m']:.3f} m in {weak['axis']} can "
-                   "pass its test)" if weak else ""))
+                   "pass its test)" if weak else "")
+                + (f"; {unpaired} oblique images have no nadir image in their exposure, so their runs started from "
+                   "the navigation data, not the nadir run's corrections (import the exposures: -o exposures=time "
+                   "or -o exposures=name)" if unpaired else ""))
+
+
+def oblique_without_nadir(block: ImageBlock) -> int:
+    """The oriented oblique images without an oriented nadir image in their exposure (none given counts): HAT
+    cannot propagate the nadir run's correction to them (:func:`.hierarchical.nadir_propagation`)."""
+    nadir = {img.exposure for img in block.images.values()
+             if img.exposure is not None and img.pose_approx is not None and img.view == "nadir"}
+    return sum(1 for img in block.images.values()
+               if img.pose_approx is not None and img.view != "nadir" and img.exposure not in nadir)
 
 
 def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:

@@ -137,6 +137,29 @@ def test_rig_constraint_on_a_block_without_rig_is_refused(tmp_path):
         STAGE.run(ws, AerotriConfig(rig=True), RunContext())
 
 
+def test_hat_without_exposures_says_which_images_it_could_not_start_from_the_nadir_run(tmp_path):
+    """A block imported without its exposures: HAT still runs, and the stage's message and metric count the oblique
+    images that started from the navigation data (none with the exposures)."""
+    from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
+    from oblique_city.core.pipeline import RunContext
+
+    s, ws = _simulated_workspace(tmp_path)
+    cfg = AerotriConfig(mode="hierarchical", sigma_px=0.3)
+    assert STAGE.run(ws, cfg, RunContext()).metrics["oblique_without_nadir"] == 0
+    block = ws.load_block()
+    for img in block.images.values():
+        img.exposure = None
+    block.rigs.clear()
+    ws.save_block(block)
+    res = STAGE.run(ws, cfg, RunContext())
+    oblique = sum(img.view != "nadir" for img in block.images.values())
+    assert oblique > 0 and res.metrics["oblique_without_nadir"] == oblique
+    sentence = f"{oblique} oblique images have no nadir image in their exposure"
+    assert sentence in res.message
+    assert json.loads(ws.path("aerotri/report.json").read_text())["oblique_without_nadir"] == oblique
+    assert sentence in ws.path("aerotri/report.html").read_text()
+
+
 def test_linear_solver_option_reaches_the_adjustment_and_is_checked():
     """``aerotri.linear_solver`` forces how Ceres solves the reduced camera system; an unknown name is refused with
     the option's name before anything runs."""

@@ -58,7 +58,8 @@ def ws(tmp_path, utm_block):
               "gnss_strip_check": {"L01": {"mean_m": [0.0, 0.0, 0.12], "w": [0.1, 0.2, 5.0], "flagged": True},
                                    "L02": {"mean_m": [0.3, 0.0, 0.4], "w": [2.0, 0.1, 4.2], "flagged": False},
                                    "L03": {"mean_m": [0.0, 0.0, -0.2], "w": [0.0, 0.3, 8.0], "flagged": True}},
-              "weakest_control": {"name": "G2", "run": "nadir", "axis": "Z", "mdb_m": 0.1364}}
+              "weakest_control": {"name": "G2", "run": "nadir", "axis": "Z", "mdb_m": 0.1364},
+              "oblique_without_nadir": 40}
     (w.stage_dir("aerotri") / "report.json").write_text(json.dumps(report))
     (w.stage_dir("aerotri") / "report.html").write_text("<html><body>report</body></html>")
     w.write_state({"aerotri": {"status": "done"}})
@@ -201,6 +202,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Sigma0: 0.987 (0.296 px)" in labels
     assert "Check points (4): RMS XY 0.031 m, Z 0.046 m" in labels
     assert "Rejected observations: 1.25 %" in labels
+    assert "40 oblique images without a nadir image in their exposure: import the exposures" in labels
     assert "Mounting calibrated for 2 cameras, largest boresight 0.0500 deg (left)" in labels
     assert "Largest systematic image residual: 0.084 px (left)" in labels
     assert "Rejected control: 1 points (G1), 2 measurements" in labels
