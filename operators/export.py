@@ -94,7 +94,8 @@ class CITY_OT_export_city_model(bpy.types.Operator, ExportHelper):
         return {"FINISHED"}
 
 
-BLOCK_EXTENSIONS = {"bex": ".xml", "metashape": ".xml", "opk": ".txt", "native": ".json", "colmap": ""}
+BLOCK_EXTENSIONS = {"bex": ".xml", "metashape": ".xml", "opk": ".txt", "native": ".json", "colmap": "",
+                    "gnssimu": ".txt"}
 """Block format -> file extension (COLMAP writes a folder)."""
 
 _block_items: list[tuple[str, str, str]] = []

@@ -30,6 +30,8 @@ FORMAT_LABELS = {
     "bex": ("BlocksExchange XML", "ContextCapture / iTwin Capture BlocksExchange"),
     "colmap": ("COLMAP Model", "COLMAP text or binary model folder (cameras, images, points3D)"),
     "metashape": ("Metashape Camera XML", "Agisoft Metashape cameras exported as Agisoft XML"),
+    "gnssimu": ("GNSS/IMU Events", "Per exposure: position, roll, pitch, heading; a camera file with the heads' "
+                                   "mounts and lever arms"),
 }
 FOLDER_FORMATS = {"colmap"}
 """Formats whose source is a folder: picking a file inside it imports the folder."""
@@ -94,13 +96,21 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
     filter_glob: StringProperty(default="*.json;*.xml;*.txt;*.csv;*.opk;*.dat;*.bin", options={"HIDDEN"})
     block_format: EnumProperty(name="Format", items=format_items)
     angle_unit: EnumProperty(
-        name="Angles", description="Unit of omega, phi, kappa (OPK lists)",
+        name="Angles", description="Unit of omega, phi, kappa (OPK lists) or roll, pitch, heading (GNSS/IMU events)",
         items=[("file", "From File", "Use the file's header or camera file (default degrees)"),
                ("deg", "Degrees", ""), ("gon", "Gon", ""), ("rad", "Radians", "")],
         default="file",
     )
+    heading: EnumProperty(
+        name="Heading", description="What the GNSS/IMU events' headings are measured from",
+        items=[("file", "From File", "The list's '# heading:' line, else true north"),
+               ("true", "True North", "As an inertial system gives it: the grid convergence is applied"),
+               ("grid", "Grid North", "Already against the map grid's north")],
+        default="file",
+    )
     camera_file: StringProperty(name="Camera File", subtype="FILE_PATH",
-                                description="Intrinsics (TOML or JSON) for OPK lists; empty: beside the list")
+                                description="Intrinsics (TOML or JSON) for OPK lists, with the heads for GNSS/IMU "
+                                            "events; empty: beside the list")
     gcp_file: StringProperty(name="Ground Points", subtype="FILE_PATH",
                              description="Ground control / check point list (optional)")
     measurements_file: StringProperty(name="Image Measurements", subtype="FILE_PATH",
@@ -128,8 +138,10 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
     def draw(self, context):
         layout = self.layout
         layout.prop(self, "block_format")
-        if self.block_format == "opk":
+        if self.block_format in ("opk", "gnssimu"):
             layout.prop(self, "angle_unit")
+        if self.block_format == "gnssimu":
+            layout.prop(self, "heading")
             layout.prop(self, "camera_file")
         layout.prop(self, "gcp_file")
         layout.prop(self, "measurements_file")
@@ -146,6 +158,8 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
         opts: dict[str, object] = {}
         if self.angle_unit != "file":
             opts["angles"] = self.angle_unit
+        if self.block_format == "gnssimu" and self.heading != "file":
+            opts["heading"] = self.heading
         if self.camera_file:
             opts["cameras"] = bpy.path.abspath(self.camera_file)
         if self.gcp_file:

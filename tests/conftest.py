@@ -36,13 +36,15 @@ def utm_block(camera: CameraModel) -> ImageBlock:
 
 @pytest.fixture(scope="session")
 def penta_block() -> ImageBlock:
-    """A penta camera flown over 600 m x 400 m in strips (image ids ``S01_E001_nadir`` ...), navigation
-    orientations through the nominal rig ``penta``, exposure times from the flight."""
+    """A penta camera flown over 600 m x 400 m in strips (image ids ``S01_E001_nadir`` ...) in UTM 32N 200 km east
+    of its central meridian (a grid convergence of 2 degrees), navigation orientations through the nominal rig
+    ``penta``, exposure times from the flight."""
     from oblique_city.core.simulate.cameras import penta
     from oblique_city.core.simulate.flight import FlightConfig, NavErrors, approximate_block, plan_flight, true_block
 
     system = penta()
-    exposures = plan_flight(system, np.array([0.0, 0.0, 600.0, 400.0]), 0.0, FlightConfig(gsd=0.1))
+    exposures = plan_flight(system, np.array([700000.0, 5400000.0, 700600.0, 5400400.0]), 300.0,
+                            FlightConfig(gsd=0.1))
     truth = true_block(system, exposures, "EPSG:25832")
     return approximate_block(truth, exposures, system.rig(), NavErrors(seed=5))
 

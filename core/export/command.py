@@ -1,6 +1,6 @@
 """``oblique-city export WS --format obj|citygml|cityjson|3dtiles|geojson --out PATH``: the buildings of a workspace
 to a file (a folder for 3D Tiles; footprints with attributes for GeoJSON);
-``oblique-city export-block WS --format bex|metashape|opk|colmap|native --out PATH``: its oriented image block
+``oblique-city export-block WS --format bex|metashape|opk|colmap|native|gnssimu --out PATH``: its oriented image block
 (the aerial triangulation's adjusted orientations and cameras when it has run, else the imported ones), for other
 photogrammetry software.
 

@@ -113,6 +113,12 @@ def cam_from_world_to_opk(r_cam_from_world: np.ndarray) -> tuple[float, float, f
     return world_from_photo_to_opk(m)
 
 
+def world_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """(3, 3) rotation of body vectors (x forward, y right, z down) into the world (east, north, up) for navigation
+    angles in radians (``yaw`` the heading against grid north)."""
+    return ENU_FROM_NED @ rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
 def ypr_to_cam_from_world(
     yaw: float,
     pitch: float,
@@ -120,9 +126,7 @@ def ypr_to_cam_from_world(
     cam_from_body: np.ndarray = CAM_FROM_BODY_NADIR,
 ) -> np.ndarray:
     """OpenCV ``cam_from_world`` from navigation yaw, pitch, roll (radians) and the camera mount, (3, 3)."""
-    ned_from_body = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
-    world_from_body = ENU_FROM_NED @ ned_from_body
-    return np.asarray(cam_from_body) @ world_from_body.T
+    return np.asarray(cam_from_body) @ world_from_body(yaw, pitch, roll).T
 
 
 def cam_from_world_to_ypr(
@@ -141,6 +145,19 @@ def cam_from_world_to_ypr(
         roll = 0.0
         yaw = float(np.arctan2(-n[0, 1], n[1, 1]))
     return yaw, pitch, roll
+
+
+def mount_rotation(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
+    """``cam_from_body`` (3, 3) of a camera tilted ``tilt_deg`` from the body's down axis (z) towards azimuth
+    ``azimuth_deg`` (clockwise from the body's forward axis x, towards its right axis y), its image's top turned
+    away from that azimuth (a forward-looking camera's image top points up, a nadir camera's forward)."""
+    t, a = np.radians(tilt_deg), np.radians(azimuth_deg)
+    x, y, z = np.eye(3)
+    h = np.cos(a) * x + np.sin(a) * y
+    z_cam = np.cos(t) * z + np.sin(t) * h
+    y_cam = np.sin(t) * z - np.cos(t) * h
+    x_cam = np.cross(y_cam, z_cam)
+    return np.stack([x_cam, y_cam, z_cam])
 
 
 def rotation_angle(r_a: np.ndarray, r_b: np.ndarray) -> float | np.ndarray:

@@ -27,6 +27,15 @@ keys)::
     [assign]                    # optional: image name pattern (fnmatch) -> camera id, first match wins
     "*_N_*" = "north"
 
+    [heads.nadir]               # optional: the heads of a multi-head camera system, the first the reference
+    camera = "nadir"            # (the GNSS/IMU event lists of :mod:`.trajectory` need them); its camera id
+    tilt_deg = 0.0              # the nominal mount: tilted from the body's down axis towards ...
+    azimuth_deg = 0.0           # ... this azimuth, clockwise from the body's forward axis
+    # cam_from_body = [[0, 1, 0], [-1, 0, 0], [0, 0, 1]]   # or the mount as a rotation matrix (rows: the camera's
+    #                           # x right, y down, z forward axes in the body frame: x forward, y right, z down)
+    boresight_deg = [0.0, 0.0, 0.0]   # optional: a small rotation about the camera's x, y, z axes after the mount
+    lever_arm_m = [0.0, 0.0, 0.0]     # the projection centre in the body frame (forward, right, down), metres
+
 A single camera may be written as ``[camera]`` (id from its ``id`` key, default ``camera``). Images are given
 a camera by the OPK file's ``camera`` column, else by the first matching ``[assign]`` pattern, else by the only
 camera of the file.
@@ -42,10 +51,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..errors import InputError
-from ..model import CameraModel
+from ..geometry.rotations import mount_rotation, rotvec_to_matrix
+from ..model import CameraModel, RigHead
 from ..pipeline.atomic import write_text
 from .validate import angle_unit, check_crs
+
+HEAD_KEYS = {"camera", "tilt_deg", "azimuth_deg", "cam_from_body", "boresight_deg", "lever_arm_m"}
 
 CAMERA_KEYS = {"id", "name", "width", "height", "focal_px", "fx", "fy_px", "fy", "focal_mm", "pixel_size_mm",
                "pixel_size_um", "cx_px", "cy_px", "cx", "cy", "ppx_mm", "ppy_mm", "pixel_origin", "k1", "k2", "k3",
@@ -61,6 +75,7 @@ class CameraFile:
     assign: list[tuple[str, str]] = field(default_factory=list)
     crs: str | None = None
     angles: str | None = None
+    heads: list[RigHead] = field(default_factory=list)
 
     def camera_for(self, image_name: str, source: str, line: int | None) -> str:
         """Camera id of an image without a camera column."""
@@ -182,6 +197,54 @@ def _camera(cam_id: str, d: dict[str, Any], path: Path, lines: list[str]) -> Cam
                        pixel_size_mm=pixel_mm, name=str(d.get("name", "")), **dist)
 
 
+def _head(name: str, d: Any, cams: dict[str, CameraModel], path: Path, lines: list[str]) -> RigHead:
+    """One ``[heads.<name>]`` table (see the module docstring)."""
+    fld = f"heads.{name}"
+
+    def line_of(key: str) -> int | None:
+        start = next((i for i, t in enumerate(lines) if re.match(rf"^\[\s*heads\.\"?{re.escape(name)}\"?\s*\]",
+                                                                   t.strip())), None)
+        if start is None:
+            return None
+        return next((i + 1 for i in range(start, len(lines)) if re.match(rf"^{key}\s*=", lines[i].strip())),
+                    start + 1)
+
+    def numbers(key: str, shape: tuple[int, ...], default: Any = None) -> np.ndarray | None:
+        if key not in d:
+            return None if default is None else np.asarray(default, np.float64)
+        try:
+            a = np.asarray(d[key], np.float64)
+        except (TypeError, ValueError):
+            a = None
+        if a is None or a.shape != shape or not np.all(np.isfinite(a)):
+            raise InputError(f"{key} must be {' x '.join(map(str, shape))} finite numbers", path=path,
+                             line=line_of(key), field=f"{fld}.{key}")
+        return a
+
+    if not isinstance(d, dict):
+        raise InputError(f"head '{name}' must be a table", path=path, field=fld)
+    unknown = sorted(set(d) - HEAD_KEYS)
+    if unknown:
+        raise InputError(f"unknown key(s) {', '.join(unknown)} in head '{name}'", path=path,
+                         line=line_of(unknown[0]), field=f"{fld}.{unknown[0]}")
+    cam = str(d.get("camera", name))
+    if cam not in cams:
+        raise InputError(f"head '{name}' uses unknown camera '{cam}'", path=path, line=line_of("camera"),
+                         field=f"{fld}.camera")
+    matrix = numbers("cam_from_body", (3, 3))
+    if matrix is not None:
+        if "tilt_deg" in d or "azimuth_deg" in d:
+            raise InputError("give the mount as cam_from_body or as tilt_deg and azimuth_deg, not both", path=path,
+                             line=line_of("cam_from_body"), field=f"{fld}.cam_from_body")
+        if np.abs(matrix @ matrix.T - np.eye(3)).max() > 1e-6 or np.linalg.det(matrix) < 0:
+            raise InputError("cam_from_body is not a rotation matrix", path=path, line=line_of("cam_from_body"),
+                             field=f"{fld}.cam_from_body")
+    else:
+        matrix = mount_rotation(float(numbers("tilt_deg", (), 0.0)), float(numbers("azimuth_deg", (), 0.0)))
+    boresight = numbers("boresight_deg", (3,), [0.0, 0.0, 0.0])
+    return RigHead(name, cam, rotvec_to_matrix(np.radians(boresight)) @ matrix, numbers("lever_arm_m", (3,), [0.0] * 3))
+
+
 def read_camera_file(path: str | Path) -> CameraFile:
     """Parse a camera file (``.toml`` or ``.json``)."""
     p = Path(path)
@@ -212,7 +275,11 @@ def read_camera_file(path: str | Path) -> CameraFile:
         assign.append((str(pattern), str(cid)))
     crs = None if data.get("crs") is None else check_crs(data["crs"], p, "crs")
     angles = None if data.get("angles") is None else angle_unit(data["angles"], p, "angles")
-    return CameraFile(path=str(p), cameras=cams, assign=assign, crs=crs, angles=angles)
+    heads_raw = data.get("heads", {})
+    if not isinstance(heads_raw, dict):
+        raise InputError("[heads.<name>] must be tables", path=p, field="heads")
+    heads = [_head(str(n), d, cams, p, lines) for n, d in heads_raw.items()]
+    return CameraFile(path=str(p), cameras=cams, assign=assign, crs=crs, angles=angles, heads=heads)
 
 
 def _toml_value(v: Any) -> str:
@@ -224,8 +291,9 @@ def _toml_value(v: Any) -> str:
 
 
 def write_camera_file(path: str | Path, cameras: list[CameraModel], crs: str | None = None,
-                      angles: str | None = None) -> None:
-    """Write cameras as a TOML camera file (atomically); floats keep full precision."""
+                      angles: str | None = None, heads: list[RigHead] | None = None) -> None:
+    """Write cameras (and the heads of a camera system, their mounts as matrices) as a TOML camera file
+    (atomically); floats keep full precision."""
     out = ["# Oblique City camera file: focal lengths and principal points in pixels, principal point origin at",
            "# the centre of the top-left pixel, Brown distortion in OpenCV's convention.", ""]
     if crs is not None:
@@ -243,4 +311,9 @@ def write_camera_file(path: str | Path, cameras: list[CameraModel], crs: str | N
         if cam.name:
             vals["name"] = cam.name
         out += [f"{k} = {_toml_value(v)}" for k, v in vals.items()]
+    for h in heads or []:
+        rows = ", ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in h.sensor_from_rig)
+        out += ["", f"[heads.{json.dumps(h.name)}]", f"camera = {json.dumps(h.camera_id)}",
+                f"cam_from_body = [{rows}]",
+                "lever_arm_m = [" + ", ".join(repr(float(v)) for v in h.lever_arm) + "]"]
     write_text(path, "\n".join(out) + "\n")

@@ -8,19 +8,19 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..model import ImageBlock
-from . import blocksexchange, colmap, metashape, native, opk
+from . import blocksexchange, colmap, metashape, native, opk, trajectory
 
 Reader = Callable[..., ImageBlock]
 Writer = Callable[..., None]
 
 READERS: dict[str, Reader] = {"native": lambda source, **_: native.read_block(source),
                               "opk": opk.read_opk, "bex": blocksexchange.read_bex, "colmap": colmap.read_colmap,
-                              "metashape": metashape.read_metashape}
+                              "metashape": metashape.read_metashape, "gnssimu": trajectory.read_gnssimu}
 """Format name -> ``reader(source, **options) -> ImageBlock``."""
 
 WRITERS: dict[str, Writer] = {"native": lambda block, dest, **_: native.write_block(block, dest),
                               "opk": opk.write_opk, "bex": blocksexchange.write_bex, "colmap": colmap.write_colmap,
-                              "metashape": metashape.write_metashape}
+                              "metashape": metashape.write_metashape, "gnssimu": trajectory.write_gnssimu}
 """Format name -> ``writer(block, dest, **options)``."""
 
 

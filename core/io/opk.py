@@ -24,6 +24,8 @@ camera file), ``image_ext`` (appended to names to form file names when there is 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +35,7 @@ from ..errors import InputError
 from ..geometry.rotations import cam_from_world_to_opk, from_radians, opk_to_cam_from_world, to_radians
 from ..model import Image, ImageBlock, Pose
 from ..pipeline.atomic import write_text
-from .camerafile import read_camera_file, write_camera_file
+from .camerafile import CameraFile, read_camera_file, write_camera_file
 from .common import finish_block
 from .validate import (
     angle_unit,
@@ -71,7 +73,8 @@ COLUMN_ALIASES = {
 }
 REQUIRED = ("name", "x", "y", "z", "omega", "phi", "kappa")
 DEFAULT_COLUMNS = "name,x,y,z,omega,phi,kappa"
-DIRECTIVES = ("crs", "angles", "cameras", "image_root")
+DIRECTIVES = ("crs", "angles", "cameras", "image_root", "heading")
+"""The ``# key: value`` comments text lists may carry (``heading`` for :mod:`.trajectory`'s event lists)."""
 
 
 def _directives(lines: list[str], comment: str) -> dict[str, tuple[str, int]]:
@@ -116,21 +119,79 @@ def _optional(rec: dict[str, str], column: str) -> str | None:
     return None if v in ("", "-") else v
 
 
-def _sigmas(rec: dict[str, str], names: tuple[str, str, str], path: Path, line: int,
-            unit: str | None) -> np.ndarray | None:
-    """Three standard deviations from a row (``-`` or empty in all three: unknown), radians for angles."""
-    if names[0] not in rec:
-        return None
-    raw = [rec[c].strip() for c in names]
-    if all(r in ("", "-") for r in raw):
-        return None
-    vals = [parse_float(r, path, line, c) for r, c in zip(raw, names, strict=True)]
-    out = np.array([to_radians(v, unit) for v in vals] if unit else vals)
-    return out
+@dataclass
+class ListFile:
+    """What every text list reader (OPK lists, GNSS/IMU event lists) takes from its file, options and camera file:
+    the file's ``path`` and ``lines``, its ``# key: value`` ``directives``, the camera file ``cams`` read from
+    ``cam_path``, the angle ``unit``, the ``crs``, the ``columns`` and the data ``rows`` ((line, text)) with their
+    delimiter ``sep``, and the ``image_ext`` option."""
+
+    path: Path
+    lines: list[str]
+    directives: dict[str, tuple[str, int]]
+    cams: CameraFile
+    cam_path: Path
+    unit: str
+    crs: str
+    columns: list[str]
+    rows: list[tuple[int, str]]
+    sep: str | None
+    image_ext: str
+
+    def records(self, key: str, what: str) -> Iterator[tuple[int, dict[str, str]]]:
+        """The data rows as ``(line, column -> text)``; each has one field per column and a ``key`` column that is
+        not empty and not repeated (``what`` names it in the errors)."""
+        seen: dict[str, int] = {}
+        for line_no, text in self.rows:
+            fields = split_row(text, self.sep)
+            if len(fields) != len(self.columns):
+                raise InputError(f"expected {len(self.columns)} fields ({','.join(self.columns)}), got "
+                                 f"{len(fields)}", path=self.path, line=line_no)
+            rec = dict(zip(self.columns, fields, strict=True))
+            value = rec[key]
+            if not value:
+                raise InputError(f"empty {what}", path=self.path, line=line_no, field=key)
+            if value in seen:
+                raise InputError(f"duplicate {what} '{value}' (first on line {seen[value]})", path=self.path,
+                                 line=line_no, field=key)
+            seen[value] = line_no
+            yield line_no, rec
+
+    def check_sigma_columns(self, *groups: tuple[str, str, str]) -> None:
+        """Each group of sigma columns is given whole or not at all."""
+        for group in groups:
+            given = [c for c in group if c in self.columns]
+            if given and len(given) != 3:
+                raise InputError(f"sigma columns must come in threes ({', '.join(group)}), got {', '.join(given)}",
+                                 path=self.path, field="columns")
+
+    def image_root(self, block: ImageBlock, options: dict[str, Any]) -> None:
+        """The list's ``# image_root:`` directive into ``block`` (relative to the list's folder), unless the
+        ``image_root`` option overrides it."""
+        if "image_root" in self.directives and "image_root" not in options:
+            root = Path(self.directives["image_root"][0])
+            block.image_root = str(root if root.is_absolute() else (self.path.parent / root).resolve())
+
+    def sigmas(self, rec: dict[str, str], names: tuple[str, str, str], line: int,
+               angular: bool) -> np.ndarray | None:
+        """Three standard deviations from a row (``-`` or empty in all three: unknown; radians for ``angular``
+        ones, from the list's unit); negative ones are refused."""
+        if names[0] not in rec:
+            return None
+        raw = [rec[c].strip() for c in names]
+        if all(r in ("", "-") for r in raw):
+            return None
+        vals = np.array([parse_float(r, self.path, line, c) for r, c in zip(raw, names, strict=True)])
+        if np.any(vals < 0):
+            raise InputError("standard deviations must not be negative", path=self.path, line=line,
+                             field=names[int(np.argmin(vals))])
+        return np.array([to_radians(v, self.unit) for v in vals]) if angular else vals
 
 
-def read_opk(source: str, **options: Any) -> ImageBlock:
-    """Read an OPK list and its camera file into an :class:`ImageBlock` (poses as ``pose_approx``)."""
+def read_list(source: str, options: dict[str, Any], aliases: dict[str, str], required: tuple[str, ...],
+              default_columns: str, looks_like_header) -> ListFile:
+    """The common part of a text list (see :class:`ListFile`); consumes the options ``comment``, ``cameras``,
+    ``angles``, ``crs``, ``delimiter``, ``header``, ``columns`` and ``image_ext`` from ``options``."""
     path = Path(source)
     comment = str(options.pop("comment", "#"))
     lines = read_text_lines(path)
@@ -174,31 +235,23 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
     if sep_opt is None:
         sep = sniff_delimiter([t for _, t in rows[1:] or rows])
 
-    columns = None if col_opt is None else parse_columns(col_opt, COLUMN_ALIASES, REQUIRED, path)
-    columns, rows = table_columns(rows, sep, columns, header, _is_header, COLUMN_ALIASES, REQUIRED, DEFAULT_COLUMNS,
+    columns = None if col_opt is None else parse_columns(col_opt, aliases, required, path)
+    columns, rows = table_columns(rows, sep, columns, header, looks_like_header, aliases, required, default_columns,
                                   path)
-    for group in (("sx", "sy", "sz"), ("somega", "sphi", "skappa")):
-        given = [c for c in group if c in columns]
-        if given and len(given) != 3:
-            raise InputError(f"sigma columns must come in threes ({', '.join(group)}), got {', '.join(given)}",
-                             path=path, field="columns")
+    return ListFile(path, lines, directives, cams, cam_path, unit, crs, columns, rows, sep, image_ext)
 
+
+def read_opk(source: str, **options: Any) -> ImageBlock:
+    """Read an OPK list and its camera file into an :class:`ImageBlock` (poses as ``pose_approx``)."""
+    lf = read_list(source, options, COLUMN_ALIASES, REQUIRED, DEFAULT_COLUMNS, _is_header)
+    path, cams, cam_path, unit, crs = lf.path, lf.cams, lf.cam_path, lf.unit, lf.crs
+    lf.check_sigma_columns(("sx", "sy", "sz"), ("somega", "sphi", "skappa"))
     block = ImageBlock(crs=crs)
     for cam in cams.cameras.values():
         block.add_camera(cam)
     seen: dict[str, int] = {}
-    for line_no, text in rows:
-        fields = split_row(text, sep)
-        if len(fields) != len(columns):
-            raise InputError(f"expected {len(columns)} fields ({','.join(columns)}), got {len(fields)}",
-                             path=path, line=line_no)
-        rec = dict(zip(columns, fields, strict=True))
+    for line_no, rec in lf.records("name", "image id"):
         name = rec["name"]
-        if not name:
-            raise InputError("empty image name", path=path, line=line_no, field="name")
-        if name in seen:
-            raise InputError(f"duplicate image id '{name}' (first on line {seen[name]})", path=path, line=line_no,
-                             field="name")
         seen[name] = line_no
         xyz = [parse_float(rec[c], path, line_no, c) for c in ("x", "y", "z")]
         angles = [to_radians(parse_float(rec[c], path, line_no, c), unit) for c in ("omega", "phi", "kappa")]
@@ -206,23 +259,17 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
         if cam_id not in block.cameras:
             raise InputError(f"unknown camera '{cam_id}' (camera file {cam_path} defines "
                              f"{', '.join(block.cameras)})", path=path, line=line_no, field="camera")
-        sig_pos = _sigmas(rec, ("sx", "sy", "sz"), path, line_no, None)
-        sig_att = _sigmas(rec, ("somega", "sphi", "skappa"), path, line_no, unit)
-        for sig, names in ((sig_pos, ("sx", "sy", "sz")), (sig_att, ("somega", "sphi", "skappa"))):
-            if sig is not None and np.any(sig < 0):
-                raise InputError("standard deviations must not be negative", path=path, line=line_no,
-                                 field=names[int(np.argmin(sig))])
+        sig_pos = lf.sigmas(rec, ("sx", "sy", "sz"), line_no, False)
+        sig_att = lf.sigmas(rec, ("somega", "sphi", "skappa"), line_no, True)
         exposure, head, time = (_optional(rec, c) for c in ("exposure", "head", "time"))
-        block.add_image(Image(id=name, camera_id=cam_id, file=rec.get("file") or name + image_ext,
+        block.add_image(Image(id=name, camera_id=cam_id, file=rec.get("file") or name + lf.image_ext,
                               head=head, exposure=exposure,
                               time=None if time is None else parse_float(time, path, line_no, "time"),
                               pose_approx=Pose(opk_to_cam_from_world(*angles), xyz),
                               sigma_position=sig_pos, sigma_attitude=sig_att))
     if not block.images:
         raise InputError("no image rows after the header", path=path)
-    if "image_root" in directives and "image_root" not in options:
-        root = Path(directives["image_root"][0])
-        block.image_root = str(root if root.is_absolute() else (path.parent / root).resolve())
+    lf.image_root(block, options)
     return finish_block(block, path, options, "opk", lines=seen)
 
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
+from ..geometry.rotations import mount_rotation
 from ..model import CameraModel, Rig, RigHead
 
 
@@ -73,24 +74,12 @@ class CameraSystem:
 
     def rig(self) -> Rig:
         """The nominal rig: head rotations from tilt/azimuth, lever arms as specified."""
-        return Rig(self.name, tuple(RigHead(h.name, f"{self.name}_{h.name}", head_rotation(h.tilt_deg, h.azimuth_deg),
+        return Rig(self.name, tuple(RigHead(h.name, f"{self.name}_{h.name}", mount_rotation(h.tilt_deg, h.azimuth_deg),
                                             np.asarray(h.lever_arm, np.float64)) for h in self.heads))
 
     @property
     def nadir(self) -> HeadSpec:
         return next(h for h in self.heads if h.name == self.nadir_head)
-
-
-def head_rotation(tilt_deg: float, azimuth_deg: float) -> np.ndarray:
-    """``sensor_from_rig`` (3, 3) of a head tilted ``tilt_deg`` from the body's z axis towards azimuth
-    ``azimuth_deg`` (clockwise from the body's x axis, towards y)."""
-    t, a = np.radians(tilt_deg), np.radians(azimuth_deg)
-    x, y, z = np.eye(3)
-    h = np.cos(a) * x + np.sin(a) * y
-    z_cam = np.cos(t) * z + np.sin(t) * h
-    y_cam = np.sin(t) * z - np.cos(t) * h
-    x_cam = np.cross(y_cam, z_cam)
-    return np.stack([x_cam, y_cam, z_cam])
 
 
 _W, _H = 1200, 900

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..geometry.projection import project
-from ..geometry.rotations import ENU_FROM_NED, rot_x, rot_y, rot_z, rotvec_to_matrix
+from ..geometry.rotations import rotvec_to_matrix, world_from_body
 from ..geometry.views import VIEWS, cardinal_view
 from ..model import GroundPoint, Image, ImageBlock, Pose, Raster, Rig, RigHead
 from .cameras import CameraSystem
@@ -92,7 +92,7 @@ class Exposure:
 
     def world_from_body(self) -> np.ndarray:
         """(3, 3) rotation of body vectors (x forward, y right, z down) into the world (east, north, up)."""
-        return ENU_FROM_NED @ rot_z(self.yaw) @ rot_y(self.pitch) @ rot_x(self.roll)
+        return world_from_body(self.yaw, self.pitch, self.roll)
 
 
 def flying_height(system: CameraSystem, gsd: float) -> float:

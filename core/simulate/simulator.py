@@ -156,8 +156,7 @@ def render_images(city: City, jobs: list[tuple], render_cfg: RenderConfig, worke
 
 def overview_camera(city: City, width: int = 1600, height: int = 1000) -> tuple[CameraModel, Pose]:
     """A virtual oblique camera looking at the city centre from the south-east, 40 deg below the horizon."""
-    from ..geometry.rotations import ypr_to_cam_from_world
-    from .cameras import head_rotation
+    from ..geometry.rotations import mount_rotation, ypr_to_cam_from_world
 
     cx, cy = 0.5 * (city.core[0] + city.core[2]), 0.5 * (city.core[1] + city.core[3])
     span = max(city.core[2] - city.core[0], city.core[3] - city.core[1])
@@ -168,7 +167,7 @@ def overview_camera(city: City, width: int = 1600, height: int = 1000) -> tuple[
     c = np.array([cx - np.sin(az) * dist * np.sin(np.radians(tilt)), cy - np.cos(az) * dist * np.sin(np.radians(tilt)),
                   cz + dist * np.cos(np.radians(tilt))])
     cam = CameraModel("overview", width, height, 0.9 * width, 0.9 * width, (width - 1) / 2, (height - 1) / 2)
-    r = ypr_to_cam_from_world(az, 0.0, 0.0, head_rotation(tilt, 0.0))
+    r = ypr_to_cam_from_world(az, 0.0, 0.0, mount_rotation(tilt, 0.0))
     return cam, Pose(r, c)
 
 

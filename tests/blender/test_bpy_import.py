@@ -3,6 +3,7 @@ view, with the block's intrinsics and poses, the image file as background, and t
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -13,10 +14,11 @@ from oblique_city.core.io.formats import READERS, WRITERS
 
 pytestmark = pytest.mark.xdist_group("bpy")
 
-DEST = {"native": "block.json", "opk": "block.txt", "bex": "block.xml", "colmap": "colmap", "metashape": "cameras.xml"}
+DEST = {"native": "block.json", "opk": "block.txt", "bex": "block.xml", "colmap": "colmap", "metashape": "cameras.xml",
+        "gnssimu": "events.txt"}
 """Where each format's writer puts the test block (a file, or a folder for COLMAP)."""
-OPTIONS = {"colmap": "crs=EPSG:32632"}
-"""Operator "Options" a format needs (COLMAP models carry no CRS)."""
+OPTIONS = {"colmap": "crs=EPSG:32632", "gnssimu": "image_name={exposure}; image_ext=.jpg"}
+"""Operator "Options" a format needs (COLMAP models carry no CRS; the test block's image names are its exposures')."""
 
 
 def write_images(folder: Path, block) -> None:
@@ -36,7 +38,15 @@ def test_import_every_format(addon, tmp_path, utm_block, fmt):
 
     source = tmp_path / "src" / DEST[fmt]
     source.parent.mkdir()
-    WRITERS[fmt](utm_block, str(source))
+    block = utm_block
+    if fmt == "gnssimu":  # an event list holds a camera system: here each image an exposure of a one-head rig
+        from oblique_city.core.model import Rig, RigHead
+
+        block = copy.deepcopy(utm_block)
+        for img in block.images.values():
+            img.exposure, img.head = img.id, "cam"
+        block.rigs["system"] = Rig("system", (RigHead("cam", "cam", np.eye(3)),))
+    WRITERS[fmt](block, str(source))
     write_images(source if source.is_dir() else source.parent, utm_block)
     ws_root = tmp_path / "ws"
     result = bpy.ops.city.import_block(filepath=str(source), block_format=fmt, workspace=str(ws_root),
@@ -230,3 +240,24 @@ def test_exposures_field_restores_the_camera_system(addon, tmp_path, penta_block
             groups.setdefault(img.exposure, set()).add(exposures[img.id])
         assert all(len(g) == 1 for g in groups.values()) and len(groups) == len(set(exposures.values()))
         assert [h.name for h in block.rigs["system"].heads][0] in ("nadir", "penta_nadir")
+
+
+def test_gnssimu_heading_field(addon, tmp_path, penta_block):
+    """GNSS/IMU events with headings against true north: read as such (the list says so) every image has the
+    simulator's orientation; the Heading field set to Grid North turns them all by the grid convergence (2 degrees
+    there)."""
+    bpy = addon
+    from oblique_city.core.pipeline import Workspace
+
+    WRITERS["gnssimu"](penta_block, str(tmp_path / "events.txt"))
+    for k, heading in enumerate(("file", "grid")):
+        ws = tmp_path / f"ws{k}"
+        assert bpy.ops.city.import_block(filepath=str(tmp_path / "events.txt"), block_format="gnssimu",
+                                         workspace=str(ws), heading=heading) == {"FINISHED"}
+        block = Workspace.open(ws).load_block()
+        turn = np.degrees([rotation_angle(block.images[i].pose_approx.R, img.pose_approx.R)
+                           for i, img in penta_block.images.items()])
+        if heading == "file":
+            assert turn.max() < 1e-6
+        else:
+            assert 1.9 < turn.min() and turn.max() < 2.2

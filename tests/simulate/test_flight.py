@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from oblique_city.core.geometry.projection import intersect_with_plane_z, project
-from oblique_city.core.geometry.rotations import rotation_angle
+from oblique_city.core.geometry.rotations import mount_rotation, rotation_angle
 from oblique_city.core.geometry.views import VIEWS, cardinal_view
-from oblique_city.core.simulate.cameras import head_rotation, penta, system_from_dict, three_head
+from oblique_city.core.simulate.cameras import penta, system_from_dict, three_head
 from oblique_city.core.simulate.flight import (
     FlightConfig,
     NavErrors,
@@ -26,14 +26,14 @@ AREA = np.array([500000.0, 5400000.0, 500600.0, 5400500.0])
 STILL = dict(attitude_jitter_deg=0.0, position_jitter=0.0)
 
 
-def test_head_rotations():
-    nadir = head_rotation(0.0, 0.0)
+def test_mount_rotations():
+    nadir = mount_rotation(0.0, 0.0)
     np.testing.assert_allclose(nadir, [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-15)
-    fwd = head_rotation(45.0, 0.0)
+    fwd = mount_rotation(45.0, 0.0)
     np.testing.assert_allclose(fwd[2], [np.sqrt(0.5), 0, np.sqrt(0.5)], atol=1e-15)  # looks forward and down
     assert fwd[1] @ np.array([1.0, 0, 0]) < 0  # image top (-y) points away from the nadir
     for a in (0.0, 90.0, 180.0, 270.0):
-        r = head_rotation(36.0, a)
+        r = mount_rotation(36.0, a)
         np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-14)
         assert abs(np.linalg.det(r) - 1) < 1e-14
         assert abs(np.degrees(np.arccos(r[2] @ nadir[2])) - 36.0) < 1e-9  # optical axis tilt

@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 
 from oblique_city.core.geometry.projection import backproject_depth, intersect_with_plane_z, project
-from oblique_city.core.geometry.rotations import ypr_to_cam_from_world
+from oblique_city.core.geometry.rotations import mount_rotation, ypr_to_cam_from_world
 from oblique_city.core.model import CameraModel, Pose
-from oblique_city.core.simulate.cameras import head_rotation
 from oblique_city.core.simulate.city import SEMANTIC
 from oblique_city.core.simulate.render import DEFAULT_HEADS
 
@@ -17,7 +16,7 @@ CAM = CameraModel("t", 640, 480, 900.0, 900.0, 322.7, 236.4, k1=-0.06, k2=0.02, 
 
 def _pose_seeing(xyz: np.ndarray, tilt: float, azimuth: float, dist: float, uv_target: tuple[float, float]) -> Pose:
     """A camera tilted ``tilt`` deg looking towards ``azimuth``, placed so ``xyz`` lands near ``uv_target``."""
-    r = ypr_to_cam_from_world(np.radians(azimuth), 0.0, 0.0, head_rotation(tilt, 0.0))
+    r = ypr_to_cam_from_world(np.radians(azimuth), 0.0, 0.0, mount_rotation(tilt, 0.0))
     ray_cam = np.array([(uv_target[0] - CAM.cx) / CAM.fx, (uv_target[1] - CAM.cy) / CAM.fy, 1.0])
     ray_w = r.T @ (ray_cam / np.linalg.norm(ray_cam))
     return Pose(r, xyz - dist * ray_w)
