@@ -14,8 +14,9 @@ and writes it:
 * ``heading`` option or directive: ``true`` (default: clockwise from true north, as an inertial system gives it;
   the grid convergence at each exposure, from the CRS by pyproj, turns it into the grid heading) or ``grid``;
 * the camera file (``cameras`` option, see :mod:`.camerafile`) holds the cameras and the ``[heads.<name>]`` of the
-  system: an image per head and exposure, named ``image_name`` (default ``{exposure}_{head}``), its file that name
-  plus ``image_ext``. The position is the body frame's origin; a head's centre is at its lever arm from there.
+  system: an image per head and exposure, named ``image_name`` (default ``{exposure}_{head}``), its file
+  ``image_file`` (option or directive, default ``{image}``: the name; ``{exposure}`` and ``{head}`` work too) plus
+  ``image_ext``. The position is the body frame's origin; a head's centre is at its lever arm from there.
 
 The block gets the exposures, heads and times and a rig ``system`` with the heads as calibrated, the first head of
 the camera file as its reference. The position sigmas are the images' ones; the IMU's roll, pitch and heading sigmas
@@ -23,7 +24,8 @@ stand for the images' attitude sigmas axis by axis (as the simulator's priors do
 heads.
 
 The writer takes a block with a rig and exposures: each exposure's body pose comes from the image of the rig's first
-head it has (its mount undone), its heading against true north (or grid), with a camera file holding the rig's heads.
+head it has (its mount undone), its heading against true north (or grid), with a camera file holding the rig's heads;
+when every image's file is its id with one prefix and suffix (``images/<id>.jpg``) an ``# image_file:`` line says so.
 """
 
 from __future__ import annotations
@@ -90,6 +92,7 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
     ``pose_approx`` are the heads' orientations from the navigation solution (see the module docstring)."""
     position_crs = options.pop("position_crs", None)
     name_fmt = str(options.pop("image_name", "{exposure}_{head}"))
+    file_opt = options.pop("image_file", None)
     heading_opt = options.pop("heading", None)
     lf = read_list(source, options, COLUMN_ALIASES, REQUIRED, DEFAULT_COLUMNS, _is_header)
     path, cams, columns = lf.path, lf.cams, lf.columns
@@ -110,11 +113,16 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
         raise InputError(f"no {', '.join(missing)} column (positions are x y z, or lat lon h)", path=path,
                          field="columns")
     lf.check_sigma_columns(("sx", "sy", "sz"), ("sroll", "spitch", "sheading"))
-    try:
-        name_fmt.format(exposure="e", head="h")
-    except (KeyError, IndexError, ValueError) as e:
-        raise InputError(f"image_name '{name_fmt}' must use only {{exposure}} and {{head}} ({e})", path=path,
-                         field="image_name") from None
+    file_line = None
+    if file_opt is None and "image_file" in lf.directives:
+        file_opt, file_line = lf.directives["image_file"]
+    file_fmt = str(file_opt or "{image}")
+    for fmt, key, line_no in ((name_fmt, "image_name", None), (file_fmt, "image_file", file_line)):
+        try:
+            fmt.format(exposure="e", head="h", image="i")
+        except (KeyError, IndexError, ValueError) as e:
+            raise InputError(f"{key} '{fmt}' may use only {{exposure}}, {{head}} and {{image}} ({e})", path=path,
+                             line=line_no, field=key) from None
 
     records = []
     for line_no, rec in lf.records("exposure", "exposure"):
@@ -143,12 +151,26 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
                 raise InputError(f"image name '{iid}' twice (image_name '{name_fmt}')", path=path, line=line_no,
                                  field="image_name")
             lines[iid] = line_no
-            block.add_image(Image(id=iid, camera_id=h.camera_id, file=iid + lf.image_ext, head=h.name, exposure=ex,
+            file = file_fmt.format(exposure=ex, head=h.name, image=iid) + lf.image_ext
+            block.add_image(Image(id=iid, camera_id=h.camera_id, file=file, head=h.name, exposure=ex,
                                   time=t, pose_approx=Pose(h.sensor_from_rig @ wfb.T, xyz[k] + wfb @ h.lever_arm),
                                   sigma_position=None if s_pos is None else s_pos.copy(),
                                   sigma_attitude=None if s_att is None else s_att.copy()))
     lf.image_root(block, options)
     return finish_block(block, path, options, "gnssimu", lines=lines)
+
+
+def _file_template(block: ImageBlock) -> str | None:
+    """``prefix{image}suffix`` when every image's file is its id between one prefix and suffix (else None; None for
+    files equal to the ids, the reader's default)."""
+    first = next(iter(block.images.values()))
+    at = (first.file or "").find(first.id)
+    if at < 0:
+        return None
+    prefix, suffix = first.file[:at], first.file[at + len(first.id):]
+    if not (prefix or suffix) or any(img.file != prefix + img.id + suffix for img in block.images.values()):
+        return None
+    return prefix + "{image}" + suffix
 
 
 def write_gnssimu(block: ImageBlock, dest: str, angles: str = "deg", delimiter: str = "whitespace",
@@ -192,7 +214,8 @@ def write_gnssimu(block: ImageBlock, dest: str, angles: str = "deg", delimiter: 
     rel_cam = cam_path.name if cam_path.parent.resolve() == dest_path.parent.resolve() else str(cam_path)
     out = ["# Oblique City GNSS/IMU event list: body x forward, y right, z down; R_ned_from_body = Rz(heading) "
            "Ry(pitch) Rx(roll)", f"# crs: {block.crs}", f"# angles: {unit}", f"# heading: {heading}",
-           f"# cameras: {rel_cam}", join(cols)]
+           f"# cameras: {rel_cam}"] + ([f"# image_file: {files}"] if (files := _file_template(block)) else []) + [
+        join(cols)]
     for k, (ex, c, (yaw, pitch, roll), t, s_pos, s_att) in enumerate(rows):
         if (any(ch.isspace() for ch in ex)) if sep is None else sep in ex:
             raise InputError(f"exposure '{ex}' contains the delimiter; choose another delimiter", path=dest,

@@ -6,6 +6,8 @@ Output folder::
     block.xml                        BlocksExchange XML: cameras, approximate poses (GNSS/IMU), control points
                                      (written last: its presence marks a complete simulation)
     block.json                       the same block in the native format, with rig, exposures and prior sigmas
+    events.txt, events_cameras.toml  the navigation solution per exposure (GNSS/IMU event list, headings against
+                                     true north) and the cameras with the heads' nominal mounting
     gcp.csv, gcp_measurements.csv    ground points (surveyed) and their image measurements (pixel centre origin)
     preview/city_overview.png        an oblique overview of the city; preview/head_<head>.png one image per head
     truth/                           ground truth (see :mod:`.truth`)
@@ -253,6 +255,7 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
 
     write_geotiff(out / "truth" / "coverage.tif", cov)
     native.write_block(approx, out / "block.json")
+    write_block("gnssimu", approx, out / "events.txt")
     write_ground_points(approx, out / "gcp.csv")
     write_measurements(approx, out / "gcp_measurements.csv")
     write_block("bex", approx, out / "block.xml")  # last: a folder with block.xml is a complete simulation

@@ -29,7 +29,8 @@ def test_event_list_gives_every_head_its_orientation(tmp_path, penta_block):
     assert set(back.images) == set(penta_block.images)
     for iid, img in penta_block.images.items():
         got = back.images[iid]
-        assert (got.exposure, got.head, got.time, got.camera_id) == (img.exposure, img.head, img.time, img.camera_id)
+        assert (got.exposure, got.head, got.time, got.camera_id, got.file) == \
+            (img.exposure, img.head, img.time, img.camera_id, img.file)
         assert np.abs(got.pose_approx.C - img.pose_approx.C).max() < 1e-6
         assert rotation_angle(got.pose_approx.R, img.pose_approx.R) < 1e-9
         assert np.allclose(got.sigma_position, img.sigma_position)

@@ -8,6 +8,7 @@ import pytest
 from oblique_city.core.evaluate.orientation import point_errors, pose_errors, similarity_transform
 from oblique_city.core.evaluate.rasters import dtm_errors, errors_by_class, raster_errors
 from oblique_city.core.geometry.projection import project
+from oblique_city.core.geometry.rotations import rotation_angle
 from oblique_city.core.io.formats import read_block
 from oblique_city.core.model import Pose, Raster
 from oblique_city.core.simulate.city import SEMANTIC
@@ -44,6 +45,16 @@ def test_outputs_and_import_path(small):
             img = truth.block.images[iid]
             res.append(uv - project(truth.block.camera_of(img), img.pose_approx, xyz[None])[0][0])
     assert len(res) > 30 and np.sqrt(np.mean(np.square(res))) < 0.5
+    # the navigation solution per exposure with the heads' mounting gives the same orientations, with the camera
+    # system's exposures and rig, and the images found
+    events = read_block("gnssimu", out / "events.txt", image_root=str(out), check_images=True,
+                        gcps=str(out / "gcp.csv"), measurements=str(out / "gcp_measurements.csv"))
+    assert set(events.images) == set(block.images) and len(events.ground_points) == len(block.ground_points)
+    for iid, img in block.images.items():
+        assert np.abs(events.images[iid].pose_approx.C - img.pose_approx.C).max() < 1e-6
+        assert rotation_angle(events.images[iid].pose_approx.R, img.pose_approx.R) < 1e-8
+    assert len({img.exposure for img in events.images.values()}) * 5 == len(events.images)
+    assert [h.name for h in events.rigs["system"].heads] == ["nadir", "forward", "right", "backward", "left"]
 
 
 def test_truth_rasters_and_depth(small):
