@@ -73,9 +73,8 @@ COLUMN_ALIASES = {
 }
 REQUIRED = ("name", "x", "y", "z", "omega", "phi", "kappa")
 DEFAULT_COLUMNS = "name,x,y,z,omega,phi,kappa"
-DIRECTIVES = ("crs", "angles", "cameras", "image_root", "heading", "image_file")
-"""The ``# key: value`` comments text lists may carry (``heading`` and ``image_file`` for :mod:`.trajectory`'s event
-lists)."""
+DIRECTIVES = ("crs", "angles", "cameras", "image_root", "heading", "image_name", "image_file")
+"""The ``# key: value`` comments text lists may carry (the last three for :mod:`.trajectory`'s event lists)."""
 
 
 def _directives(lines: list[str], comment: str) -> dict[str, tuple[str, int]]:

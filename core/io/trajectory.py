@@ -14,7 +14,8 @@ and writes it:
 * ``heading`` option or directive: ``true`` (default: clockwise from true north, as an inertial system gives it;
   the grid convergence at each exposure, from the CRS by pyproj, turns it into the grid heading) or ``grid``;
 * the camera file (``cameras`` option, see :mod:`.camerafile`) holds the cameras and the ``[heads.<name>]`` of the
-  system: an image per head and exposure, named ``image_name`` (default ``{exposure}_{head}``), its file
+  system: an image per head and exposure, named ``image_name`` (option or directive, default
+  ``{exposure}_{head}``), its file
   ``image_file`` (option or directive, default ``{image}``: the name; ``{exposure}`` and ``{head}`` work too) plus
   ``image_ext``. The position is the body frame's origin; a head's centre is at its lever arm from there.
 
@@ -25,7 +26,10 @@ heads.
 
 The writer takes a block with a rig and exposures: each exposure's body pose comes from the image of the rig's first
 head it has (its mount undone), its heading against true north (or grid), with a camera file holding the rig's heads;
-when every image's file is its id with one prefix and suffix (``images/<id>.jpg``) an ``# image_file:`` line says so.
+``# image_name:`` and ``# image_file:`` lines give the images' names and files (when every file is its id between one
+prefix and suffix, ``images/<id>.jpg``). It refuses a block whose images an event list cannot carry: one without an
+exposure or a head of the rig, names that follow no pattern of exposure and head, or heads whose orientations do not
+follow the rig (:data:`RIG_TOLERANCE`: an adjusted block, whose heads the triangulation moved apart).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.crs import crs_transformer, parse_crs, transform_points
-from ..geometry.rotations import cam_from_world_to_ypr, from_radians, to_radians, world_from_body
+from ..geometry.rotations import cam_from_world_to_ypr, from_radians, rotation_angle, to_radians, world_from_body
 from ..model import Image, ImageBlock, Pose, Rig
 from ..pipeline.atomic import write_text
 from .camerafile import write_camera_file
@@ -61,6 +65,11 @@ COLUMN_ALIASES = {
 REQUIRED = ("exposure", "roll", "pitch", "heading")
 DEFAULT_COLUMNS = "exposure,x,y,z,roll,pitch,heading"
 HEADINGS = ("true", "grid")
+NAME_TEMPLATES = ("{exposure}_{head}", "{exposure}-{head}", "{exposure}{head}", "{head}_{exposure}", "{exposure}")
+"""The image name patterns the writer recognises (the first that names every image)."""
+RIG_TOLERANCE = (1e-3, 1e-5)
+"""Metres and radians: the most a head's orientation may differ from its exposure's reference head through the rig
+for the writer (an event list carries one orientation per exposure)."""
 
 
 def _is_header(fields: list[str], columns: list[str] | None) -> bool:
@@ -91,10 +100,14 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
     """Read a GNSS/IMU event list and its camera file (with heads) into an :class:`ImageBlock` whose images'
     ``pose_approx`` are the heads' orientations from the navigation solution (see the module docstring)."""
     position_crs = options.pop("position_crs", None)
-    name_fmt = str(options.pop("image_name", "{exposure}_{head}"))
+    name_opt = options.pop("image_name", None)
     file_opt = options.pop("image_file", None)
     heading_opt = options.pop("heading", None)
     lf = read_list(source, options, COLUMN_ALIASES, REQUIRED, DEFAULT_COLUMNS, _is_header)
+    name_line = None
+    if name_opt is None and "image_name" in lf.directives:
+        name_opt, name_line = lf.directives["image_name"]
+    name_fmt = str(name_opt or "{exposure}_{head}")
     path, cams, columns = lf.path, lf.cams, lf.columns
     if heading_opt is None and "heading" in lf.directives:
         heading_opt, line = lf.directives["heading"]
@@ -117,7 +130,7 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
     if file_opt is None and "image_file" in lf.directives:
         file_opt, file_line = lf.directives["image_file"]
     file_fmt = str(file_opt or "{image}")
-    for fmt, key, line_no in ((name_fmt, "image_name", None), (file_fmt, "image_file", file_line)):
+    for fmt, key, line_no in ((name_fmt, "image_name", name_line), (file_fmt, "image_file", file_line)):
         try:
             fmt.format(exposure="e", head="h", image="i")
         except (KeyError, IndexError, ValueError) as e:
@@ -193,13 +206,33 @@ def write_gnssimu(block: ImageBlock, dest: str, angles: str = "deg", delimiter: 
             exposures.setdefault(img.exposure, []).append(img)
     if not exposures:
         raise InputError("no image of the block has an exposure and a head of its rig", path=dest, field="exposure")
+    left = len(block.images) - sum(len(v) for v in exposures.values())
+    if left:
+        raise InputError(f"{left} images have no orientation, exposure or head of the rig '{rig.name}': an event "
+                         "list cannot carry them (export opk or bex)", path=dest, field="exposure")
+    names = next((t for t in NAME_TEMPLATES if all(i.id == t.format(exposure=i.exposure, head=i.head)
+                                                   for i in block.images.values())), None)
+    if names is None:
+        raise InputError("the image names follow no pattern of exposure and head (" + ", ".join(NAME_TEMPLATES)
+                         + "): an event list cannot name them", path=dest, field="image_name")
     rows = []
+    order = [h.name for h in rig.heads]
     for ex, imgs in exposures.items():
-        img = min(imgs, key=lambda i: [h.name for h in rig.heads].index(i.head))
+        img = min(imgs, key=lambda i: order.index(i.head))
         h = heads[img.head]
         wfb = img.pose.R.T @ h.sensor_from_rig
-        rows.append((ex, img.pose.C - wfb @ h.lever_arm, cam_from_world_to_ypr(img.pose.R, h.sensor_from_rig),
-                     img.time, img.sigma_position, img.sigma_attitude))
+        body = img.pose.C - wfb @ h.lever_arm
+        for other in imgs:
+            o = heads[other.head]
+            dc = float(np.linalg.norm(other.pose.C - body - wfb @ o.lever_arm))
+            da = rotation_angle(other.pose.R, o.sensor_from_rig @ wfb.T)
+            if dc > RIG_TOLERANCE[0] or da > RIG_TOLERANCE[1]:
+                raise InputError(f"image '{other.id}' is {dc:.4f} m and {np.degrees(da):.5f} deg from where the rig "
+                                 f"puts it from '{img.id}': an event list holds one orientation per exposure (an "
+                                 "adjusted block: export the imported one, --imported, or opk or bex)", path=dest,
+                                 field="rig")
+        rows.append((ex, body, cam_from_world_to_ypr(img.pose.R, h.sensor_from_rig), img.time, img.sigma_position,
+                     img.sigma_attitude))
     xyz = np.array([r[1] for r in rows])
     north = true_north_angles(xyz, block.crs) if heading == "true" else np.zeros(len(rows))
     dest_path = Path(dest)
@@ -214,8 +247,8 @@ def write_gnssimu(block: ImageBlock, dest: str, angles: str = "deg", delimiter: 
     rel_cam = cam_path.name if cam_path.parent.resolve() == dest_path.parent.resolve() else str(cam_path)
     out = ["# Oblique City GNSS/IMU event list: body x forward, y right, z down; R_ned_from_body = Rz(heading) "
            "Ry(pitch) Rx(roll)", f"# crs: {block.crs}", f"# angles: {unit}", f"# heading: {heading}",
-           f"# cameras: {rel_cam}"] + ([f"# image_file: {files}"] if (files := _file_template(block)) else []) + [
-        join(cols)]
+           f"# cameras: {rel_cam}", f"# image_name: {names}"] + (
+        [f"# image_file: {files}"] if (files := _file_template(block)) else []) + [join(cols)]
     for k, (ex, c, (yaw, pitch, roll), t, s_pos, s_att) in enumerate(rows):
         if (any(ch.isspace() for ch in ex)) if sep is None else sep in ex:
             raise InputError(f"exposure '{ex}' contains the delimiter; choose another delimiter", path=dest,

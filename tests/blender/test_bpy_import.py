@@ -17,8 +17,8 @@ pytestmark = pytest.mark.xdist_group("bpy")
 DEST = {"native": "block.json", "opk": "block.txt", "bex": "block.xml", "colmap": "colmap", "metashape": "cameras.xml",
         "gnssimu": "events.txt"}
 """Where each format's writer puts the test block (a file, or a folder for COLMAP)."""
-OPTIONS = {"colmap": "crs=EPSG:32632", "gnssimu": "image_name={exposure}"}
-"""Operator "Options" a format needs (COLMAP models carry no CRS; the test block's image names are its exposures')."""
+OPTIONS = {"colmap": "crs=EPSG:32632"}
+"""Operator "Options" a format needs (COLMAP models carry no CRS)."""
 
 
 def write_images(folder: Path, block) -> None:

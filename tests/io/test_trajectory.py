@@ -115,3 +115,26 @@ def test_bad_event_lists_name_the_file_line_and_field(tmp_path, penta_block):
     with pytest.raises(InputError) as e:
         read_block("gnssimu", str(tmp_path / "events.txt"), heading="magnetic")
     assert e.value.field == "heading"
+
+
+def test_writer_refuses_what_an_event_list_cannot_carry(tmp_path, penta_block):
+    """One orientation per exposure: a head moved 5 mm off its rig mounting (as an adjustment moves them) is refused,
+    naming the image; so are names that follow no pattern of exposure and head. Nothing is written."""
+    import copy
+
+    from oblique_city.core.model import Pose
+
+    moved = copy.deepcopy(penta_block)
+    img = moved.images["S01_E002_left"]
+    img.pose_adjusted = Pose(img.pose_approx.R, img.pose_approx.C + [0.005, 0.0, 0.0])
+    with pytest.raises(InputError) as e:
+        write_block("gnssimu", moved, tmp_path / "a.txt")
+    assert e.value.field == "rig" and "S01_E002_left" in str(e.value) and "0.0050 m" in str(e.value)
+    renamed = copy.deepcopy(penta_block)
+    img = renamed.images.pop("S01_E002_left")
+    img.id = "IMG_0042"
+    renamed.images[img.id] = img
+    with pytest.raises(InputError) as e:
+        write_block("gnssimu", renamed, tmp_path / "b.txt")
+    assert e.value.field == "image_name"
+    assert not list(tmp_path.iterdir())
