@@ -48,6 +48,10 @@ TIME_GAP = 5.0
 minute or more against a few seconds between exposures; a pause in the triggering within a line splits it too, and
 each part gets its own offset (a little redundancy lost, no bias)."""
 
+TRIGGER_S = 0.05
+"""Seconds: time steps up to this long are between images of one trigger (heads of a camera system without their
+exposures given), not exposure intervals."""
+
 
 @dataclass(frozen=True)
 class Strips:
@@ -151,7 +155,7 @@ def _strips_by_time(keys: list[str], by_exposure: dict[str, list[str]], time: np
     ``(e, 3)``, see the module docstring."""
     order = np.argsort(time, kind="stable")
     step = np.diff(time[order])
-    interval = float(np.median(step[step > 0])) if np.any(step > 0) else 1.0
+    interval = float(np.median(step[step > TRIGGER_S])) if np.any(step > TRIGGER_S) else 1.0
     label = np.cumsum(np.r_[0, step > TIME_GAP * interval])
     image_strip: dict[str, int] = {}
     image_along: dict[str, float] = {}

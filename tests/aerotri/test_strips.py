@@ -141,3 +141,17 @@ def test_a_curved_line_is_one_strip_by_time_with_positions_along_its_path(penta_
     for img in block.images.values():
         img.time = None
     assert len(flight_strips(block).names) > 4
+
+
+def test_strips_by_time_of_heads_without_their_exposures(sim):
+    """Without exposures each image counts alone, and the heads' trigger times scatter by milliseconds: the strips
+    are still the flight plan's, the heads of one trigger in one strip."""
+    block = copy.deepcopy(sim.block)
+    rng = np.random.default_rng(3)
+    for img in block.images.values():
+        img.exposure = None
+        img.time += rng.uniform(-0.002, 0.002)
+    strips = flight_strips(block)
+    plan = _plan(sim.block)
+    assert len(strips.names) == 5
+    assert all(len({plan[i] for i in strips.members(s)}) == 1 for s in range(5))
