@@ -42,11 +42,14 @@ def _simulate_if_missing(sim: Path, progress: Callable[[int, int, str], None] | 
 
 
 def _import_block(ws: Workspace, sim: Path) -> bool:
-    """Import the simulated BlocksExchange block through the real import path; False if already identical."""
+    """Import the simulated BlocksExchange block through the real import path, its exposures from the image names
+    (the format does not carry them; a rig is estimated from the orientations); False if already identical."""
     from .io.formats import read_block
     from .io.native import block_to_dict
+    from .simulate.flight import IMAGE_NAME_PATTERN
 
-    block = read_block("bex", sim / "block.xml", image_root=str(sim), check_images=True)
+    block = read_block("bex", sim / "block.xml", image_root=str(sim), check_images=True, exposures="name",
+                       exposure_pattern=IMAGE_NAME_PATTERN)
     if ws.has_block() and block_to_dict(ws.load_block(adjusted=False)) == block_to_dict(block):
         return False
     ws.save_block(block)

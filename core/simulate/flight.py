@@ -163,6 +163,11 @@ def image_pose(exposure: Exposure, head: RigHead) -> Pose:
     return Pose(head.sensor_from_rig @ wfb.T, exposure.center + wfb @ head.lever_arm)
 
 
+IMAGE_NAME_PATTERN = r"(?P<exposure>S\d+_E\d+)_(?P<head>.+)"
+"""The simulator's image ids (``<exposure>_<head>``, see :func:`true_block`) as an ``exposure_pattern`` for the import
+(``-o exposures=name``): what restores the exposures from a format that does not carry them (BlocksExchange)."""
+
+
 def true_block(system: CameraSystem, exposures: list[Exposure], crs: str, rig: Rig | None = None,
                image_ext: str = ".jpg") -> ImageBlock:
     """The block with true poses in ``pose_approx`` (``rig`` defaults to the nominal rig of ``system``).

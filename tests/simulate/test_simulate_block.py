@@ -12,6 +12,7 @@ from oblique_city.core.geometry.rotations import rotation_angle
 from oblique_city.core.io.formats import read_block
 from oblique_city.core.model import Pose, Raster
 from oblique_city.core.simulate.city import SEMANTIC
+from oblique_city.core.simulate.flight import IMAGE_NAME_PATTERN
 from oblique_city.core.simulate.simulator import SimulationConfig, simulate
 from oblique_city.core.simulate.truth import load_truth
 
@@ -55,6 +56,10 @@ def test_outputs_and_import_path(small):
         assert rotation_angle(events.images[iid].pose_approx.R, img.pose_approx.R) < 1e-8
     assert len({img.exposure for img in events.images.values()}) * 5 == len(events.images)
     assert [h.name for h in events.rigs["system"].heads] == ["nadir", "forward", "right", "backward", "left"]
+    # the BlocksExchange block carries no exposures: the image names give them back (as the demo imports it)
+    named = read_block("bex", out / "block.xml", exposures="name", exposure_pattern=IMAGE_NAME_PATTERN)
+    assert {(i, img.exposure, img.head) for i, img in named.images.items()} == \
+        {(i, img.exposure, img.head) for i, img in truth.block.images.items()}
 
 
 def test_truth_rasters_and_depth(small):
