@@ -125,6 +125,11 @@ class CITY_PT_block(CityPanel, bpy.types.Panel):
                 for view, n in s["views"].items():
                     col.label(text=f"    {view}: {n}")
                 col.label(text=f"Ground points: {s['control_points']} control, {s['check_points']} check")
+                if s["exposures"]:
+                    col.label(text=f"Exposures: {s['exposures']}, rigs: {s['rigs']}")
+                elif set(s["views"]) - {"nadir", "unoriented"}:
+                    col.label(text="No exposures: HAT starts the oblique images from the navigation data "
+                                   "(import with Exposures by time or name)", icon="INFO")
                 col.label(text=f"CRS: {s['crs'][:40]}")
         if georef.has_georef(scene):
             o = georef.get_origin(scene)

@@ -112,6 +112,13 @@ def test_panels_draw(addon, grid_ws):
     assert "3 images, 1 cameras, 0 adjusted" in labels
     assert {"    nadir: 1", "    north: 1", "    east: 1"} <= set(labels)
     assert "CRS: EPSG:32632" in labels and any(s.startswith("Origin: 500250.000, 5399760.000") for s in labels)
+    assert any(s.startswith("No exposures: HAT starts the oblique images") for s in labels)
+    block = ws.load_block()
+    for img in block.images.values():  # one trigger of three heads
+        img.exposure, img.head = "E1", img.id
+    ws.save_block(block)
+    labels = [e[1] for e in draw(panels.CITY_PT_block, context) if e[0] == "label"]
+    assert "Exposures: 1, rigs: 0" in labels and not any(s.startswith("No exposures") for s in labels)
 
     registered = set(stage_names())
     for panel in panels.STAGE_PANEL_CLASSES:
