@@ -31,7 +31,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.rotations import rotation_angle
-from .block import ImageBlock, Rig, RigHead
+from .block import Image, ImageBlock, Rig, RigHead
 
 OUTLIER_MADS = 5.0
 """An exposure whose rotation or offset differs from the median by more than this many robust standard deviations
@@ -53,7 +53,7 @@ class HeadFit:
     offset_rms_m: float
 
 
-def image_head(img) -> str:
+def image_head(img: Image) -> str:
     """The head of an image: its own, else its camera's id."""
     return img.head if img.head is not None else img.camera_id
 
@@ -125,16 +125,16 @@ def assign_exposures(block: ImageBlock, by: str, pattern: str | None = None, tol
     return len(set(exposure.values()))
 
 
-def _members(block: ImageBlock) -> dict[str, dict[str, object]]:
+def _members(block: ImageBlock) -> dict[str, dict[str, Image]]:
     """Exposure -> head -> image, for the oriented images with an exposure."""
-    out: dict[str, dict[str, object]] = {}
+    out: dict[str, dict[str, Image]] = {}
     for img in block.images.values():
         if img.exposure is not None and img.pose_approx is not None:
             out.setdefault(img.exposure, {})[image_head(img)] = img
     return out
 
 
-def _relative(members: dict[str, dict[str, object]], ref: str, head: str) -> tuple[np.ndarray, np.ndarray]:
+def _relative(members: dict[str, dict[str, Image]], ref: str, head: str) -> tuple[np.ndarray, np.ndarray]:
     """Per exposure with both heads, the head's rotation from the reference head's frame ``(k, 3, 3)``
     (``R_head R_ref^T``) and its centre in that frame ``(k, 3)`` (``R_ref (C_head - C_ref)``)."""
     pairs = [(m[ref].pose_approx, m[head].pose_approx) for m in members.values() if ref in m and head in m]
