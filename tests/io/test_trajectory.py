@@ -34,6 +34,7 @@ def test_event_list_gives_every_head_its_orientation(tmp_path, penta_block):
         assert np.abs(got.pose_approx.C - img.pose_approx.C).max() < 1e-6
         assert rotation_angle(got.pose_approx.R, img.pose_approx.R) < 1e-9
         assert np.allclose(got.sigma_position, img.sigma_position)
+        assert np.allclose(got.sigma_attitude, img.sigma_attitude, rtol=1e-9)
     rig, nominal = back.rigs["system"], penta_block.rigs["penta"]
     assert [h.name for h in rig.heads] == [h.name for h in nominal.heads]
     assert all(np.allclose(h.sensor_from_rig, n.sensor_from_rig, atol=1e-15) and np.allclose(h.lever_arm, n.lever_arm)
@@ -138,3 +139,19 @@ def test_writer_refuses_what_an_event_list_cannot_carry(tmp_path, penta_block):
         write_block("gnssimu", renamed, tmp_path / "b.txt")
     assert e.value.field == "image_name"
     assert not list(tmp_path.iterdir())
+
+
+def test_imu_sigmas_turn_with_the_heading():
+    """The IMU's roll, pitch and heading sigmas are about the body's axes; the priors' about the world's: flown east
+    the roll is about X, flown north about Y, at 45 degrees roll and pitch share both; the heading stays about Z. The
+    writer's inverse recovers the body's sigmas where the heading keeps the axes apart."""
+    from oblique_city.core.geometry.rotations import world_from_body
+    from oblique_city.core.io.trajectory import body_attitude_sigmas, world_attitude_sigmas
+
+    body = np.array([0.004, 0.006, 0.010])
+    east = world_from_body(math.pi / 2, 0.0, 0.0)
+    assert np.allclose(world_attitude_sigmas(east, body), [0.004, 0.006, 0.010])
+    assert np.allclose(world_attitude_sigmas(world_from_body(0.0, 0.0, 0.0), body), [0.006, 0.004, 0.010])
+    diagonal = world_attitude_sigmas(world_from_body(math.pi / 4, 0.0, 0.0), body)
+    assert np.allclose(diagonal[:2], math.sqrt((0.004**2 + 0.006**2) / 2)) and diagonal[2] == pytest.approx(0.010)
+    assert np.allclose(body_attitude_sigmas(east, world_attitude_sigmas(east, body)), body)
