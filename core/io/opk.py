@@ -24,7 +24,7 @@ camera file), ``image_ext`` (appended to names to form file names when there is 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -119,7 +119,7 @@ def _optional(rec: dict[str, str], column: str) -> str | None:
     return None if v in ("", "-") else v
 
 
-@dataclass
+@dataclass(frozen=True)
 class ListFile:
     """What every text list reader (OPK lists, GNSS/IMU event lists) takes from its file, options and camera file:
     the file's ``path`` and ``lines``, its ``# key: value`` ``directives``, the camera file ``cams`` read from
@@ -189,7 +189,7 @@ class ListFile:
 
 
 def read_list(source: str, options: dict[str, Any], aliases: dict[str, str], required: tuple[str, ...],
-              default_columns: str, looks_like_header) -> ListFile:
+              default_columns: str, looks_like_header: Callable[[list[str], list[str] | None], bool]) -> ListFile:
     """The common part of a text list (see :class:`ListFile`); consumes the options ``comment``, ``cameras``,
     ``angles``, ``crs``, ``delimiter``, ``header``, ``columns`` and ``image_ext`` from ``options``."""
     path = Path(source)
