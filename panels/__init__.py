@@ -21,6 +21,7 @@ from ..addon import cameras, georef, jobs, layers_aerotri, layers_match, layers_
 from ..addon.properties import option_fields
 from ..core.errors import CityError
 from ..core.matching.manual import MANUAL_FILE, measurement_state, points_in_image
+from ..core.model.exposures import MISSING_EXPOSURES
 from ..core.pipeline.registry import get_stage, stage_names
 from ..core.pipeline.workspace import ADJUSTED_BLOCK_FILE, BLOCK_FILE, STATE_FILE, Workspace
 
@@ -128,8 +129,7 @@ class CITY_PT_block(CityPanel, bpy.types.Panel):
                 if s["exposures"]:
                     col.label(text=f"Exposures: {s['exposures']}, rigs: {s['rigs']}")
                 elif set(s["views"]) - {"nadir", "unoriented"}:
-                    col.label(text="No exposures: HAT starts the oblique images from the navigation data "
-                                   "(import with Exposures by time or name)", icon="INFO")
+                    col.label(text=MISSING_EXPOSURES, icon="INFO")
                 col.label(text=f"CRS: {s['crs'][:40]}")
         if georef.has_georef(scene):
             o = georef.get_origin(scene)

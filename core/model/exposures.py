@@ -230,6 +230,17 @@ def rig_fit(block: ImageBlock, rig: Rig) -> list[HeadFit]:
     return out
 
 
+MISSING_EXPOSURES = ("No exposures: HAT starts the oblique images from the navigation data (import with exposures "
+                     "by time or by name)")
+"""What the import and the Block panel say of a block with oblique images and no exposures."""
+
+
+def lacks_exposures(block: ImageBlock) -> bool:
+    """Whether the block has oblique images and no exposures (HAT cannot propagate the nadir corrections)."""
+    return (all(img.exposure is None for img in block.images.values())
+            and any(img.view not in (None, "nadir") for img in block.images.values()))
+
+
 def describe_system(block: ImageBlock) -> str:
     """One line on the block's exposures and rigs (with the worst head's fit), empty without exposures."""
     n = len({img.exposure for img in block.images.values() if img.exposure is not None})

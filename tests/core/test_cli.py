@@ -25,7 +25,8 @@ def test_new_import_run_status(utm_block, tmp_path, capsys, square) -> None:
     assert main(["new", str(ws), "--crs", "EPSG:32632"]) == 0
     write_block(utm_block, tmp_path / "b.json")
     assert main(["import", str(ws), str(tmp_path / "b.json"), "--format", "native"]) == 0
-    assert "imported 3 images" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "imported 3 images" in out and "No exposures: HAT starts the oblique images" in out  # two are oblique
     assert main(["run", str(ws), "--stages", "square", "--set", "square.factor=0.5"]) == 0
     assert Workspace.open(ws).project["stages"]["square"]["factor"] == 0.5
     out = capsys.readouterr().out
