@@ -89,7 +89,10 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
         "target_pattern": {"items": (("disc", "Disc", "A bright disc on a dark square, a disc or a bright square "
                                                       "alone"),
                                      ("checker", "Checkerboard", "A square in two by two fields, opposite ones "
-                                                                 "alike"))},
+                                                                 "alike"),
+                                     ("cross", "Cross", "Two bright bars crossing at the centre, reaching the "
+                                                        "square's half side from it"))},
+        "target_bar_half_m": {"min": 0.0, "description": "Half width of a cross's bars (m)"},
         "target_square_azimuth": {"description": "Direction of the squares' sides, degrees counterclockwise from the "
                                                  "grid's x axis, or 'estimate' (found in each image)"},
         "target_search_px": {"min": 0.0, "description": "Search radius around the predicted position (px)"},

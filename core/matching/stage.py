@@ -50,11 +50,12 @@ class MatchConfig:
     in an image that sees it; the imported ones are checked against the measured ones) or ``all`` (every point in
     every image, in place of the imported measurements); the targets are a bright disc of ``target_disc_radius_m``
     on a dark square of half side ``target_square_half_m`` (0: a disc alone; a disc of 0: a bright square alone),
-    or with ``target_pattern = checker`` a checkerboard square of that half side (the disc radius is not used), whose
-    sides lie at ``target_square_azimuth`` (degrees from the grid's x axis, counterclockwise, or ``estimate``, the
-    default: found in each image; on the demo, whose targets lie along the grid, both find the same 166 of the 171
-    in sight), searched up to ``target_search_px`` around the position the navigation data predict, kept
-    from a correlation of ``target_min_score``."""
+    or with ``target_pattern = checker`` a checkerboard square of that half side (the disc radius is not used), or
+    with ``target_pattern = cross`` a bright cross whose bars reach that far from the centre, ``target_bar_half_m``
+    wide on either side of their axes; the square's sides (the bars) lie at ``target_square_azimuth`` (degrees from
+    the grid's x axis, counterclockwise, or ``estimate``, the default: found in each image; on the demo, whose
+    targets lie along the grid, both find the same 166 of the 171 in sight), searched up to ``target_search_px``
+    around the position the navigation data predict, kept from a correlation of ``target_min_score``."""
 
     min_overlap: float = 0.2
     max_axis_angle_deg: float = 50.0
@@ -75,6 +76,7 @@ class MatchConfig:
     target_square_half_m: float = 0.8
     target_square_azimuth: str = "estimate"
     target_pattern: str = "disc"
+    target_bar_half_m: float = 0.15
     target_search_px: float = 20.0
     target_min_score: float = 0.9
 
@@ -89,8 +91,9 @@ def target_shape(cfg: MatchConfig) -> TargetShape:
         except ValueError:
             raise ConfigError(f"match.target_square_azimuth '{cfg.target_square_azimuth}' should be degrees or "
                               "'estimate'") from None
-    disc = 0.0 if cfg.target_pattern == "checker" else cfg.target_disc_radius_m
-    return TargetShape(disc, cfg.target_square_half_m, azimuth, cfg.target_pattern)
+    disc = 0.0 if cfg.target_pattern in ("checker", "cross") else cfg.target_disc_radius_m
+    bar = cfg.target_bar_half_m if cfg.target_pattern == "cross" else 0.0
+    return TargetShape(disc, cfg.target_square_half_m, azimuth, cfg.target_pattern, bar)
 
 
 def _ground_height(block, cfg: MatchConfig) -> float:

@@ -2,9 +2,9 @@
 
 A signalised target (:class:`TargetShape`) is a bright disc centred on a dark square laid on the ground (the usual
 panel target; the simulator's are a 0.5 m disc on a 1.6 m square, its sides along the grid), a bright disc alone, a
-bright square alone (painted on the asphalt) or a checkerboard square (two by two fields, measured at its crossing).
-A square may lie at any azimuth, given or estimated. For each ground
-point and each image where its projection from the approximate orientation falls inside the frame:
+bright square alone (painted on the asphalt), a checkerboard square (two by two fields, measured at its crossing)
+or a bright cross (two bars crossing at its centre). A square (a cross) may lie at any azimuth, given or estimated.
+For each ground point and each image where its projection from the approximate orientation falls inside the frame:
 
 1. the target is rendered as the image sees it from that orientation (:func:`render_target`): each pixel's shares
    of the square and of the disc (of a checkerboard: of two opposite fields), from the cut of its ray with the
@@ -14,9 +14,11 @@ point and each image where its projection from the approximate orientation falls
    data's prediction) over the pixels of the target and a two-pixel ring around it, and the best fit (multiple
    correlation, with the innermost element brighter than the ground) is taken;
 3. a square of unknown azimuth is turned there to the best fit of :data:`AZIMUTH_STEPS` (a square repeats every 90
-   degrees), refined by a parabola through the best and its neighbours;
+   degrees), then of five steps a quarter as wide around it, refined by a parabola through the best and its
+   neighbours;
 4. from there, least-squares template matching refines the shift (sub-pixel) with the levels, the target rendered
-   again at each shifted position (the ellipse an oblique view makes of the disc stays exact);
+   again at each shifted position (the ellipse an oblique view makes of the disc stays exact); an estimated azimuth
+   is estimated again at the sub-pixel position and the fit repeated;
 5. the measurement is the predicted position plus that shift, kept when the final correlation reaches
    ``min_score`` (an occluded or missing target does not) with the innermost element (the disc, or a square alone)
    brighter than what surrounds it (a square under a disc may be no darker than the asphalt under it; a
@@ -63,8 +65,9 @@ A square 7.5 degrees off (the most between two steps) lowers the fit's correlati
 disc on a square); the parabola through the best step and its neighbours comes closer."""
 
 
-PATTERNS = ("disc", "checker")
-"""Target patterns (:class:`TargetShape`): a disc on a square (or either alone), a checkerboard square."""
+PATTERNS = ("disc", "checker", "cross")
+"""Target patterns (:class:`TargetShape`): a disc on a square (or either alone), a checkerboard square, a bright
+cross."""
 
 
 @dataclass(frozen=True)
@@ -72,14 +75,16 @@ class TargetShape:
     """A target level on the ground. ``pattern`` ``disc``: a bright disc of ``disc_radius_m`` on a dark square of
     half side ``square_half_m``; without a square (``square_half_m = 0``) a bright disc on the ground, without a disc
     (``disc_radius_m = 0``) a bright square. ``checker``: a square of half side ``square_half_m`` in two by two
-    fields, opposite ones alike (no disc: ``disc_radius_m = 0``). ``square_azimuth_deg``: the direction of the
-    square's sides, degrees counterclockwise from the grid's x axis (east), or None when unknown (estimated in each
-    image)."""
+    fields, opposite ones alike (no disc: ``disc_radius_m = 0``). ``cross``: two bright bars crossing at the centre
+    along the square's axes, each reaching ``square_half_m`` from it and ``bar_half_m`` wide on either side of its
+    axis (no disc). ``square_azimuth_deg``: the direction of the square's sides (a cross's bars), degrees
+    counterclockwise from the grid's x axis (east), or None when unknown (estimated in each image)."""
 
     disc_radius_m: float = 0.5
     square_half_m: float = 0.8
     square_azimuth_deg: float | None = 0.0
     pattern: str = "disc"
+    bar_half_m: float = 0.0
 
     def __post_init__(self) -> None:
         ok = (self.disc_radius_m >= 0 and self.square_half_m >= 0 and max(self.disc_radius_m, self.square_half_m) > 0
@@ -88,16 +93,24 @@ class TargetShape:
             raise ConfigError(f"target shape: pattern '{self.pattern}' (use one of {', '.join(PATTERNS)})")
         if self.pattern == "checker":
             ok = self.square_half_m > 0 and self.disc_radius_m == 0
+        if self.pattern == "cross":
+            ok = self.square_half_m > self.bar_half_m > 0 and self.disc_radius_m == 0
+        elif self.bar_half_m != 0:
+            ok = False
         if not ok:
             raise ConfigError(f"target shape: disc radius {self.disc_radius_m} m, square half side "
-                              f"{self.square_half_m} m (a disc, a square or a disc inside a square; a checkerboard "
-                              "square without a disc)")
+                              f"{self.square_half_m} m, bar half width {self.bar_half_m} m (a disc, a square or a disc "
+                              "inside a square; a checkerboard square without a disc; a cross's bars narrower than "
+                              "they are long, without a disc)")
         if self.square_azimuth_deg is not None and not np.isfinite(self.square_azimuth_deg):
             raise ConfigError(f"target shape: square azimuth {self.square_azimuth_deg} is not a number")
 
     @property
     def columns(self) -> tuple[bool, bool]:
-        """Whether the grey-value model has a square level and an inner one (the disc, or a checkerboard's fields)."""
+        """Whether the grey-value model has a square level and an inner one (the disc, a checkerboard's fields or the
+        cross)."""
+        if self.pattern == "cross":
+            return False, True
         return self.square_half_m > 0, self.disc_radius_m > 0 or self.pattern == "checker"
 
 
@@ -119,7 +132,7 @@ def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: Ta
                   v: np.ndarray, azimuth_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The target as the image sees it at pixels ``u``, ``v`` (any equal shapes, floats): the shares of each pixel on
     the square and on the inner element, ``(square, inner)`` (zeros for an element the shape does not have): the disc,
-    or of a checkerboard the fields in the square's first and third quadrants. The square's sides lie at
+    of a checkerboard the fields in the square's first and third quadrants, or the cross. The square's sides lie at
     ``azimuth_deg`` (the shape's own when None; 0 when the shape's is unknown).
 
     A pixel's share of a shape is ``0.5 + s`` clipped to 0..1, with ``s`` the signed distance of the pixel's centre
@@ -127,7 +140,8 @@ def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: Ta
     ray's cut with the ground plane and its derivatives): an edge crossing a pixel covers it in proportion, and the
     shares change smoothly with the target's position, which the least-squares fit needs. The square's share is the
     product of its two sides' (exact but at the corners); a checkerboard field's, the product of the shares on the
-    two half-planes through the centre that bound it, within the square."""
+    two half-planes through the centre that bound it, within the square; a cross's, that of its two bars (each a
+    rectangle, as the square) less their overlap."""
     shp = np.shape(u)
     uv = np.column_stack([np.ravel(u), np.ravel(v)]).astype(np.float64)
     z = float(centre[2])
@@ -148,6 +162,14 @@ def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: Ta
     for ax in range(2):
         sign = np.sign(ga[:, ax])
         sides.append(share(shape.square_half_m - np.abs(ga[:, ax]), -sign * gua[:, ax], -sign * gva[:, ax]))
+    if shape.pattern == "cross":
+        bars = []
+        for ax in range(2):
+            sign = np.sign(ga[:, 1 - ax])
+            across = share(shape.bar_half_m - np.abs(ga[:, 1 - ax]), -sign * gua[:, 1 - ax], -sign * gva[:, 1 - ax])
+            bars.append(sides[ax] * across)  # the bar along this axis: within its length, within its width
+        cross = bars[0] + bars[1] - bars[0] * bars[1]
+        return np.zeros(shp), np.nan_to_num(cross).reshape(shp)
     square = sides[0] * sides[1] if shape.square_half_m > 0 else np.zeros(len(g))
     if shape.pattern == "checker":
         half_x, half_y = (share(ga[:, ax], gua[:, ax], gva[:, ax]) for ax in range(2))  # shares on x >= 0, y >= 0
@@ -242,10 +264,10 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
     # a square of unknown azimuth is searched over its inscribed circle (the part every azimuth covers), so that a
     # target near the border is not lost to the corners a wrong azimuth puts beyond it
     u, v = support(circle_m=shape.square_half_m if unknown else None)
-    # integer search: how well the grey-value model fits (multiple correlation) at every shift; a checkerboard of
-    # unknown azimuth at each azimuth step (its fields at the wrong azimuth do not correlate), other shapes at 0 (the
-    # disc or the square's bulk finds them at any azimuth)
-    turned = shape.pattern == "checker" and shape.square_azimuth_deg is None
+    # integer search: how well the grey-value model fits (multiple correlation) at every shift; a checkerboard or a
+    # cross of unknown azimuth at each azimuth step (its fields or bars at the wrong azimuth do not correlate), other
+    # shapes at 0 (the disc or the square's bulk finds them at any azimuth)
+    turned = shape.pattern in ("checker", "cross") and shape.square_azimuth_deg is None
     azimuths = [k * 90.0 / AZIMUTH_STEPS for k in range(AZIMUTH_STEPS)] if turned else [shape.square_azimuth_deg or 0.0]
     iy, ix = v.astype(int) - y0, u.astype(int) - x0
     shifts = base + np.array([(dx, dy) for dy in range(-s, s + 1) for dx in range(-s, s + 1)])
@@ -295,14 +317,19 @@ def measure_target(grey: np.ndarray, camera: CameraModel, pose: Pose, centre: np
         jac = np.column_stack([(au - a0) @ c / eps, (av - a0) @ c / eps, a0])
         return obs - a0 @ c, jac, c
 
-    for _ in range(iterations):
-        res, jac, _ = model(d)
-        step = np.linalg.lstsq(jac, res, rcond=None)[0]
-        d += step[:2]
-        if np.abs(d - shift).max() > 1.5:
-            return None
-        if np.abs(step[:2]).max() < 1e-3:
-            break
+    # an azimuth estimated at the whole-pixel shift is estimated again at the sub-pixel position the fit reaches (a
+    # thin bar half a pixel off turns the azimuth that fits best), and the fit runs again from there
+    for rnd in range(2 if unknown else 1):
+        if rnd:
+            azimuth = _best_azimuth(camera, pose, centre, shape, su - d[0], sv - d[1], obs)
+        for _ in range(iterations):
+            res, jac, _ = model(d)
+            step = np.linalg.lstsq(jac, res, rcond=None)[0]
+            d += step[:2]
+            if np.abs(d - shift).max() > 1.5:
+                return None
+            if np.abs(step[:2]).max() < 1e-3:
+                break
     res, jac, c = model(d)
     if not _brighter_inside(c, shape):
         return None
@@ -323,19 +350,26 @@ def _best_azimuth(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: Ta
                   v: np.ndarray, obs: np.ndarray) -> float:
     """The square's azimuth (degrees, 0 to 90) that best fits the grey values ``obs (n,)`` of the target's pixels at
     the prediction ``u``, ``v`` ``(n,)`` (taken from the image at the best whole-pixel shift): the best of
-    :data:`AZIMUTH_STEPS`, then the vertex of the parabola through it and its neighbours (the steps repeat after 90
-    degrees)."""
-    step = 90.0 / AZIMUTH_STEPS
-    fits = []
-    for k in range(AZIMUTH_STEPS):
-        a = _design(camera, pose, centre, shape, u, v, k * step)
+    :data:`AZIMUTH_STEPS`, then the best of five steps a quarter as wide around it, then the vertex of the parabola
+    through that and its neighbours (the steps repeat after 90 degrees). The finer steps serve the shapes whose fit
+    falls off within a step (a cross's bars: their width over their length)."""
+
+    def misfit(az: float) -> float:
+        a = _design(camera, pose, centre, shape, u, v, az)
         res = obs - a @ np.linalg.lstsq(a, obs, rcond=None)[0]
-        fits.append(float(res @ res))
-    k = int(np.argmin(fits))
-    lo, mid, hi = fits[k - 1], fits[k], fits[(k + 1) % AZIMUTH_STEPS]
+        return float(res @ res)
+
+    step = 90.0 / AZIMUTH_STEPS
+    coarse = [misfit(k * step) for k in range(AZIMUTH_STEPS)]
+    best = int(np.argmin(coarse)) * step
+    fine = step / 4.0
+    offsets = fine * np.arange(-2, 3)
+    fits = [misfit(best + o) for o in offsets]
+    k = int(np.clip(np.argmin(fits), 1, len(fits) - 2))
+    lo, mid, hi = fits[k - 1], fits[k], fits[k + 1]
     curve = lo - 2 * mid + hi
     offset = 0.5 * (lo - hi) / curve if curve > 0 else 0.0
-    return (k + float(np.clip(offset, -0.5, 0.5))) * step
+    return float((best + offsets[k] + float(np.clip(offset, -1.0, 1.0)) * fine) % 90.0)
 
 
 def _measure_image(item: tuple) -> list[TargetMeasurement | None]:
@@ -370,7 +404,7 @@ def measure_targets(block: ImageBlock, read_grey: Callable[[str], np.ndarray], m
     record: dict = {"mode": mode, "shape": {"disc_radius_m": shape.disc_radius_m,
                                             "square_half_m": shape.square_half_m,
                                             "square_azimuth_deg": shape.square_azimuth_deg,
-                                            "pattern": shape.pattern},
+                                            "pattern": shape.pattern, "bar_half_m": shape.bar_half_m},
                     "search_px": search_px, "min_score": min_score,
                     "points": {name: {"kind": gp.kind, "imported": sorted(gp.observations), "measured": {},
                                       "missed": []} for name, gp in points.items()}}
