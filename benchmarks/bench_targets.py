@@ -74,8 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     ws = Workspace.open(args.workspace)
     block = ws.load_block(adjusted=False)
     truth = load_truth(Path(args.truth) if args.truth else Path(block.image_root or ".") / "truth")
-    shape = TargetShape(args.disc_radius, args.square_half,
-                        None if args.square_azimuth == "estimate" else float(args.square_azimuth))
+    azimuth = None if args.square_azimuth == "estimate" else float(args.square_azimuth)
+    if truth.targets.get("pattern", "disc") == "cross":  # the simulation's own cross (oblique-city simulate --targets)
+        shape = TargetShape(0.0, float(truth.targets["square_half"]), azimuth, "cross",
+                            float(truth.targets["bar_half"]))
+    else:
+        shape = TargetShape(args.disc_radius, args.square_half, azimuth)
     centres = truth.targets["targets"]  # the targets' true centres (the given coordinates carry survey errors)
     if truth.targets.get("crs") != block.crs:
         raise SystemExit(f"the truth's targets are in {truth.targets.get('crs')}, the block in {block.crs}")

@@ -668,6 +668,8 @@ class City:
     trees : (k, 5) local x, y, ground z, crown radius, total height
     targets : (t, 3) float64 world centres of the signalised ground targets (painted discs)
     target_names : their names
+    target_pattern : ``disc`` (a white disc on a black square) or ``cross`` (two white bars, :data:`TARGET_BAR` wide
+        on either side of their axes, reaching :data:`TARGET_HALF` from the centre, along the grid)
     core : (4,) world bbox (xmin, ymin, xmax, ymax) of the built-up area
     extent : (4,) world bbox of the terrain
     seed : the seed it was built from
@@ -691,11 +693,14 @@ class City:
     core: np.ndarray
     extent: np.ndarray
     seed: int = 0
+    target_pattern: str = "disc"
     _scene: object = field(default=None, repr=False)
 
     TARGET_RADIUS = 0.5
     """Radius of the white disc of a signalised target, metres (on a 1.6 m black square)."""
     TARGET_HALF = 0.8
+    TARGET_BAR = 0.15
+    """Half width of a cross target's bars, metres."""
 
     def __getstate__(self) -> dict:
         """Pickle without the Open3D scene (rebuilt on demand in the receiving process)."""

@@ -15,7 +15,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     cfg = SimulationConfig()
     over = {"system": "penta" if args.preset == "default" else args.preset, "seed": args.seed,
-            "workers": args.workers, "depth_maps": args.depth, "image_format": args.image_format}
+            "workers": args.workers, "depth_maps": args.depth, "image_format": args.image_format,
+            "target_pattern": args.targets}
     if args.gsd is not None:
         over["gsd"] = args.gsd
     if args.size is not None:
@@ -57,5 +58,7 @@ def add_commands(subparsers) -> None:
     s.add_argument("--depth", action="store_true", help="also write per-image depth maps to truth/depth")
     s.add_argument("--workers", type=int, default=2, help="rendering processes")
     s.add_argument("--image-format", choices=("jpg", "png"), default="jpg")
+    s.add_argument("--targets", choices=("disc", "cross"), default="disc",
+                   help="signalised targets: a white disc on a black square, or a white cross")
     s.add_argument("--json-progress", action="store_true", help="progress as JSON lines on stdout")
     s.set_defaults(func=cmd_simulate)

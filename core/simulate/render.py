@@ -366,7 +366,7 @@ class Renderer:
 
     def _paint_targets(self, tri: np.ndarray, p: np.ndarray, fp: np.ndarray, out: np.ndarray) -> None:
         """Signalised targets: a 1.6 m black square with a white disc of radius ``City.TARGET_RADIUS`` on the
-        ground, drawn with exact edge coverage."""
+        ground, or a white cross (``City.target_pattern``), drawn with exact edge coverage."""
         if self.target_tree is None:
             return
         cell = np.floor((p[:, :2] - self._tg0) / 2.0).astype(np.int64)
@@ -393,6 +393,13 @@ class Renderer:
             return
         rel = p[g, :2] - self.targets_local[idx]
         f = np.maximum(fp[g], 1e-3)
+        if self.city.target_pattern == "cross":
+            length = [np.clip(0.5 + (half - np.abs(rel[:, k])) / f, 0, 1) for k in (0, 1)]
+            width = [np.clip(0.5 + (self.city.TARGET_BAR - np.abs(rel[:, k])) / f, 0, 1) for k in (0, 1)]
+            bar_x, bar_y = length[0] * width[1], length[1] * width[0]
+            cover = bar_x + bar_y - bar_x * bar_y
+            out[g] = out[g] * (1 - cover[:, None]) + 0.85 * cover[:, None]
+            return
         sq = np.clip(0.5 + (half - np.abs(rel[:, 0])) / f, 0, 1) * np.clip(0.5 + (half - np.abs(rel[:, 1])) / f, 0, 1)
         disc = np.clip(0.5 + (self.city.TARGET_RADIUS - dist) / f, 0, 1)
         target = (0.03 + 0.82 * disc)[:, None] * np.ones(3)

@@ -32,7 +32,7 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +72,7 @@ class SimulationConfig:
     height in ``extend_along_h`` / ``extend_across_h``)
     depth_maps : also write per-image depth maps to truth/depth; truth_cell : GT raster cell (m)
     workers : rendering processes; image_format : jpg or png
+    target_pattern : the signalised targets, ``disc`` (a white disc on a black square) or ``cross`` (white bars)
     """
 
     system: str = "penta"
@@ -91,6 +92,7 @@ class SimulationConfig:
     workers: int = 2
     image_format: str = "jpg"
     jpeg_quality: int = 93
+    target_pattern: str = "disc"
     nav: NavErrors = field(default_factory=NavErrors)
     render: RenderConfig = field(default_factory=RenderConfig)
 
@@ -182,6 +184,9 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     city = city if city is not None else make_city(cfg.seed)
+    if cfg.target_pattern not in ("disc", "cross"):
+        raise ConfigError(f"target_pattern '{cfg.target_pattern}' (use disc or cross)")
+    city = replace(city, target_pattern=cfg.target_pattern)
     system = camera_system(cfg)
     ground_z = float(np.nanmean(city.terrain_z(city.core.reshape(2, 2))))
     h = flying_height(system, cfg.gsd)

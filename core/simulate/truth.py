@@ -90,6 +90,7 @@ def write_truth(folder: str | Path, city: City, true_block: ImageBlock, bbox: np
     write_json(folder / "windows.json", {"crs": city.crs, "windows": [
         {**w, "corners": w["corners"].tolist(), "normal": w["normal"].tolist()} for w in city.all_windows()]})
     write_json(folder / "targets.json", {"crs": city.crs, "radius": city.TARGET_RADIUS, "square_half": city.TARGET_HALF,
+                                         "pattern": city.target_pattern, "bar_half": city.TARGET_BAR,
                                          "targets": {n: xyz.tolist() for n, xyz in zip(city.target_names, city.targets,
                                                                                         strict=True)}})
     write_json(folder / "simulation.json", config)

@@ -24,17 +24,19 @@ CAMERA = CameraModel(id="c", width=600, height=450, fx=6500.0, fy=6500.0, cx=299
 """A small frame at the demo's nadir scale: 0.15 m a pixel from 1,000 m, the 0.5 m disc 3.3 pixels across."""
 
 
-@pytest.fixture(scope="module")
-def views():
-    """Per target of the city's first six: a nadir view from 1,000 m and a 45-degree view from 1,400 m (random
-    azimuth), rendered from the true orientation, the approximate one (0.03 deg, 0.08 m off, as the demo's navigation
-    data with the heads' boresight errors), and whether the target's centre is in sight (ray cast)."""
+def render_views(pattern: str = "disc") -> list[tuple]:
+    """Per target of the city's first six (painted as ``pattern``): a nadir view from 1,000 m and a 45-degree view
+    from 1,400 m (random azimuth), rendered from the true orientation, the approximate one (0.03 deg, 0.08 m off, as
+    the demo's navigation data with the heads' boresight errors), and whether the target's centre is in sight (ray
+    cast)."""
+    from dataclasses import replace
+
     import open3d as o3d
 
     from oblique_city.core.simulate.city import make_city
     from oblique_city.core.simulate.render import Renderer
 
-    city = make_city(0)
+    city = replace(make_city(0), target_pattern=pattern)
     renderer = Renderer(city)
     scene = city.scene()
     rng = np.random.default_rng(1)
@@ -56,6 +58,12 @@ def views():
             seen = scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0] > np.linalg.norm(d) - 0.05
             out.append((xyz, tilt, pose, approx, grey, bool(seen)))
     return out
+
+
+@pytest.fixture(scope="module")
+def views():
+    """:func:`render_views` of the city's discs on squares."""
+    return render_views()
 
 
 def test_targets_are_measured_to_a_tenth_of_a_pixel_from_the_navigation_data(views):
@@ -82,6 +90,28 @@ def test_targets_are_measured_to_a_tenth_of_a_pixel_from_the_navigation_data(vie
     far = [(xyz, approx, grey) for xyz, _, pose, approx, grey, visible in views if visible
            and np.linalg.norm(project(CAMERA, approx, xyz[None])[0] - project(CAMERA, pose, xyz[None])[0]) > 5]
     assert far and all(measure_target(grey, CAMERA, approx, xyz, search_px=2) is None for xyz, approx, grey in far)
+
+
+def test_rendered_cross_targets_are_measured_to_a_tenth_of_a_pixel():
+    """The same views of the city painted with white crosses (bars 0.3 m wide, 1.6 m long, along the grid): from the
+    approximate orientations with the azimuth unknown, every target in sight is found (measured: all 11) near its
+    true projection (measured: RMS 0.05 px, worst 0.11 px) with the bars' azimuth near the grid's (measured: 1.7
+    degrees at most, 0.6 typical); the one out of sight is not. The test takes 9 found, each within 0.2 px, an RMS
+    within 0.1 px, the azimuth within 2.5 degrees."""
+    shape = TargetShape(0.0, 0.8, None, "cross", 0.15)
+    errors, seen = [], 0
+    for xyz, _, pose, approx, grey, visible in render_views("cross"):
+        m = measure_target(grey, CAMERA, approx, xyz, shape)
+        seen += visible
+        if not visible:
+            assert m is None
+            continue
+        if m is not None:
+            errors.append(m.uv - project(CAMERA, pose, xyz[None])[0][0])
+            assert m.score > 0.9 and abs((m.azimuth_deg + 45.0) % 90.0 - 45.0) < 2.5, m
+    errors = np.array(errors)
+    assert len(errors) >= 9 and seen >= 10
+    assert np.abs(errors).max() < 0.2 and np.sqrt(np.mean(np.sum(errors**2, 1))) < 0.1
 
 
 def test_measure_targets_keeps_imported_measurements_as_asked_and_apply_refuses_bad_records(views):

@@ -34,6 +34,7 @@ def test_outputs_and_import_path(small):
     block = read_block("bex", out / "block.xml", image_root=str(out), check_images=True)
     truth = load_truth(out)
     assert set(block.images) == set(truth.block.images)
+    assert truth.targets["pattern"] == "disc" and truth.targets["square_half"] == 0.8
     assert len(block.ground_points) == len(truth.targets["targets"])
     # approximate poses are close to the truth but not equal (GNSS/IMU errors, boresight, lever arm)
     e = pose_errors(block, truth.block, adjusted=False)["summary"]["all"]
