@@ -86,7 +86,7 @@ def cmd_new(args: argparse.Namespace) -> int:
 def cmd_import(args: argparse.Namespace) -> int:
     from .geometry.crs import normalize_crs
     from .io.formats import read_block
-    from .model.exposures import MISSING_EXPOSURES, describe_system, lacks_exposures
+    from .model.exposures import MISSING_EXPOSURES, describe_system, oblique_without_nadir
     from .pipeline import Workspace
 
     block = read_block(args.format, args.source, **parse_options(args.option))
@@ -105,7 +105,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     system = describe_system(block)
     if system:
         print(system)
-    elif lacks_exposures(block):
+    elif oblique_without_nadir(block):
         print(MISSING_EXPOSURES)
     return 0
 

@@ -232,10 +232,10 @@ def _add_rig_pairs(block: ImageBlock, image_ids: list[str], prob: BundleProblem)
             rig_name, ref_name, hj = heads[name]
             if name == ref_name or ref_name not in members:
                 continue
-            hi = heads[ref_name][2]
+            rot, offset = hj.relative_to(heads[ref_name][2])
             pairs.append((members[ref_name], j))
-            rots.append(hi.sensor_from_rig @ hj.sensor_from_rig.T)
-            trans.append(hi.sensor_from_rig @ (hj.lever_arm - hi.lever_arm))
+            rots.append(rot.T)
+            trans.append(offset)
     if pairs:
         prob.rig_pairs = np.array(pairs, np.int64)
         prob.rig_r = np.array(rots)

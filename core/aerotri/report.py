@@ -289,7 +289,7 @@ def boresight(block: ImageBlock, poses: dict) -> dict:
             for heads in by_exp.values():
                 if ref.name in heads and h.name in heads:
                     rel = poses[heads[h.name]].R @ poses[heads[ref.name]].R.T
-                    nominal = h.sensor_from_rig @ ref.sensor_from_rig.T
+                    nominal = h.relative_to(ref)[0]
                     vecs.append(matrix_to_rotvec(rel @ nominal.T))
             if vecs:
                 vecs = np.array(vecs)

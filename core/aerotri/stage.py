@@ -20,6 +20,7 @@ from ..errors import ConfigError, WorkspaceError
 from ..matching.manual import MANUAL_FILE, apply_measurements
 from ..matching.targets import target_summary
 from ..model import CameraModel, ImageBlock, TiePoints
+from ..model.exposures import oblique_without_nadir
 from ..pipeline.atomic import write_json, write_text
 from ..pipeline.stage import Stage, StageResult
 from .bundle import CALIBRATION_GROUPS, GNSS_STRIP_MODES, LINEAR_SOLVERS, BundleOptions
@@ -249,14 +250,6 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                    "the navigation data, not the nadir run's corrections (import the exposures: -o exposures=time "
                    "or -o exposures=name)" if unpaired else ""))
 
-
-def oblique_without_nadir(block: ImageBlock) -> int:
-    """The oriented oblique images without an oriented nadir image in their exposure (none given counts): HAT
-    cannot propagate the nadir run's correction to them (:func:`.hierarchical.nadir_propagation`)."""
-    nadir = {img.exposure for img in block.images.values()
-             if img.exposure is not None and img.pose_approx is not None and img.view == "nadir"}
-    return sum(1 for img in block.images.values()
-               if img.pose_approx is not None and img.view != "nadir" and img.exposure not in nadir)
 
 
 def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:

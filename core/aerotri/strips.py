@@ -105,16 +105,13 @@ def flight_strips(block: ImageBlock) -> Strips:
     if not by_exposure:
         return Strips((), {}, {})
     keys = list(by_exposure)
+    centre = np.array([np.mean([block.images[i].pose_approx.C for i in by_exposure[key]], axis=0) for key in keys])
     times = [[block.images[i].time for i in by_exposure[key]] for key in keys]
     if len(keys) > 1 and all(t is not None for ts in times for t in ts):
-        return _strips_by_time(keys, by_exposure, np.array([np.mean(ts) for ts in times]),
-                               np.array([np.mean([block.images[i].pose_approx.C for i in by_exposure[key]], axis=0)
-                                         for key in keys]))
-    centre = np.zeros((len(keys), 3))
+        return _strips_by_time(keys, by_exposure, np.array([np.mean(ts) for ts in times]), centre)
     heading = np.zeros(len(keys))
     for e, key in enumerate(keys):
         poses = [block.images[i].pose_approx for i in by_exposure[key]]
-        centre[e] = np.mean([p.C for p in poses], axis=0)
         # the heading of a head that looks down (the nadir one when the exposure has it): the top of its image
         down = [p for p in poses if cardinal_view(p.R) == "nadir"] or [min(poses, key=lambda p: p.R[2, 2])]
         up = -down[0].R[1]

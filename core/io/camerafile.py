@@ -89,13 +89,13 @@ class CameraFile:
                          path=source, line=line, field="camera")
 
 
-def _line_of(lines: list[str], cam_id: str, key: str) -> int | None:
-    """Best-effort 1-based line of ``key`` inside the table/object of camera ``cam_id``."""
+def _line_of(lines: list[str], cam_id: str, key: str, table: str = "cameras") -> int | None:
+    """Best-effort 1-based line of ``key`` inside the table/object ``cam_id`` of ``table`` (``cameras``, ``heads``)."""
     start = None
     for i, text in enumerate(lines):
         s = text.strip()
-        if start is None and (re.match(rf"^\[\s*cameras\.\"?{re.escape(cam_id)}\"?\s*\]", s)
-                              or s.startswith(f'"{cam_id}"') or s == "[camera]"):
+        if start is None and (re.match(rf"^\[\s*{table}\.\"?{re.escape(cam_id)}\"?\s*\]", s)
+                              or s.startswith(f'"{cam_id}"') or (table == "cameras" and s == "[camera]")):
             start = i
         elif start is not None and re.match(rf'^"?{re.escape(key)}"?\s*[=:]', s):
             return i + 1
@@ -202,12 +202,7 @@ def _head(name: str, d: Any, cams: dict[str, CameraModel], path: Path, lines: li
     fld = f"heads.{name}"
 
     def line_of(key: str) -> int | None:
-        start = next((i for i, t in enumerate(lines) if re.match(rf"^\[\s*heads\.\"?{re.escape(name)}\"?\s*\]",
-                                                                   t.strip())), None)
-        if start is None:
-            return None
-        return next((i + 1 for i in range(start, len(lines)) if re.match(rf"^{key}\s*=", lines[i].strip())),
-                    start + 1)
+        return _line_of(lines, name, key, "heads")
 
     def numbers(key: str, shape: tuple[int, ...], default: Any = None) -> np.ndarray | None:
         if key not in d:

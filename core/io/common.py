@@ -27,7 +27,7 @@ from typing import Any
 
 from ..errors import InputError
 from ..model import ImageBlock
-from ..model.exposures import EXPOSURE_MODES, assign_exposures, estimate_rig
+from ..model.exposures import assign_exposures, estimate_rig, image_head
 from .gcp import merge_ground_points, merge_measurements, read_ground_points, read_measurements
 from .validate import check_block, check_image_files, parse_bool, parse_float, reject_unknown
 
@@ -71,9 +71,6 @@ def finish_block(block: ImageBlock, source: str | Path, options: dict[str, Any],
                "origin": opts.pop("measurement_origin", "center")}
     sigma_px = opts.pop("sigma_px", None)
     exposures = str(opts.pop("exposures", "given")).lower()
-    if exposures not in EXPOSURE_MODES:
-        raise InputError(f"exposures must be one of {', '.join(EXPOSURE_MODES)}, got '{exposures}'", path=source,
-                         field="exposures")
     pattern = opts.pop("exposure_pattern", None)
     tolerance = parse_float(opts.pop("exposure_tolerance", 0.01), source, None, "exposure_tolerance")
     rig = str(opts.pop("rig", "auto")).lower()
@@ -84,8 +81,8 @@ def finish_block(block: ImageBlock, source: str | Path, options: dict[str, Any],
     if exposures != "given":
         assign_exposures(block, exposures, None if pattern is None else str(pattern), tolerance, source, lines)
     for img in block.images.values():
-        if img.exposure is not None and img.head is None:
-            img.head = img.camera_id  # each head of a camera system has its own calibration
+        if img.exposure is not None:
+            img.head = image_head(img)
     if rig == "auto" and not block.rigs and len({img.head for img in block.images.values()
                                                  if img.exposure is not None}) >= 2:
         try:

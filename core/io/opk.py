@@ -24,7 +24,7 @@ camera file), ``image_ext`` (appended to names to form file names when there is 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -100,20 +100,7 @@ def _default_camera_file(source: Path) -> Path | None:
     return None
 
 
-def _is_header(fields: list[str], columns: list[str] | None) -> bool:
-    """A row is a header when its coordinate fields are not numbers."""
-    idx = [1, 2, 3] if columns is None else [i for i, c in enumerate(columns) if c in ("x", "y", "z")]
-    for i in idx:
-        if i >= len(fields):
-            return True
-        try:
-            float(fields[i])
-        except ValueError:
-            return True
-    return False
-
-
-def _optional(rec: dict[str, str], column: str) -> str | None:
+def optional_field(rec: dict[str, str], column: str) -> str | None:
     """An optional column's value (None where the column is missing, ``-`` or empty)."""
     v = rec.get(column, "").strip()
     return None if v in ("", "-") else v
@@ -189,9 +176,11 @@ class ListFile:
 
 
 def read_list(source: str, options: dict[str, Any], aliases: dict[str, str], required: tuple[str, ...],
-              default_columns: str, looks_like_header: Callable[[list[str], list[str] | None], bool]) -> ListFile:
+              default_columns: str, numeric: tuple[str, ...]) -> ListFile:
     """The common part of a text list (see :class:`ListFile`); consumes the options ``comment``, ``cameras``,
-    ``angles``, ``crs``, ``delimiter``, ``header``, ``columns`` and ``image_ext`` from ``options``."""
+    ``angles``, ``crs``, ``delimiter``, ``header``, ``columns`` and ``image_ext`` from ``options``. Without the
+    ``header`` option the first row is a header when its ``numeric`` columns (by the ``columns`` option, else by
+    ``default_columns``) are not numbers."""
     path = Path(source)
     comment = str(options.pop("comment", "#"))
     lines = read_text_lines(path)
@@ -235,6 +224,15 @@ def read_list(source: str, options: dict[str, Any], aliases: dict[str, str], req
     if sep_opt is None:
         sep = sniff_delimiter([t for _, t in rows[1:] or rows])
 
+    def looks_like_header(fields: list[str], cols: list[str] | None) -> bool:
+        names = cols if cols is not None else default_columns.split(",")
+        try:
+            for i in (i for i, c in enumerate(names) if c in numeric):
+                float(fields[i])
+        except (ValueError, IndexError):
+            return True
+        return False
+
     columns = None if col_opt is None else parse_columns(col_opt, aliases, required, path)
     columns, rows = table_columns(rows, sep, columns, header, looks_like_header, aliases, required, default_columns,
                                   path)
@@ -243,7 +241,7 @@ def read_list(source: str, options: dict[str, Any], aliases: dict[str, str], req
 
 def read_opk(source: str, **options: Any) -> ImageBlock:
     """Read an OPK list and its camera file into an :class:`ImageBlock` (poses as ``pose_approx``)."""
-    lf = read_list(source, options, COLUMN_ALIASES, REQUIRED, DEFAULT_COLUMNS, _is_header)
+    lf = read_list(source, options, COLUMN_ALIASES, REQUIRED, DEFAULT_COLUMNS, ("x", "y", "z"))
     path, cams, cam_path, unit, crs = lf.path, lf.cams, lf.cam_path, lf.unit, lf.crs
     lf.check_sigma_columns(("sx", "sy", "sz"), ("somega", "sphi", "skappa"))
     block = ImageBlock(crs=crs)
@@ -261,7 +259,7 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
                              f"{', '.join(block.cameras)})", path=path, line=line_no, field="camera")
         sig_pos = lf.sigmas(rec, ("sx", "sy", "sz"), line_no, False)
         sig_att = lf.sigmas(rec, ("somega", "sphi", "skappa"), line_no, True)
-        exposure, head, time = (_optional(rec, c) for c in ("exposure", "head", "time"))
+        exposure, head, time = (optional_field(rec, c) for c in ("exposure", "head", "time"))
         block.add_image(Image(id=name, camera_id=cam_id, file=rec.get("file") or name + lf.image_ext,
                               head=head, exposure=exposure,
                               time=None if time is None else parse_float(time, path, line_no, "time"),

@@ -43,11 +43,11 @@ import numpy as np
 from ..errors import InputError
 from ..geometry.crs import crs_transformer, parse_crs, transform_points
 from ..geometry.rotations import cam_from_world_to_ypr, from_radians, rotation_angle, to_radians, world_from_body
-from ..model import Image, ImageBlock, Pose, Rig
+from ..model import Image, ImageBlock, Rig
 from ..pipeline.atomic import write_text
 from .camerafile import write_camera_file
 from .common import finish_block
-from .opk import read_list
+from .opk import optional_field, read_list
 from .validate import angle_unit, parse_float, reject_unknown
 from .validate import delimiter as parse_delimiter
 
@@ -71,17 +71,6 @@ NAME_TEMPLATES = ("{exposure}_{head}", "{exposure}-{head}", "{exposure}{head}", 
 RIG_TOLERANCE = (1e-3, 1e-5)
 """Metres and radians: the most a head's orientation may differ from its exposure's reference head through the rig
 for the writer (an event list carries one orientation per exposure)."""
-
-
-def _is_header(fields: list[str], columns: list[str] | None) -> bool:
-    """A row is a header when its roll, pitch and heading fields (the last three by default) are not numbers."""
-    idx = [-3, -2, -1] if columns is None else [i for i, c in enumerate(columns) if c in ("roll", "pitch", "heading")]
-    try:
-        for i in idx:
-            float(fields[i])
-    except (ValueError, IndexError):
-        return True
-    return False
 
 
 def true_north_angles(xyz: np.ndarray, crs: str) -> np.ndarray:
@@ -119,7 +108,7 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
     name_opt = options.pop("image_name", None)
     file_opt = options.pop("image_file", None)
     heading_opt = options.pop("heading", None)
-    lf = read_list(source, options, COLUMN_ALIASES, REQUIRED, DEFAULT_COLUMNS, _is_header)
+    lf = read_list(source, options, COLUMN_ALIASES, REQUIRED, DEFAULT_COLUMNS, ("roll", "pitch", "heading"))
     name_line = None
     if name_opt is None and "image_name" in lf.directives:
         name_opt, name_line = lf.directives["image_name"]
@@ -157,7 +146,8 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
     for line_no, rec in lf.records("exposure", "exposure"):
         pos = [parse_float(rec[c], path, line_no, c) for c in need]
         att = [to_radians(parse_float(rec[c], path, line_no, c), lf.unit) for c in ("roll", "pitch", "heading")]
-        t = None if rec.get("time", "-").strip() in ("", "-") else parse_float(rec["time"], path, line_no, "time")
+        t = optional_field(rec, "time")
+        t = None if t is None else parse_float(t, path, line_no, "time")
         records.append((line_no, rec["exposure"], pos, att, t, lf.sigmas(rec, ("sx", "sy", "sz"), line_no, False),
                         lf.sigmas(rec, ("sroll", "spitch", "sheading"), line_no, True)))
     xyz = np.array([r[2] for r in records], np.float64)
@@ -182,7 +172,7 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
             lines[iid] = line_no
             file = file_fmt.format(exposure=ex, head=h.name, image=iid) + lf.image_ext
             block.add_image(Image(id=iid, camera_id=h.camera_id, file=file, head=h.name, exposure=ex,
-                                  time=t, pose_approx=Pose(h.sensor_from_rig @ wfb.T, xyz[k] + wfb @ h.lever_arm),
+                                  time=t, pose_approx=h.image_pose(wfb, xyz[k]),
                                   sigma_position=None if s_pos is None else s_pos.copy(),
                                   sigma_attitude=None if s_att is None else world_attitude_sigmas(wfb, s_att)))
     lf.image_root(block, options)
@@ -239,9 +229,9 @@ def write_gnssimu(block: ImageBlock, dest: str, angles: str = "deg", delimiter: 
         wfb = img.pose.R.T @ h.sensor_from_rig
         body = img.pose.C - wfb @ h.lever_arm
         for other in imgs:
-            o = heads[other.head]
-            dc = float(np.linalg.norm(other.pose.C - body - wfb @ o.lever_arm))
-            da = rotation_angle(other.pose.R, o.sensor_from_rig @ wfb.T)
+            there = heads[other.head].image_pose(wfb, body)
+            dc = float(np.linalg.norm(other.pose.C - there.C))
+            da = rotation_angle(other.pose.R, there.R)
             if dc > RIG_TOLERANCE[0] or da > RIG_TOLERANCE[1]:
                 raise InputError(f"image '{other.id}' is {dc:.4f} m and {np.degrees(da):.5f} deg from where the rig "
                                  f"puts it from '{img.id}': an event list holds one orientation per exposure (an "

@@ -158,16 +158,16 @@ def render_target(camera: CameraModel, pose: Pose, centre: np.ndarray, shape: Ta
     az = np.radians(azimuth_deg if azimuth_deg is not None else shape.square_azimuth_deg or 0.0)
     turn = np.array([[np.cos(az), np.sin(az)], [-np.sin(az), np.cos(az)]])  # grid -> the square's axes
     ga, gua, gva = g @ turn.T, gu @ turn.T, gv @ turn.T
-    sides = []
-    for ax in range(2):
+
+    def band(half: float, ax: int) -> np.ndarray:
+        """Share within ``half`` of the centre along the square's axis ``ax``."""
         sign = np.sign(ga[:, ax])
-        sides.append(share(shape.square_half_m - np.abs(ga[:, ax]), -sign * gua[:, ax], -sign * gva[:, ax]))
+        return share(half - np.abs(ga[:, ax]), -sign * gua[:, ax], -sign * gva[:, ax])
+
+    sides = [band(shape.square_half_m, ax) for ax in range(2)]
     if shape.pattern == "cross":
-        bars = []
-        for ax in range(2):
-            sign = np.sign(ga[:, 1 - ax])
-            across = share(shape.bar_half_m - np.abs(ga[:, 1 - ax]), -sign * gua[:, 1 - ax], -sign * gva[:, 1 - ax])
-            bars.append(sides[ax] * across)  # the bar along this axis: within its length, within its width
+        # each bar within its length along its axis and within its width across it
+        bars = [sides[ax] * band(shape.bar_half_m, 1 - ax) for ax in range(2)]
         cross = bars[0] + bars[1] - bars[0] * bars[1]
         return np.zeros(shp), np.nan_to_num(cross).reshape(shp)
     square = sides[0] * sides[1] if shape.square_half_m > 0 else np.zeros(len(g))

@@ -38,6 +38,18 @@ class RigHead:
         object.__setattr__(self, "sensor_from_rig", np.asarray(self.sensor_from_rig, np.float64).reshape(3, 3))
         object.__setattr__(self, "lever_arm", np.asarray(self.lever_arm, np.float64).reshape(3))
 
+    def image_pose(self, world_from_rig: np.ndarray, rig_centre: np.ndarray) -> Pose:
+        """This head's image orientation for the rig (body) at ``rig_centre (3,)`` turned by ``world_from_rig
+        (3, 3)``: ``R = sensor_from_rig @ world_from_rig.T``, centre at the lever arm from the rig's."""
+        return Pose(self.sensor_from_rig @ world_from_rig.T, np.asarray(rig_centre) + world_from_rig @ self.lever_arm)
+
+    def relative_to(self, ref: RigHead) -> tuple[np.ndarray, np.ndarray]:
+        """This head's mounting seen from head ``ref``: the rotation ``(3, 3)`` with which the two images of one
+        exposure relate (``R_self = rotation @ R_ref``, cam_from_world) and this head's centre in ``ref``'s camera
+        frame ``(3,)``."""
+        return (self.sensor_from_rig @ ref.sensor_from_rig.T,
+                ref.sensor_from_rig @ (self.lever_arm - ref.lever_arm))
+
 
 @dataclass(frozen=True, eq=False)
 class Rig:

@@ -206,28 +206,24 @@ def estimate_rig(block: ImageBlock, name: str = "system") -> tuple[Rig, list[Hea
         keep = ~bad if (~bad).any() else np.ones(len(q), bool)
         s, lever = _chordal_mean(q[keep]), o[keep].mean(0)
         heads.append(RigHead(h, next(iter(cams[h])), s, lever))
-        fits.append(HeadFit(h, int(keep.sum()), int((~keep).sum()),
-                            float(np.sqrt(np.mean(_angles_deg(q[keep], s) ** 2))),
-                            float(np.sqrt(np.mean(np.sum((o[keep] - lever) ** 2, 1))))))
+        fits.append(_head_fit(h, q[keep], o[keep], s, lever, int((~keep).sum())))
     return Rig(name, tuple(heads)), fits
+
+
+def _head_fit(head: str, q: np.ndarray, o: np.ndarray, s: np.ndarray, lever: np.ndarray, left_out: int) -> HeadFit:
+    """The fit of a head's exposures ``q (k, 3, 3)``, ``o (k, 3)`` (see :func:`_relative`) to its mounting ``s (3, 3)``,
+    ``lever (3,)``."""
+    if len(q) == 0:
+        return HeadFit(head, 0, left_out, float("nan"), float("nan"))
+    return HeadFit(head, len(q), left_out, float(np.sqrt(np.mean(_angles_deg(q, s) ** 2))),
+                   float(np.sqrt(np.mean(np.sum((o - lever) ** 2, 1)))))
 
 
 def rig_fit(block: ImageBlock, rig: Rig) -> list[HeadFit]:
     """For each head of ``rig`` but the first (the reference), how far the block's exposures are from the rig's
     relative mounting (``left_out`` is 0: nothing is left out)."""
-    members = _members(block)
-    ref = rig.heads[0]
-    out = []
-    for h in rig.heads[1:]:
-        q, o = _relative(members, ref.name, h.name)
-        if len(q) == 0:
-            out.append(HeadFit(h.name, 0, 0, float("nan"), float("nan")))
-            continue
-        s = h.sensor_from_rig @ ref.sensor_from_rig.T
-        lever = ref.sensor_from_rig @ (h.lever_arm - ref.lever_arm)
-        out.append(HeadFit(h.name, len(q), 0, float(np.sqrt(np.mean(_angles_deg(q, s) ** 2))),
-                           float(np.sqrt(np.mean(np.sum((o - lever) ** 2, 1))))))
-    return out
+    members, ref = _members(block), rig.heads[0]
+    return [_head_fit(h.name, *_relative(members, ref.name, h.name), *h.relative_to(ref), 0) for h in rig.heads[1:]]
 
 
 MISSING_EXPOSURES = ("No exposures: HAT starts the oblique images from the navigation data (import with exposures "
@@ -235,10 +231,13 @@ MISSING_EXPOSURES = ("No exposures: HAT starts the oblique images from the navig
 """What the import and the Block panel say of a block with oblique images and no exposures."""
 
 
-def lacks_exposures(block: ImageBlock) -> bool:
-    """Whether the block has oblique images and no exposures (HAT cannot propagate the nadir corrections)."""
-    return (all(img.exposure is None for img in block.images.values())
-            and any(img.view not in (None, "nadir") for img in block.images.values()))
+def oblique_without_nadir(block: ImageBlock) -> int:
+    """The oriented oblique images without an oriented nadir image in their exposure (none given counts): HAT
+    cannot propagate the nadir run's correction to them (:func:`..aerotri.hierarchical.nadir_propagation`)."""
+    nadir = {img.exposure for img in block.images.values()
+             if img.exposure is not None and img.pose_approx is not None and img.view == "nadir"}
+    return sum(1 for img in block.images.values()
+               if img.pose_approx is not None and img.view != "nadir" and img.exposure not in nadir)
 
 
 def describe_system(block: ImageBlock) -> str:

@@ -159,8 +159,7 @@ def plan_flight(system: CameraSystem, area: np.ndarray, ground_z: float, config:
 
 def image_pose(exposure: Exposure, head: RigHead) -> Pose:
     """Pose of one head's image: ``R = sensor_from_rig @ world_from_body.T``, centre = rig centre + lever arm."""
-    wfb = exposure.world_from_body()
-    return Pose(head.sensor_from_rig @ wfb.T, exposure.center + wfb @ head.lever_arm)
+    return head.image_pose(exposure.world_from_body(), exposure.center)
 
 
 IMAGE_NAME_PATTERN = r"(?P<exposure>S\d+_E\d+)_(?P<head>.+)"
