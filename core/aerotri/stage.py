@@ -77,7 +77,7 @@ class AerotriConfig:
         of their orientations (pycolmap's covariance estimation), larger ones the conditional ones (0: always the
         conditional ones)
     default_sigma_position, default_sigma_attitude_deg : EO prior sigmas (metres, degrees) for images whose
-        import carries none (e.g. BlocksExchange); the same for X, Y, Z and omega, phi, kappa
+        import carries none (e.g. BlocksExchange); the same for X, Y, Z and for rotations about X, Y, Z
     control_tests : blunder tests of the control points' measurements and coordinates (on by default; see
         :func:`.bundle.control_point_tests`)
     prior_tests : blunder tests of the images' GNSS position and IMU attitude priors (on by default; see

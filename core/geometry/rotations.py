@@ -119,6 +119,57 @@ def world_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
     return ENU_FROM_NED @ rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
 
 
+def ypr_axes(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """The world axes ``(3, 3)`` (columns, east-north-up) about which small changes of roll, pitch and yaw (in that
+    order) turn the body of :func:`world_from_body`: a change ``d (3,)`` of the angles is the small world rotation
+    ``axes @ d``. Roll turns about the body's x axis, pitch about the y axis the heading alone turns, yaw about the
+    vertical (``R_ned_from_body = Rz(yaw) Ry(pitch) Rx(roll)``, each angle's rotation applied in the frame of the
+    ones before it)."""
+    rz = ENU_FROM_NED @ rot_z(yaw)
+    return np.stack([(rz @ rot_y(pitch))[:, 0], rz[:, 1], ENU_FROM_NED[:, 2]], 1)
+
+
+def opk_axes(omega: float, phi: float, kappa: float) -> np.ndarray:
+    """The world axes ``(3, 3)`` (columns) about which small changes of omega, phi and kappa turn the image of
+    :func:`opk_to_world_from_photo`: a change ``d (3,)`` of the angles is the small world rotation ``axes @ d``.
+    Omega turns about the world's X axis, phi about the Y axis omega turns, kappa about the image's own z axis (its
+    viewing axis: the world's Z for a nadir image, 45 degrees from it for an oblique one)."""
+    rx = rot_x(omega)
+    return np.stack([np.array([1.0, 0.0, 0.0]), rx[:, 1], (rx @ rot_y(phi))[:, 2]], 1)
+
+
+def world_axis_sigmas(axes: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """Standard deviations ``(3,)`` of small rotations about the world's X, Y, Z axes for independent angles with
+    standard deviations ``sigmas (3,)`` turning about ``axes (3, 3)`` (columns, from :func:`opk_axes` or
+    :func:`ypr_axes`): the square roots of the diagonal of ``axes diag(sigmas^2) axes^T`` (the correlations are
+    dropped, as the adjustment's attitude priors take none)."""
+    return np.sqrt((np.asarray(axes, np.float64) ** 2) @ (np.asarray(sigmas, np.float64) ** 2))
+
+
+ANGLE_SIGMA_RCOND = 0.1
+"""Singular values of the squared axes under this share of the largest are dropped by :func:`angle_sigmas`."""
+
+
+def angle_sigmas(axes: np.ndarray, world: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`world_axis_sigmas` in the least-squares sense: the angles' standard deviations ``(3,)``
+    whose world variances are closest to those of ``world (3,)``, exact for world sigmas the angles can give where
+    the axes keep the world's apart (a nadir image, a flight along a grid axis, an image tilted about Y).
+
+    Two angles turning about nearly the same pair of world axes (phi and kappa of an image tilted 45 degrees about
+    X both turn about Y and Z by halves) cannot be told apart by the world's variances: below
+    :data:`ANGLE_SIGMA_RCOND` the smallest singular value is dropped and they share the variance evenly (the world
+    sigmas are kept within that share of the difference of the two angles' variances). Where the least-squares
+    variances are negative (world sigmas that no independent angles give) the closest non-negative ones are taken."""
+    a2 = np.asarray(axes, np.float64) ** 2
+    w2 = np.asarray(world, np.float64) ** 2
+    var = np.linalg.lstsq(a2, w2, rcond=ANGLE_SIGMA_RCOND)[0]
+    if var.min() < 0.0:
+        from scipy.optimize import nnls
+
+        var = nnls(a2, w2)[0]
+    return np.sqrt(var)
+
+
 def ypr_to_cam_from_world(
     yaw: float,
     pitch: float,

@@ -1,7 +1,9 @@
 """Plain OPK lists: one image per row with its projection centre and omega-phi-kappa angles.
 
 Rows hold ``name X Y Z omega phi kappa`` (order set by the ``columns`` option or a header row) and optionally
-``sx sy sz`` (metres), ``somega sphi skappa`` (same unit as the angles), ``camera`` (camera id), ``file``
+``sx sy sz`` (metres), ``somega sphi skappa`` (same unit as the angles; the standard deviations of the angles,
+turned into the adjustment's sigmas about the world's X, Y, Z by :func:`..geometry.rotations.world_axis_sigmas`:
+an oblique image's kappa turns about its viewing axis, so its sigma counts in Y and Z), ``camera`` (camera id), ``file``
 (image path, default: the name plus the ``image_ext`` option), and for a multi-head camera system ``exposure``
 (the trigger's id, shared by its heads' images), ``head`` and ``time`` (seconds; with ``-o exposures=time`` the
 exposures are found from it, see :mod:`.common`); ``-`` or an empty field leaves one of these unknown.
@@ -32,7 +34,15 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..geometry.rotations import cam_from_world_to_opk, from_radians, opk_to_cam_from_world, to_radians
+from ..geometry.rotations import (
+    angle_sigmas,
+    cam_from_world_to_opk,
+    from_radians,
+    opk_axes,
+    opk_to_cam_from_world,
+    to_radians,
+    world_axis_sigmas,
+)
 from ..model import Image, ImageBlock, Pose
 from ..pipeline.atomic import write_text
 from .camerafile import CameraFile, read_camera_file, write_camera_file
@@ -259,6 +269,15 @@ def read_opk(source: str, **options: Any) -> ImageBlock:
                              f"{', '.join(block.cameras)})", path=path, line=line_no, field="camera")
         sig_pos = lf.sigmas(rec, ("sx", "sy", "sz"), line_no, False)
         sig_att = lf.sigmas(rec, ("somega", "sphi", "skappa"), line_no, True)
+        if sig_att is not None:
+            axes = opk_axes(*angles)
+            sig_att = world_axis_sigmas(axes, sig_att)
+            if not np.all(sig_att > 0.0):
+                exact = int(np.argmin(sig_att))
+                col = ("somega", "sphi", "skappa")[int(np.argmax(axes[exact] ** 2))]
+                raise InputError(f"a zero standard deviation leaves the attitude exact about the world's "
+                                 f"{'XYZ'[exact]} axis; give each angle its sigma", path=path, line=line_no,
+                                 field=col)
         exposure, head, time = (optional_field(rec, c) for c in ("exposure", "head", "time"))
         block.add_image(Image(id=name, camera_id=cam_id, file=rec.get("file") or name + lf.image_ext,
                               head=head, exposure=exposure,
@@ -321,7 +340,7 @@ def write_opk(block: ImageBlock, dest: str, angles: str = "deg", delimiter: str 
             s = img.sigma_position
             row += ["-"] * 3 if s is None else [_fmt(v) for v in s]
         if with_att:
-            s = img.sigma_attitude
+            s = None if img.sigma_attitude is None else angle_sigmas(opk_axes(o, p, k), img.sigma_attitude)
             row += ["-"] * 3 if s is None else [_fmt(from_radians(v, unit)) for v in s]
         for c in system:
             v = getattr(img, c)

@@ -21,9 +21,10 @@ and writes it:
 
 The block gets the exposures, heads and times and a rig ``system`` with the heads as calibrated, the first head of
 the camera file as its reference. The position sigmas are the images' ones. The IMU's roll, pitch and heading sigmas
-are about the body's axes; the adjustment's attitude priors are about the world's X, Y, Z (:mod:`..aerotri.bundle`),
-so each exposure's are turned into the world (:func:`world_attitude_sigmas`, the diagonal of the rotated covariance;
-the writer inverts that in the least-squares sense).
+are those of the angles (roll about the body's x axis, pitch about the levelled y axis, heading about the vertical);
+the adjustment's attitude priors are about the world's X, Y, Z (:mod:`..aerotri.bundle`), so each exposure's are
+turned into the world (:func:`..geometry.rotations.world_axis_sigmas` with :func:`..geometry.rotations.ypr_axes`,
+the diagonal of the rotated covariance; the writer inverts that in the least-squares sense).
 
 The writer takes a block with a rig and exposures: each exposure's body pose comes from the image of the rig's first
 head it has (its mount undone), its heading against true north (or grid), with a camera file holding the rig's heads;
@@ -42,7 +43,16 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.crs import crs_transformer, parse_crs, transform_points
-from ..geometry.rotations import cam_from_world_to_ypr, from_radians, rotation_angle, to_radians, world_from_body
+from ..geometry.rotations import (
+    angle_sigmas,
+    cam_from_world_to_ypr,
+    from_radians,
+    rotation_angle,
+    to_radians,
+    world_axis_sigmas,
+    world_from_body,
+    ypr_axes,
+)
 from ..model import Image, ImageBlock, Rig
 from ..pipeline.atomic import write_text
 from .camerafile import write_camera_file
@@ -84,21 +94,6 @@ def true_north_angles(xyz: np.ndarray, crs: str) -> np.ndarray:
     geo = crs_transformer(src, wgs84)(xyz)
     d = np.diff(crs_transformer(wgs84, src)(np.concatenate([geo, geo + [0.0, 1e-5, 0.0]])).reshape(2, -1, 3), axis=0)[0]
     return np.arctan2(-d[:, 0], d[:, 1])
-
-
-def world_attitude_sigmas(wfb: np.ndarray, body: np.ndarray) -> np.ndarray:
-    """Standard deviations ``(3,)`` of small rotations about the world's X, Y, Z axes for independent ones ``body
-    (3,)`` about the body's axes (roll, pitch, heading) of an exposure ``world_from_body (3, 3)``: the square roots of
-    the diagonal of ``R diag(body^2) R^T`` (their correlations are dropped, as the priors take none)."""
-    return np.sqrt((wfb**2) @ (np.asarray(body, np.float64) ** 2))
-
-
-def body_attitude_sigmas(wfb: np.ndarray, world: np.ndarray) -> np.ndarray:
-    """The inverse of :func:`world_attitude_sigmas` in the least-squares sense (non-negative variances): body-axis
-    standard deviations ``(3,)`` whose world ones are closest to ``world (3,)``. Exact where the heading keeps the
-    body's axes apart in the world; at 45 degrees roll and pitch share their variance evenly."""
-    var = np.linalg.lstsq(wfb**2, np.asarray(world, np.float64) ** 2, rcond=1e-9)[0]
-    return np.sqrt(np.clip(var, 0.0, None))
 
 
 def read_gnssimu(source: str, **options: Any) -> ImageBlock:
@@ -174,7 +169,8 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
             block.add_image(Image(id=iid, camera_id=h.camera_id, file=file, head=h.name, exposure=ex,
                                   time=t, pose_approx=h.image_pose(wfb, xyz[k]),
                                   sigma_position=None if s_pos is None else s_pos.copy(),
-                                  sigma_attitude=None if s_att is None else world_attitude_sigmas(wfb, s_att)))
+                                  sigma_attitude=None if s_att is None else world_axis_sigmas(
+                                      ypr_axes(hdg - north[k], pitch, roll), s_att)))
     lf.image_root(block, options)
     return finish_block(block, path, options, "gnssimu", lines=lines)
 
@@ -237,8 +233,9 @@ def write_gnssimu(block: ImageBlock, dest: str, angles: str = "deg", delimiter: 
                                  f"puts it from '{img.id}': an event list holds one orientation per exposure (an "
                                  "adjusted block: export the imported one, --imported, or opk or bex)", path=dest,
                                  field="rig")
-        rows.append((ex, body, cam_from_world_to_ypr(img.pose.R, h.sensor_from_rig), img.time, img.sigma_position,
-                     None if img.sigma_attitude is None else body_attitude_sigmas(wfb, img.sigma_attitude)))
+        ypr = cam_from_world_to_ypr(img.pose.R, h.sensor_from_rig)
+        rows.append((ex, body, ypr, img.time, img.sigma_position,
+                     None if img.sigma_attitude is None else angle_sigmas(ypr_axes(*ypr), img.sigma_attitude)))
     xyz = np.array([r[1] for r in rows])
     north = true_north_angles(xyz, block.crs) if heading == "true" else np.zeros(len(rows))
     dest_path = Path(dest)

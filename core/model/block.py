@@ -80,7 +80,8 @@ class Image:
     pose_approx : approximate exterior orientation (GNSS/IMU or imported), or None
     pose_adjusted : orientation after aerial triangulation, or None
     sigma_position : (3,) prior standard deviation of the centre, metres (X, Y, Z), or None
-    sigma_attitude : (3,) prior standard deviation of omega, phi, kappa, radians, or None
+    sigma_attitude : (3,) prior standard deviation of small rotations about the world's X, Y, Z axes, radians, or
+        None (formats giving the angles' sigmas are converted, see ``geometry.rotations.world_axis_sigmas``)
     """
 
     id: str

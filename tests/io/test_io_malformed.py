@@ -26,6 +26,8 @@ CASES = [
      "opk_duplicate_id.txt:3, field 'name': duplicate image id 'A' (first on line 1)"),
     ("opk", "opk_wrong_field_count.txt", CAM, "opk_wrong_field_count.txt:2: expected 7 fields"),
     ("opk", "opk_text_in_number.txt", CAM, "opk_text_in_number.txt:2, field 'y': '54O4000' is not a number"),
+    ("opk", "opk_zero_sigma.txt", CAM,
+     "opk_zero_sigma.txt:3, field 'sphi': a zero standard deviation leaves the attitude exact about the world's Y"),
     ("opk", "opk_unknown_camera.txt", CAM, "opk_unknown_camera.txt:3, field 'camera': unknown camera 'nadir'"),
     ("opk", "opk_missing_image.txt",
      {"cameras": str(DATA / "cameras_small.toml"), "image_root": str(DATA / "images"), "image_ext": ".png"},

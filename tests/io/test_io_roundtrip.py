@@ -7,6 +7,7 @@ import pycolmap
 import pytest
 
 from oblique_city.core.geometry.projection import project
+from oblique_city.core.geometry.rotations import angle_sigmas, cam_from_world_to_opk, opk_axes, world_axis_sigmas
 from oblique_city.core.io.formats import read_block, write_block
 from oblique_city.core.io.gcp import write_ground_points, write_measurements
 
@@ -14,14 +15,45 @@ from oblique_city.core.io.gcp import write_ground_points, write_measurements
 @pytest.mark.parametrize("angles", ["deg", "gon", "rad"])
 @pytest.mark.parametrize("delimiter", ["whitespace", "comma", "semicolon", "tab"])
 def test_opk_round_trip(tmp_path, oblique_block, same_block, angles, delimiter):
+    """The attitude sigmas travel as the angles' (``somega sphi skappa``): the nadir images' come back exactly; the
+    45-degree ones (their phi and kappa both turn about Y and Z) come back as the world sigmas their angles can give,
+    which a second round trip keeps."""
     write_block("opk", oblique_block, tmp_path / "block.txt", angles=angles, delimiter=delimiter)
     assert (tmp_path / "block_cameras.toml").is_file()
     back = read_block("opk", tmp_path / "block.txt")  # header directives name crs, angles and camera file
     same_block(oblique_block, back, ground_points=False)
     for iid, img in oblique_block.images.items():
         assert np.allclose(back.images[iid].sigma_position, img.sigma_position, rtol=1e-15)
-        assert np.allclose(back.images[iid].sigma_attitude, img.sigma_attitude, rtol=1e-14)
+        axes = opk_axes(*cam_from_world_to_opk(img.pose_approx.R))
+        expected = world_axis_sigmas(axes, angle_sigmas(axes, img.sigma_attitude))
+        assert np.allclose(back.images[iid].sigma_attitude, expected, rtol=1e-12)
+        if img.camera_id == "cam":
+            assert np.allclose(expected, img.sigma_attitude, rtol=1e-12)
+    write_block("opk", back, tmp_path / "again.txt", angles=angles, delimiter=delimiter)
+    again = read_block("opk", tmp_path / "again.txt")
+    for iid, img in back.images.items():
+        assert np.allclose(again.images[iid].sigma_attitude, img.sigma_attitude, rtol=1e-12)
     assert back.images["img0"].file == "img0.jpg"
+
+
+def test_opk_kappa_sigma_of_an_oblique_image(tmp_path):
+    """kappa turns an image about its viewing axis: a nadir image's sigma of kappa is about the world's Z, a
+    north-looking 45-degree image's about Y and Z by halves (and its phi's too), an east-looking one's about X and
+    Z."""
+    (tmp_path / "cams.toml").write_text('crs = "EPSG:25832"\n[camera]\nid = "cam"\nwidth = 4000\nheight = 3000\n'
+                                        'focal_px = 5000.0\n')
+    (tmp_path / "list.txt").write_text("name x y z omega phi kappa somega sphi skappa\n"
+                                       "nadir 512000 5404000 1000 0 0 0 0.002 0.003 0.010\n"
+                                       "north 512100 5404000 1000 45 0 0 0.002 0.003 0.010\n"
+                                       "east 512200 5404000 1000 0 -45 90 0.002 0.003 0.010\n")
+    block = read_block("opk", tmp_path / "list.txt", cameras=str(tmp_path / "cams.toml"))
+    half = np.sqrt(0.5)
+    deg = np.radians
+    assert np.allclose(block.images["nadir"].sigma_attitude, deg([0.002, 0.003, 0.010]))
+    assert np.allclose(block.images["north"].sigma_attitude,
+                       deg([0.002, np.hypot(0.003, 0.010) * half, np.hypot(0.003, 0.010) * half]))
+    assert np.allclose(block.images["east"].sigma_attitude,
+                       deg([np.hypot(0.002, 0.010 * half), 0.003, 0.010 * half]))
 
 
 def test_opk_with_ground_point_lists(tmp_path, oblique_block, same_block):

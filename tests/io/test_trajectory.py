@@ -142,16 +142,18 @@ def test_writer_refuses_what_an_event_list_cannot_carry(tmp_path, penta_block):
 
 
 def test_imu_sigmas_turn_with_the_heading():
-    """The IMU's roll, pitch and heading sigmas are about the body's axes; the priors' about the world's: flown east
-    the roll is about X, flown north about Y, at 45 degrees roll and pitch share both; the heading stays about Z. The
-    writer's inverse recovers the body's sigmas where the heading keeps the axes apart."""
-    from oblique_city.core.geometry.rotations import world_from_body
-    from oblique_city.core.io.trajectory import body_attitude_sigmas, world_attitude_sigmas
+    """The IMU's roll, pitch and heading sigmas are the angles'; the priors' are about the world's axes: flown east
+    the roll is about X, flown north about Y, at 45 degrees roll and pitch share both; the heading stays about Z,
+    also when the body is pitched (the heading turns about the vertical, the roll about the dipping x axis). The
+    writer's inverse recovers the angles' sigmas where the heading keeps the axes apart."""
+    from oblique_city.core.geometry.rotations import angle_sigmas, world_axis_sigmas, ypr_axes
 
     body = np.array([0.004, 0.006, 0.010])
-    east = world_from_body(math.pi / 2, 0.0, 0.0)
-    assert np.allclose(world_attitude_sigmas(east, body), [0.004, 0.006, 0.010])
-    assert np.allclose(world_attitude_sigmas(world_from_body(0.0, 0.0, 0.0), body), [0.006, 0.004, 0.010])
-    diagonal = world_attitude_sigmas(world_from_body(math.pi / 4, 0.0, 0.0), body)
+    east = ypr_axes(math.pi / 2, 0.0, 0.0)
+    assert np.allclose(world_axis_sigmas(east, body), [0.004, 0.006, 0.010])
+    assert np.allclose(world_axis_sigmas(ypr_axes(0.0, 0.0, 0.0), body), [0.006, 0.004, 0.010])
+    diagonal = world_axis_sigmas(ypr_axes(math.pi / 4, 0.0, 0.0), body)
     assert np.allclose(diagonal[:2], math.sqrt((0.004**2 + 0.006**2) / 2)) and diagonal[2] == pytest.approx(0.010)
-    assert np.allclose(body_attitude_sigmas(east, world_attitude_sigmas(east, body)), body)
+    pitched = world_axis_sigmas(ypr_axes(0.0, math.radians(10.0), 0.0), body)
+    assert pitched[2] == pytest.approx(math.hypot(0.010, 0.004 * math.sin(math.radians(10.0))))  # the roll axis dips
+    assert np.allclose(angle_sigmas(east, world_axis_sigmas(east, body)), body)
