@@ -32,8 +32,12 @@ reference (``Chunk.transform``, ``Camera.transform``, ``Calibration``):
   ones check points (Metashape's meaning of the check box); ``sx sy sz`` (metres) when present, else option
   ``gcp_sigma``'s default of 0.02 m. Their image positions are ``<frames><frame><markers><marker marker_id>
   <location camera_id x y>``.
-* Cameras without ``<transform>`` (not aligned) are imported without orientation. Slave cameras of a multi-camera
-  sensor (``master_id``) that lack one are refused: their pose would have to come from the rig offsets.
+* Cameras without ``<transform>`` (not aligned) are imported without orientation. The cameras of a multi-camera
+  system (Metashape's multi-camera layout: a slave camera's ``master_id`` is its master camera's ``id``) are one
+  exposure each, named by the master's label, with each sensor as a head; the shared option ``rig=auto``
+  estimates the system's rig from their orientations (the slave sensors' own offsets are not read). Slave cameras
+  that lack a ``<transform>`` are refused: their pose would have to come from those offsets. The writer writes
+  independent cameras (no multi-camera layout).
 * The file holds no image paths: a camera's ``label`` is its image file name, looked up under ``image_root`` and
   its subfolders (without that option, in the XML file's own folder only) by name, else by name without
   extension.
@@ -246,6 +250,7 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
     files = _image_files(str(root), True) if root else _image_files(str(Path(path).resolve().parent), False)
     lines: dict[str, int] = {}
     by_id: dict[str, str] = {}
+    masters: dict[str, str] = {}  # image -> the id of its multi-camera system's master camera (its own without one)
     cams_el = chunk.find("cameras")
     centres, rots, posed = [], [], []
     for c in [] if cams_el is None else cams_el.iter("camera"):
@@ -284,8 +289,11 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
         block.add_image(Image(id=label, camera_id=sensors[sid], file=files.get(label, label)))
         by_id[cid] = label
         lines[label] = c.sourceline
+        masters[label] = c.get("master_id") or cid
     if not block.images:
         raise x.fail(chunk, "the chunk has no <camera>", "cameras")
+    if any(masters[label] != cid for cid, label in by_id.items()):
+        _exposures(block, masters, by_id, lines, x.path)
     if posed:
         src = np.array(centres)
         world_c = to_world(src)
@@ -294,6 +302,25 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
             block.images[label].pose_approx = Pose((q_k @ r_k).T, c_w)
     _markers(chunk, x, block, by_id, chunk_crs if not local else None, target)
     return finish_block(block, path, options, "metashape", lines=lines)
+
+
+def _exposures(block: ImageBlock, masters: dict[str, str], by_id: dict[str, str], lines: dict[str, int],
+               path: str) -> None:
+    """The multi-camera layout's exposures: each image's is its master camera's label (``masters`` maps an image to
+    its master's camera id, ``by_id`` camera ids to labels); a system has one image per sensor."""
+    seen: dict[tuple[str, str], str] = {}
+    for label, master in masters.items():
+        if master not in by_id:
+            raise InputError(f"camera '{label}' refers to unknown master_id {master}", path=path,
+                             line=lines[label], field="master_id")
+        img = block.images[label]
+        img.exposure = by_id[master]
+        key = (img.exposure, img.camera_id)
+        if key in seen:
+            raise InputError(f"cameras '{seen[key]}' and '{label}' are both sensor '{img.camera_id}' of the "
+                             f"multi-camera system of '{img.exposure}'", path=path, line=lines[label],
+                             field="master_id")
+        seen[key] = label
 
 
 def _markers(chunk, x: _Xml, block: ImageBlock, by_id: dict[str, str], chunk_crs, target) -> None:

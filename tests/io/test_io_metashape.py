@@ -206,3 +206,58 @@ def test_local_chunk_and_chunk_choice(tmp_path, oblique_block, same_block):
     with pytest.raises(InputError, match="2 chunks"):
         read_block("metashape", tmp_path / "two.xml", crs=oblique_block.crs)
     assert len(read_block("metashape", tmp_path / "two.xml", crs=oblique_block.crs, chunk=1).images) == 8
+
+
+def _multi_camera(path, block, master=lambda img: img.exposure + "_nadir", edit=None) -> None:
+    """Turn the Metashape XML at ``path`` written from ``block`` into a multi-camera layout: each camera's
+    ``master_id`` the id of the camera of ``master(img)`` (the master keeps none); ``edit(cameras_by_label)`` may
+    change it further."""
+    from lxml import etree
+
+    tree = etree.parse(str(path))
+    cams = {c.get("label"): c for c in tree.iter("camera")}
+    for label, c in cams.items():
+        m = master(block.images[label])
+        if m != label:
+            c.set("master_id", cams[m].get("id"))
+    if edit is not None:
+        edit(cams)
+    tree.write(str(path))
+
+
+def test_multi_camera_layout_gives_exposures_and_rig(tmp_path, penta_block):
+    """Metashape's multi-camera layout (slaves name their master camera by ``master_id``): every system is one
+    exposure, each sensor a head, and the rig estimated from the orientations is the penta camera's (the navigation
+    orientations follow it exactly: within 1e-9 degrees, and 1e-7 m as the centres pass through geocentric
+    coordinates)."""
+    from oblique_city.core.model.exposures import rig_fit
+
+    write_block("metashape", penta_block, tmp_path / "cams.xml")
+    plain = read_block("metashape", tmp_path / "cams.xml")
+    assert all(img.exposure is None for img in plain.images.values()) and not plain.rigs
+    _multi_camera(tmp_path / "cams.xml", penta_block)
+    back = read_block("metashape", tmp_path / "cams.xml")
+    for iid, img in penta_block.images.items():
+        got = back.images[iid]
+        assert got.exposure == img.exposure + "_nadir" and got.head == img.camera_id
+    (rig,) = back.rigs.values()
+    assert rig.heads[0].name == "penta_nadir" and len(rig.heads) == 5
+    assert all(f.rotation_rms_deg < 1e-9 and f.offset_rms_m < 1e-7 for f in rig_fit(back, rig))
+    nominal = {h.camera_id: h for h in penta_block.rigs["penta"].heads}
+    for h in rig.heads[1:]:
+        rot, off = h.relative_to(rig.heads[0])
+        rot0, off0 = nominal[h.camera_id].relative_to(nominal["penta_nadir"])
+        assert np.abs(rot - rot0).max() < 1e-9 and np.abs(off - off0).max() < 1e-6
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda cams: cams["S01_E001_forward"].set("master_id", "99999"), "unknown master_id 99999"),
+    (lambda cams: cams["S01_E002_forward"].set("master_id", cams["S01_E001_nadir"].get("id")),
+     "are both sensor 'penta_forward' of the multi-camera system of 'S01_E001_nadir'"),
+])
+def test_multi_camera_layout_refusals(tmp_path, penta_block, edit, message):
+    write_block("metashape", penta_block, tmp_path / "cams.xml")
+    _multi_camera(tmp_path / "cams.xml", penta_block, edit=edit)
+    with pytest.raises(InputError, match=message) as e:
+        read_block("metashape", tmp_path / "cams.xml")
+    assert e.value.field == "master_id" and e.value.line is not None
