@@ -14,6 +14,14 @@
   the inverse, so an exported model is in COLMAP's frame again. ``crs`` names the world CRS (required).
 * Image ids: the file name stem by default (``image_id=name`` keeps the whole relative name). 3D points are not
   imported (tie points come from the matching stage).
+* Camera systems (COLMAP >= 3.12 ``rigs`` and ``frames``): the images of a frame of two or more images are one
+  exposure (``frame<id>``), each with its camera's id as its head; a rig of two or more camera sensors whose
+  mountings are known becomes a :class:`~..model.Rig` (``rig<id>``, the reference sensor first, lever arms scaled by
+  the georeference; a rig with unknown mountings is estimated from the orientations, ``rig=auto``). The writer puts
+  a block with one rig whose heads have cameras of their own, and whose every oriented image belongs to an
+  exposure that follows the rig (:data:`RIG_TOLERANCE`), into one COLMAP rig with a frame per exposure; any other
+  block gets a rig and a frame per camera and image, which carry every pose exactly (an adjusted block, whose
+  heads the triangulation moved apart).
 """
 
 from __future__ import annotations
@@ -29,8 +37,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..geometry.rotations import orthonormalize
-from ..model import CameraModel, Image, ImageBlock, Pose
+from ..geometry.rotations import orthonormalize, rotation_angle
+from ..model import CameraModel, Image, ImageBlock, Pose, Rig, RigHead
 from .common import finish_block
 from .validate import check_crs, option_value, parse_bool, parse_float, reject_unknown
 
@@ -43,6 +51,10 @@ COLMAP_MODELS = {
     "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
 }
 """COLMAP camera models the core can represent, with their parameter names."""
+
+RIG_TOLERANCE = (1e-6, 1e-9)
+"""Metres and radians an image may be from where its exposure's rig puts it for the writer to give COLMAP the rig:
+the poses read back are the block's within these (a block from the navigation data follows its rig to about 1e-9)."""
 
 
 @dataclass(frozen=True)
@@ -182,6 +194,7 @@ def read_colmap(source: str, **options: Any) -> ImageBlock:
     block = ImageBlock(crs=crs, image_root=None)
     for cid in sorted(rec.cameras):
         block.add_camera(_camera_from_colmap(rec.cameras[cid], source))
+    ids: dict[int, str] = {}
     for iid in sorted(rec.images):
         im = rec.images[iid]
         pose = None
@@ -195,9 +208,88 @@ def read_colmap(source: str, **options: Any) -> ImageBlock:
             raise InputError(f"duplicate image id '{image_id}' (images {im.name}); try -o image_id=name",
                              path=source, field="images")
         block.add_image(Image(id=image_id, camera_id=str(im.camera_id), file=im.name, pose_approx=pose))
+        ids[iid] = image_id
     if not block.images:
         raise InputError("the model has no images", path=source, field="images")
+    _read_rigs(rec, ids, block, 1.0 if sim is None else sim.scale)
     return finish_block(block, source, options, "colmap")
+
+
+def _read_rigs(rec, ids: dict[int, str], block: ImageBlock, scale: float) -> None:
+    """The model's frames of two or more images as exposures, and the rigs they use as :class:`Rig` where every
+    sensor is a camera with a known mounting (``ids``: COLMAP image id -> block image id; ``scale``: the
+    georeference's, for the lever arms)."""
+    import pycolmap
+
+    frames: dict[int, list[str]] = {}
+    for iid, image_id in ids.items():
+        frames.setdefault(int(rec.images[iid].frame_id), []).append(image_id)
+    rigs = set()
+    for fid, members in frames.items():
+        if len(members) > 1:
+            for image_id in members:
+                block.images[image_id].exposure = f"frame{fid}"
+            rigs.add(int(rec.frames[fid].rig_id))
+    camera = pycolmap.SensorType.CAMERA
+    for rid in sorted(rigs):
+        rig = rec.rigs[rid]
+        ref, others = rig.ref_sensor_id, rig.non_ref_sensors
+        if ref.type != camera or any(s.type != camera or t is None for s, t in others.items()):
+            continue
+        heads = [RigHead(str(ref.id), str(ref.id), np.eye(3))]
+        for sensor, t in sorted(others.items(), key=lambda st: st[0].id):
+            r = np.asarray(t.rotation.matrix(), np.float64)
+            heads.append(RigHead(str(sensor.id), str(sensor.id), r, -scale * r.T @ np.asarray(t.translation)))
+        block.rigs[f"rig{rid}"] = Rig(f"rig{rid}", tuple(heads))
+
+
+def _rigid(r: np.ndarray, t: np.ndarray):
+    """A ``pycolmap.Rigid3d`` ``x -> r x + t``."""
+    import pycolmap
+
+    return pycolmap.Rigid3d(np.hstack([r, np.reshape(t, (3, 1))]))
+
+
+def _rig_frames(block: ImageBlock, images: list[Image], poses: dict[str, Pose], scale: float):
+    """How COLMAP carries the block's camera system, or None where it cannot (see the module docstring): the rig's
+    heads (reference first), each other head's ``sensor_from_rig`` ``(r, t)`` in the reference camera's frame (the
+    COLMAP rig frame; lever arms times ``scale``, the model's units per metre), and per exposure its images (in the
+    rig's head order) with the rig's ``rig_from_world`` ``r, t``, from ``poses`` (model frame)."""
+    if len(block.rigs) != 1:
+        return None
+    (rig,) = block.rigs.values()
+    heads = {h.name: h for h in rig.heads}
+    if len({h.camera_id for h in rig.heads}) != len(rig.heads):
+        return None
+    ref = rig.heads[0]
+    sensor_from_rig = {}
+    for h in rig.heads:
+        r, offset = h.relative_to(ref)
+        sensor_from_rig[h.name] = (r, -r @ offset * scale)
+    exposures: dict[str, list[Image]] = {}
+    for img in images:
+        h = heads.get(img.head) if img.exposure is not None else None
+        if h is None or h.camera_id != img.camera_id:
+            return None
+        exposures.setdefault(img.exposure, []).append(img)
+    order = list(heads)
+    frames = []
+    for members in exposures.values():
+        members = sorted(members, key=lambda i: order.index(i.head))
+        if len({i.head for i in members}) != len(members):
+            return None
+        r_h, t_h = sensor_from_rig[members[0].head]
+        first = poses[members[0].id]
+        r_rw, t_rw = r_h.T @ first.R, r_h.T @ (first.t - t_h)
+        for img in members:
+            r_h, t_h = sensor_from_rig[img.head]
+            there = Pose.from_rt(r_h @ r_rw, r_h @ t_rw + t_h)
+            pose = poses[img.id]
+            if (np.linalg.norm(there.C - pose.C) / scale > RIG_TOLERANCE[0]
+                    or rotation_angle(there.R, pose.R) > RIG_TOLERANCE[1]):
+                return None
+        frames.append((members, r_rw, t_rw))
+    return rig.heads, sensor_from_rig, frames
 
 
 def _camera_to_colmap(cam: CameraModel, camera_id: int):
@@ -218,29 +310,48 @@ def write_colmap(block: ImageBlock, dest: str, binary: Any = False, sim3: str | 
     """Write the oriented images of ``block`` as a COLMAP model folder (no 3D points).
 
     With ``sim3`` (a similarity file, world_from_model) the poses are written in the model frame. Images
-    without orientation are left out (COLMAP images.txt always has a pose). Camera ids are 1..n in block order.
+    without orientation are left out (COLMAP images.txt always has a pose). Camera ids are 1..n in block order. A
+    camera system goes in as a rig with a frame per exposure where COLMAP can carry it (see the module docstring).
     """
     import pycolmap
 
     reject_unknown(unknown, "colmap")
 
     inverse = None if sim3 is None else read_similarity(sim3).inverse()
+    images = [img for img in block.images.values() if img.pose is not None]
+    poses = {img.id: img.pose if inverse is None else inverse.apply_pose(img.pose.R, img.pose.C) for img in images}
+    cam_ids = {cam.id: i for i, cam in enumerate(block.cameras.values(), start=1)}
+    frames = _rig_frames(block, images, poses, 1.0 if inverse is None else inverse.scale)
     rec = pycolmap.Reconstruction()
-    cam_ids: dict[str, int] = {}
-    for i, cam in enumerate(block.cameras.values(), start=1):
-        cam_ids[cam.id] = i
-        rec.add_camera_with_trivial_rig(_camera_to_colmap(cam, i))
-    n = 0
-    for img in block.images.values():
-        pose = img.pose
-        if pose is None:
-            continue
-        n += 1
-        if inverse is not None:
-            pose = inverse.apply_pose(pose.R, pose.C)
-        cfw = pycolmap.Rigid3d(np.hstack([pose.R, pose.t[:, None]]))
-        rec.add_image_with_trivial_frame(
-            pycolmap.Image(name=img.file or img.id, camera_id=cam_ids[img.camera_id], image_id=n), cfw)
+    rig_cams = set() if frames is None else {h.camera_id for h in frames[0]}
+    for cam in block.cameras.values():
+        add = rec.add_camera if cam.id in rig_cams else rec.add_camera_with_trivial_rig
+        add(_camera_to_colmap(cam, cam_ids[cam.id]))
+    image_ids = {img.id: n for n, img in enumerate(images, start=1)}
+    if frames is None:
+        for img in images:
+            pose = poses[img.id]
+            rec.add_image_with_trivial_frame(pycolmap.Image(name=img.file or img.id, camera_id=cam_ids[img.camera_id],
+                                                            image_id=image_ids[img.id]), _rigid(pose.R, pose.t))
+    else:
+        heads, sensor_from_rig, exposures = frames
+        sensor = {h.camera_id: pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=cam_ids[h.camera_id])
+                  for h in heads}
+        rig = pycolmap.Rig(rig_id=1)
+        rig.add_ref_sensor(sensor[heads[0].camera_id])
+        for h in heads[1:]:
+            rig.add_sensor(sensor[h.camera_id], _rigid(*sensor_from_rig[h.name]))
+        rec.add_rig(rig)
+        for fid, (members, r, t) in enumerate(exposures, start=1):
+            frame = pycolmap.Frame(frame_id=fid, rig_id=1, rig_from_world=_rigid(r, t))
+            for img in members:
+                frame.add_data_id(pycolmap.data_t(sensor[img.camera_id], image_ids[img.id]))
+            rec.add_frame(frame)
+            for img in members:
+                im = pycolmap.Image(name=img.file or img.id, camera_id=cam_ids[img.camera_id],
+                                    image_id=image_ids[img.id])
+                im.frame_id = fid
+                rec.add_image(im)
     out = Path(dest)
     out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".colmap.", dir=out))

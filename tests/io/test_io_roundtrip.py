@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pycolmap
 import pytest
@@ -10,6 +12,7 @@ from oblique_city.core.geometry.projection import project
 from oblique_city.core.geometry.rotations import angle_sigmas, cam_from_world_to_opk, opk_axes, world_axis_sigmas
 from oblique_city.core.io.formats import read_block, write_block
 from oblique_city.core.io.gcp import write_ground_points, write_measurements
+from oblique_city.core.model import Pose
 
 
 @pytest.mark.parametrize("angles", ["deg", "gon", "rad"])
@@ -144,3 +147,54 @@ def test_image_root_travels(tmp_path, oblique_block, fmt):
     oblique_block.image_root = str(tmp_path / "images")
     write_block(fmt, oblique_block, tmp_path / "block.out")
     assert read_block(fmt, tmp_path / "block.out").image_root == str(tmp_path / "images")
+
+
+@pytest.mark.parametrize("scaled", [False, True])
+def test_colmap_rig_and_frames(tmp_path, penta_block, scaled):
+    """A penta block from the navigation data goes to COLMAP as one rig (the nadir camera its reference) with a frame
+    per exposure, and comes back with the same exposures, a head per camera, the rig's relative mounting (1e-12 and
+    1e-9 m) and every image's pose (1e-7 m, 1e-9 rad: each is the frame's pose composed with its sensor's
+    mounting); in a model frame at 2.5 model units per metre the lever arms are written in the model's units."""
+    opts = {}
+    if scaled:
+        (tmp_path / "sim3.txt").write_text("0.4 1 0 0 0 700000 5400000 0\n")
+        opts = {"sim3": str(tmp_path / "sim3.txt")}
+    write_block("colmap", penta_block, tmp_path / "sparse", **opts)
+    assert "CAMERA" in (tmp_path / "sparse" / "rigs.txt").read_text().splitlines()[-1]
+    rec = pycolmap.Reconstruction(str(tmp_path / "sparse"))
+    assert len(rec.rigs) == 1 and rec.num_frames() == len({i.exposure for i in penta_block.images.values()})
+    (model_rig,) = rec.rigs.values()
+    arms = [np.linalg.norm(t.translation) for t in model_rig.non_ref_sensors.values()]
+    (rig0,) = penta_block.rigs.values()
+    nadir = next(h for h in rig0.heads if h.camera_id == "penta_nadir")
+    metres = [np.linalg.norm(h.relative_to(nadir)[1]) for h in rig0.heads if h is not nadir]
+    assert np.allclose(sorted(arms), sorted(np.array(metres) * (2.5 if scaled else 1.0)))
+    back = read_block("colmap", tmp_path / "sparse", crs=penta_block.crs, **opts)
+    ids = {c: str(k) for k, c in enumerate(penta_block.cameras, start=1)}
+    frames = {}
+    for iid, img in penta_block.images.items():
+        got = back.images[iid]
+        frames.setdefault(got.exposure, set()).add(img.exposure)
+        assert got.head == ids[img.camera_id]
+        assert np.abs(got.pose.C - img.pose.C).max() < 1e-7
+        assert np.abs(got.pose.R - img.pose.R).max() < 1e-9
+    assert all(len(v) == 1 for v in frames.values()) and len(frames) == rec.num_frames()
+    (rig,) = back.rigs.values()
+    nominal = {ids[h.camera_id]: h for h in penta_block.rigs["penta"].heads}
+    assert rig.heads[0].name == ids["penta_nadir"]
+    for h in rig.heads:
+        rot, off = h.relative_to(rig.heads[0])
+        rot0, off0 = nominal[h.name].relative_to(nominal[rig.heads[0].name])
+        assert np.abs(rot - rot0).max() < 1e-12 and np.abs(off - off0).max() < 1e-9
+
+
+def test_colmap_without_the_rig_where_the_heads_left_it(tmp_path, penta_block):
+    """An image 1 cm off where its exposure's rig puts it (as after a triangulation): COLMAP gets a rig per camera
+    and a frame per image, which carry every pose exactly, and the block comes back without exposures."""
+    block = copy.deepcopy(penta_block)
+    img = block.images["S01_E003_left"]
+    img.pose_approx = Pose(img.pose_approx.R, img.pose_approx.C + [0.01, 0.0, 0.0])
+    write_block("colmap", block, tmp_path / "sparse")
+    back = read_block("colmap", tmp_path / "sparse", crs=block.crs)
+    assert all(i.exposure is None for i in back.images.values()) and not back.rigs
+    assert np.abs(back.images["S01_E003_left"].pose.C - img.pose_approx.C).max() < 4e-9
