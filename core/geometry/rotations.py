@@ -151,22 +151,24 @@ ANGLE_SIGMA_RCOND = 0.1
 
 
 def angle_sigmas(axes: np.ndarray, world: np.ndarray) -> np.ndarray:
-    """The inverse of :func:`world_axis_sigmas` in the least-squares sense: the angles' standard deviations ``(3,)``
-    whose world variances are closest to those of ``world (3,)``, exact for world sigmas the angles can give where
-    the axes keep the world's apart (a nadir image, a flight along a grid axis, an image tilted about Y).
+    """The angles' standard deviations ``(3,)`` for sigmas ``world (3,)`` about the world's axes: the inverse of
+    :func:`world_axis_sigmas` in the least-squares sense where that gives every angle a variance, which is exact
+    for world sigmas the angles can give (a nadir image, a flight along a grid axis, an OPK list's own sigmas read
+    back).
 
     Two angles turning about nearly the same pair of world axes (phi and kappa of an image tilted 45 degrees about
     X both turn about Y and Z by halves) cannot be told apart by the world's variances: below
-    :data:`ANGLE_SIGMA_RCOND` the smallest singular value is dropped and they share the variance evenly (the world
-    sigmas are kept within that share of the difference of the two angles' variances). Where the least-squares
-    variances are negative (world sigmas that no independent angles give) the closest non-negative ones are taken."""
-    a2 = np.asarray(axes, np.float64) ** 2
+    :data:`ANGLE_SIGMA_RCOND` the smallest singular value is dropped and they share the variance evenly. World sigmas
+    that no independent angles give (least-squares variances below zero: nearly equal ones on an image tilted about
+    Y, whose omega and kappa turn about axes 45 degrees apart) get each angle's marginal standard deviation under
+    them, the square roots of the diagonal of ``axes^-1 diag(world^2) axes^-T``: larger than the world's, as the
+    angles' errors would be correlated."""
+    a = np.asarray(axes, np.float64)
     w2 = np.asarray(world, np.float64) ** 2
-    var = np.linalg.lstsq(a2, w2, rcond=ANGLE_SIGMA_RCOND)[0]
+    var = np.linalg.lstsq(a**2, w2, rcond=ANGLE_SIGMA_RCOND)[0]
     if var.min() < 0.0:
-        from scipy.optimize import nnls
-
-        var = nnls(a2, w2)[0]
+        inv = np.linalg.pinv(a)
+        var = (inv**2) @ w2
     return np.sqrt(var)
 
 
