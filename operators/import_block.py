@@ -119,8 +119,10 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
                                  description="Folder relative image paths start from (optional)")
     exposures: EnumProperty(
         name="Exposures", description="Which images one trigger of a multi-head camera took (HAT and rig constraints "
-                                       "need them); a rig is then estimated from the orientations",
-        items=[("given", "As Given", "As the file gives them (OPK columns exposure and head; Oblique City blocks)"),
+                                       "need them); the rig is the file's (COLMAP, GNSS/IMU events) or estimated from "
+                                       "the orientations",
+        items=[("given", "As Given", "As the file gives them (OPK columns exposure and head, COLMAP frames, "
+                                     "Metashape multi-camera systems, GNSS/IMU events; Oblique City blocks)"),
                ("time", "By Time", "Images whose times (OPK column time) lie within the tolerance of each other"),
                ("name", "By Name", "A regular expression over the image name; its first group (or the group "
                                    "named exposure) names the exposure, a group named head the head")],
