@@ -108,6 +108,14 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
                ("grid", "Grid North", "Already against the map grid's north")],
         default="file",
     )
+    orientation: EnumProperty(
+        name="Orientation", description="Which orientation of a Metashape camera the block takes",
+        items=[("alignment", "Alignment", "Metashape's aligned transform where the camera has one, else its "
+                                          "reference (navigation data)"),
+               ("reference", "Reference", "The camera's reference position and yaw, pitch, roll (the navigation "
+                                          "data, for a triangulation of its own) where it has one")],
+        default="alignment",
+    )
     camera_file: StringProperty(name="Camera File", subtype="FILE_PATH",
                                 description="Intrinsics (TOML or JSON) for OPK lists, with the heads for GNSS/IMU "
                                             "events; empty: beside the list")
@@ -145,6 +153,8 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
         if self.block_format == "gnssimu":
             layout.prop(self, "heading")
             layout.prop(self, "camera_file")
+        if self.block_format == "metashape":
+            layout.prop(self, "orientation")
         layout.prop(self, "gcp_file")
         layout.prop(self, "measurements_file")
         layout.prop(self, "image_folder")
@@ -162,6 +172,8 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
             opts["angles"] = self.angle_unit
         if self.block_format == "gnssimu" and self.heading != "file":
             opts["heading"] = self.heading
+        if self.block_format == "metashape" and self.orientation != "alignment":
+            opts["orientation"] = self.orientation
         if self.camera_file:
             opts["cameras"] = bpy.path.abspath(self.camera_file)
         if self.gcp_file:

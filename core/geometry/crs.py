@@ -105,3 +105,16 @@ def grid_rotations(xyz: np.ndarray, to_grid: Callable[[np.ndarray], np.ndarray],
     if np.any(np.linalg.det(q) < 0):
         raise InputError("the coordinate transformation mirrors the axes (left-handed CRS?)", field="crs")
     return q
+
+
+def true_north_angles(xyz: np.ndarray, crs: str) -> np.ndarray:
+    """Per point of ``xyz (n, 3)`` in ``crs`` the angle (radians, counter-clockwise) of true north seen in the
+    grid (the grid convergence, from a northward step of 1e-5 degrees): a heading against true north minus this angle
+    is the heading against grid north. 0 for a geographic CRS."""
+    src = parse_crs(crs)
+    if src.is_geographic:
+        return np.zeros(len(xyz))
+    wgs84 = parse_crs("EPSG:4326")
+    geo = crs_transformer(src, wgs84)(xyz)
+    d = np.diff(crs_transformer(wgs84, src)(np.concatenate([geo, geo + [0.0, 1e-5, 0.0]])).reshape(2, -1, 3), axis=0)[0]
+    return np.arctan2(-d[:, 0], d[:, 1])

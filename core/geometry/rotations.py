@@ -26,6 +26,15 @@ A camera mounted with ``cam_from_body`` (default: a nadir camera whose image top
 ``x_cam = y_body``, ``y_cam = -x_body``, ``z_cam = z_body``) has ``R = cam_from_body @ R_ned_from_body.T @
 R_enu_from_ned.T``. Grid convergence is ignored: yaw is taken against grid north of the projected CRS.
 
+Yaw-pitch-roll (Metashape camera references)
+--------------------------------------------
+Metashape's ``camera.reference.rotation`` (and ``<reference yaw pitch roll>`` of its camera XML) turns the photo
+frame into the local east-north-up frame by ``M = Rz(-yaw) @ Rx(pitch) @ Ry(roll)``: (0, 0, 0) looks down with the
+image top north, yaw turns clockwise from north, pitch 90 looks horizontally towards the yaw. ``M`` is
+``Metashape.Utils.ypr2mat`` read in the photo frame (in Metashape's camera frame, x right, y down, z forward, the
+reference's rotation is ``M @ diag(1, -1, -1)``, and ``ypr2mat``'s rest pose looks up); the Agisoft forum prints
+``ypr2mat(30, 91, 0)``, which :func:`metashape_ypr_to_photo` reproduces to the digits given.
+
 Angles are radians unless a function takes a ``unit`` (``"deg"``, ``"gon"`` or ``"rad"``).
 """
 
@@ -170,6 +179,12 @@ def angle_sigmas(axes: np.ndarray, world: np.ndarray) -> np.ndarray:
         inv = np.linalg.pinv(a)
         var = (inv**2) @ w2
     return np.sqrt(var)
+
+
+def metashape_ypr_to_photo(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """``world_from_photo`` ``(3, 3)`` (east-north-up from x right, y up, z back) of a Metashape camera reference's
+    yaw, pitch and roll (radians; see the module docstring): ``Rz(-yaw) @ Rx(pitch) @ Ry(roll)``."""
+    return rot_z(-yaw) @ rot_x(pitch) @ rot_y(roll)
 
 
 def ypr_to_cam_from_world(

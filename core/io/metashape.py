@@ -32,7 +32,13 @@ reference (``Chunk.transform``, ``Camera.transform``, ``Calibration``):
   ones check points (Metashape's meaning of the check box); ``sx sy sz`` (metres) when present, else option
   ``gcp_sigma``'s default of 0.02 m. Their image positions are ``<frames><frame><markers><marker marker_id>
   <location camera_id x y>``.
-* Cameras without ``<transform>`` (not aligned) are imported without orientation. The cameras of a multi-camera
+* A camera's ``<reference x y z yaw pitch roll>`` (the navigation data: position in the chunk's CRS, angles in
+  degrees as ``camera.reference.rotation``, see :mod:`..geometry.rotations`, the yaw against true north, turned
+  into the block CRS's grid by the grid convergence) orients a camera without ``<transform>`` (not aligned), or
+  with option ``orientation=reference`` every camera that has one (the navigation data as the approximate
+  orientation of an aligned project, for a triangulation of its own). Its ``enabled`` flags and accuracies are not
+  read (the triangulation's default sigmas apply). Cameras with neither are imported without orientation.
+* The cameras of a multi-camera
   system (Metashape's multi-camera layout: a slave camera's ``master_id`` is its master camera's ``id``) are one
   exposure each, named by the master's label, with each sensor as a head; the shared option ``rig=auto``
   estimates the system's rig from their orientations (the slave sensors' own offsets are not read). Slave cameras
@@ -42,7 +48,8 @@ reference (``Chunk.transform``, ``Camera.transform``, ``Calibration``):
   its subfolders (without that option, in the XML file's own folder only) by name, else by name without
   extension.
 
-Reader options: ``crs``, ``chunk`` (label or 0-based index when the document holds several), plus the shared
+Reader options: ``crs``, ``chunk`` (label or 0-based index when the document holds several), ``orientation``
+(``alignment``, the default, or ``reference``), plus the shared
 options of :mod:`.common` (``pose=adjusted`` for a block Metashape has already aligned). The writer puts the chunk's
 internal frame at the mean camera centre, axes along the block CRS's local axes, scale 1.
 """
@@ -57,7 +64,15 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..geometry.crs import crs_transformer, geocentric_crs, grid_rotations, is_projected_metric, parse_crs
+from ..geometry.crs import (
+    crs_transformer,
+    geocentric_crs,
+    grid_rotations,
+    is_projected_metric,
+    parse_crs,
+    true_north_angles,
+)
+from ..geometry.rotations import FLIP_YZ, metashape_ypr_to_photo
 from ..model import CameraModel, GroundPoint, Image, ImageBlock, Pose
 from ..pipeline.atomic import write_bytes
 from .common import finish_block
@@ -204,6 +219,10 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
         raise x.fail(root, f"root element is <{root.tag}>, expected <document> (Metashape camera XML)", root.tag)
     crs_opt = options.pop("crs", None)
     chunk = _select_chunk(root, x, options.pop("chunk", None))
+    orientation = str(options.pop("orientation", "alignment")).lower()
+    if orientation not in ("alignment", "reference"):
+        raise InputError(f"orientation must be alignment or reference, got '{orientation}'", path=path,
+                         field="orientation")
 
     ref = chunk.find("reference")
     chunk_crs = None
@@ -251,6 +270,7 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
     lines: dict[str, int] = {}
     by_id: dict[str, str] = {}
     masters: dict[str, str] = {}  # image -> the id of its multi-camera system's master camera (its own without one)
+    references: dict[str, np.ndarray] = {}  # image -> x, y, z (chunk CRS), yaw, pitch, roll (radians)
     cams_el = chunk.find("cameras")
     centres, rots, posed = [], [], []
     for c in [] if cams_el is None else cams_el.iter("camera"):
@@ -267,7 +287,12 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
         if orient is not None and (orient.text or "1").strip() != "1":
             raise x.fail(orient, "rotated images (EXIF orientation other than 1) are not supported", "orientation")
         t_el = c.find("transform")
-        if t_el is None and c.get("master_id") not in (None, cid):
+        nav = _camera_reference(c, x)
+        if nav is not None:
+            references[label] = nav
+            if orientation == "reference":
+                t_el = None
+        if t_el is None and nav is None and c.get("master_id") not in (None, cid):
             raise x.fail(c, "slave camera of a multi-camera sensor without <transform>: its pose would come from "
                          "the rig offsets, which this reader does not apply; export with every camera's transform",
                          "transform")
@@ -294,6 +319,16 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
         raise x.fail(chunk, "the chunk has no <camera>", "cameras")
     if any(masters[label] != cid for cid, label in by_id.items()):
         _exposures(block, masters, by_id, lines, x.path)
+    navigated = [label for label in references if label not in posed]
+    if navigated:
+        nav = np.array([references[label] for label in navigated])
+        if local:
+            world = nav[:, :3]
+        else:
+            world = crs_transformer(chunk_crs, target, path, "reference")(nav[:, :3])
+        north = np.zeros(len(world)) if local else true_north_angles(world, crs)
+        for label, c_w, (yaw, pitch, roll), n in zip(navigated, world, nav[:, 3:], north, strict=True):
+            block.images[label].pose_approx = Pose(FLIP_YZ @ metashape_ypr_to_photo(yaw - n, pitch, roll).T, c_w)
     if posed:
         src = np.array(centres)
         world_c = to_world(src)
@@ -302,6 +337,18 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
             block.images[label].pose_approx = Pose((q_k @ r_k).T, c_w)
     _markers(chunk, x, block, by_id, chunk_crs if not local else None, target)
     return finish_block(block, path, options, "metashape", lines=lines)
+
+
+def _camera_reference(c, x: _Xml) -> np.ndarray | None:
+    """A camera's ``<reference>`` as ``x, y, z, yaw, pitch, roll`` ``(6,)`` (chunk CRS, radians), or None when it
+    lacks one of them (a position alone does not orient a camera)."""
+    ref = c.find("reference")
+    keys = ("x", "y", "z", "yaw", "pitch", "roll")
+    if ref is None or any(ref.get(k) is None for k in keys):
+        return None
+    v = np.array([x.number(ref, k) for k in keys])
+    v[3:] = np.radians(v[3:])
+    return v
 
 
 def _exposures(block: ImageBlock, masters: dict[str, str], by_id: dict[str, str], lines: dict[str, int],

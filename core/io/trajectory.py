@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..geometry.crs import crs_transformer, parse_crs, transform_points
+from ..geometry.crs import transform_points, true_north_angles
 from ..geometry.rotations import (
     angle_sigmas,
     cam_from_world_to_ypr,
@@ -81,19 +81,6 @@ NAME_TEMPLATES = ("{exposure}_{head}", "{exposure}-{head}", "{exposure}{head}", 
 RIG_TOLERANCE = (1e-3, 1e-5)
 """Metres and radians: the most a head's orientation may differ from its exposure's reference head through the rig
 for the writer (an event list carries one orientation per exposure)."""
-
-
-def true_north_angles(xyz: np.ndarray, crs: str) -> np.ndarray:
-    """Per point of ``xyz (n, 3)`` in ``crs`` the angle (radians, counter-clockwise) of true north seen in the
-    grid (the grid convergence, from a northward step of 1e-5 degrees): a heading against true north minus this angle
-    is the heading against grid north. 0 for a geographic CRS."""
-    src = parse_crs(crs)
-    if src.is_geographic:
-        return np.zeros(len(xyz))
-    wgs84 = parse_crs("EPSG:4326")
-    geo = crs_transformer(src, wgs84)(xyz)
-    d = np.diff(crs_transformer(wgs84, src)(np.concatenate([geo, geo + [0.0, 1e-5, 0.0]])).reshape(2, -1, 3), axis=0)[0]
-    return np.arctan2(-d[:, 0], d[:, 1])
 
 
 def read_gnssimu(source: str, **options: Any) -> ImageBlock:

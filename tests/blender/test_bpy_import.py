@@ -261,3 +261,30 @@ def test_gnssimu_heading_field(addon, tmp_path, penta_block):
             assert turn.max() < 1e-6
         else:
             assert 1.9 < turn.min() and turn.max() < 2.2
+
+
+def test_metashape_orientation_field(addon, tmp_path, utm_block):
+    """A Metashape file whose first camera also has a reference (navigation data): the Orientation field's
+    Alignment keeps its transform, Reference takes the reference position and angles."""
+    bpy = addon
+    from lxml import etree
+
+    from oblique_city.core.pipeline import Workspace
+
+    WRITERS["metashape"](utm_block, str(tmp_path / "cameras.xml"))  # the chunk in the block's CRS
+    tree = etree.parse(str(tmp_path / "cameras.xml"))
+    first = next(tree.iter("camera"))
+    x, y, _ = utm_block.images[first.get("label")].pose.C
+    etree.SubElement(first, "reference", x=repr(x), y=repr(y + 11.1), z="650", yaw="0", pitch="0", roll="0")
+    tree.write(str(tmp_path / "cameras.xml"))
+    label = first.get("label")
+    for k, orientation in enumerate(("alignment", "reference")):
+        ws = tmp_path / f"ws{k}"
+        assert bpy.ops.city.import_block(filepath=str(tmp_path / "cameras.xml"), block_format="metashape",
+                                         workspace=str(ws), orientation=orientation) == {"FINISHED"}
+        got = Workspace.open(ws).load_block().images[label].pose_approx.C
+        moved = np.abs(got - utm_block.images[label].pose.C)
+        if orientation == "alignment":
+            assert moved.max() < 1e-6
+        else:
+            assert abs(moved[1] - 11.1) < 1e-6 and moved[0] < 1e-6 and abs(got[2] - 650.0) < 1e-6

@@ -150,3 +150,16 @@ def test_angle_sigmas_that_no_independent_angles_give() -> None:
     sig = rt.angle_sigmas(rt.opk_axes(*angles), world)
     assert np.allclose((drawn - angles).std(0), sig, rtol=0.03)
     assert sig[0] > 1.35 * world[0] and sig[2] > 1.35 * world[2]
+
+
+def test_metashape_reference_angles() -> None:
+    """Metashape's reference rotation: the matrix the Agisoft forum prints for ``ypr2mat(30, 91, 0)`` (to 1e-15,
+    as printed), a nadir view at yaw 90 has its image top east, pitch 90 looks horizontally along the yaw."""
+    forum = np.array([[0.8660254037844387, -0.008726203218641737, -0.4999238475781956],
+                      [-0.49999999999999994, -0.01511422733185856, -0.8658935039207541],
+                      [0.0, 0.9998476951563913, -0.017452406437283477]])
+    assert np.abs(rt.metashape_ypr_to_photo(*np.radians([30.0, 91.0, 0.0])) - forum).max() < 1e-15
+    east = rt.metashape_ypr_to_photo(np.radians(90.0), 0.0, 0.0)
+    assert np.allclose(east[:, 1], [1.0, 0.0, 0.0]) and np.allclose(east[:, 2], [0.0, 0.0, 1.0])  # top east, down
+    level = rt.metashape_ypr_to_photo(0.0, np.radians(90.0), 0.0)
+    assert np.allclose(-level[:, 2], [0.0, 1.0, 0.0])  # looks north

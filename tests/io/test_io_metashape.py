@@ -261,3 +261,76 @@ def test_multi_camera_layout_refusals(tmp_path, penta_block, edit, message):
     with pytest.raises(InputError, match=message) as e:
         read_block("metashape", tmp_path / "cams.xml")
     assert e.value.field == "master_id" and e.value.line is not None
+
+
+def _reference_xml(tmp_path, cameras: list[str]) -> str:
+    """A WGS 84 chunk with one pinhole sensor (1200 x 900, f 1000 px) and the given ``<camera>`` elements."""
+    xml = f"""<?xml version="1.0" encoding="UTF-8"?>
+<document version="2.0.0"><chunk label="Chunk 1">
+  <sensors><sensor id="0" label="cam" type="frame"><resolution width="{W}" height="{H}"/>
+    <calibration type="frame" class="adjusted"><resolution width="{W}" height="{H}"/><f>1000</f></calibration>
+  </sensor></sensors>
+  <cameras>{"".join(cameras)}</cameras>
+  <reference>{WGS84_WKT}</reference>
+</chunk></document>
+"""
+    path = tmp_path / "cameras.xml"
+    path.write_text(xml)
+    return str(path)
+
+
+def test_camera_references_orient_unaligned_cameras(tmp_path):
+    """Cameras without a transform take their ``<reference>`` (WGS 84, angles as Metashape's reference rotation):
+    the centre is pyproj's, and ground points found along geodesics from it (pyproj's Geod, true north) appear where
+    the angles point: with yaw 0 and pitch 0 a point due north lies straight above the image centre; with yaw 90 and
+    pitch 45 a point due east at the camera's height below appears at the centre; with roll 10 a nadir view looks 10
+    degrees to the west of the image's top. In UTM 32, 97 km east of its central meridian, true north is 0.97
+    degrees from grid north: without the grid convergence the point due north would be 0.34 m (0.7 px) off the
+    image's centre line, against the 0.01 px tolerance. The others' 0.3 px allow for UTM's scale factor there
+    (0.99972: the 500 m to the east point 0.14 m short, 0.14 px)."""
+    from pyproj import Geod
+
+    lon, lat, h = 10.3, 48.0, 500.0
+    cams = [(0.0, 0.0, 0.0), (90.0, 45.0, 0.0), (0.0, 0.0, 10.0)]
+    xml = [f'<camera id="{k}" sensor_id="0" label="c{k}"><reference x="{lon}" y="{lat}" z="{h}" yaw="{y}" '
+           f'pitch="{p}" roll="{r}" enabled="true" rotation_enabled="false"/></camera>'
+           for k, (y, p, r) in enumerate(cams)]
+    xml.append(f'<camera id="3" sensor_id="0" label="c3"><reference x="{lon}" y="{lat}" z="{h}" enabled="true"/>'
+               "</camera>")
+    block = read_block("metashape", _reference_xml(tmp_path, xml), crs="EPSG:32632")
+    utm = Transformer.from_crs("EPSG:4979", "EPSG:32632", always_xy=True)
+    centre = np.array(utm.transform(lon, lat, h))
+    geod = Geod(ellps="WGS84")
+
+    def ground(azimuth: float, distance: float) -> np.ndarray:
+        lo, la, _ = geod.fwd(lon, lat, azimuth, distance)
+        return np.array(utm.transform(lo, la, 0.0))
+
+    cam = block.cameras["cam"]
+    for k in range(3):
+        assert np.abs(block.images[f"c{k}"].pose.C - centre).max() < 1e-6
+    north, _ = project(cam, block.images["c0"].pose, ground(0.0, 20.0)[None])
+    assert abs(north[0, 0] - cam.cx) < 0.01 and north[0, 1] < cam.cy - 30
+    east, _ = project(cam, block.images["c1"].pose, ground(90.0, h)[None])
+    assert np.abs(east[0] - [cam.cx, cam.cy]).max() < 0.3
+    west, _ = project(cam, block.images["c2"].pose, ground(270.0, h * np.tan(np.radians(10.0)))[None])
+    assert np.abs(west[0] - [cam.cx, cam.cy]).max() < 0.3  # roll turns about the image's top axis
+    assert block.images["c3"].pose is None  # a position alone orients nothing
+
+
+def test_orientation_reference_replaces_the_alignment(geocentric_scene):
+    """``orientation=reference`` takes the navigation data for every camera that has it, the alignment otherwise."""
+    path, _ = geocentric_scene
+    text = path.read_text().replace('<camera id="1"', '<camera id="1"', 1)
+    text = text.replace("<orientation>1</orientation></camera>",
+                        '<orientation>1</orientation><reference x="9.4" y="48.0" z="600" yaw="0" pitch="0" '
+                        'roll="0"/></camera>', 1)
+    path.write_text(text)
+    aligned = read_block("metashape", path, crs="EPSG:32632")
+    nav = read_block("metashape", path, crs="EPSG:32632", orientation="reference")
+    utm = Transformer.from_crs("EPSG:4979", "EPSG:32632", always_xy=True)
+    assert np.abs(nav.images["IMG_0.JPG"].pose.C - utm.transform(9.4, 48.0, 600.0)).max() < 1e-6
+    assert np.abs(aligned.images["IMG_0.JPG"].pose.C - utm.transform(9.4, 48.0, 600.0)).max() > 1e3
+    assert np.array_equal(nav.images["IMG_1.JPG"].pose.C, aligned.images["IMG_1.JPG"].pose.C)
+    with pytest.raises(InputError, match="orientation must be alignment or reference"):
+        read_block("metashape", path, crs="EPSG:32632", orientation="gnss")

@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 
 from oblique_city.core.errors import InputError
-from oblique_city.core.geometry.crs import transform_points
+from oblique_city.core.geometry.crs import transform_points, true_north_angles
 from oblique_city.core.geometry.rotations import matrix_to_rotvec, mount_rotation, rotation_angle
 from oblique_city.core.io.camerafile import read_camera_file
 from oblique_city.core.io.formats import read_block, write_block
-from oblique_city.core.io.trajectory import true_north_angles
 
 
 def test_event_list_gives_every_head_its_orientation(tmp_path, penta_block):
