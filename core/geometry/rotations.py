@@ -187,6 +187,16 @@ def metashape_ypr_to_photo(yaw: float, pitch: float, roll: float) -> np.ndarray:
     return rot_z(-yaw) @ rot_x(pitch) @ rot_y(roll)
 
 
+def photo_to_metashape_ypr(m: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`metashape_ypr_to_photo`: yaw, pitch, roll radians of ``world_from_photo m (3, 3)``, pitch in
+    [-pi/2, pi/2]. A horizontal view (pitch 90 degrees, where yaw and roll turn about the same axis) gets roll 0."""
+    m = np.asarray(m, np.float64)
+    pitch = float(np.arcsin(np.clip(m[2, 1], -1.0, 1.0)))
+    if np.hypot(m[0, 1], m[1, 1]) > 1e-12:
+        return float(np.arctan2(m[0, 1], m[1, 1])), pitch, float(np.arctan2(-m[2, 0], m[2, 2]))
+    return float(np.arctan2(-m[1, 0], m[0, 0])), pitch, 0.0
+
+
 def ypr_to_cam_from_world(
     yaw: float,
     pitch: float,

@@ -72,7 +72,7 @@ from ..geometry.crs import (
     parse_crs,
     true_north_angles,
 )
-from ..geometry.rotations import FLIP_YZ, metashape_ypr_to_photo
+from ..geometry.rotations import FLIP_YZ, metashape_ypr_to_photo, photo_to_metashape_ypr
 from ..model import CameraModel, GroundPoint, Image, ImageBlock, Pose
 from ..pipeline.atomic import write_bytes
 from .common import finish_block
@@ -424,8 +424,8 @@ def _fmt(v: float) -> str:
 
 def write_metashape(block: ImageBlock, dest: str, **unknown: Any) -> None:
     """Write ``block`` as Metashape camera XML (adjusted poses where known, else approximate ones; images without
-    a pose get no ``<transform>``). Ground points become markers (check points disabled), with their image
-    positions."""
+    a pose get no ``<transform>``), each approximate pose (the navigation data) as the camera's ``<reference>``
+    (yaw against true north). Ground points become markers (check points disabled), with their image positions."""
     from lxml import etree
 
     reject_unknown(unknown, "metashape")
@@ -466,6 +466,9 @@ def write_metashape(block: ImageBlock, dest: str, **unknown: Any) -> None:
     cams = sub(chunk, "cameras", next_id=len(block.images))
     cam_ids = {}
     pose_of = {img.id: k for k, img in enumerate(posed)}
+    navigated = [img for img in block.images.values() if img.pose_approx is not None]
+    north = dict(zip([img.id for img in navigated], true_north_angles(
+        np.array([img.pose_approx.C for img in navigated]).reshape(-1, 3), block.crs), strict=True))
     for i, img in enumerate(block.images.values()):
         cam_ids[img.id] = i
         c = sub(cams, "camera", id=i, sensor_id=sensor_ids[img.camera_id], label=img.id)
@@ -475,6 +478,12 @@ def write_metashape(block: ImageBlock, dest: str, **unknown: Any) -> None:
             m[:3, :3] = r_chunk.T @ q[k].T @ img.pose.R.T
             m[:3, 3] = r_chunk.T @ (centres[k] - origin)
             sub(c, "transform", " ".join(_fmt(v) for v in m.ravel()))
+        if img.id in north:
+            nav = img.pose_approx
+            yaw, pitch, roll = np.degrees(photo_to_metashape_ypr((FLIP_YZ @ nav.R).T))
+            sub(c, "reference", x=_fmt(nav.C[0]), y=_fmt(nav.C[1]), z=_fmt(nav.C[2]),
+                yaw=_fmt(yaw + np.degrees(north[img.id])), pitch=_fmt(pitch), roll=_fmt(roll), enabled="true",
+                rotation_enabled="true")
     markers = sub(chunk, "markers", next_id=len(block.ground_points))
     frame_markers = []
     for j, g in enumerate(block.ground_points.values()):

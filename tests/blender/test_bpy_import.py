@@ -264,8 +264,8 @@ def test_gnssimu_heading_field(addon, tmp_path, penta_block):
 
 
 def test_metashape_orientation_field(addon, tmp_path, utm_block):
-    """A Metashape file whose first camera also has a reference (navigation data): the Orientation field's
-    Alignment keeps its transform, Reference takes the reference position and angles."""
+    """A Metashape file whose first camera's reference (navigation data) lies 11.1 m north of its alignment: the
+    Orientation field's Alignment keeps the transform, Reference takes the reference position and angles."""
     bpy = addon
     from lxml import etree
 
@@ -274,8 +274,9 @@ def test_metashape_orientation_field(addon, tmp_path, utm_block):
     WRITERS["metashape"](utm_block, str(tmp_path / "cameras.xml"))  # the chunk in the block's CRS
     tree = etree.parse(str(tmp_path / "cameras.xml"))
     first = next(tree.iter("camera"))
-    x, y, _ = utm_block.images[first.get("label")].pose.C
-    etree.SubElement(first, "reference", x=repr(x), y=repr(y + 11.1), z="650", yaw="0", pitch="0", roll="0")
+    ref = first.find("reference")  # the writer's, from the approximate pose
+    ref.set("y", repr(float(ref.get("y")) + 11.1))
+    ref.set("z", "650")
     tree.write(str(tmp_path / "cameras.xml"))
     label = first.get("label")
     for k, orientation in enumerate(("alignment", "reference")):

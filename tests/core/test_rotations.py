@@ -163,3 +163,7 @@ def test_metashape_reference_angles() -> None:
     assert np.allclose(east[:, 1], [1.0, 0.0, 0.0]) and np.allclose(east[:, 2], [0.0, 0.0, 1.0])  # top east, down
     level = rt.metashape_ypr_to_photo(0.0, np.radians(90.0), 0.0)
     assert np.allclose(-level[:, 2], [0.0, 1.0, 0.0])  # looks north
+    # the inverse: 500 random orientations and a horizontal view (yaw and roll about one axis: roll 0)
+    for a in [*np.random.default_rng(3).uniform(-1.5, 1.5, (500, 3)), np.array([0.3, np.pi / 2, 0.2])]:
+        m = rt.metashape_ypr_to_photo(*a)
+        assert np.abs(rt.metashape_ypr_to_photo(*rt.photo_to_metashape_ypr(m)) - m).max() < 1e-12

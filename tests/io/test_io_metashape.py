@@ -3,6 +3,8 @@ UTM, projects like Metashape; round trips; refusals that name the line."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from pyproj import CRS, Transformer
@@ -334,3 +336,22 @@ def test_orientation_reference_replaces_the_alignment(geocentric_scene):
     assert np.array_equal(nav.images["IMG_1.JPG"].pose.C, aligned.images["IMG_1.JPG"].pose.C)
     with pytest.raises(InputError, match="orientation must be alignment or reference"):
         read_block("metashape", path, crs="EPSG:32632", orientation="gnss")
+
+
+def test_navigation_data_round_trip(tmp_path, penta_block):
+    """The writer puts each approximate pose (the navigation data) into its camera's ``<reference>``, the best pose
+    into ``<transform>``: read with ``orientation=reference`` the penta block's navigation poses come back (1e-9 m,
+    2e-12 rad), its 45-degree heads and the 2-degree grid convergence included; an adjusted pose stays the
+    alignment."""
+    from oblique_city.core.model import Pose
+
+    block = copy.deepcopy(penta_block)
+    img = block.images["S01_E002_forward"]
+    img.pose_adjusted = Pose(img.pose_approx.R, img.pose_approx.C + [0.3, -0.2, 0.1])
+    write_block("metashape", block, tmp_path / "cams.xml")
+    nav = read_block("metashape", tmp_path / "cams.xml", orientation="reference")
+    aligned = read_block("metashape", tmp_path / "cams.xml")
+    for iid, im in block.images.items():
+        assert np.abs(nav.images[iid].pose.C - im.pose_approx.C).max() < 1e-9
+        assert np.abs(nav.images[iid].pose.R - im.pose_approx.R).max() < 2e-12
+    assert np.abs(aligned.images["S01_E002_forward"].pose.C - img.pose_adjusted.C).max() < 5e-8
