@@ -38,12 +38,11 @@ reference (``Chunk.transform``, ``Camera.transform``, ``Calibration``):
   with option ``orientation=reference`` every camera that has one (the navigation data as the approximate
   orientation of an aligned project, for a triangulation of its own). Its ``enabled`` flags and accuracies are not
   read (the triangulation's default sigmas apply). Cameras with neither are imported without orientation.
-* The cameras of a multi-camera
-  system (Metashape's multi-camera layout: a slave camera's ``master_id`` is its master camera's ``id``) are one
-  exposure each, named by the master's label, with each sensor as a head; the shared option ``rig=auto``
-  estimates the system's rig from their orientations (the slave sensors' own offsets are not read). Slave cameras
-  that lack a ``<transform>`` are refused: their pose would have to come from those offsets. The writer writes
-  independent cameras (no multi-camera layout).
+* The cameras of a multi-camera system (Metashape's multi-camera layout: a slave camera's ``master_id`` is its
+  master camera's ``id``) are one exposure each, named by the master's label, with each sensor as a head; the
+  shared option ``rig=auto`` estimates the system's rig from their orientations (the slave sensors' own offsets are
+  not read). Slave cameras that lack both a ``<transform>`` and a reference are refused: their pose would have to
+  come from those offsets. The writer writes independent cameras (no multi-camera layout).
 * The file holds no image paths: a camera's ``label`` is its image file name, looked up under ``image_root`` and
   its subfolders (without that option, in the XML file's own folder only) by name, else by name without
   extension.
@@ -319,7 +318,8 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
         raise x.fail(chunk, "the chunk has no <camera>", "cameras")
     if any(masters[label] != cid for cid, label in by_id.items()):
         _exposures(block, masters, by_id, lines, x.path)
-    navigated = [label for label in references if label not in posed]
+    aligned = set(posed)
+    navigated = [label for label in references if label not in aligned]
     if navigated:
         nav = np.array([references[label] for label in navigated])
         if local:
