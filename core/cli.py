@@ -155,6 +155,25 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0
 
 
+def reader_options_help(width: int = 100) -> str:
+    """The import command's epilog: every format's reader options, then those every reader but the native one
+    takes, a line of help each."""
+    import textwrap
+
+    from .io.common import COMMON_OPTIONS
+    from .io.formats import READER_OPTIONS
+
+    def rows(options: dict[str, str]) -> list[str]:
+        return [textwrap.fill(text, width, initial_indent=f"    {name:22s} ", subsequent_indent=" " * 27)
+                for name, text in options.items()]
+
+    out = ["reader options (-o KEY=VALUE):"]
+    for fmt, options in sorted(READER_OPTIONS.items()):
+        out += [f"  {fmt}:", *(rows(options) or ["    none"])]
+    out += ["  every format but native:", *rows(COMMON_OPTIONS)]
+    return "\n".join(out)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="oblique-city", description="City modelling from oblique aerial imagery.")
     p.add_argument("-v", "--verbose", action="store_true", help="log details")
@@ -168,12 +187,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .io.formats import READERS
 
-    s = sub.add_parser("import", help="import an oriented image block into a workspace (created if missing)")
+    s = sub.add_parser("import", help="import an oriented image block into a workspace (created if missing)",
+                       epilog=reader_options_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("workspace")
     s.add_argument("source", help="block file or folder")
     s.add_argument("--format", required=True, choices=sorted(READERS))
     s.add_argument("-o", "--option", action="append", metavar="KEY=VALUE",
-                   help="reader option (e.g. angles=gon, cameras=cam.toml, gcps=gcp.txt)")
+                   help="reader option (e.g. angles=gon, cameras=cam.toml, gcps=gcp.txt; the list below)")
     s.set_defaults(func=cmd_import)
 
     s = sub.add_parser("run", help="run stages (all by default); finished stages whose inputs did not change "

@@ -140,7 +140,8 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
                                      description="Regular expression matched against the whole image name")
     exposure_tolerance: FloatProperty(name="Tolerance", default=0.01, min=0.0, unit="TIME_ABSOLUTE",
                                       description="Largest time step between the images of one exposure, seconds")
-    options: StringProperty(name="Options", description="More reader options: key=value; key=value")
+    options: StringProperty(name="Options", description="More reader options: key=value; key=value (each "
+                                                        "format's are listed by oblique-city import --help)")
     workspace: StringProperty(name="Workspace", subtype="DIR_PATH",
                               description="Workspace folder (created if needed); empty: the scene's workspace, "
                                           "else a folder beside the block named <block>_city")

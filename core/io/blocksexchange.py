@@ -138,6 +138,15 @@ def _srs_table(root, x: _Xml) -> dict[str, tuple[str, int]]:
     return out
 
 
+READER_OPTIONS: dict[str, str] = {
+    "block": "name or 0-based index when the file holds several blocks",
+    "crs": "the block's CRS where it has no SRS (a local frame)",
+    "image_id": "stem (of ImagePath), name (with extension) or id (the Photo Id)",
+    "pixel_origin": "center or corner (files whose pixels start at the corner)",
+    "tangential": "opencv or swapped (tangential terms swapped by another tool)",
+}
+"""The BlocksExchange reader's own options (see the module docstring)."""
+
 def _crs_of(srs_id: str | None, table: dict[str, tuple[str, int]], x: _Xml, line: int | None) -> str | None:
     """Canonical CRS for an SRSId, None for a local frame (no SRS or empty definition)."""
     if srs_id is None:

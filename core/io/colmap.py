@@ -52,6 +52,16 @@ COLMAP_MODELS = {
 }
 """COLMAP camera models the core can represent, with their parameter names."""
 
+READER_OPTIONS: dict[str, str] = {
+    "crs": "the world CRS (required)",
+    "image_id": "stem (of the image name) or name",
+    "sim3": "similarity file, world from model (model_aligner's output)",
+    "sim3_scale": "its scale, without a file",
+    "sim3_rotation": "its rotation, quaternion w x y z",
+    "sim3_translation": "its translation",
+}
+"""The COLMAP reader's own options (see the module docstring)."""
+
 RIG_TOLERANCE = (1e-6, 1e-9)
 """Metres and radians an image may be from where its exposure's rig puts it for the writer to give COLMAP the rig:
 the poses read back are the block's within these (a block from the navigation data follows its rig to about 1e-9)."""

@@ -31,9 +31,27 @@ from ..model.exposures import assign_exposures, estimate_rig, image_head
 from .gcp import merge_ground_points, merge_measurements, read_ground_points, read_measurements
 from .validate import check_block, check_image_files, parse_bool, parse_float, reject_unknown
 
-COMMON_OPTIONS = ("gcps", "gcp_columns", "gcp_delimiter", "gcp_crs", "gcp_sigma", "gcp_kind", "measurements",
-                  "measurement_columns", "measurement_delimiter", "measurement_origin", "sigma_px", "image_root",
-                  "check_images", "pose", "exposures", "exposure_pattern", "exposure_tolerance", "rig")
+COMMON_OPTIONS: dict[str, str] = {
+    "gcps": "ground point list (CSV or text)",
+    "gcp_columns": "its columns, e.g. name,x,y,z,sx,sy,sz,kind",
+    "gcp_delimiter": "its delimiter (comma, semicolon, tab, whitespace)",
+    "gcp_crs": "its CRS when it differs from the block's",
+    "gcp_sigma": "metres, where it has no sigma columns",
+    "gcp_kind": "control or check, where it has no kind column",
+    "measurements": "image measurements of the ground points",
+    "measurement_columns": "their columns, e.g. name,image,u,v",
+    "measurement_delimiter": "their delimiter",
+    "measurement_origin": "center or corner of the top-left pixel",
+    "sigma_px": "their standard deviation, pixels",
+    "image_root": "folder relative image paths start from",
+    "check_images": "true: every image file exists and has its camera's size",
+    "pose": "approx (a prior for aerial triangulation) or adjusted (final)",
+    "exposures": "given, time or name: which images one trigger of a multi-head camera took",
+    "exposure_tolerance": "seconds between the images of one exposure (exposures=time)",
+    "exposure_pattern": "regular expression over the image id, groups exposure and head (exposures=name)",
+    "rig": "auto (estimate the camera system's rig from the orientations) or none",
+}
+"""The options every reader but the native one takes (see the module docstring), with a line of help each."""
 
 
 def finish_block(block: ImageBlock, source: str | Path, options: dict[str, Any], fmt: str,

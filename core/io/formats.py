@@ -9,6 +9,7 @@ from typing import Any
 from ..errors import ConfigError
 from ..model import ImageBlock
 from . import blocksexchange, colmap, metashape, native, opk, trajectory
+from .common import COMMON_OPTIONS
 
 Reader = Callable[..., ImageBlock]
 Writer = Callable[..., None]
@@ -24,10 +25,27 @@ WRITERS: dict[str, Writer] = {"native": lambda block, dest, **_: native.write_bl
 """Format name -> ``writer(block, dest, **options)``."""
 
 
+READER_OPTIONS: dict[str, dict[str, str]] = {
+    "native": {}, "opk": opk.READER_OPTIONS, "bex": blocksexchange.READER_OPTIONS, "colmap": colmap.READER_OPTIONS,
+    "metashape": metashape.READER_OPTIONS, "gnssimu": trajectory.READER_OPTIONS}
+"""Format name -> its reader's own options with a line of help each; every reader but the native one also takes
+:data:`.common.COMMON_OPTIONS`."""
+
+
+def reader_options(fmt: str) -> dict[str, str]:
+    """Every option the reader of ``fmt`` takes, with a line of help each."""
+    return dict(READER_OPTIONS[fmt]) if fmt == "native" else {**READER_OPTIONS[fmt], **COMMON_OPTIONS}
+
+
 def read_block(fmt: str, source: str | Path, **options: Any) -> ImageBlock:
-    """Read a block in format ``fmt`` from ``source`` (a file or folder, depending on the format)."""
+    """Read a block in format ``fmt`` from ``source`` (a file or folder, depending on the format); an option the
+    format's reader does not take is refused with the list of those it takes."""
     if fmt not in READERS:
         raise ConfigError(f"unknown block format '{fmt}' (known: {', '.join(sorted(READERS))})")
+    unknown = sorted(set(options) - set(reader_options(fmt)))
+    if unknown:
+        known = ", ".join(sorted(reader_options(fmt))) or "none"
+        raise ConfigError(f"unknown option(s) for format '{fmt}': {', '.join(unknown)} (it takes: {known})")
     return READERS[fmt](str(source), **options)
 
 

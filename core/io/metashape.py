@@ -80,6 +80,13 @@ from .validate import check_crs, parse_bool, parse_xml, reject_unknown
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".png")
 """Suffixes tried when a camera label names its image without extension."""
 
+READER_OPTIONS: dict[str, str] = {
+    "crs": "the block's CRS (required for a geographic or local chunk)",
+    "chunk": "label or 0-based index when the document holds several",
+    "orientation": "alignment (the aligned transform, else the reference) or reference (the navigation data)",
+}
+"""The Metashape reader's own options (see the module docstring)."""
+
 _REFUSED_TERMS = ("b2", "k4", "p3", "p4")
 
 

@@ -81,6 +81,21 @@ COLUMN_ALIASES = {
     "time": "time", "gps_time": "time", "gpstime": "time", "gnss_time": "time", "timestamp": "time",
     "seconds": "time",
 }
+LIST_OPTIONS: dict[str, str] = {
+    "cameras": "camera file (TOML or JSON; default: <stem>_cameras.toml beside the list)",
+    "angles": "deg, gon or rad (default: the list's or camera file's, else deg)",
+    "columns": "the columns' order, comma-separated (default: the header row, else the format's order)",
+    "delimiter": "comma, semicolon, tab or whitespace (default: sniffed)",
+    "header": "auto, true or false",
+    "comment": "comment character (default #)",
+    "crs": "EPSG:nnnn or WKT (default: the list's or camera file's)",
+    "image_ext": "appended to names to form file names where there is no file column",
+}
+"""The options of text lists (OPK lists and GNSS/IMU event lists, :func:`read_list`)."""
+
+READER_OPTIONS = LIST_OPTIONS
+"""The OPK reader's own options (see the module docstring)."""
+
 REQUIRED = ("name", "x", "y", "z", "omega", "phi", "kappa")
 DEFAULT_COLUMNS = "name,x,y,z,omega,phi,kappa"
 DIRECTIVES = ("crs", "angles", "cameras", "image_root", "heading", "image_name", "image_file")

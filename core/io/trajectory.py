@@ -57,7 +57,7 @@ from ..model import Image, ImageBlock, Rig
 from ..pipeline.atomic import write_text
 from .camerafile import write_camera_file
 from .common import finish_block
-from .opk import optional_field, read_list
+from .opk import LIST_OPTIONS, optional_field, read_list
 from .validate import angle_unit, parse_float, reject_unknown
 from .validate import delimiter as parse_delimiter
 
@@ -78,6 +78,15 @@ DEFAULT_COLUMNS = "exposure,x,y,z,roll,pitch,heading"
 HEADINGS = ("true", "grid")
 NAME_TEMPLATES = ("{exposure}_{head}", "{exposure}-{head}", "{exposure}{head}", "{head}_{exposure}", "{exposure}")
 """The image name patterns the writer recognises (the first that names every image)."""
+READER_OPTIONS: dict[str, str] = {
+    **LIST_OPTIONS,
+    "position_crs": "CRS of lat lon h positions (default EPSG:4979)",
+    "heading": "true (against true north: the grid convergence is applied) or grid",
+    "image_name": "template of the images' ids, {exposure} and {head} (default {exposure}_{head})",
+    "image_file": "template of their files, {image}, {exposure} and {head} (default {image})",
+}
+"""The event list reader's own options (see the module docstring)."""
+
 RIG_TOLERANCE = (1e-3, 1e-5)
 """Metres and radians: the most a head's orientation may differ from its exposure's reference head through the rig
 for the writer (an event list carries one orientation per exposure)."""

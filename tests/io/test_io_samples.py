@@ -119,10 +119,34 @@ def test_image_files_checked(tmp_path):
 
 
 def test_unknown_option_is_refused():
+    """A typo is refused with the options the format takes; the native format takes none."""
     from oblique_city.core.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="unknown option.*angle"):
+    with pytest.raises(ConfigError, match=r"unknown option\(s\) for format 'opk': angle \(it takes: angles, "):
         read_block("opk", DATA / "opk_sample2.txt", angle="gon")
+    with pytest.raises(ConfigError, match="format 'native': gcps \\(it takes: none\\)"):
+        read_block("native", DATA / "nowhere.json", gcps="gcp.csv")
+
+
+def test_every_option_a_reader_takes_is_listed():
+    """Each reader module's options (every ``options.pop("...")`` in its source, the shared ones in ``common``) are
+    declared, so ``read_block`` passes them and ``oblique-city import --help`` lists them, with their help."""
+    import re
+
+    from oblique_city.core.cli import reader_options_help
+    from oblique_city.core.io import blocksexchange, colmap, common, metashape, opk, trajectory
+    from oblique_city.core.io.formats import READER_OPTIONS, reader_options
+
+    popped = re.compile(r'opt(?:ion)?s\.(?:pop|get)\("(\w+)"')
+    modules = {"opk": [opk], "bex": [blocksexchange], "colmap": [colmap], "metashape": [metashape],
+               "gnssimu": [trajectory, opk]}
+    shared = set(popped.findall(Path(common.__file__).read_text()))
+    assert shared == set(common.COMMON_OPTIONS)
+    for fmt, mods in modules.items():
+        own = set().union(*(popped.findall(Path(m.__file__).read_text()) for m in mods)) - shared
+        assert own <= set(READER_OPTIONS[fmt]), (fmt, own - set(READER_OPTIONS[fmt]))
+    text = reader_options_help()
+    assert all(f"    {name} " in text for fmt in READER_OPTIONS for name in reader_options(fmt))
 
 
 def test_image_files_present_and_right_size():
