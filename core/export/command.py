@@ -131,10 +131,13 @@ def add_commands(sub) -> None:
                         "the project's heights are orthometric)")
     s.set_defaults(func=cmd_export)
 
-    from ..io.formats import WRITERS
+    from ..io.formats import WRITERS, writer_options
 
     s = sub.add_parser("export-block", help="export the oriented image block (adjusted after aerial triangulation) "
-                                            "for other software")
+                                            "for other software",
+                       epilog="writer options (-o KEY=VALUE) and their defaults:\n" + "\n".join(
+                           f"  {fmt:10s} " + (", ".join(f"{k}={v}" for k, v in writer_options(fmt).items()) or "none")
+                           for fmt in sorted(WRITERS)), formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("workspace")
     s.add_argument("--format", required=True, choices=sorted(WRITERS))
     s.add_argument("--out", required=True, help="output file (a folder for colmap)")

@@ -50,7 +50,20 @@ def read_block(fmt: str, source: str | Path, **options: Any) -> ImageBlock:
 
 
 def write_block(fmt: str, block: ImageBlock, dest: str | Path, **options: Any) -> None:
-    """Write ``block`` in format ``fmt`` to ``dest``."""
+    """Write ``block`` in format ``fmt`` to ``dest``; an option the format's writer does not take is refused with
+    the list of those it takes."""
     if fmt not in WRITERS:
         raise ConfigError(f"unknown block format '{fmt}' (known: {', '.join(sorted(WRITERS))})")
+    unknown = sorted(set(options) - set(writer_options(fmt)))
+    if unknown:
+        known = ", ".join(writer_options(fmt)) or "none"
+        raise ConfigError(f"unknown option(s) for format '{fmt}': {', '.join(unknown)} (it takes: {known})")
     WRITERS[fmt](block, str(dest), **options)
+
+
+def writer_options(fmt: str) -> dict[str, Any]:
+    """The options the writer of ``fmt`` takes, with their defaults (its keyword parameters)."""
+    import inspect
+
+    params = list(inspect.signature(WRITERS[fmt]).parameters.values())[2:]  # after the block and the destination
+    return {p.name: p.default for p in params if p.kind is p.POSITIONAL_OR_KEYWORD}

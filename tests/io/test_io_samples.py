@@ -179,3 +179,17 @@ def test_bex_xmlz(tmp_path):
         z.write(DATA / "bex_sample.xml", "block.xml")
     b = read_block("bex", tmp_path / "b.xmlz")
     assert len(b.images) == 4 and b.crs == "EPSG:2154"
+
+
+def test_writer_options_listed_are_taken(tmp_path, penta_block):
+    """``oblique-city export-block --help`` lists each writer's keyword options with their defaults: every writer
+    takes them (given explicitly) and refuses others."""
+    from oblique_city.core.errors import ConfigError
+    from oblique_city.core.io.formats import WRITERS, write_block, writer_options
+
+    assert writer_options("opk") == {"angles": "deg", "delimiter": "whitespace", "cameras": None, "sigmas": True}
+    for fmt in WRITERS:
+        given = {k: v for k, v in writer_options(fmt).items() if v is not None}
+        write_block(fmt, penta_block, tmp_path / fmt / "out", **given)
+        with pytest.raises(ConfigError, match=f"unknown option\\(s\\) for format '{fmt}': bogus \\(it takes: "):
+            write_block(fmt, penta_block, tmp_path / fmt / "again", bogus="1")
