@@ -42,10 +42,7 @@ def read_block(fmt: str, source: str | Path, **options: Any) -> ImageBlock:
     format's reader does not take is refused with the list of those it takes."""
     if fmt not in READERS:
         raise ConfigError(f"unknown block format '{fmt}' (known: {', '.join(sorted(READERS))})")
-    unknown = sorted(set(options) - set(reader_options(fmt)))
-    if unknown:
-        known = ", ".join(sorted(reader_options(fmt))) or "none"
-        raise ConfigError(f"unknown option(s) for format '{fmt}': {', '.join(unknown)} (it takes: {known})")
+    _refuse_unknown(fmt, options, sorted(reader_options(fmt)))
     return READERS[fmt](str(source), **options)
 
 
@@ -54,11 +51,16 @@ def write_block(fmt: str, block: ImageBlock, dest: str | Path, **options: Any) -
     the list of those it takes."""
     if fmt not in WRITERS:
         raise ConfigError(f"unknown block format '{fmt}' (known: {', '.join(sorted(WRITERS))})")
-    unknown = sorted(set(options) - set(writer_options(fmt)))
-    if unknown:
-        known = ", ".join(writer_options(fmt)) or "none"
-        raise ConfigError(f"unknown option(s) for format '{fmt}': {', '.join(unknown)} (it takes: {known})")
+    _refuse_unknown(fmt, options, list(writer_options(fmt)))
     WRITERS[fmt](block, str(dest), **options)
+
+
+def _refuse_unknown(fmt: str, options: dict[str, Any], known: list[str]) -> None:
+    """ConfigError naming the options not in ``known`` and listing those (a typo never passes silently)."""
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise ConfigError(f"unknown option(s) for format '{fmt}': {', '.join(unknown)} (it takes: "
+                          f"{', '.join(known) or 'none'})")
 
 
 def writer_options(fmt: str) -> dict[str, Any]:
