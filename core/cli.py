@@ -86,7 +86,6 @@ def cmd_new(args: argparse.Namespace) -> int:
 def cmd_import(args: argparse.Namespace) -> int:
     from .geometry.crs import normalize_crs
     from .io.formats import read_block
-    from .model.exposures import MISSING_EXPOSURES, describe_system, oblique_without_nadir
     from .pipeline import Workspace
 
     block = read_block(args.format, args.source, **parse_options(args.option))
@@ -102,12 +101,19 @@ def cmd_import(args: argparse.Namespace) -> int:
     views = ", ".join(f"{k} {v}" for k, v in s["views"].items())
     print(f"imported {s['images']} images ({views}), {s['cameras']} cameras, {s['control_points']} control and "
           f"{s['check_points']} check points into {ws.root} [{ws.crs}]")
+    print_system(block)
+    return 0
+
+
+def print_system(block) -> None:
+    """The block's camera system (exposures and rigs), or that HAT will lack it, when there is a line to say."""
+    from .model.exposures import MISSING_EXPOSURES, describe_system, oblique_without_nadir
+
     system = describe_system(block)
     if system:
         print(system)
     elif oblique_without_nadir(block):
         print(MISSING_EXPOSURES)
-    return 0
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -144,9 +150,11 @@ def cmd_status(args: argparse.Namespace) -> int:
 
     ws = Workspace.open(args.workspace)
     if ws.has_block():
-        s = ws.load_block().summary()
+        block = ws.load_block()
+        s = block.summary()
         print(f"block: {s['images']} images {s['views']}, {s['control_points']} control / {s['check_points']} "
               f"check points, CRS {s['crs']}")
+        print_system(block)
     else:
         print("block: not imported")
     for row in status(ws):

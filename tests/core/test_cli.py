@@ -36,6 +36,7 @@ def test_new_import_run_status(utm_block, tmp_path, capsys, square) -> None:
     assert main(["status", str(ws)]) == 0
     out = capsys.readouterr().out
     assert "3 images" in out and "square" in out and "done" in out
+    assert "No exposures: HAT starts the oblique images" in out  # status says what the block lacks, as import did
 
 
 @pytest.mark.parametrize("argv,message", [
@@ -59,3 +60,12 @@ def test_module_entry_point_runs() -> None:
                          check=True).stdout
     for cmd in ("new", "import", "run", "status", "simulate", "demo"):
         assert cmd in out
+
+
+def test_status_shows_the_camera_system(penta_block, tmp_path, capsys) -> None:
+    """The penta block's exposures and rig, on import and in the status."""
+    write_block(penta_block, tmp_path / "penta.json")
+    assert main(["import", str(tmp_path / "ws"), str(tmp_path / "penta.json"), "--format", "native"]) == 0
+    assert main(["status", str(tmp_path / "ws")]) == 0
+    out = capsys.readouterr().out
+    assert out.count("245 exposures of 5 heads; rig 'penta' (reference head nadir)") == 2
