@@ -13,9 +13,12 @@ import logging
 import signal
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .errors import Cancelled, CityError, ConfigError
+
+if TYPE_CHECKING:
+    from .model import ImageBlock
 
 COMMAND_MODULES: list[str] = [".aerotri.cli", ".matching.cli", ".simulate.cli", ".demo", ".export.command", ".report"]
 """Modules (relative to ``core``) that add sub-commands: each defines ``add_commands(subparsers)`` and sets
@@ -105,7 +108,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
-def print_system(block) -> None:
+def print_system(block: ImageBlock) -> None:
     """The block's camera system (exposures and rigs), or that HAT will lack it, when there is a line to say."""
     from .model.exposures import MISSING_EXPOSURES, describe_system, oblique_without_nadir
 
