@@ -88,10 +88,14 @@ def cmd_new(args: argparse.Namespace) -> int:
 
 def cmd_import(args: argparse.Namespace) -> int:
     from .geometry.crs import normalize_crs
-    from .io.formats import read_block
+    from .io.formats import detect_format, read_block
     from .pipeline import Workspace
 
-    block = read_block(args.format, args.source, **parse_options(args.option))
+    fmt = args.format
+    if fmt == "auto":
+        fmt = detect_format(args.source)
+        print(f"format: {fmt} (told from the file; --format chooses another)")
+    block = read_block(fmt, args.source, **parse_options(args.option))
     root = Path(args.workspace)
     ws = Workspace.open(root) if (root / "project.toml").exists() else Workspace.create(root, crs=block.crs)
     if normalize_crs(block.crs) != normalize_crs(ws.crs):
@@ -202,7 +206,8 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog=reader_options_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("workspace")
     s.add_argument("source", help="block file or folder")
-    s.add_argument("--format", required=True, choices=sorted(READERS))
+    s.add_argument("--format", default="auto", choices=["auto", *sorted(READERS)],
+                   help="the block's format (default auto: told from the file, see io.formats.detect_format)")
     s.add_argument("-o", "--option", action="append", metavar="KEY=VALUE",
                    help="reader option (e.g. angles=gon, cameras=cam.toml, gcps=gcp.txt; the list below)")
     s.set_defaults(func=cmd_import)

@@ -18,13 +18,16 @@ from bpy_extras.io_utils import ImportHelper
 from ..addon import builders
 from ..core.errors import CityError, ConfigError
 from ..core.geometry.crs import normalize_crs, transform_points
-from ..core.io.formats import READERS, read_block
+from ..core.io.formats import READERS, detect_format, read_block
+from ..core.io.formats import reader_options as format_options
 from ..core.io.reproject import reproject_block
 from ..core.model import ImageBlock
 from ..core.model.exposures import describe_system
 from ..core.pipeline import Workspace
 
 FORMAT_LABELS = {
+    "auto": ("Auto", "Told from the file: a JSON block, BlocksExchange or Metashape XML, a COLMAP model folder, an "
+                     "OPK list or GNSS/IMU events by their header"),
     "native": ("Oblique City JSON", "The workspace's own block file (block.json)"),
     "opk": ("OPK List", "Text/CSV list: image, X, Y, Z, omega, phi, kappa, with a camera file"),
     "bex": ("BlocksExchange XML", "ContextCapture / iTwin Capture BlocksExchange"),
@@ -35,6 +38,14 @@ FORMAT_LABELS = {
 }
 FOLDER_FORMATS = {"colmap"}
 """Formats whose source is a folder: picking a file inside it imports the folder."""
+
+COLMAP_FILES = {f"{name}.{ext}" for name in ("cameras", "images", "points3D", "rigs", "frames")
+                for ext in ("txt", "bin")}
+"""A COLMAP model's files: with the format told from the file, picking one imports its folder."""
+
+FIELD_OPTIONS = ("angles", "heading", "cameras", "orientation")
+"""Reader options of the dialog's fields that only some formats take: left out for a format (chosen or told from
+the file) that does not take them."""
 
 _format_items: list[tuple[str, str, str]] = []
 
@@ -47,8 +58,8 @@ def enum_items(names, store: list) -> list[tuple[str, str, str]]:
 
 
 def format_items(self, context) -> list[tuple[str, str, str]]:
-    """Enum items from the registered readers."""
-    return enum_items(READERS, _format_items)
+    """Enum items from the registered readers, after Auto (the format told from the file)."""
+    return enum_items(["auto", *READERS], _format_items)
 
 
 def parse_options(text: str) -> dict[str, object]:
@@ -149,12 +160,14 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
     def draw(self, context):
         layout = self.layout
         layout.prop(self, "block_format")
-        if self.block_format in ("opk", "gnssimu"):
+        fmt = self.block_format
+        if fmt in ("opk", "gnssimu", "auto"):
             layout.prop(self, "angle_unit")
-        if self.block_format == "gnssimu":
+        if fmt in ("gnssimu", "auto"):
             layout.prop(self, "heading")
+        if fmt in ("opk", "gnssimu", "auto"):
             layout.prop(self, "camera_file")
-        if self.block_format == "metashape":
+        if fmt in ("metashape", "auto"):
             layout.prop(self, "orientation")
         layout.prop(self, "gcp_file")
         layout.prop(self, "measurements_file")
@@ -167,13 +180,14 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
         layout.prop(self, "options")
         layout.prop(self, "workspace")
 
-    def reader_options(self) -> dict[str, object]:
+    def reader_options(self, fmt: str) -> dict[str, object]:
+        """The dialog's fields as the options of the reader of ``fmt`` (the format told from the file for Auto)."""
         opts: dict[str, object] = {}
         if self.angle_unit != "file":
             opts["angles"] = self.angle_unit
-        if self.block_format == "gnssimu" and self.heading != "file":
+        if fmt == "gnssimu" and self.heading != "file":
             opts["heading"] = self.heading
-        if self.block_format == "metashape" and self.orientation != "alignment":
+        if fmt == "metashape" and self.orientation != "alignment":
             opts["orientation"] = self.orientation
         if self.camera_file:
             opts["cameras"] = bpy.path.abspath(self.camera_file)
@@ -187,12 +201,15 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
             opts.update(exposures="time", exposure_tolerance=self.exposure_tolerance)
         elif self.exposures == "name":
             opts.update(exposures="name", exposure_pattern=self.exposure_pattern)
+        takes = format_options(fmt)  # a hidden field keeps the value of an earlier import in another format
+        opts = {k: v for k, v in opts.items() if k not in FIELD_OPTIONS or k in takes}
         opts.update(parse_options(self.options))
         return opts
 
     def source_path(self) -> Path:
         path = Path(bpy.path.abspath(self.filepath))
-        if self.block_format in FOLDER_FORMATS and path.is_file():
+        if path.is_file() and (self.block_format in FOLDER_FORMATS
+                               or (self.block_format == "auto" and path.name in COLMAP_FILES)):
             return path.parent
         return path
 
@@ -206,8 +223,9 @@ class CITY_OT_import_block(bpy.types.Operator, ImportHelper):
     def execute(self, context):
         try:
             source = self.source_path()
-            ws, block = import_into_workspace(self.block_format, source, self.workspace_path(context, source),
-                                              **self.reader_options())
+            fmt = detect_format(source) if self.block_format == "auto" else self.block_format
+            ws, block = import_into_workspace(fmt, source, self.workspace_path(context, source),
+                                              **self.reader_options(fmt))
             messages = builders.build_scene(context.scene, ws, stages=["block"])
         except CityError as e:
             self.report({"ERROR"}, str(e).splitlines()[0])

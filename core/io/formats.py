@@ -6,7 +6,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError
+from ..errors import ConfigError, InputError
 from ..model import ImageBlock
 from . import blocksexchange, colmap, metashape, native, opk, trajectory
 from .common import COMMON_OPTIONS
@@ -69,3 +69,42 @@ def writer_options(fmt: str) -> dict[str, Any]:
 
     params = list(inspect.signature(WRITERS[fmt]).parameters.values())[2:]  # after the block and the destination
     return {p.name: p.default for p in params if p.kind is p.POSITIONAL_OR_KEYWORD}
+
+
+def detect_format(source: str | Path) -> str:
+    """The block format of ``source``, from what it holds: a folder with ``cameras.txt`` or ``.bin`` is a COLMAP
+    model; a ``.json`` file the native block; an XML file (``.xml``, ``.xmlz``) BlocksExchange or Metashape by its
+    root element; a text list an event list when its header names roll and heading (or it has a ``# heading:``
+    line), else an OPK list. :class:`InputError` (naming the file) when it is none of them."""
+    p = Path(source)
+    if p.is_dir():
+        if any((p / f"cameras.{ext}").is_file() for ext in ("txt", "bin")):
+            return "colmap"
+        raise InputError("a folder without cameras.txt or cameras.bin: not a COLMAP model; give the format",
+                         path=source, field="format")
+    if not p.is_file():
+        raise InputError("file not found", path=source)
+    suffix = p.suffix.lower()
+    if suffix == ".json":
+        return "native"
+    if suffix in (".xml", ".xmlz"):
+        from .validate import parse_xml
+
+        tag = parse_xml(p).tag
+        if tag in ("BlocksExchange", "document"):
+            return "bex" if tag == "BlocksExchange" else "metashape"
+        raise InputError(f"XML with root element <{tag}>: neither BlocksExchange nor Metashape camera XML; give the "
+                         "format", path=source, field="format")
+    from .validate import read_text_lines
+
+    lines = [t.strip().lower() for t in read_text_lines(p)[:200] if t.strip()]
+    if any(t.startswith("#") and t.lstrip("# ").startswith("heading:") for t in lines):
+        return "gnssimu"
+    header = next((t for t in lines if not t.startswith("#")), "")
+    words = set(header.replace(",", " ").replace(";", " ").replace("\t", " ").split())
+    if {"roll", "heading"} <= words:
+        return "gnssimu"
+    if words & {"omega", "phi", "kappa", "om", "ph", "ka"} or header[:1].isdigit() or len(words) >= 7:
+        return "opk"
+    raise InputError("cannot tell the block format from the file (not JSON, XML, an OPK list or an event list); "
+                     "give the format", path=source, field="format")

@@ -30,8 +30,10 @@ def write_images(folder: Path, block) -> None:
         cv2.imwrite(str(folder / img.file), rng.integers(0, 255, (cam.height, cam.width, 3), dtype=np.uint8))
 
 
+@pytest.mark.parametrize("auto", [False, True])
 @pytest.mark.parametrize("fmt", sorted(READERS))
-def test_import_every_format(addon, tmp_path, utm_block, fmt):
+def test_import_every_format(addon, tmp_path, utm_block, fmt, auto):
+    """Each format chosen, or told from the file (Auto; a COLMAP model by picking its cameras.txt)."""
     bpy = addon
     from oblique_city.addon import cameras, georef
     from oblique_city.core.pipeline import Workspace
@@ -49,8 +51,9 @@ def test_import_every_format(addon, tmp_path, utm_block, fmt):
     WRITERS[fmt](block, str(source))
     write_images(source if source.is_dir() else source.parent, utm_block)
     ws_root = tmp_path / "ws"
-    result = bpy.ops.city.import_block(filepath=str(source), block_format=fmt, workspace=str(ws_root),
-                                       options=OPTIONS.get(fmt, ""))
+    picked = source / "cameras.txt" if auto and source.is_dir() else source
+    result = bpy.ops.city.import_block(filepath=str(picked), block_format="auto" if auto else fmt,
+                                       workspace=str(ws_root), options=OPTIONS.get(fmt, ""))
     assert result == {"FINISHED"}
     scene = bpy.context.scene
     assert Workspace.open(ws_root).load_block().summary()["images"] == len(utm_block.images)
@@ -289,3 +292,17 @@ def test_metashape_orientation_field(addon, tmp_path, utm_block):
             assert moved.max() < 1e-6
         else:
             assert abs(moved[1] - 11.1) < 1e-6 and moved[0] < 1e-6 and abs(got[2] - 650.0) < 1e-6
+
+
+def test_fields_of_other_formats_are_left_out(addon, tmp_path, utm_block):
+    """A Metashape XML, told from the file or chosen, ignores the OPK fields (angles, camera file) an earlier import
+    left set (Blender keeps an operator's last values; the fields are hidden for Metashape), while an option typed
+    into the Options field that Metashape does not take is still refused."""
+    bpy = addon
+    WRITERS["metashape"](utm_block, str(tmp_path / "cameras.xml"))
+    kw = {"filepath": str(tmp_path / "cameras.xml"), "angle_unit": "gon", "camera_file": str(tmp_path / "c.toml")}
+    for k, fmt in enumerate(("auto", "metashape")):
+        assert bpy.ops.city.import_block(block_format=fmt, workspace=str(tmp_path / f"ws{k}"), **kw) == {"FINISHED"}
+    with pytest.raises(RuntimeError, match="unknown option.*angles"):
+        bpy.ops.city.import_block(block_format="metashape", workspace=str(tmp_path / "ws2"), options="angles=gon",
+                                  **kw)

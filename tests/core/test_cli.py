@@ -63,9 +63,10 @@ def test_module_entry_point_runs() -> None:
 
 
 def test_status_shows_the_camera_system(penta_block, tmp_path, capsys) -> None:
-    """The penta block's exposures and rig, on import and in the status."""
+    """The penta block's exposures and rig, on import (its format told from the file) and in the status."""
     write_block(penta_block, tmp_path / "penta.json")
-    assert main(["import", str(tmp_path / "ws"), str(tmp_path / "penta.json"), "--format", "native"]) == 0
+    assert main(["import", str(tmp_path / "ws"), str(tmp_path / "penta.json")]) == 0  # the format told from the file
     assert main(["status", str(tmp_path / "ws")]) == 0
     out = capsys.readouterr().out
+    assert "format: native (told from the file" in out
     assert out.count("245 exposures of 5 heads; rig 'penta' (reference head nadir)") == 2

@@ -193,3 +193,30 @@ def test_writer_options_listed_are_taken(tmp_path, penta_block):
         write_block(fmt, penta_block, tmp_path / fmt / "out", **given)
         with pytest.raises(ConfigError, match=f"unknown option\\(s\\) for format '{fmt}': bogus \\(it takes: "):
             write_block(fmt, penta_block, tmp_path / fmt / "again", bogus="1")
+
+
+def test_format_told_from_the_file(tmp_path, penta_block):
+    """Every format as its writer writes it is told from the file (also an OPK list without its header and a zipped
+    BlocksExchange file); a folder or an XML of no known kind is refused, naming the file."""
+    import zipfile
+
+    from oblique_city.core.errors import InputError
+    from oblique_city.core.io.formats import WRITERS, detect_format, write_block
+
+    names = {"native": "b.json", "opk": "b.txt", "bex": "b.xml", "colmap": "sparse", "metashape": "cams.xml",
+             "gnssimu": "events.csv"}
+    for fmt in WRITERS:
+        write_block(fmt, penta_block, tmp_path / names[fmt])
+        assert detect_format(tmp_path / names[fmt]) == fmt
+    lines = (tmp_path / "b.txt").read_text().splitlines()
+    (tmp_path / "bare.txt").write_text("\n".join(t for t in lines if not t.startswith(("#", "name"))) + "\n")
+    assert detect_format(tmp_path / "bare.txt") == "opk"
+    with zipfile.ZipFile(tmp_path / "b.xmlz", "w") as z:
+        z.write(tmp_path / "b.xml", "b.xml")
+    assert detect_format(tmp_path / "b.xmlz") == "bex"
+    (tmp_path / "other.xml").write_text("<kml/>")
+    (tmp_path / "empty").mkdir()
+    for bad, reason in (("other.xml", "root element <kml>"), ("empty", "not a COLMAP model")):
+        with pytest.raises(InputError, match=reason) as e:
+            detect_format(tmp_path / bad)
+        assert e.value.path == str(tmp_path / bad)
