@@ -331,20 +331,20 @@ def write_colmap(block: ImageBlock, dest: str, binary: Any = False, sim3: str | 
     images = [img for img in block.images.values() if img.pose is not None]
     poses = {img.id: img.pose if inverse is None else inverse.apply_pose(img.pose.R, img.pose.C) for img in images}
     cam_ids = {cam.id: i for i, cam in enumerate(block.cameras.values(), start=1)}
-    frames = _rig_frames(block, images, poses, 1.0 if inverse is None else inverse.scale)
+    system = _rig_frames(block, images, poses, 1.0 if inverse is None else inverse.scale)
     rec = pycolmap.Reconstruction()
-    rig_cams = set() if frames is None else {h.camera_id for h in frames[0]}
+    rig_cams = set() if system is None else {h.camera_id for h in system[0]}
     for cam in block.cameras.values():
         add = rec.add_camera if cam.id in rig_cams else rec.add_camera_with_trivial_rig
         add(_camera_to_colmap(cam, cam_ids[cam.id]))
     image_ids = {img.id: n for n, img in enumerate(images, start=1)}
-    if frames is None:
+    if system is None:
         for img in images:
             pose = poses[img.id]
             rec.add_image_with_trivial_frame(pycolmap.Image(name=img.file or img.id, camera_id=cam_ids[img.camera_id],
                                                             image_id=image_ids[img.id]), _rigid(pose.R, pose.t))
     else:
-        heads, sensor_from_rig, exposures = frames
+        heads, sensor_from_rig, exposures = system
         sensor = {h.camera_id: pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=cam_ids[h.camera_id])
                   for h in heads}
         rig = pycolmap.Rig(rig_id=1)
