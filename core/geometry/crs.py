@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -40,12 +40,13 @@ def is_projected_metric(text: str) -> bool:
     return all(ax.unit_name in ("metre", "meter") for ax in crs.axis_info[:2])
 
 
-def transform_points(xyz: np.ndarray, src: str, dst: str) -> np.ndarray:
+def transform_points(xyz: np.ndarray, src: str, dst: str, path: str | None = None,
+                     lines: Sequence[int | None] | None = None) -> np.ndarray:
     """Transform ``(n, 3)`` coordinates from CRS ``src`` to ``dst`` (x = easting/longitude, always_xy; see
-    :func:`crs_transformer` for what is refused)."""
+    :func:`crs_transformer` for what is refused; ``path`` and the points' ``lines`` name the first point refused)."""
     if normalize_crs(src) == normalize_crs(dst):
         return np.array(xyz, dtype=np.float64)
-    return crs_transformer(parse_crs(src), parse_crs(dst))(xyz)
+    return crs_transformer(parse_crs(src), parse_crs(dst), path)(xyz, lines)
 
 
 def geocentric_crs(crs):
@@ -62,9 +63,10 @@ def geocentric_crs(crs):
     return CRS.from_json_dict(d)
 
 
-def crs_transformer(src, dst, path: str | None = None, field: str = "crs") -> Callable[[np.ndarray], np.ndarray]:
-    """``f(xyz (n, 3)) -> (n, 3)`` from pyproj CRS ``src`` to ``dst``; refuses ballpark height transformations
-    and non-finite results."""
+def crs_transformer(src, dst, path: str | None = None, field: str = "crs") -> Callable[..., np.ndarray]:
+    """``f(xyz (n, 3), lines=None) -> (n, 3)`` from pyproj CRS ``src`` to ``dst``; refuses ballpark height
+    transformations and points it cannot transform, naming the first (its line from ``lines``, one per point, when
+    given)."""
     from pyproj import Transformer
 
     t = Transformer.from_crs(src, dst, always_xy=True)
@@ -73,27 +75,31 @@ def crs_transformer(src, dst, path: str | None = None, field: str = "crs") -> Ca
                          f"({t.description}); choose a CRS with ellipsoidal heights (-o crs=EPSG:nnnn)",
                          path=path, field=field)
 
-    def apply(xyz: np.ndarray) -> np.ndarray:
+    def apply(xyz: np.ndarray, lines: Sequence[int | None] | None = None) -> np.ndarray:
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         n = len(xyz)
-        if n == 1:  # pyproj takes size-1 arrays for scalars (a NumPy deprecation): pad to two points
-            xyz = np.repeat(xyz, 2, axis=0)
-        out = np.stack(t.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2]), axis=1)[:n]
-        if not np.all(np.isfinite(out)):
-            raise InputError(f"coordinates from {src.name} to {dst.name} could not be transformed", path=path,
-                             field=field)
+        padded = np.repeat(xyz, 2, axis=0) if n == 1 else xyz  # pyproj takes size-1 arrays for scalars: pad
+        out = np.stack(t.transform(padded[:, 0], padded[:, 1], padded[:, 2]), axis=1)[:n]
+        bad = np.flatnonzero(~np.all(np.isfinite(out), axis=1))
+        if len(bad):
+            k = bad[0]
+            raise InputError(f"coordinates from {src.name} to {dst.name} could not be transformed ({len(bad)} of "
+                             f"{n} points, the first {' '.join(f'{v:.3f}' for v in xyz[k])})", path=path,
+                             line=None if lines is None else lines[k], field=field)
         return out
 
     return apply
 
 
-def grid_rotations(xyz: np.ndarray, to_grid: Callable[[np.ndarray], np.ndarray], step: float = 1.0) -> np.ndarray:
+def grid_rotations(xyz: np.ndarray, to_grid: Callable[[np.ndarray], np.ndarray], step: float = 1.0,
+                   path: str | None = None) -> np.ndarray:
     """Rotations ``(n, 3, 3)`` ``grid_from_source`` of a coordinate transformation at points ``xyz (n, 3)``.
 
     Each is the rotation nearest (polar decomposition) to the transformation's Jacobian at the point, taken by
     central differences over ``step`` (source units). For a conformal map projection with heights that is the
     turn by the grid convergence and the local vertical; the Jacobian's scale (projection and height scale
-    factors) is left out, as in every omega-phi-kappa export.
+    factors) is left out, as in every omega-phi-kappa export. A mirroring transformation is refused, naming the file
+    ``path`` the coordinates came from.
     """
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     n = len(xyz)
@@ -103,11 +109,12 @@ def grid_rotations(xyz: np.ndarray, to_grid: Callable[[np.ndarray], np.ndarray],
     u, _, vt = np.linalg.svd(jac)
     q = u @ vt
     if np.any(np.linalg.det(q) < 0):
-        raise InputError("the coordinate transformation mirrors the axes (left-handed CRS?)", field="crs")
+        raise InputError("the coordinate transformation mirrors the axes (left-handed CRS?)", path=path, field="crs")
     return q
 
 
-def true_north_angles(xyz: np.ndarray, crs: str) -> np.ndarray:
+def true_north_angles(xyz: np.ndarray, crs: str, path: str | None = None,
+                      lines: Sequence[int | None] | None = None) -> np.ndarray:
     """Per point of ``xyz (n, 3)`` in ``crs`` the angle (radians, counter-clockwise) of true north seen in the
     grid (the grid convergence, from a northward step of 1e-5 degrees): a heading against true north minus this angle
     is the heading against grid north. 0 for a geographic CRS."""
@@ -115,6 +122,6 @@ def true_north_angles(xyz: np.ndarray, crs: str) -> np.ndarray:
     if src.is_geographic:
         return np.zeros(len(xyz))
     wgs84 = parse_crs("EPSG:4326")
-    geo = crs_transformer(src, wgs84)(xyz)
+    geo = crs_transformer(src, wgs84, path)(xyz, lines)
     d = np.diff(crs_transformer(wgs84, src)(np.concatenate([geo, geo + [0.0, 1e-5, 0.0]])).reshape(2, -1, 3), axis=0)[0]
     return np.arctan2(-d[:, 0], d[:, 1])

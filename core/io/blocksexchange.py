@@ -380,7 +380,7 @@ def _control_points(el, x: _Xml, block: ImageBlock, srs: dict, crs: str, by_phot
                 if category != "Full":
                     raise InputError("Horizontal/Vertical control points in another SRS than the block's are not "
                                      "supported", path=x.path, line=cp.sourceline, field="SRSId")
-                xyz = transform_points(xyz[None], pcrs, crs)[0]
+                xyz = transform_points(xyz[None], pcrs, crs, x.path, [cp.sourceline])[0]
         h = x.number(cp, "HorizontalAccuracy", default=0.02)
         v = x.number(cp, "VerticalAccuracy", default=0.02)
         if h <= 0 or v <= 0:

@@ -209,7 +209,11 @@ def read_colmap(source: str, **options: Any) -> ImageBlock:
         im = rec.images[iid]
         pose = None
         if im.has_pose:
-            cfw = im.cam_from_world()
+            try:
+                cfw = im.cam_from_world()
+            except RuntimeError:  # a frame's pose through a rig sensor whose mounting the model lacks
+                raise InputError(f"image {im.name}: no pose through its frame's rig (a sensor without its "
+                                 "sensor_from_rig?)", path=source, field="rigs") from None
             r = np.asarray(cfw.rotation.matrix(), dtype=np.float64)
             c = -r.T @ np.asarray(cfw.translation, dtype=np.float64)
             pose = Pose(r, c) if sim is None else sim.apply_pose(r, c)

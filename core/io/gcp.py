@@ -176,7 +176,8 @@ def merge_ground_points(block: ImageBlock, points: list[PointRow], source: str |
     if crs is not None:
         src = check_crs(crs, source, "gcp_crs")
         if src != check_crs(block.crs, source, "crs"):
-            xyz = transform_points(np.array([r.point.xyz for r in points]), src, block.crs)
+            xyz = transform_points(np.array([r.point.xyz for r in points]), src, block.crs, str(source),
+                                   [r.line for r in points])
             for r, x in zip(points, xyz, strict=True):
                 r.point.xyz = x
     for r in points:

@@ -247,7 +247,7 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
         raise InputError(f"crs {crs[:60]} is not a projected CRS in metres", path=path, field="crs")
     target = parse_crs(crs)
     if local:  # the chunk transform gives coordinates of the block CRS itself
-        to_world: Callable[[np.ndarray], np.ndarray] = lambda xyz: np.asarray(xyz, np.float64).reshape(-1, 3)  # noqa: E731
+        to_world: Callable[..., np.ndarray] = lambda xyz, lines=None: np.asarray(xyz, np.float64).reshape(-1, 3)  # noqa: E731
     else:
         to_world = crs_transformer(geocentric_crs(chunk_crs), target, path, "reference")
     chunk_t = np.eye(4) if chunk.find("transform") is None else _similarity(chunk.find("transform"), x)
@@ -332,18 +332,34 @@ def read_metashape(source: str, **options: Any) -> ImageBlock:
         if local:
             world = nav[:, :3]
         else:
-            world = crs_transformer(chunk_crs, target, path, "reference")(nav[:, :3])
-        north = np.zeros(len(world)) if local else true_north_angles(world, crs)
+            world = crs_transformer(chunk_crs, target, path, "reference")(nav[:, :3], [lines[k] for k in navigated])
+        north = np.zeros(len(world)) if local else true_north_angles(world, crs, path, [lines[k] for k in navigated])
         for label, c_w, (yaw, pitch, roll), n in zip(navigated, world, nav[:, 3:], north, strict=True):
             block.images[label].pose_approx = Pose(FLIP_YZ @ metashape_ypr_to_photo(yaw - n, pitch, roll).T, c_w)
     if posed:
         src = np.array(centres)
-        world_c = to_world(src)
-        q = np.repeat(np.eye(3)[None], len(src), 0) if local else grid_rotations(src, to_world)
+        world_c = to_world(src, [lines[k] for k in posed])
+        if not local:
+            _check_heights(world_c, chunk, path)
+        q = np.repeat(np.eye(3)[None], len(src), 0) if local else grid_rotations(src, to_world, path=path)
         for label, c_w, q_k, r_k in zip(posed, world_c, q, rots, strict=True):
             block.images[label].pose_approx = Pose((q_k @ r_k).T, c_w)
     _markers(chunk, x, block, by_id, chunk_crs if not local else None, target)
     return finish_block(block, path, options, "metashape", lines=lines)
+
+
+def _check_heights(world: np.ndarray, chunk, path: str) -> None:
+    """Refuse aligned cameras that the chunk's ``<transform>`` puts far from the earth's surface (heights
+    ``world[:, 2]`` beyond 100 km, or no position at all): a geocentric transform without its translation, or a
+    chunk that was never georeferenced."""
+    z = world[:, 2]
+    if not np.all(np.isfinite(world)) or np.abs(z).max() > 1e5:
+        worst = float(np.nanmax(np.abs(z))) if np.isfinite(z).any() else math.inf
+        t = chunk.find("transform")
+        raise InputError(f"the chunk's transform puts the aligned cameras {worst / 1e3:.0f} km from the earth's "
+                         "surface (a geocentric transform without its translation, or a chunk that is not "
+                         "georeferenced)",
+                         path=path, line=(chunk if t is None else t).sourceline, field="transform")
 
 
 def _camera_reference(c, x: _Xml) -> np.ndarray | None:
@@ -393,7 +409,7 @@ def _markers(chunk, x: _Xml, block: ImageBlock, by_id: dict[str, str], chunk_crs
         if r is not None and r.get("x") is not None:
             xyz = np.array([x.number(r, a) for a in ("x", "y", "z")])
             if to_world is not None:
-                xyz = to_world(xyz)[0]
+                xyz = to_world(xyz, [r.sourceline])[0]
             kind = "control" if parse_bool(r.get("enabled", "true"), x.path, r.sourceline, "enabled") else "check"
             sigma = np.array([x.number(r, a, default=0.02) for a in ("sx", "sy", "sz")])
             if np.any(sigma <= 0):

@@ -142,10 +142,11 @@ def read_gnssimu(source: str, **options: Any) -> ImageBlock:
         records.append((line_no, rec["exposure"], pos, att, t, lf.sigmas(rec, ("sx", "sy", "sz"), line_no, False),
                         lf.sigmas(rec, ("sroll", "spitch", "sheading"), line_no, True)))
     xyz = np.array([r[2] for r in records], np.float64)
+    rows = [r[0] for r in records]
     if geographic:
         src = str(position_crs or "EPSG:4979")
-        xyz = transform_points(xyz[:, [1, 0, 2]], src, lf.crs)  # (lon, lat, h)
-    north = true_north_angles(xyz, lf.crs) if heading == "true" else np.zeros(len(records))
+        xyz = transform_points(xyz[:, [1, 0, 2]], src, lf.crs, path, rows)  # (lon, lat, h)
+    north = true_north_angles(xyz, lf.crs, path, rows) if heading == "true" else np.zeros(len(records))
 
     block = ImageBlock(crs=lf.crs)
     for cam in cams.cameras.values():

@@ -82,3 +82,95 @@ def test_at_least_fifteen_malformed_files():
     assert len(files) >= 15
     assert files | {"cameras_ok.toml", "cameras_missing_focal.toml", "cameras_bad_toml.toml"} >= {
         p.name for p in BAD.iterdir()}
+
+
+def _line_of(text: str, needle: str) -> int:
+    return next(k for k, t in enumerate(text.splitlines(), 1) if needle in t)
+
+
+NATIVE_EDITS = [  # (edit of the block's dict, the entry's id, expected field and reason)
+    (lambda d: d["images"][1].update(sigma_position=[0.1, 0.1]), "img1",
+     "field 'images[img1].sigma_position': expected shape (3,), got (2,)"),
+    (lambda d: d["images"][0]["pose_approx"].update(R_cam_from_world=[[1, 0, 0], [0, 1, 0], [0, 0, -1]]), "img0",
+     "field 'images[img0].pose_approx.R_cam_from_world': not a proper rotation matrix"),
+    (lambda d: d["images"][2].update(camera_id="nope"), "img2", "refers to unknown camera 'nope'"),
+    (lambda d: d["images"][2].update(time="noon"), "img2", "field 'images[img2].time': expected numbers"),
+    (lambda d: d["cameras"][0].update(width="1200"), "cam", "field 'cameras[cam].width': must be a positive integer"),
+    (lambda d: d["cameras"][0].pop("fx"), "cam", "field 'cameras[cam].fx': missing required key"),
+]
+
+
+@pytest.mark.parametrize(("edit", "entry", "expected"), NATIVE_EDITS, ids=[e[2][7:40] for e in NATIVE_EDITS])
+def test_native_block_malformed(utm_block, tmp_path, edit, entry, expected):
+    """The workspace's own block file: a wrong value names the file, the line of its entry and the field."""
+    import json
+
+    from oblique_city.core.io.native import block_to_dict
+    from oblique_city.core.pipeline.atomic import write_json
+
+    d = block_to_dict(utm_block)
+    edit(d)
+    write_json(tmp_path / "b.json", d)
+    line = _line_of((tmp_path / "b.json").read_text(), f'"id": {json.dumps(entry)}')
+    with pytest.raises(InputError) as info:
+        read_block("native", tmp_path / "b.json")
+    assert f"b.json:{line}, " in str(info.value) and expected in str(info.value), str(info.value)
+
+
+def test_native_block_not_a_list(utm_block, tmp_path):
+    from oblique_city.core.io.native import block_to_dict
+    from oblique_city.core.pipeline.atomic import write_json
+
+    d = block_to_dict(utm_block)
+    d["images"] = {"img0": d["images"][0]}
+    write_json(tmp_path / "b.json", d)
+    with pytest.raises(InputError, match="field 'images': expected a list of objects"):
+        read_block("native", tmp_path / "b.json")
+
+
+def test_metashape_chunk_transform_without_translation(utm_block, tmp_path):
+    """A geocentric chunk transform without its translation puts the cameras near the earth's centre: refused at the
+    transform's line, not left to fail in a coordinate transformation."""
+    from lxml import etree
+
+    from oblique_city.core.io.formats import write_block
+
+    write_block("metashape", utm_block, tmp_path / "c.xml")
+    tree = etree.parse(str(tmp_path / "c.xml"))
+    t = tree.getroot().find("chunk/transform")
+    t.remove(t.find("translation"))
+    tree.write(str(tmp_path / "c.xml"))
+    line = etree.parse(str(tmp_path / "c.xml")).getroot().find("chunk/transform").sourceline
+    with pytest.raises(InputError) as info:
+        read_block("metashape", tmp_path / "c.xml")
+    assert f"c.xml:{line}, field 'transform': the chunk's transform puts the aligned cameras 63" in str(info.value)
+
+
+def test_colmap_rig_sensor_without_mounting(penta_block, tmp_path):
+    """A frame's image whose rig sensor lost its sensor_from_rig has no pose: an InputError, not pycolmap's
+    'bad optional access'."""
+    import re
+
+    from oblique_city.core.io.formats import write_block
+
+    write_block("colmap", penta_block, tmp_path / "m")
+    rigs = tmp_path / "m" / "rigs.txt"
+    text = rigs.read_text()
+    rigs.write_text(re.sub(r"CAMERA 2 1( \S+){7}", "CAMERA 2 0", text, count=1))
+    with pytest.raises(InputError, match=r"field 'rigs': image .*: no pose through its frame's rig"):
+        read_block("colmap", tmp_path / "m", crs="EPSG:25832")
+
+
+def test_event_list_position_outside_crs(penta_block, tmp_path):
+    """A position the CRS cannot take (an easting of 1e10 m) is refused at its line."""
+    from oblique_city.core.io.formats import write_block
+
+    write_block("gnssimu", penta_block, tmp_path / "ev.txt")
+    lines = (tmp_path / "ev.txt").read_text().splitlines()
+    k = next(k for k, t in enumerate(lines) if t.startswith("S02_E003 "))
+    f = lines[k].split()
+    lines[k] = " ".join([f[0], "9999999999", *f[2:]])
+    (tmp_path / "ev.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError) as info:
+        read_block("gnssimu", tmp_path / "ev.txt")
+    assert f"ev.txt:{k + 1}, " in str(info.value) and "could not be transformed (1 of" in str(info.value)
