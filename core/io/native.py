@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import InputError
 from ..model import CameraModel, GroundPoint, Image, ImageBlock, Pose, Rig, RigHead
 from ..pipeline.atomic import write_json
-from .validate import check_block, check_crs
+from .validate import check_crs
 
 FORMAT_VERSION = 1
 CAMERA_FIELDS = ("id", "width", "height", "fx", "fy", "cx", "cy", "k1", "k2", "k3", "p1", "p2", "pixel_size_mm",
@@ -113,23 +113,21 @@ class _Entry:
     the entry's line and the field (``cameras[cam1].fx``)."""
 
     def __init__(self, path: str, text: str | None, section: str, entry: dict, key: str) -> None:
-        self.path, self.where = path, f"{section}[{entry.get(key)}]"
-        self.line = _line(text, section, key, entry.get(key))
+        self.path, self.text, self.section, self.key, self.value = path, text, section, key, entry.get(key)
+        self.where = f"{section}[{self.value}]"
 
     def __enter__(self) -> _Entry:
         return self
 
     def __exit__(self, kind: type | None, err: BaseException | None, tb: Any) -> bool:
-        if err is None:
+        if err is None or not isinstance(err, (KeyError, InputError, TypeError, ValueError, AttributeError)):
             return False
+        line = _line(self.text, self.section, self.key, self.value)  # only on error: a search through the text
         if isinstance(err, KeyError):
-            raise InputError("missing required key", self.path, self.line, f"{self.where}.{err.args[0]}") from None
+            raise InputError("missing required key", self.path, line, f"{self.where}.{err.args[0]}") from None
         if isinstance(err, InputError):
-            raise InputError(err.reason, self.path, self.line,
-                             self.where + (f".{err.field}" if err.field else "")) from None
-        if isinstance(err, (TypeError, ValueError, AttributeError)):
-            raise InputError(str(err), self.path, self.line, self.where) from None
-        return False
+            raise InputError(err.reason, self.path, line, self.where + (f".{err.field}" if err.field else "")) from None
+        raise InputError(str(err), self.path, line, self.where) from None
 
 
 def _line(text: str | None, section: str, key: str, value: Any) -> int | None:
@@ -153,6 +151,8 @@ def block_from_dict(d: dict[str, Any], path: str = "<dict>", text: str | None = 
     for c in _entries(d, "cameras", path):
         with _Entry(path, text, "cameras", c, "id"):
             vals = {k: float(_numbers(c[k], (), k)) for k in CAMERA_FIELDS[3:12] if k in c or k in CAMERA_FIELDS[3:7]}
+            if min(vals["fx"], vals["fy"]) <= 0:
+                raise InputError("focal lengths must be positive", field="fx" if vals["fx"] <= 0 else "fy")
             block.add_camera(CameraModel(id=_text(c, "id"), width=_count(c, "width"), height=_count(c, "height"),
                                          pixel_size_mm=None if c.get("pixel_size_mm") is None
                                          else float(_numbers(c["pixel_size_mm"], (), "pixel_size_mm")),
@@ -184,7 +184,6 @@ def block_from_dict(d: dict[str, Any], path: str = "<dict>", text: str | None = 
                 sigma=_numbers(g["sigma"], (3,), "sigma", finite=False), kind=g["kind"],
                 sigma_px=float(_numbers(g.get("sigma_px", 0.5), (), "sigma_px")),
                 observations={k: _numbers(v, (2,), f"observations.{k}") for k, v in obs.items()}))
-    check_block(block, path)
     return block
 
 
