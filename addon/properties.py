@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,7 @@ from bpy.props import (
 from ..core.errors import CityError
 from ..core.pipeline import Workspace
 from ..core.pipeline.registry import get_stage
+from ..core.pipeline.stage import Range
 from ..core.pipeline.workspace import PROJECT_FILE
 from .jobs import ExecutorSettings
 from .layers_buildings import select_building
@@ -82,9 +84,9 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                                      "measurement"),
                               ("all", "All", "Measure every signalised target in every image, in place of the "
                                              "imported measurements"))},
-        "target_disc_radius_m": {"min": 0.0, "description": "Radius of the targets' bright disc (m; 0: a bright "
+        "target_disc_radius_m": {"description": "Radius of the targets' bright disc (m; 0: a bright "
                                                              "square alone)"},
-        "target_square_half_m": {"min": 0.0, "description": "Half side of the targets' dark square (m; 0: a disc "
+        "target_square_half_m": {"description": "Half side of the targets' dark square (m; 0: a disc "
                                                              "alone)"},
         "target_pattern": {"items": (("disc", "Disc", "A bright disc on a dark square, a disc or a bright square "
                                                       "alone"),
@@ -92,11 +94,11 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                                                  "alike"),
                                      ("cross", "Cross", "Two bright bars crossing at the centre, reaching the "
                                                         "square's half side from it"))},
-        "target_bar_half_m": {"min": 0.0, "description": "Half width of a cross's bars (m)"},
+        "target_bar_half_m": {"description": "Half width of a cross's bars (m)"},
         "target_square_azimuth": {"description": "Direction of the squares' sides, degrees counterclockwise from the "
                                                  "grid's x axis, or 'estimate' (found in each image)"},
-        "target_search_px": {"min": 0.0, "description": "Search radius around the predicted position (px)"},
-        "target_min_score": {"min": 0.0, "max": 1.0, "description": "Correlation a target measurement needs"},
+        "target_search_px": {"description": "Search radius around the predicted position (px)"},
+        "target_min_score": {"description": "Correlation a target measurement needs"},
     },
     "aerotri": {
         "mode": {"items": (("integrated", "Integrated (IAT)", "All images in one adjustment"),
@@ -107,12 +109,12 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                  ("3", ">= 3 rays", "Every tie point with at least 3 nadir rays"),
                                  ("5", ">= 5 rays", "Every tie point with at least 5 nadir rays"),
                                  ("10", ">= 10 rays", "Every tie point with at least 10 nadir rays"))},
-        "cell_size": {"min": 0.0, "description": "CBA grid cell (m)"},
+        "cell_size": {"description": "CBA grid cell (m)"},
         "self_calibration": {"items": (("focal", "Focal", "Focal length"),
                                        ("principal_point", "Principal point", "Principal point"),
                                        ("radial", "Radial", "Radial distortion k1 k2 k3"),
                                        ("tangential", "Tangential", "Tangential distortion p1 p2"))},
-        "sigma_px": {"min": 0.0, "description": "A priori sigma of the tie measurements (px)"},
+        "sigma_px": {"description": "A priori sigma of the tie measurements (px)"},
         "mounting": {"description": "Calibrate each camera's boresight and lever arm against the GNSS/IMU priors"},
         "control_tests": {"description": "Test the control points' measurements and coordinates for blunders"},
         "prior_tests": {"description": "Test each image's GNSS position and IMU attitude prior for blunders"},
@@ -120,9 +122,9 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                   ("shift", "Shift per strip", "Estimate a GNSS offset per flight strip"),
                                   ("drift", "Shift and drift", "Estimate a GNSS offset and a drift along each "
                                                                "flight strip"))},
-        "gnss_shift_sigma": {"min": 0.0, "description": "A priori sigma of a strip's GNSS offset (m)"},
-        "gnss_drift_sigma": {"min": 0.0, "description": "A priori sigma of a strip's GNSS drift (m per km)"},
-        "blunder_threshold": {"min": 0.0, "description": "Normalised residual above which an observation is "
+        "gnss_shift_sigma": {"description": "A priori sigma of a strip's GNSS offset (m)"},
+        "gnss_drift_sigma": {"description": "A priori sigma of a strip's GNSS drift (m per km)"},
+        "blunder_threshold": {"description": "Normalised residual above which an observation is "
                                                          "rejected"},
         "linear_solver": {"items": (("auto", "Automatic", "Chosen from the block's size and structure"),
                                     ("sparse_schur", "Sparse Schur", "Sparse factorisation of the camera system"),
@@ -134,21 +136,21 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                   ("oblique", "Oblique", "CBA layers from the oblique views"))},
     },
     "buildings": {
-        "min_height": {"min": 0.0, "description": "Lowest building above the terrain (nDSM, m)"},
-        "min_area": {"min": 0.0, "description": "Smallest building footprint (m^2)"},
+        "min_height": {"description": "Lowest building above the terrain (nDSM, m)"},
+        "min_area": {"description": "Smallest building footprint (m^2)"},
         "use_masks": {"description": "Use the surface stage's building and vegetation masks (else roughness "
                                      "rejects vegetation)"},
         "footprints": {"description": "GeoJSON file of user footprints, workspace-relative or absolute "
                                       "(empty: detect the buildings)"},
-        "voxel": {"min": 0.0, "description": "Noise filter cube (m, 0 = guessed)"},
+        "voxel": {"description": "Noise filter cube (m, 0 = guessed)"},
         "force_path": {"items": (("", "Automatic", "Each building takes the path its shape calls for"),
                                  ("2d", "2D", "Footprint and roof planes for every building"),
                                  ("volumetric", "Volumetric", "Volumetric reconstruction for every building"))},
-        "max_overhang": {"min": 0.0, "description": "Widest roof overhang searched (m)"},
-        "overhang_thickness": {"min": 0.0, "description": "Thickness of the overhang slab (m)"},
+        "max_overhang": {"description": "Widest roof overhang searched (m)"},
+        "overhang_thickness": {"description": "Thickness of the overhang slab (m)"},
         "dormers": {"description": "Model dormers on the sloped roofs (blocks of points above their slope)"},
-        "dormer_min_rise": {"min": 0.0, "description": "Height above its slope that marks a dormer (m)"},
-        "max_roof_fit": {"min": 0.0, "description": "Models that miss their roof points by more than this on "
+        "dormer_min_rise": {"description": "Height above its slope that marks a dormer (m)"},
+        "max_roof_fit": {"description": "Models that miss their roof points by more than this on "
                                                     "average are refused as no building (m, 0 = keep all)"},
     },
     "windows": {
@@ -156,10 +158,10 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                ("dark", "Darker", "Windows darker than the wall"),
                                ("bright", "Lighter", "Windows lighter than the wall"),
                                ("colour", "Colour", "Windows of another colour than the wall (glass on brick)"))},
-        "min_score": {"min": 0.0, "max": 1.0, "description": "Least score of a written window"},
-        "k_sigma": {"min": 0.0, "description": "Threshold in robust standard deviations of the wall's contrast"},
-        "min_contrast": {"min": 0.0, "description": "Least relative contrast of a window texel"},
-        "bar_m": {"min": 0.0, "description": "Glazing bars up to this width are bridged: one window, not two "
+        "min_score": {"description": "Least score of a written window"},
+        "k_sigma": {"description": "Threshold in robust standard deviations of the wall's contrast"},
+        "min_contrast": {"description": "Least relative contrast of a window texel"},
+        "bar_m": {"description": "Glazing bars up to this width are bridged: one window, not two "
                                              "panes (m, 0 = off)"},
     },
     "dense": {
@@ -167,24 +169,24 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                ("sgbm", "SGBM 5 paths", "OpenCV's single-pass SGBM"),
                                ("hh", "Full SGM (8 paths)", "Full SGM, slower and more memory"),
                                ("hh4", "HH4", "OpenCV's 4-path full SGM"))},
-        "min_agree": {"min": 1, "description": "Slaves that must agree for a master pixel to be kept"},
-        "tol_px": {"min": 0.0, "description": "Agreement tolerance (disparity pixels)"},
-        "outlier_ratio": {"min": 1.0, "description": "A point is isolated when its mean distance to its neighbours "
+        "min_agree": {"description": "Slaves that must agree for a master pixel to be kept"},
+        "tol_px": {"description": "Agreement tolerance (disparity pixels)"},
+        "outlier_ratio": {"description": "A point is isolated when its mean distance to its neighbours "
                                                      "exceeds theirs by this factor"},
     },
     "surface": {
-        "cell": {"min": 0.0, "description": "DSM and ortho cell (m, 0 = nadir GSD)"},
-        "pit_size_m": {"min": 0.0, "description": "Enclosed DSM pits narrower than this are blunders (m, 0 = keep)"},
-        "pit_depth": {"min": 0.0, "description": "Depth below their surroundings that makes a pit (m)"},
-        "dsm_facade_nz": {"min": 0.0, "max": 1.0, "description": "Points whose normal is closer to horizontal than "
+        "cell": {"description": "DSM and ortho cell (m, 0 = nadir GSD)"},
+        "pit_size_m": {"description": "Enclosed DSM pits narrower than this are blunders (m, 0 = keep)"},
+        "pit_depth": {"description": "Depth below their surroundings that makes a pit (m)"},
+        "dsm_facade_nz": {"description": "Points whose normal is closer to horizontal than "
                                                              "this (|n_z|) are facade points, left out of the DSM"},
-        "dsm_roof_hole_sides": {"min": 1, "max": 5, "description": "A DSM hole with roof on this many of its four "
+        "dsm_roof_hole_sides": {"description": "A DSM hole with roof on this many of its four "
                                                                    "sides is filled as roof (5 = never)"},
-        "dsm_wall_step": {"min": 0.0, "description": "A DSM cell this far (m) below one neighbour and above the "
+        "dsm_wall_step": {"description": "A DSM cell this far (m) below one neighbour and above the "
                                                      "opposite one lies on a wall and takes the nearer side (0 = off)"},
-        "se_size": {"min": 0.0, "description": "DTM structuring element (m)"},
-        "threshold": {"min": 0.0, "description": "Points within this of the opened surface are ground (m)"},
-        "high_vegetation_m": {"min": 0.0, "description": "Vegetation points this high above the DTM are LAS class 5 "
+        "se_size": {"description": "DTM structuring element (m)"},
+        "threshold": {"description": "Points within this of the opened surface are ground (m)"},
+        "high_vegetation_m": {"description": "Vegetation points this high above the DTM are LAS class 5 "
                                                          "(high vegetation), lower ones class 4 (m)"},
     },
 }
@@ -228,10 +230,7 @@ def set_stage_option(scene, stage: str, name: str, value: Any) -> None:
     if root is None:
         return
     ws = Workspace.open(root)
-    options = ws.stage_options(stage)
-    options[name] = value
-    get_stage(stage).make_config(options)
-    ws.project.setdefault("stages", {})[stage] = options
+    ws.update_stage_options(stage, {name: value}, PROJECT_FILE)
     ws.save_project()
     _options_cache.pop(str(root), None)
 
@@ -270,12 +269,15 @@ def _option_property(stage: str, field: dataclasses.Field, default: Any) -> Any:
 
         return EnumProperty(items=items, **common, get=get_choice,
                             set=lambda self, i: set_stage_option(self.id_data, stage, field.name, values[i]))
-    limits = {k: hints[k] for k in ("min", "max") if k in hints}
+    rule = get_stage(stage).config.RULES.get(field.name)
+    bounds = {"min": rule.lo, "max": rule.hi} if isinstance(rule, Range) else {}  # the stage's own rule
+    limits = {k: v for k, v in bounds.items() if math.isfinite(v)}
     if isinstance(default, bool):
         return BoolProperty(**common, get=lambda self: bool(value(self.id_data)),
                             set=lambda self, v: set_stage_option(self.id_data, stage, field.name, bool(v)))
     if isinstance(default, int):
-        return IntProperty(**common, **limits, get=lambda self: int(value(self.id_data)),
+        return IntProperty(**common, **{k: int(v) for k, v in limits.items()},
+                           get=lambda self: int(value(self.id_data)),
                            set=lambda self, v: set_stage_option(self.id_data, stage, field.name, int(v)))
     if isinstance(default, float):  # Blender floats are single precision: 7 digits, so 2.7 stays 2.7 in the file
         return FloatProperty(**common, **limits, get=lambda self: float(value(self.id_data)),

@@ -131,7 +131,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         stage, _, opt = k.partition(".")
         if not opt:
             raise ConfigError(f"--set '{k}' should name a stage option like aerotri.mode=hierarchical")
-        ws.project.setdefault("stages", {}).setdefault(stage, {})[opt] = v
+        ws.update_stage_options(stage, {opt: v}, f"--set {k}")
     if args.set:
         ws.save_project()
     return run_and_print(ws, [s for s in (args.stages or "").split(",") if s] or None, args, force=args.force)

@@ -19,7 +19,7 @@ def cmd_aerotri(args: argparse.Namespace) -> int:
     from ..pipeline import Workspace
 
     ws = Workspace.open(args.workspace)
-    opts = ws.project.setdefault("stages", {}).setdefault("aerotri", {})
+    opts: dict = {}
     for key in ("mode", "connection", "cell_size", "sigma_px", "gnss_strips"):
         value = getattr(args, key)
         if value is not None:
@@ -29,6 +29,7 @@ def cmd_aerotri(args: argparse.Namespace) -> int:
             opts[key] = getattr(args, key)
     if args.self_calibration is not None:
         opts["self_calibration"] = [g for g in args.self_calibration.split(",") if g]
+    ws.update_stage_options("aerotri", opts, "oblique-city aerotri")
     ws.save_project()
     return run_and_print(ws, ["aerotri"], args, force=True)
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -22,7 +23,7 @@ from ..matching.targets import target_summary
 from ..model import CameraModel, ImageBlock, TiePoints
 from ..model.exposures import oblique_without_nadir
 from ..pipeline.atomic import write_json, write_text
-from ..pipeline.stage import Stage, StageResult
+from ..pipeline.stage import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, CheckedOptions, Range, Rule, Stage, StageResult
 from .bundle import CALIBRATION_GROUPS, GNSS_STRIP_MODES, LINEAR_SOLVERS, BundleOptions
 from .hierarchical import CONNECTIONS, ATResult, hierarchical, integrated
 from .report import (
@@ -40,7 +41,7 @@ TIES_FILE = "matching/ties.npz"
 
 
 @dataclass(frozen=True)
-class AerotriConfig:
+class AerotriConfig(CheckedOptions):
     """Options of the ``aerotri`` stage.
 
     Attributes
@@ -121,20 +122,18 @@ class AerotriConfig:
     gnss_shift_sigma: float = 1.0
     gnss_drift_sigma: float = 1.0
 
+    RULES: ClassVar[dict[str, Rule]] = {
+        "mode": MODES, "connection": CONNECTIONS, "cell_size": POSITIVE, "oblique_ties_per_cell": NON_NEGATIVE,
+        "oblique_tie_grid": AT_LEAST_ONE, "sigma_px": POSITIVE, "self_calibration": tuple(CALIBRATION_GROUPS),
+        "rig_sigma_deg": POSITIVE, "rig_sigma_m": POSITIVE, "mounting_sigma_deg": POSITIVE,
+        "mounting_sigma_m": POSITIVE, "blunder_threshold": POSITIVE, "max_rejection_rounds": NON_NEGATIVE,
+        "robust_scale": POSITIVE, "threads": AT_LEAST_ONE, "linear_solver": LINEAR_SOLVERS,
+        "layer_cell": NON_NEGATIVE, "layer_views": ("all", "nadir", "oblique"), "min_rays": Range(2.0),
+        "marginal_std_max_images": NON_NEGATIVE, "default_sigma_position": POSITIVE,
+        "default_sigma_attitude_deg": POSITIVE, "gnss_strips": GNSS_STRIP_MODES, "gnss_shift_sigma": POSITIVE,
+        "gnss_drift_sigma": POSITIVE}
+
     def bundle_options(self) -> BundleOptions:
-        for g in self.self_calibration:
-            if g not in CALIBRATION_GROUPS:
-                raise ConfigError(f"aerotri.self_calibration: unknown group '{g}' "
-                                  f"(use {', '.join(CALIBRATION_GROUPS)})")
-        if self.linear_solver not in LINEAR_SOLVERS:
-            raise ConfigError(f"aerotri.linear_solver: unknown solver '{self.linear_solver}' "
-                              f"(use {', '.join(LINEAR_SOLVERS)})")
-        if self.gnss_strips not in GNSS_STRIP_MODES:
-            raise ConfigError(f"aerotri.gnss_strips: unknown model '{self.gnss_strips}' "
-                              f"(use {', '.join(GNSS_STRIP_MODES)})")
-        if not (self.gnss_shift_sigma > 0 and self.gnss_drift_sigma > 0):
-            raise ConfigError("aerotri.gnss_shift_sigma and aerotri.gnss_drift_sigma must be positive "
-                              f"(got {self.gnss_shift_sigma}, {self.gnss_drift_sigma})")
         return BundleOptions(sigma_px=self.sigma_px, robust_scale=self.robust_scale,
                              blunder_threshold=self.blunder_threshold,
                              max_rejection_rounds=self.max_rejection_rounds,
@@ -162,12 +161,6 @@ def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel
 
 
 def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
-    if cfg.mode not in MODES:
-        raise ConfigError(f"aerotri.mode '{cfg.mode}' unknown (use integrated or hierarchical)")
-    if str(cfg.connection) not in CONNECTIONS:
-        raise ConfigError(f"aerotri.connection '{cfg.connection}' unknown (use {', '.join(CONNECTIONS)})")
-    if cfg.layer_views not in ("all", "nadir", "oblique"):
-        raise ConfigError(f"aerotri.layer_views '{cfg.layer_views}' unknown (use all, nadir or oblique)")
     block = ws.load_block(adjusted=False)
     ties_path = ws.path(TIES_FILE)
     if not ties_path.exists():

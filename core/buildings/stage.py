@@ -12,13 +12,14 @@ from __future__ import annotations
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from ..errors import WorkspaceError
 from ..model.raster import Raster
 from ..pipeline.atomic import write_json
-from ..pipeline.stage import Stage, StageResult
+from ..pipeline.stage import NON_NEGATIVE, POSITIVE, CheckedOptions, Rule, Stage, StageResult
 from .detect import DetectConfig, building_labels, points_per_building, points_per_footprint, read_footprints
 from .dormers import DormerConfig
 from .model import BuildingModel, save_buildings
@@ -27,7 +28,7 @@ from .reconstruct import ReconstructionConfig, reconstruct_building
 
 
 @dataclass(frozen=True)
-class BuildingsConfig:
+class BuildingsConfig(CheckedOptions):
     """Options of the ``buildings`` stage (``[stages.buildings]`` in project.toml).
 
     min_height, min_area : detection on the nDSM (m, m^2); use_masks : use the surface stage's building and
@@ -50,6 +51,11 @@ class BuildingsConfig:
     dormers: bool = True
     dormer_min_rise: float = 0.4
     max_roof_fit: float = 0.5
+
+    RULES: ClassVar[dict[str, Rule]] = {
+        "min_height": NON_NEGATIVE, "min_area": POSITIVE, "voxel": NON_NEGATIVE, "force_path": ("", "2d", "volumetric"),
+        "max_overhang": NON_NEGATIVE, "overhang_thickness": POSITIVE, "dormer_min_rise": POSITIVE,
+        "max_roof_fit": NON_NEGATIVE}
 
 
 def _window(r: Raster, xy: np.ndarray, margin: float) -> Raster:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import glob
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -28,7 +29,19 @@ from ..model.camera import CameraModel
 from ..model.pose import Pose
 from ..model.tiepoints import TiePoints
 from ..pipeline.atomic import atomic_path, write_json
-from ..pipeline.stage import Stage, StageResult
+from ..pipeline.stage import (
+    AT_LEAST_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    CheckedOptions,
+    Range,
+    Rule,
+    Stage,
+    StageResult,
+    area_error,
+    odd_error,
+)
 from .fusion import (
     FusionConfig,
     erode_far_edges,
@@ -40,13 +53,14 @@ from .fusion import (
 )
 from .pairs import PairTask, match_pair, read_image
 from .selection import SelectionConfig, select_pairs
+from .sgm import MODES as SGM_MODES
 from .sgm import SgmConfig
 
 KEPT, MIXED, OUTLIER = 0, 1, 2
 
 
 @dataclass(frozen=True)
-class DenseConfig:
+class DenseConfig(CheckedOptions):
     """Options of the ``dense`` stage (``[stages.dense]`` in project.toml).
 
     aoi : ``[x0, y0, x1, y1]`` area the masters must cover (empty = the ground below the nadir image centres)
@@ -98,6 +112,23 @@ class DenseConfig:
     outlier_ratio: float = 2.0
     display_points: int = 300_000
     polar_below_deg: float = 60.0
+
+    RULES: ClassVar[dict[str, Rule]] = {
+        "aoi": area_error, "z_min": Range(nan=True), "z_max": Range(nan=True), "max_object_height": POSITIVE,
+        "step": AT_LEAST_ONE, "oblique_step": AT_LEAST_ONE, "scale": Range(0.0, 1.0, lo_open=True), "views": VIEWS,
+        "master_overlap": FRACTION, "slaves_per_master": AT_LEAST_ONE, "block_size": odd_error,
+        "sgm_mode": tuple(SGM_MODES), "p1": NON_NEGATIVE, "p2": NON_NEGATIVE, "uniqueness": Range(0.0, 100.0),
+        "lr_max_diff": NON_NEGATIVE, "min_agree": AT_LEAST_ONE, "tol_px": POSITIVE, "bilateral_sigma_m": POSITIVE,
+        "max_incidence_deg": Range(0.0, 90.0), "edge_radius_px": NON_NEGATIVE, "near_edge_radius_px": NON_NEGATIVE,
+        "outlier_neighbours": NON_NEGATIVE, "outlier_ratio": Range(1.0), "display_points": AT_LEAST_ONE,
+        "polar_below_deg": Range(0.0, 90.0)}
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.p2 <= self.p1:
+            raise ConfigError(f"option 'p2' must be greater than p1 ({self.p1}), got {self.p2}")
+        if not (np.isnan(self.z_min) or np.isnan(self.z_max) or self.z_min < self.z_max):
+            raise ConfigError(f"option 'z_max' must be above z_min ({self.z_min}), got {self.z_max}")
 
 
 def master_step(cfg: DenseConfig, view: str) -> int:
@@ -173,9 +204,6 @@ def fuse_master(task: FuseTask) -> dict[str, np.ndarray]:
 
 def run(ws, cfg: DenseConfig, ctx) -> StageResult:
     block = ws.load_block()
-    for v in cfg.views:
-        if v not in VIEWS:
-            raise ConfigError(f"project.toml: [stages.dense] views has unknown view '{v}' (known: {', '.join(VIEWS)})")
     z_min, z_max, z_ground = height_prior(ws, block, cfg)
     aoi = tuple(float(v) for v in cfg.aoi) if len(cfg.aoi) == 4 else None
     selection = select_pairs(block, z_ground, aoi, cfg=SelectionConfig(master_overlap=cfg.master_overlap,

@@ -16,6 +16,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -23,18 +24,38 @@ from ..errors import ConfigError, InputError, WorkspaceError
 from ..io.validate import resolve_image
 from ..model import CameraModel, ImageBlock, Pose
 from ..pipeline.atomic import atomic_path, write_json
-from ..pipeline.stage import Stage, StageResult
+from ..pipeline.stage import (
+    AT_LEAST_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    CheckedOptions,
+    Range,
+    Rule,
+    Stage,
+    StageResult,
+)
 from .features import MatchOptions, guided_match, sift_features, verify
 from .graph import GraphOptions, build_graph
-from .targets import SUSPECT_PX, TARGETS_FILE, TargetShape, measure_targets, target_summary
+from .targets import SUSPECT_PX, TARGET_MODES, TARGETS_FILE, TargetShape, measure_targets, target_summary
 from .tracks import build_tracks
 
 FEATURES_VERSION = 2
 """Version of the cached keypoint files (2: keypoints in the pixel-centre origin); older caches are recomputed."""
 
 
+def _azimuth_error(value: str) -> str | None:
+    """What is wrong with a target azimuth option (degrees, or ``estimate``), or None."""
+    if value.strip().lower() == "estimate":
+        return None
+    try:
+        return None if np.isfinite(float(value)) else "degrees or 'estimate'"
+    except ValueError:
+        return "degrees or 'estimate'"
+
+
 @dataclass(frozen=True)
-class MatchConfig:
+class MatchConfig(CheckedOptions):
     """Options of the ``match`` stage (see :class:`GraphOptions` and :class:`MatchOptions`).
 
     ``z_ref`` is the footprint height and ``z_lo``/``z_hi`` the guided search range; NaN derives them from
@@ -80,17 +101,22 @@ class MatchConfig:
     target_search_px: float = 20.0
     target_min_score: float = 0.9
 
+    RULES: ClassVar[dict[str, Rule]] = {
+        "min_overlap": FRACTION, "max_axis_angle_deg": Range(0.0, 180.0), "max_neighbours": AT_LEAST_ONE,
+        "max_features": AT_LEAST_ONE, "ratio": Range(0.0, 1.0, lo_open=True), "band_px": POSITIVE,
+        "ransac_px": POSITIVE, "min_matches": AT_LEAST_ONE, "min_rays": Range(2.0),
+        "max_tracks_per_image": NON_NEGATIVE, "z_ref": Range(nan=True), "height_range": NON_NEGATIVE,
+        "tie_source": ("images", "file"), "targets": TARGET_MODES, "target_disc_radius_m": NON_NEGATIVE,
+        "target_square_half_m": NON_NEGATIVE, "target_square_azimuth": _azimuth_error,
+        "target_pattern": ("disc", "checker", "cross"), "target_bar_half_m": POSITIVE,
+        "target_search_px": POSITIVE, "target_min_score": Range(0.0, 1.0, lo_open=True)}
+
 
 def target_shape(cfg: MatchConfig) -> TargetShape:
-    """The signalised targets' shape of the match options; :class:`ConfigError` for an azimuth that is neither a
-    number nor ``estimate``, or sizes that make no target."""
+    """The signalised targets' shape of the match options; :class:`ConfigError` for sizes that make no target."""
     azimuth = None
     if cfg.target_square_azimuth.strip().lower() != "estimate":
-        try:
-            azimuth = float(cfg.target_square_azimuth)
-        except ValueError:
-            raise ConfigError(f"match.target_square_azimuth '{cfg.target_square_azimuth}' should be degrees or "
-                              "'estimate'") from None
+        azimuth = float(cfg.target_square_azimuth)
     disc = 0.0 if cfg.target_pattern in ("checker", "cross") else cfg.target_disc_radius_m
     bar = cfg.target_bar_half_m if cfg.target_pattern == "cross" else 0.0
     return TargetShape(disc, cfg.target_square_half_m, azimuth, cfg.target_pattern, bar)

@@ -96,6 +96,8 @@ def run_stages(ws: Workspace, names: list[str] | None = None, ctx: RunContext | 
     if not ws.has_block():
         raise WorkspaceError(f"{ws.root}: no block imported yet (run 'oblique-city import')")
     records: list[StageRecord] = []
+    for name in plan(names):  # every stage's options checked before any stage runs
+        get_stage(name).make_config(ws.stage_options(name))
     for name in plan(names):
         state = ws.read_state()
         if not force and is_up_to_date(ws, name, state):

@@ -105,6 +105,16 @@ class Workspace:
     def stage_options(self, name: str) -> dict[str, Any]:
         return dict(self.project.get("stages", {}).get(name, {}))
 
+    def update_stage_options(self, name: str, values: dict[str, Any], source: str) -> None:
+        """Set options of stage ``name`` in memory once its config takes them with the options already set
+        (:class:`ConfigError` naming ``source`` otherwise: an unknown stage or option, a wrong type or value);
+        :meth:`save_project` writes them."""
+        from .registry import get_stage
+
+        merged = {**self.stage_options(name), **values}
+        get_stage(name).make_config(merged, source)
+        self.project.setdefault("stages", {})[name] = merged
+
     def set_stage_config(self, name: str, cfg: Any) -> None:
         """Store a stage's config dataclass in ``project.toml``."""
         values = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(cfg).items()}

@@ -14,14 +14,26 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from ..errors import WorkspaceError
+from ..geometry.views import VIEWS
 from ..io.geotiff import write_geotiff, write_png
 from ..io.pointcloud import PointCloud, display_subset, write_las
 from ..io.validate import resolve_image
-from ..pipeline.stage import Stage, StageResult
+from ..pipeline.stage import (
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    CheckedOptions,
+    Range,
+    Rule,
+    Stage,
+    StageResult,
+    area_error,
+)
 from .dsm import DsmConfig, GridSpec, cell_colours, make_dsm
 from .dtm import ABOVE, BELOW, LAS_CLASSES, ON, DtmConfig, las_classes, make_dtm, object_masks
 from .ortho import OrthoConfig, OrthoSource, true_ortho
@@ -32,7 +44,7 @@ DISPLAY_POINTS = 300_000
 
 
 @dataclass(frozen=True)
-class SurfaceConfig:
+class SurfaceConfig(CheckedOptions):
     """Options of the ``surface`` stage (``[stages.surface]`` in project.toml).
 
     cell : DSM/ortho cell in metres (0 = the nadir GSD)
@@ -73,6 +85,14 @@ class SurfaceConfig:
     high_vegetation_m: float = 2.0
     ortho_views: tuple[str, ...] = ("nadir",)
     quality_vmax: float = 0.0
+
+    RULES: ClassVar[dict[str, Rule]] = {
+        "cell": NON_NEGATIVE, "aoi": area_error, "dsm_min_support": NON_NEGATIVE, "dsm_band": POSITIVE,
+        "max_hole_m2": NON_NEGATIVE, "pit_size_m": NON_NEGATIVE, "pit_depth": NON_NEGATIVE, "dsm_facade_nz": FRACTION,
+        "dsm_roof_hole_sides": Range(1.0, 5.0), "dsm_wall_step": NON_NEGATIVE, "dtm_cell": POSITIVE,
+        "se_size": POSITIVE, "erosion_rank": FRACTION, "threshold": POSITIVE, "building_min_height": NON_NEGATIVE,
+        "vegetation_min_height": NON_NEGATIVE, "greenness_min": Range(-1.0, 1.0), "high_vegetation_m": NON_NEGATIVE,
+        "ortho_views": VIEWS, "quality_vmax": NON_NEGATIVE}
 
 
 def nadir_gsd(block, z_ground: float) -> float:

@@ -12,12 +12,23 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import numpy as np
 
-from ..buildings.model import load_buildings
-from ..errors import WorkspaceError
-from ..pipeline.stage import Stage, StageResult
+from ..buildings.model import SURFACE_KINDS, load_buildings
+from ..errors import ConfigError, WorkspaceError
+from ..pipeline.stage import (
+    AT_LEAST_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    CheckedOptions,
+    Range,
+    Rule,
+    Stage,
+    StageResult,
+)
 from .atlas import fill_empty, hole_colours, pack_shelves, ring_uv, write_textures_json
 from .compose import ComposeOptions, SurfacePatch, choose_texel, solve_gains, texture_surface
 from .occlusion import OcclusionScene, grid_mesh, terrain_without_buildings
@@ -26,7 +37,7 @@ from .sources import ImageCache, block_sources, candidate_sources
 
 
 @dataclass(frozen=True)
-class TextureConfig:
+class TextureConfig(CheckedOptions):
     """Options of the ``texture`` stage (``[stages.texture]`` in project.toml).
 
     texel : texel size (m), 0 = per surface from the best image resolution on it times ``texel_factor``,
@@ -51,6 +62,17 @@ class TextureConfig:
     terrain_step: float = 0.5
     kinds: tuple[str, ...] = ("wall", "roof", "overhang_roof", "overhang_fascia", "overhang_underside")
     cache_images: int = 40
+
+    RULES: ClassVar[dict[str, Rule]] = {
+        "texel": NON_NEGATIVE, "texel_factor": POSITIVE, "min_texel": POSITIVE, "max_texel": POSITIVE,
+        "page_size": Range(16.0), "gutter": NON_NEGATIVE, "max_sources": AT_LEAST_ONE, "feather": NON_NEGATIVE,
+        "occlusion_margin": NON_NEGATIVE, "min_cos": FRACTION, "terrain_step": POSITIVE, "kinds": SURFACE_KINDS,
+        "cache_images": AT_LEAST_ONE}
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.max_texel < self.min_texel:
+            raise ConfigError(f"option 'max_texel' must be at least min_texel ({self.min_texel}), got {self.max_texel}")
 
 
 def occluder_scene(ws, buildings, terrain_step: float = 0.5) -> OcclusionScene:

@@ -9,21 +9,46 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, fields
+from typing import ClassVar
 
 from ..buildings.model import load_buildings
-from ..errors import WorkspaceError
-from ..pipeline.stage import Stage, StageResult
+from ..errors import ConfigError, WorkspaceError
+from ..pipeline.stage import (
+    AT_LEAST_ONE,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    CheckedOptions,
+    Range,
+    Rule,
+    Stage,
+    StageResult,
+)
 from .detect import WindowOptions
 from .facades import detect_facade, workspace_facades
 from .store import Window, write_windows_json
 
 
 @dataclass(frozen=True)
-class WindowsConfig(WindowOptions):
+class WindowsConfig(WindowOptions, CheckedOptions):
     """Options of the ``windows`` stage (``[stages.windows]`` in project.toml): the detector's
     (:class:`.detect.WindowOptions`) plus min_score : least score of a written window."""
 
     min_score: float = 0.0
+
+    RULES: ClassVar[dict[str, Rule]] = {
+        "min_width": POSITIVE, "max_width": POSITIVE, "min_height": POSITIVE, "max_height": POSITIVE,
+        "min_aspect": POSITIVE, "max_aspect": POSITIVE, "min_fill": FRACTION, "background_m": POSITIVE,
+        "k_sigma": POSITIVE, "min_contrast": NON_NEGATIVE, "row_tol_m": POSITIVE, "col_tol_m": POSITIVE,
+        "size_tol": Range(1.0), "fill_support": AT_LEAST_ONE, "fill_contrast": NON_NEGATIVE,
+        "isolated_score": FRACTION, "min_seen": FRACTION, "polarity": ("dark", "bright", "colour", "auto"),
+        "bar_m": NON_NEGATIVE, "min_score": FRACTION}
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for lo, hi in (("min_width", "max_width"), ("min_height", "max_height"), ("min_aspect", "max_aspect")):
+            if getattr(self, hi) < getattr(self, lo):
+                raise ConfigError(f"option '{hi}' must be at least {lo} ({getattr(self, lo)}), got {getattr(self, hi)}")
 
     def detector(self) -> WindowOptions:
         """The detector options among these settings."""

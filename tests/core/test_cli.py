@@ -70,3 +70,19 @@ def test_status_shows_the_camera_system(penta_block, tmp_path, capsys) -> None:
     out = capsys.readouterr().out
     assert "format: native (told from the file" in out
     assert out.count("245 exposures of 5 heads; rig 'penta' (reference head nadir)") == 2
+
+
+def test_bad_set_is_refused_and_nothing_is_saved(utm_block, tmp_path, capsys) -> None:
+    """A --set the stage's options refuse (a bad value, an unknown stage or option) leaves project.toml as it was,
+    even the good --set before it in the same command, and runs nothing."""
+    ws = Workspace.create(tmp_path / "ws", crs="EPSG:32632")
+    ws.save_block(utm_block)
+    before = (ws.root / "project.toml").read_text()
+    for bad, message in (("aerotri.sigma_px=-1", "[stages.aerotri] option 'sigma_px' must be > 0, got -1.0"),
+                         ("aerotri.mode=fast", "option 'mode' must be one of integrated, hierarchical, got 'fast'"),
+                         ("dense.block_size=4", "option 'block_size' must be an odd number >= 1, got 4"),
+                         ("nosuch.x=1", "unknown stage 'nosuch'")):
+        assert main(["run", str(ws.root), "--set", "aerotri.cell_size=20", "--set", bad]) == 2
+        assert message in capsys.readouterr().err
+        assert (ws.root / "project.toml").read_text() == before
+        assert not (ws.root / "state.json").exists() or "match" not in (ws.root / "state.json").read_text()

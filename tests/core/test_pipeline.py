@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from oblique_city.core.errors import Cancelled, ConfigError, InputError, Workspa
 from oblique_city.core.io.native import read_block, write_block
 from oblique_city.core.pipeline import Executor, RunContext, Stage, StageResult, Workspace, registry, run_stages, status
 from oblique_city.core.pipeline.atomic import atomic_path, write_text
+from oblique_city.core.pipeline.stage import POSITIVE, CheckedOptions, Range, Rule
 
 
 def test_core_does_not_import_bpy() -> None:
@@ -249,3 +251,65 @@ def test_tiepoints_round_trip_and_no_unpickling(tmp_path) -> None:
     np.savez(tmp_path / "evil.npz", xyz=np.zeros((1, 3)), image_ids=np.array([object()], dtype=object))
     with pytest.raises(WorkspaceError, match="not a tie point file"):
         TiePoints.load(str(tmp_path / "evil.npz"))
+
+
+@dataclass(frozen=True)
+class RuledConfig(CheckedOptions):
+    size: float = 1.0
+    count: int = 2
+    kind: str = "a"
+    kinds: tuple[str, ...] = ("a",)
+    z: float = float("nan")
+    free: float = 0.5
+
+    RULES: ClassVar[dict[str, Rule]] = {"size": POSITIVE, "count": Range(2.0), "kind": ("a", "b"),
+                                        "kinds": ("a", "b")}
+
+
+@pytest.mark.parametrize(("values", "message"), [
+    ({"size": 0.0}, "option 'size' must be > 0, got 0.0"),
+    ({"count": 1}, "option 'count' must be >= 2, got 1"),
+    ({"kind": "c"}, "option 'kind' must be one of a, b, got 'c'"),
+    ({"kinds": ["a", "c"]}, "option 'kinds' must be one of a, b, got ('a', 'c')"),
+    ({"z": float("inf")}, "option 'z' must be finite (or NaN: from the data), got inf"),
+    ({"free": float("nan")}, "option 'free' must be a number, not NaN, got nan"),
+])
+def test_option_rules(values, message) -> None:
+    """Options are checked by their rules on construction; numbers without a rule must be finite (NaN only where it
+    is the default, meaning "from the data")."""
+    stage = Stage("ruled", _square_run, RuledConfig)
+    with pytest.raises(ConfigError) as info:
+        stage.make_config(values)
+    assert str(info.value) == f"project.toml: [stages.ruled] {message}"
+    assert stage.make_config({"z": 3.0, "kinds": ["b", "a"]}).kinds == ("b", "a")
+
+
+def test_every_stage_option_has_a_rule() -> None:
+    """Each numeric, text and list option of the built-in stages has a rule (a path and an offset that may be
+    negative are the only exceptions), and the defaults pass them."""
+    import dataclasses
+
+    free = {("buildings", "footprints"), ("windows", "grow_m")}
+    for name in registry.stage_names():
+        config = registry.get_stage(name).config
+        defaults = config()
+        assert isinstance(defaults, CheckedOptions), name
+        for f in dataclasses.fields(config):
+            v = getattr(defaults, f.name)
+            if not isinstance(v, bool) and (name, f.name) not in free:
+                assert f.name in config.RULES, (name, f.name)
+
+
+def test_runner_checks_every_stage_before_running_any(utm_block, tmp_path, square_stage) -> None:
+    """A bad option of a later stage stops the run before the first stage starts (not after it ran for hours)."""
+    ws = Workspace.create(tmp_path / "ws", crs="EPSG:32632")
+    ws.save_block(utm_block)
+    registry.register(Stage("ruled", _square_run, RuledConfig, requires=("square",)))
+    try:
+        ws.project["stages"] = {"ruled": {"size": -1.0}}
+        ws.save_project()
+        with pytest.raises(ConfigError, match="option 'size' must be > 0"):
+            run_stages(ws, ["ruled"])
+        assert "square" not in ws.read_state()
+    finally:
+        registry.unregister("ruled")

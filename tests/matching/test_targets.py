@@ -273,5 +273,5 @@ def test_squares_at_any_azimuth_discs_squares_alone_checkerboards_and_crosses_ar
     assert target_shape(MatchConfig(target_square_azimuth="30", target_square_half_m=0)) == TargetShape(0.5, 0, 30.0)
     assert target_shape(MatchConfig(target_pattern="checker")) == TargetShape(0.0, 0.8, None, "checker")
     assert target_shape(MatchConfig(target_pattern="cross")) == TargetShape(0.0, 0.8, None, "cross", 0.15)
-    with pytest.raises(ConfigError, match="target_square_azimuth 'north'"):
-        target_shape(MatchConfig(target_square_azimuth="north"))
+    with pytest.raises(ConfigError, match="option 'target_square_azimuth' must be degrees or 'estimate', got 'north'"):
+        MatchConfig(target_square_azimuth="north")
