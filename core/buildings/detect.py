@@ -130,13 +130,15 @@ def read_footprints(path: str | Path) -> list[np.ndarray]:
     """Outer rings (m, 2) of the Polygon / MultiPolygon features of a GeoJSON file (project CRS)."""
     path = Path(path)
     doc = read_json(path, "footprint file not found")
-    feats = doc.get("features", [doc] if doc.get("type") == "Feature" else None)
-    if feats is None:
+    feats = None
+    if isinstance(doc, dict):
+        feats = doc.get("features", [doc] if doc.get("type") == "Feature" else None)
+    if not isinstance(feats, list):
         raise InputError("expected a FeatureCollection or a Feature", path, field="type")
     rings = []
     for i, f in enumerate(feats):
-        geom = f.get("geometry") or {}
-        kind, coords = geom.get("type"), geom.get("coordinates")
+        geom = (f.get("geometry") if isinstance(f, dict) else None) or {}
+        kind, coords = (geom.get("type"), geom.get("coordinates")) if isinstance(geom, dict) else (None, None)
         try:
             polys = [coords] if kind == "Polygon" else coords if kind == "MultiPolygon" else None
             if polys is None:
@@ -147,6 +149,8 @@ def read_footprints(path: str | Path) -> list[np.ndarray]:
                     ring = ring[:-1]
                 if len(ring) < 3:
                     raise InputError(f"feature {i}: ring with fewer than 3 corners", path, field="coordinates")
+                if not np.all(np.isfinite(ring)):
+                    raise InputError(f"feature {i}: coordinates not finite", path, field="coordinates")
                 rings.append(ring)
         except (TypeError, ValueError, IndexError):
             raise InputError(f"feature {i}: malformed coordinates", path, field="coordinates") from None

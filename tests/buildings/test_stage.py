@@ -97,3 +97,9 @@ def test_user_footprints_collect_the_points_and_bad_files_name_the_field(scene, 
     path.write_text(json.dumps(gj))
     with pytest.raises(InputError, match="fp.geojson.*geometry"):
         read_footprints(path)
+    ring = [[0, 0], [1, 0], [1, None]]
+    for bad, field in (([gj], "type"), ({"type": "FeatureCollection", "features": [7]}, "geometry"),
+                       ({"type": "Feature", "geometry": {"type": "Polygon", "coordinates": [ring]}}, "coordinates")):
+        path.write_text(json.dumps(bad))
+        with pytest.raises(InputError, match=f"fp.geojson, field '{field}'"):
+            read_footprints(path)
