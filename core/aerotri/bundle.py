@@ -1650,7 +1650,8 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     the rejected observations ``(m,)`` and the sigma0 used."""
     m, n = len(op_all), len(xyz_start)
     fx, fy = image_focals(cameras, image_camera)
-    x = np.array(xyz_start, np.float64)
+    x = _settled_points(cameras, image_camera, r, c, fx, fy, op_all, oi_all, uv_all, xyz_start, sigma_px,
+                        prior_xyz, prior_info)
     xyz = np.full((n, 3), np.nan)
     cov = np.full((n, 3, 3), np.nan)
     use = np.ones(m, bool)
@@ -1669,21 +1670,9 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
         op, oi = rank[op_all[idx]], oi_all[idx]
         x_pts = x[pts]
         # one Gauss-Newton step on the pixel residuals; the test uses the linearised residuals after it
-        rr = np.take(r, oi, 0)
-        xc = np.einsum("mij,mj->mi", rr, np.take(x_pts, op, 0) - np.take(c, oi, 0))
-        v = uv_all[idx] - pixels_from_camera(cameras, image_camera, xc, oi)
-        jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
-        del rr, xc
-        good = np.all(np.isfinite(v), 1)
-        info_pts = None if prior_info is None else prior_info[pts]
-        q = precision.safe_inverse(precision.point_normals(jp, np.where(good, sigma_px**-2, 0.0), op, len(pts),
-                                                           info_pts))
-        v[~good] = 0.0
-        g = np.stack([np.bincount(op, weights=jp[:, 0, i] * v[:, 0] + jp[:, 1, i] * v[:, 1], minlength=len(pts))
-                      for i in range(3)], 1) * sigma_px**-2
-        if info_pts is not None:
-            g += np.einsum("kij,kj->ki", info_pts, np.nan_to_num(prior_xyz[pts] - x_pts))
-        step = np.einsum("kij,kj->ki", q, g)
+        step, q, v, jp, good, _ = _point_step(cameras, image_camera, r, c, fx, fy, op, oi, uv_all[idx], x_pts,
+                                              sigma_px, None if prior_info is None else prior_info[pts],
+                                              None if prior_xyz is None else prior_xyz[pts])
         solved = np.all(np.isfinite(step), 1)  # fewer than two rays or badly conditioned: no point
         dx = np.take(np.nan_to_num(step), op, 0)
         v1 = v - np.stack([jp[:, k, 0] * dx[:, 0] + jp[:, k, 1] * dx[:, 1] + jp[:, k, 2] * dx[:, 2]
@@ -1710,6 +1699,68 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
         todo = np.zeros(n, bool)
         todo[op_all[bad]] = True
     return xyz, cov * s0**2, rejected, s0
+
+
+def _point_step(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray, fx: np.ndarray,
+                fy: np.ndarray, op: np.ndarray, oi: np.ndarray, uv: np.ndarray, x_pts: np.ndarray, sigma_px: float,
+                info_pts: np.ndarray | None, prior_pts: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    """One Gauss-Newton step of points ``x_pts (p, 3)`` on the pixel residuals of their rays ``op`` (into
+    ``x_pts``), ``oi``, ``uv (m, 2)`` with the cameras held (``info_pts``, ``prior_pts``: ground observations of the
+    points, as in :func:`screen_points`). Returns the step ``(p, 3)`` (NaN where undetermined), the points'
+    cofactors ``(p, 3, 3)``, the residuals ``(m, 2)`` (0 where not finite), their point Jacobians ``(m, 2, 3)``, the
+    rays with finite residuals ``(m,)`` and each ray's length ``(m,)``."""
+    rr = np.take(r, oi, 0)
+    d = np.take(x_pts, op, 0) - np.take(c, oi, 0)
+    xc = np.einsum("mij,mj->mi", rr, d)
+    v = uv - pixels_from_camera(cameras, image_camera, xc, oi)
+    jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
+    del rr, xc
+    good = np.all(np.isfinite(v), 1)
+    q = precision.safe_inverse(precision.point_normals(jp, np.where(good, sigma_px**-2, 0.0), op, len(x_pts),
+                                                       info_pts))
+    v[~good] = 0.0
+    g = np.stack([np.bincount(op, weights=jp[:, 0, i] * v[:, 0] + jp[:, 1, i] * v[:, 1], minlength=len(x_pts))
+                  for i in range(3)], 1) * sigma_px**-2
+    if info_pts is not None:
+        g += np.einsum("kij,kj->ki", info_pts, np.nan_to_num(prior_pts - x_pts))
+    return np.einsum("kij,kj->ki", q, g), q, v, jp, good, np.linalg.norm(d, axis=1)
+
+
+SETTLE_TOLERANCE = 0.03
+"""Pixels: a start point takes Gauss-Newton steps with the cameras held before :func:`screen_points` tests its rays
+while its last step ``s`` leaves more than this in its residuals, ``f s^2 / L^2`` (f its cameras' focal length in
+pixels, L its ray length: one step from an error ``s`` leaves an error of about ``s^2 / L``)."""
+
+
+def _settled_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
+                    fx: np.ndarray, fy: np.ndarray, op_all: np.ndarray, oi_all: np.ndarray, uv_all: np.ndarray,
+                    xyz_start: np.ndarray, sigma_px: float, prior_xyz: np.ndarray | None,
+                    prior_info: np.ndarray | None, max_steps: int = 6) -> np.ndarray:
+    """``xyz_start (n, 3)`` with the points far from their rays moved onto them: Gauss-Newton steps with the
+    cameras held (all rays, up to ``max_steps``) while a point's step leaves more than :data:`SETTLE_TOLERANCE`
+    pixels (mean over its rays). A start intersected from coarse navigation data (5 m, 0.5 degrees) lies that far,
+    and the tests after one step took 3.6 % of the good rays of a HAT block for blunders (0.17 % with this); a start
+    from good navigation data stays as it was, but for weakly intersected points (1 % of those without a blunder,
+    a fifth of those with one on the 400-image test block)."""
+    x = np.array(xyz_start, np.float64)
+    todo = np.zeros(len(x), bool)
+    todo[op_all] = True
+    for _ in range(max_steps):
+        idx = np.flatnonzero(todo[op_all])
+        if len(idx) == 0:
+            break
+        pts = np.flatnonzero(todo)
+        op, oi = (np.cumsum(todo) - 1)[op_all[idx]], oi_all[idx]
+        step, _, _, _, _, length = _point_step(
+            cameras, image_camera, r, c, fx, fy, op, oi, uv_all[idx], x[pts], sigma_px,
+            None if prior_info is None else prior_info[pts], None if prior_xyz is None else prior_xyz[pts])
+        rays = np.maximum(np.bincount(op, minlength=len(pts)), 1)
+        focal_by_length = np.bincount(op, weights=np.sqrt(fx[oi] * fy[oi]) / length**2, minlength=len(pts)) / rays
+        far = np.all(np.isfinite(step), 1) & (np.sum(step**2, 1) * focal_by_length > SETTLE_TOLERANCE)
+        x[pts[far]] += step[far]
+        todo = np.zeros(len(x), bool)
+        todo[pts[far]] = True
+    return x
 
 
 class ControlTests(NamedTuple):
