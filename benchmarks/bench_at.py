@@ -236,6 +236,9 @@ def main(argv=None) -> int:
                     help="also adjust a copy of the block whose GNSS positions carry an offset per strip and a drift "
                          "along it (normal, this many metres and metres per km), without and with the strip models, "
                          "with all and with 4 control points (Table 11)")
+    ap.add_argument("--nav-scale", dest="nav_scale", type=float, default=1.0,
+                    help="GNSS/IMU errors (and their prior sigmas) times this: 1 is a survey-grade system (5 cm, "
+                         "0.004 deg), 100 a low-grade one (5 m, 0.4 deg)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out")
     args = ap.parse_args(argv)
@@ -243,8 +246,11 @@ def main(argv=None) -> int:
         ap.error("--repeat must be at least 1")
     noise = 0.3
     lever = 0.01 if args.boresight_sigma_deg > 0 else 0.0
+    base = SimulationConfig()
     cfg = SimulationConfig(n_images=args.images, tie_density=args.density, noise_px=noise, seed=args.seed,
-                           blunder_fraction=0.03, boresight_sigma_deg=args.boresight_sigma_deg, lever_arm_sigma=lever)
+                           blunder_fraction=0.03, boresight_sigma_deg=args.boresight_sigma_deg, lever_arm_sigma=lever,
+                           gnss_sigma=tuple(args.nav_scale * v for v in base.gnss_sigma),
+                           imu_sigma_deg=tuple(args.nav_scale * v for v in base.imu_sigma_deg))
     opt = BundleOptions(sigma_px=noise, threads=args.threads, mounting=args.mounting)
     out: dict = {"config": vars(args), "noise_px": noise, "rows": [], "timing": {}}
     t0 = time.perf_counter()
