@@ -13,14 +13,14 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 
-from ..errors import ConfigError, InputError, WorkspaceError
+from ..errors import InputError, WorkspaceError
 from ..io.validate import resolve_image
 from ..model import CameraModel, ImageBlock, Pose
 from ..pipeline.atomic import atomic_path, write_json
@@ -35,7 +35,7 @@ from ..pipeline.stage import (
     Stage,
     StageResult,
 )
-from .features import MatchOptions, guided_match, sift_features, verify
+from .features import BAND_SIGMAS, MatchOptions, guided_match, pose_sigma_px, sift_features, verify
 from .graph import GraphOptions, build_graph
 from .targets import SUSPECT_PX, TARGET_MODES, TARGETS_FILE, TargetShape, measure_targets, target_summary
 from .tracks import build_tracks
@@ -59,7 +59,9 @@ class MatchConfig(CheckedOptions):
     """Options of the ``match`` stage (see :class:`GraphOptions` and :class:`MatchOptions`).
 
     ``z_ref`` is the footprint height and ``z_lo``/``z_hi`` the guided search range; NaN derives them from
-    the ground points (or 0 m) and ``height_range`` metres above. ``tie_source``: ``images`` (SIFT and guided
+    the ground points (or 0 m) and ``height_range`` metres above. ``band_px`` is the least half-width of the
+    epipolar band; a pair whose images' prior sigmas move its points farther gets a wider one (:func:`pair_bands`).
+    ``tie_source``: ``images`` (SIFT and guided
     matching) or ``file`` (tie points already in ``matching/ties.npz``, e.g. from another matcher or the
     observation simulator: only the graph is built, its edges counting the shared tracks). ``lsm_refine``:
     least-squares matching of each track's observations against its most nadir-like one (:mod:`.lsm`);
@@ -208,7 +210,8 @@ class PairBatch:
     """Consecutive graph edges matched by one executor unit (:func:`match_pairs`).
 
     edges : ``(k, 2)`` image indices; features, cameras, poses : the feature cache file, camera and approximate
-    pose of each image index the edges use; threads : OpenCV threads of the worker (0 = OpenCV's default)
+    pose of each image index the edges use; bands : each edge's epipolar band half-width ``(k,)`` (pixels);
+    threads : OpenCV threads of the worker (0 = OpenCV's default)
     """
 
     edges: np.ndarray
@@ -216,6 +219,7 @@ class PairBatch:
     cameras: dict[int, CameraModel]
     poses: dict[int, Pose]
     opt: MatchOptions
+    bands: np.ndarray
     threads: int = 0
 
 
@@ -229,26 +233,44 @@ def match_pairs(batch: PairBatch) -> list[np.ndarray]:
             feats[k] = z["uv"], z["des"]
     out = []
     with _opencv_threads(batch.threads):
-        for a, b in batch.edges:
+        for (a, b), band in zip(batch.edges, batch.bands, strict=True):
             (uv_a, des_a), (uv_b, des_b) = feats[a], feats[b]
             ca, cb = batch.cameras[a], batch.cameras[b]
-            m = guided_match(uv_a, des_a, uv_b, des_b, ca, batch.poses[a], cb, batch.poses[b], batch.opt)
+            m = guided_match(uv_a, des_a, uv_b, des_b, ca, batch.poses[a], cb, batch.poses[b],
+                             replace(batch.opt, band_px=float(band)))
             if len(m):
                 m = m[verify(uv_a[m[:, 0]], uv_b[m[:, 1]], ca, cb, batch.opt.ransac_px)]
             out.append(m)
     return out
 
 
+def pair_bands(block: ImageBlock, ids: list[str], edges: np.ndarray, band_px: float, z_ground: float) -> np.ndarray:
+    """Each edge's epipolar band half-width ``(k,)``: ``band_px``, or :data:`.features.BAND_SIGMAS` times the two
+    images' navigation errors in pixels (:func:`.features.pose_sigma_px` at the distance along each one's viewing
+    direction to the ground ``z_ground``) where that is wider."""
+    sig = np.zeros(len(ids))
+    for k, iid in enumerate(ids):
+        img = block.images[iid]
+        p = img.pose_approx
+        down = -p.R[2, 2]  # the viewing direction's downward component
+        distance = (p.C[2] - z_ground) / down if down > 0.1 else p.C[2] - z_ground
+        sig[k] = pose_sigma_px(block.camera_of(img), img.sigma_position, img.sigma_attitude, float(distance))
+    if len(edges) == 0:
+        return np.zeros(0)
+    return np.maximum(band_px, BAND_SIGMAS * np.hypot(sig[edges[:, 0]], sig[edges[:, 1]]))
+
+
 def pair_batches(block: ImageBlock, ids: list[str], edges: np.ndarray, feature_files: list[str], opt: MatchOptions,
-                 threads: int = 0, size: int = PAIRS_PER_UNIT) -> list[PairBatch]:
-    """The edges cut into units of ``size`` consecutive edges (their order kept), with what each unit needs."""
+                 bands: np.ndarray, threads: int = 0, size: int = PAIRS_PER_UNIT) -> list[PairBatch]:
+    """The edges cut into units of ``size`` consecutive edges (their order kept), with what each unit needs
+    (``bands``: each edge's band half-width, :func:`pair_bands`)."""
     out = []
     for k in range(0, len(edges), size):
         e = edges[k:k + size]
         used = [int(i) for i in np.unique(e)]
         imgs = {i: block.images[ids[i]] for i in used}
         out.append(PairBatch(e, {i: feature_files[i] for i in used}, {i: block.camera_of(imgs[i]) for i in used},
-                             {i: imgs[i].pose_approx for i in used}, opt, threads))
+                             {i: imgs[i].pose_approx for i in used}, opt, bands[k:k + size], threads))
     return out
 
 
@@ -262,8 +284,6 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     target_metrics = _measure_targets(ws, block, cfg, ctx)
     if cfg.tie_source == "file":
         return _graph_from_ties(ws, block, graph, cfg, ctx, target_metrics)
-    if cfg.tie_source != "images":
-        raise ConfigError(f"match.tie_source '{cfg.tie_source}' unknown (use images or file)")
     feat_dir = out / "features"
     feat_dir.mkdir(parents=True, exist_ok=True)
     executor = ctx.get_executor()
@@ -281,7 +301,8 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
             uv.append(z["uv"])
     opt = MatchOptions(max_features=cfg.max_features, ratio=cfg.ratio, band_px=cfg.band_px, z_lo=z0 - 5.0,
                        z_hi=z0 + cfg.height_range, ransac_px=cfg.ransac_px, min_matches=cfg.min_matches)
-    batches = pair_batches(block, ids, graph.edges, files, opt, threads)
+    bands = pair_bands(block, ids, graph.edges, cfg.band_px, z0)
+    batches = pair_batches(block, ids, graph.edges, files, opt, bands, threads)
     found = executor.map(match_pairs, batches, on_done=lambda d, t: ctx.progress(
         len(ids) + d * len(ids) // t, total, f"matched {d}/{t} units of {PAIRS_PER_UNIT} pairs"))
     matches = {}

@@ -99,6 +99,44 @@ def test_guided_matching_rejects_planted_wrong_matches():
     assert not inl[:20].any() and inl[20:].mean() > 0.95
 
 
+def test_epipolar_band_widens_with_coarse_navigation_data():
+    """A low-grade GNSS/IMU (1 degree, 10 m) moves the epipolar segments by tens of pixels: the fixed 25 px band
+    loses the matches, the band from the images' prior sigmas (3 sigma) keeps them, all correct. Images with
+    survey-grade sigmas, or none, keep ``band_px``."""
+    from oblique_city.core.geometry.rotations import rotvec_to_matrix
+    from oblique_city.core.matching.stage import pair_bands
+
+    rng = np.random.default_rng(3)
+    cam, pa, pb = _two_views()
+    xyz = np.column_stack([rng.uniform(-100, 180, 1500), rng.uniform(-120, 120, 1500), rng.uniform(0, 30, 1500)])
+    uva, _ = project(cam, pa, xyz)
+    uvb, _ = project(cam, pb, xyz)
+    ok = cam.contains(uva) & cam.contains(uvb)
+    uva, uvb = uva[ok], uvb[ok]
+    des = rng.normal(size=(len(uva), 128)).astype(np.float32)
+    # the navigation data: image B turned by 1 degree and moved 10 m
+    pb_nav = Pose(rotvec_to_matrix(np.radians([0.0, 1.0, 0.0])) @ pb.R, pb.C + np.array([0.0, 10.0, 0.0]))
+    block = ImageBlock(crs="EPSG:25832")
+    block.add_camera(cam)
+    coarse = {"sigma_position": np.full(3, 10.0), "sigma_attitude": np.radians(np.full(3, 1.0))}
+    block.add_image(Image("a", "c", pose_approx=pa, **coarse))
+    block.add_image(Image("b", "c", pose_approx=pb_nav, **coarse))
+    band = pair_bands(block, ["a", "b"], np.array([[0, 1]]), 25.0, 0.0)[0]
+    assert 160.0 < band < 170.0  # 3 sqrt(2) x 1500 px x hypot(1 deg, 10 m / 500 m)
+    found = {}
+    for width in (25.0, band):
+        m = guided_match(uva, des, uvb, des, cam, pa, cam, pb_nav, MatchOptions(band_px=width, z_lo=-5.0, z_hi=40.0))
+        found[width] = (int(np.sum(m[:, 0] == m[:, 1])), int(np.sum(m[:, 0] != m[:, 1])))
+    assert found[25.0][0] < 0.5 * len(uva), found  # most true partners lie outside the narrow band
+    assert found[band][0] > 0.95 * len(uva) and found[band][1] == 0, found
+    for img in block.images.values():
+        img.sigma_position, img.sigma_attitude = np.full(3, 0.05), np.radians(np.full(3, 0.005))
+    assert pair_bands(block, ["a", "b"], np.array([[0, 1]]), 25.0, 0.0)[0] == 25.0
+    for img in block.images.values():
+        img.sigma_position = img.sigma_attitude = None
+    assert pair_bands(block, ["a", "b"], np.array([[0, 1]]), 25.0, 0.0)[0] == 25.0
+
+
 def test_tracks_join_chains_and_drop_inconsistent_ones():
     kp = [np.arange(8, dtype=float).reshape(4, 2) + 10 * i for i in range(4)]
     matches = {
