@@ -61,9 +61,9 @@ class MatchConfig(CheckedOptions):
     ``z_ref`` is the footprint height and ``z_lo``/``z_hi`` the guided search range; NaN derives them from
     the ground points (or 0 m) and ``height_range`` metres above. ``band_px`` is the least half-width of the
     epipolar band; a pair whose images' prior sigmas move its points farther gets a wider one (:func:`pair_bands`).
-    ``tie_source``: ``images`` (SIFT and guided
-    matching) or ``file`` (tie points already in ``matching/ties.npz``, e.g. from another matcher or the
-    observation simulator: only the graph is built, its edges counting the shared tracks). ``lsm_refine``:
+    ``tie_source``: ``images`` (SIFT and guided matching) or ``file`` (tie points already in
+    ``matching/ties.npz``, e.g. from another matcher or the observation simulator: only the graph is built, its
+    edges counting the shared tracks). ``lsm_refine``:
     least-squares matching of each track's observations against its most nadir-like one (:mod:`.lsm`);
     observations it cannot confirm are dropped. On the rendered demo block it halved sigma0 (0.326 -> 0.147 px)
     and cut the tracks that miss their true point by 1.5 px from 7.3% to 2.5%, for about 3 minutes.
