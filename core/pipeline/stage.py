@@ -41,16 +41,17 @@ NON_NEGATIVE = Range(0.0)
 FRACTION = Range(0.0, 1.0)
 AT_LEAST_ONE = Range(1.0)
 
+
 def area_error(value: Any) -> str | None:
     """What is wrong with an area option (empty, or ``[x0, y0, x1, y1]`` with ``x0 < x1`` and ``y0 < y1``), or
     None."""
     what = "empty or [x0, y0, x1, y1] with x0 < x1 and y0 < y1"
+    if not isinstance(value, (tuple, list)):
+        return what
     if len(value) == 0:
         return None
-    if len(value) != 4 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                                  for v in value):
-        return what
-    return None if value[0] < value[2] and value[1] < value[3] else what
+    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+    return None if numbers and len(value) == 4 and value[0] < value[2] and value[1] < value[3] else what
 
 
 def odd_error(value: int) -> str | None:
