@@ -1630,7 +1630,7 @@ def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
 def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                   op_all: np.ndarray, oi_all: np.ndarray, uv_all: np.ndarray, xyz_start: np.ndarray, sigma_px: float,
                   sigma0: float | None, threshold: float, max_rounds: int, reject_undetermined: bool = True,
-                  prior_xyz: np.ndarray | None = None, prior_info: np.ndarray | None = None
+                  prior_xyz: np.ndarray | None = None, prior_info: np.ndarray | None = None, settle: bool = False
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Points from fixed cameras with blunder tests: from ``xyz_start (n, 3)`` (finite for every point observed) a
     Gauss-Newton step on the pixel residuals of the observations ``op_all``, ``oi_all (m,)``, ``uv_all (m, 2)``
@@ -1644,14 +1644,17 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     camera) count as rejected too; without it they are only left untested. ``prior_xyz (n, 3)`` and
     ``prior_info (n, 3, 3)`` are ground observations of points (connection points; NaN rows and zero blocks for
     none) with their inverse covariances: they enter each point's step, so a point with one ray and a ground
-    observation is tested too.
+    observation is tested too. With ``settle`` the points far from their rays are first moved onto them
+    (:func:`_settled_points`: a start intersected from the navigation data).
 
     Returns ``xyz (n, 3)`` and ``cov (n, 3, 3)`` (NaN for points with fewer than two rays or badly conditioned),
     the rejected observations ``(m,)`` and the sigma0 used."""
     m, n = len(op_all), len(xyz_start)
     fx, fy = image_focals(cameras, image_camera)
-    x = _settled_points(cameras, image_camera, r, c, fx, fy, op_all, oi_all, uv_all, xyz_start, sigma_px,
-                        prior_xyz, prior_info)
+    x = np.array(xyz_start, np.float64)
+    if settle:
+        x = _settled_points(cameras, image_camera, r, c, fx, fy, op_all, oi_all, uv_all, x, sigma_px, prior_xyz,
+                            prior_info)
     xyz = np.full((n, 3), np.nan)
     cov = np.full((n, 3, 3), np.nan)
     use = np.ones(m, bool)
@@ -1968,7 +1971,8 @@ def resected_start(cameras: list[CameraModel], image_camera: np.ndarray, r: np.n
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """A start moved to its inliers (the first part of ``BundleOptions.screen_start``): the observations ``op``,
     ``oi (m,)``, ``uv (m, 2)`` screened at the start ``r (n, 3, 3)``, ``c (n, 3)``, ``xyz (p, 3)`` with the cameras
-    held (:func:`screen_points`, sigma0 estimated robustly; ``prior_xyz``, ``prior_info`` as there), then one
+    held (:func:`screen_points`, its points settled first, sigma0 estimated robustly; ``prior_xyz``, ``prior_info`` as
+    there), then one
     resection step of the images from the inliers with the points held (:func:`resect_images`).
 
     Returns the new ``r``, ``c`` (the given ones when the screening's sigma0 is above ``opt.screen_max_sigma0``:
@@ -1976,7 +1980,7 @@ def resected_start(cameras: list[CameraModel], image_camera: np.ndarray, r: np.n
     and that sigma0."""
     x_s, _, bad, s0 = screen_points(cameras, image_camera, r, c, op, oi, uv, xyz, opt.sigma_px, None,
                                     opt.blunder_threshold, opt.screen_rounds, reject_undetermined=False,
-                                    prior_xyz=prior_xyz, prior_info=prior_info)
+                                    prior_xyz=prior_xyz, prior_info=prior_info, settle=True)
     if s0 <= opt.screen_max_sigma0:
         ok = ~bad & np.isfinite(x_s[op, 0])
         r, c = resect_images(cameras, image_camera, r, c, x_s, op[ok], oi[ok], uv[ok])

@@ -341,7 +341,8 @@ def test_screen_points_from_a_start_far_from_the_rays(sim, options):
     way = rng.normal(size=sim.true_xyz.shape)
     way /= np.linalg.norm(way, axis=1, keepdims=True)
     far = sim.true_xyz + way * rng.uniform(10.0, 20.0, (len(way), 1))
-    x, _, rej, s0 = screen_points(cameras, image_camera, r, c, op, oi, uv, far, options.sigma_px, None, 4.3, 10)
+    x, _, rej, s0 = screen_points(cameras, image_camera, r, c, op, oi, uv, far, options.sigma_px, None, 4.3, 10,
+                                  settle=True)
     s = blunder_scores(ties.obs_blunder, rej)
     assert abs(s0 - 1.0) < 0.05 and s["recall"] >= 0.95 and s["false_alarm"] <= 0.01, (s0, s)
     ok = np.isfinite(x[:, 0])
