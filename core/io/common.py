@@ -17,6 +17,9 @@
 * ``rig=auto`` (default: a block with exposures of two or more heads and no rig gets one estimated from its
   approximate orientations, :func:`..model.exposures.estimate_rig`) or ``rig=none``.
 
+An option that serves another (``exposure_pattern`` with ``exposures=name``, the ``gcp_*`` options with ``gcps``,
+...: :data:`NEEDS`) is refused without it.
+
 Unknown options are an error, so a typo never passes silently.
 """
 
@@ -53,6 +56,14 @@ COMMON_OPTIONS: dict[str, str] = {
 }
 """The options every reader but the native one takes (see the module docstring), with a line of help each."""
 
+NEEDS: dict[str, tuple[str, str | None]] = {
+    **{k: ("gcps", None) for k in ("gcp_columns", "gcp_delimiter", "gcp_kind", "gcp_sigma", "gcp_crs")},
+    **{k: ("measurements", None) for k in ("measurement_columns", "measurement_delimiter", "measurement_origin",
+                                           "sigma_px")},
+    "exposure_tolerance": ("exposures", "time"), "exposure_pattern": ("exposures", "name")}
+"""Shared options that do something only with another one (option -> that option and the value it needs, None for
+any): given without it they are refused, so that a forgotten ``-o exposures=name`` does not pass unnoticed."""
+
 
 def finish_block(block: ImageBlock, source: str | Path, options: dict[str, Any], fmt: str,
                  lines: dict[str, int] | None = None) -> ImageBlock:
@@ -62,6 +73,10 @@ def finish_block(block: ImageBlock, source: str | Path, options: dict[str, Any],
     image ids to the source line they came from, for error messages.
     """
     opts = dict(options)
+    for key, (needed, value) in NEEDS.items():
+        given = opts.get(needed)
+        if key in opts and (given is None or (value is not None and str(given).lower() != value)):
+            raise InputError(f"{key} is used only with -o {needed}={value or '...'}", path=source, field=key)
     pose = str(opts.pop("pose", "approx")).lower()
     if pose not in ("approx", "adjusted"):
         raise InputError(f"pose must be approx or adjusted, got '{pose}'", path=source, field="pose")

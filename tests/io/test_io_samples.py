@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from pyproj import Transformer
 
+from oblique_city.core.errors import InputError
 from oblique_city.core.geometry.rotations import opk_to_cam_from_world
 from oblique_city.core.io.formats import read_block
 from oblique_city.core.io.validate import image_size
@@ -118,6 +119,19 @@ def test_image_files_checked(tmp_path):
     assert b.image_root == str((DATA / "images").resolve())
 
 
+@pytest.mark.parametrize(("options", "message"), [
+    ({"exposure_pattern": "(.+)_(.+)"}, "exposure_pattern is used only with -o exposures=name"),
+    ({"exposures": "time", "exposure_pattern": "(.+)_(.+)"}, "exposure_pattern is used only with -o exposures=name"),
+    ({"exposure_tolerance": 0.1}, "exposure_tolerance is used only with -o exposures=time"),
+    ({"gcp_sigma": 0.05}, "gcp_sigma is used only with -o gcps=..."),
+    ({"measurement_origin": "corner"}, "measurement_origin is used only with -o measurements=..."),
+])
+def test_an_option_without_the_one_it_serves_is_refused(options, message):
+    """An option that does something only with another one (a forgotten -o exposures=name) is refused, naming it."""
+    with pytest.raises(InputError, match=message):
+        read_block("bex", DATA / "bex_sample.xml", **options)
+
+
 def test_unknown_option_is_refused():
     """A typo is refused with the options the format takes; the native format takes none."""
     from oblique_city.core.errors import ConfigError
@@ -200,7 +214,6 @@ def test_format_told_from_the_file(tmp_path, penta_block):
     BlocksExchange file); a folder or an XML of no known kind is refused, naming the file."""
     import zipfile
 
-    from oblique_city.core.errors import InputError
     from oblique_city.core.io.formats import WRITERS, detect_format, write_block
 
     names = {"native": "b.json", "opk": "b.txt", "bex": "b.xml", "colmap": "sparse", "metashape": "cams.xml",
