@@ -12,6 +12,8 @@
   object ``{"scale": s, "rotation": [qw, qx, qy, qz] or 3x3, "translation": [tx, ty, tz]}``. The same can come
   from options ``sim3_scale``, ``sim3_rotation`` (quaternion w x y z) and ``sim3_translation``. The writer applies
   the inverse, so an exported model is in COLMAP's frame again. ``crs`` names the world CRS (required).
+* Binary models are checked record by record before pycolmap reads them (:mod:`.colmap_binary`): a truncated or
+  damaged file is refused naming it, where pycolmap could hang or read garbage.
 * Image ids: the file name stem by default (``image_id=name`` keeps the whole relative name). 3D points are not
   imported (tie points come from the matching stage).
 * Camera systems (COLMAP >= 3.12 ``rigs`` and ``frames``): the images of a frame of two or more images are one
@@ -39,6 +41,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry.rotations import orthonormalize, rotation_angle
 from ..model import CameraModel, Image, ImageBlock, Pose, Rig, RigHead
+from .colmap_binary import check_binary_model
 from .common import finish_block
 from .validate import check_crs, option_value, parse_bool, parse_float, reject_unknown
 
@@ -197,9 +200,10 @@ def read_colmap(source: str, **options: Any) -> ImageBlock:
     id_mode = str(options.pop("image_id", "stem")).lower()
     if id_mode not in ("stem", "name"):
         raise InputError(f"image_id must be stem or name, got '{id_mode}'", path=source, field="image_id")
+    check_binary_model(folder)
     try:
         rec = pycolmap.Reconstruction(str(folder))
-    except (RuntimeError, ValueError, IndexError) as e:
+    except (RuntimeError, ValueError, IndexError, MemoryError) as e:
         raise InputError(f"COLMAP could not read the model: {str(e).splitlines()[-1][:200]}", path=source) from None
     block = ImageBlock(crs=crs, image_root=None)
     for cid in sorted(rec.cameras):
