@@ -191,6 +191,11 @@ ENTITY_RE = re.compile(rb"<!ENTITY", re.IGNORECASE)
 DOCTYPE_RE = re.compile(rb"<!DOCTYPE", re.IGNORECASE)
 
 
+MAX_ZIPPED_XML_BYTES = 4_000_000_000
+"""The largest XML member of a zip archive that :func:`parse_xml` unpacks (a block of 100,000 photos takes about
+0.2 GB): a larger one is refused before it fills the memory (a zip bomb)."""
+
+
 def parse_xml(path: str | Path):
     """Parse an XML file (or a zip holding one, like BlocksExchange ``.xmlz``) safely with lxml; return its root.
 
@@ -206,14 +211,19 @@ def parse_xml(path: str | Path):
     if data[:4] == b"PK\x03\x04":  # a zipped XML (BlocksExchange .xmlz): its first .xml member
         import io
         import zipfile
+        import zlib
 
         try:
             with zipfile.ZipFile(io.BytesIO(data)) as z:
                 members = [n for n in z.namelist() if n.lower().endswith(".xml")]
                 if not members:
                     raise InputError("zip archive without an .xml file", path=path)
+                size = z.getinfo(members[0]).file_size
+                if size > MAX_ZIPPED_XML_BYTES:
+                    raise InputError(f"the zipped {members[0]} would unpack to {size / 1e9:.1f} GB (at most "
+                                     f"{MAX_ZIPPED_XML_BYTES / 1e9:.0f} GB are read)", path=path)
                 data = z.read(members[0])
-        except zipfile.BadZipFile as e:
+        except (zipfile.BadZipFile, zlib.error, EOFError) as e:
             raise InputError(f"broken zip archive ({e})", path=path) from None
     m = DOCTYPE_RE.search(data)
     if m is not None:

@@ -174,3 +174,25 @@ def test_event_list_position_outside_crs(penta_block, tmp_path):
     with pytest.raises(InputError) as info:
         read_block("gnssimu", tmp_path / "ev.txt")
     assert f"ev.txt:{k + 1}, " in str(info.value) and "could not be transformed (1 of" in str(info.value)
+
+
+def test_zipped_xml_too_large_or_damaged(tmp_path, monkeypatch):
+    """A zip member that would unpack beyond the limit (a zip bomb) is refused before it is unpacked; a damaged
+    member gives an InputError, not zlib's error."""
+    import zipfile
+
+    from oblique_city.core.io import validate
+
+    data = (DATA / "bex_sample.xml").read_bytes()
+    with zipfile.ZipFile(tmp_path / "b.xmlz", "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("block.xml", data)
+    assert len(read_block("bex", tmp_path / "b.xmlz").images) == len(read_block("bex", DATA / "bex_sample.xml").images)
+    monkeypatch.setattr(validate, "MAX_ZIPPED_XML_BYTES", len(data) - 1)
+    with pytest.raises(InputError, match="b.xmlz: the zipped block.xml would unpack to"):
+        read_block("bex", tmp_path / "b.xmlz")
+    monkeypatch.undo()
+    raw = bytearray((tmp_path / "b.xmlz").read_bytes())
+    raw[60:120] = bytes(60)
+    (tmp_path / "bad.xmlz").write_bytes(bytes(raw))
+    with pytest.raises(InputError, match="bad.xmlz: broken zip archive"):
+        read_block("bex", tmp_path / "bad.xmlz")
