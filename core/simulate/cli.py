@@ -6,6 +6,7 @@ import argparse
 import json
 from dataclasses import replace
 
+from ..errors import ConfigError
 from .simulator import SimulationConfig
 
 
@@ -20,13 +21,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.gsd is not None:
         over["gsd"] = args.gsd
     if args.size is not None:
-        w, _, h = args.size.partition("x")
+        w, _, h = args.size.lower().partition("x")
+        if not (w.isdigit() and h.isdigit()):
+            raise ConfigError(f"--size '{args.size}' should be WIDTHxHEIGHT in pixels, e.g. 1400x1050")
         over["width"], over["height"] = int(w), int(h)
     if args.extend is not None:
         over["extend_along_h"] = args.extend
     if args.no_cross:
         over["cross_strips"] = False
-    cfg = replace(cfg, **over)
+    try:
+        cfg = replace(cfg, **over)
+    except ConfigError as e:
+        raise ConfigError(f"simulate: {e}") from None
     progress = TerminalProgress(json_lines=args.json_progress)
     try:
         s = simulate(args.out, cfg, progress=lambda d, t, m: progress("simulate", d, t, m))

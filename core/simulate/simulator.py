@@ -34,6 +34,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -44,6 +45,7 @@ from ..io.formats import write_block
 from ..io.gcp import write_ground_points, write_measurements
 from ..model import CameraModel, Pose
 from ..pipeline.atomic import atomic_path
+from ..pipeline.stage import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, CheckedOptions, Range, Rule
 from .cameras import CameraSystem, penta, preset, three_head
 from .city import City, make_city
 from .flight import (
@@ -62,7 +64,7 @@ from .truth import write_depth, write_truth
 
 
 @dataclass(frozen=True)
-class SimulationConfig:
+class SimulationConfig(CheckedOptions):
     """Everything that defines a simulated block (all deterministic from the seeds).
 
     system : ``penta`` or ``three-head`` (or use :func:`simulate` with a custom CameraSystem)
@@ -95,6 +97,12 @@ class SimulationConfig:
     target_pattern: str = "disc"
     nav: NavErrors = field(default_factory=NavErrors)
     render: RenderConfig = field(default_factory=RenderConfig)
+
+    RULES: ClassVar[dict[str, Rule]] = {
+        "width": Range(16.0), "height": Range(16.0), "seed": NON_NEGATIVE, "gsd": POSITIVE,
+        "forward_overlap": Range(0.0, 0.95), "side_overlap": Range(0.0, 0.95), "extend_along_h": NON_NEGATIVE,
+        "extend_across_h": NON_NEGATIVE, "area_inset": NON_NEGATIVE, "truth_cell": POSITIVE, "workers": AT_LEAST_ONE,
+        "image_format": ("jpg", "png"), "jpeg_quality": Range(1.0, 100.0), "target_pattern": ("disc", "cross")}
 
 
 def camera_system(cfg: SimulationConfig) -> CameraSystem:
@@ -184,8 +192,6 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     city = city if city is not None else make_city(cfg.seed)
-    if cfg.target_pattern not in ("disc", "cross"):
-        raise ConfigError(f"target_pattern '{cfg.target_pattern}' (use disc or cross)")
     city = replace(city, target_pattern=cfg.target_pattern)
     system = camera_system(cfg)
     ground_z = float(np.nanmean(city.terrain_z(city.core.reshape(2, 2))))

@@ -45,6 +45,10 @@ def test_new_import_run_status(utm_block, tmp_path, capsys, square) -> None:
     (["run", "{ws}", "--set", "factor=1"], "should name a stage option"),
     (["status", "{tmp}/missing"], "not a workspace"),
     (["new", "{tmp}/other", "--crs", "EPSG:0"], "unknown coordinate reference system"),
+    (["simulate", "{tmp}/sim", "--size", "0x0"], "simulate: option 'width' must be >= 16, got 0"),
+    (["simulate", "{tmp}/sim", "--size", "big"], "--size 'big' should be WIDTHxHEIGHT in pixels"),
+    (["simulate", "{tmp}/sim", "--gsd", "nan"], "simulate: option 'gsd' must be a number, not NaN"),
+    (["simulate", "{tmp}/sim", "--extend", "-1"], "simulate: option 'extend_along_h' must be >= 0"),
 ])
 def test_user_errors_are_one_line_exit_2(utm_block, tmp_path, capsys, square, argv, message) -> None:
     ws = Workspace.create(tmp_path / "ws", crs="EPSG:32632")
