@@ -26,6 +26,7 @@ from typing import Any
 
 from .pipeline import RunContext, Workspace, run_stages
 from .pipeline.atomic import write_json
+from .pipeline.runner import plan
 
 SIMULATION = "simulation"
 WORKSPACE = "workspace"
@@ -90,6 +91,7 @@ def run_demo(out: str | Path, ctx: RunContext | None = None,
              stages: list[str] | None = None) -> dict:
     """Run the main job into folder ``out`` and return its summary (also written to ``out/summary.json``)."""
     ctx = ctx or RunContext()
+    plan(stages)  # unknown stage names are refused before the simulation renders for minutes
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -29,8 +29,10 @@ class Executor:
     def __init__(self, mode: str = "inline", workers: int = 2, address: str | None = None) -> None:
         if mode not in MODES:
             raise ConfigError(f"unknown executor mode '{mode}' (use one of {', '.join(MODES)})")
+        if int(workers) < 1:
+            raise ConfigError(f"the executor needs at least one worker, got {workers}")
         self.mode = mode
-        self.workers = max(1, int(workers))
+        self.workers = int(workers)
         self.address = address
         self._pool = None
         self._client = None

@@ -46,6 +46,8 @@ def test_new_import_run_status(utm_block, tmp_path, capsys, square) -> None:
     (["status", "{tmp}/missing"], "not a workspace"),
     (["new", "{tmp}/other", "--crs", "EPSG:0"], "unknown coordinate reference system"),
     (["simulate", "{tmp}/sim", "--size", "0x0"], "simulate: option 'width' must be >= 16, got 0"),
+    (["run", "{ws}", "--executor", "processes", "--workers", "0"], "the executor needs at least one worker, got 0"),
+    (["demo", "{tmp}/demo", "--stages", "nosuch"], "unknown stage 'nosuch'"),
     (["simulate", "{tmp}/sim", "--size", "big"], "--size 'big' should be WIDTHxHEIGHT in pixels"),
     (["simulate", "{tmp}/sim", "--gsd", "nan"], "simulate: option 'gsd' must be a number, not NaN"),
     (["simulate", "{tmp}/sim", "--extend", "-1"], "simulate: option 'extend_along_h' must be >= 0"),
