@@ -14,6 +14,7 @@ run (``windows/windows.json``), the detected windows go along unless ``--no-wind
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,9 @@ import numpy as np
 from ..errors import ComputationError, ConfigError
 
 FORMATS = ("obj", "citygml", "cityjson", "3dtiles", "geojson")
+
+MAX_HEIGHT_OFFSET = 200.0
+"""The largest height offset (m) the export takes: the geoid's undulation stays within -107 and +86 m."""
 
 
 def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate: bool = True,
@@ -31,10 +35,15 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
     from ..buildings.model import load_buildings
     from ..pipeline import Workspace
 
+    out = Path(out)
+    if fmt != "3dtiles" and out.is_dir():
+        raise ConfigError(f"{out} is a folder: give the {fmt} file's name")
+    if not (math.isfinite(height_offset) and abs(height_offset) <= MAX_HEIGHT_OFFSET):
+        raise ConfigError(f"the height offset is the geoid undulation in metres, within +-{MAX_HEIGHT_OFFSET:.0f}; "
+                          f"got {height_offset}")
     ws = Workspace.open(workspace)
     buildings, crs = load_buildings(ws.path("buildings", "buildings.json"))
     crs = crs or ws.crs
-    out = Path(out)
     textures = None
     if with_textures and ws.path("texture", "textures.json").exists():
         from ..texture.atlas import load_textures

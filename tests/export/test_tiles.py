@@ -98,3 +98,19 @@ def test_height_offset_lifts_the_tiles_along_the_vertical(tmp_path):
         worlds.append(_world_vertices(tmp_path / folder, child["content"]["uri"], tile)[0])
     d = worlds[1] - worlds[0]
     assert np.abs(d[:, :2]).max() < 1e-3 and np.abs(d[:, 2] - 47.5).max() < 1e-3
+
+
+@pytest.mark.parametrize(("fmt", "name", "offset", "message"), [
+    ("3dtiles", "t", float("nan"), "the height offset is the geoid undulation in metres, within \\+-200; got nan"),
+    ("3dtiles", "t", 1e30, "within \\+-200; got 1e\\+30"),
+    ("obj", "", 0.0, "is a folder: give the obj file's name"),
+])
+def test_export_refuses_a_bad_offset_or_a_folder_for_a_file(tmp_path, fmt, name, offset, message):
+    """A height offset that is no geoid undulation (NaN, 1e30 m) and a folder given for a file are refused before
+    anything is read or written (a NaN offset failed in the coordinate transformation, 1e30 m was written, a folder
+    raised IsADirectoryError)."""
+    from oblique_city.core.export.command import export_buildings
+
+    with pytest.raises(ConfigError, match=message):
+        export_buildings(tmp_path / "no-workspace", fmt, tmp_path / name, height_offset=offset)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
