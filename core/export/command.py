@@ -36,7 +36,7 @@ def export_buildings(workspace: str | Path, fmt: str, out: str | Path, validate:
     from ..pipeline import Workspace
 
     out = Path(out)
-    if fmt != "3dtiles" and out.is_dir():
+    if fmt != "3dtiles" and out.is_dir():  # (checked by the atomic writes too, but only after the work)
         raise ConfigError(f"{out} is a folder: give the {fmt} file's name")
     if not (math.isfinite(height_offset) and abs(height_offset) <= MAX_HEIGHT_OFFSET):
         raise ConfigError(f"the height offset is the geoid undulation in metres, within +-{MAX_HEIGHT_OFFSET:.0f}; "

@@ -13,14 +13,19 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from ..errors import ConfigError
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[str]:
     """Yield a temporary path beside ``path``; on success it replaces ``path``, on error it is removed.
 
-    ``suffix`` defaults to the target's suffix, so writers that pick a format by extension keep working.
+    ``suffix`` defaults to the target's suffix, so writers that pick a format by extension keep working. A folder
+    at ``path`` is refused (:class:`ConfigError`): the file would replace nothing and the write would fail at the end.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{path} is a folder: give a file name")
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=suffix if suffix is not None else path.suffix,
                                dir=path.parent)

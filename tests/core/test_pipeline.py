@@ -313,3 +313,12 @@ def test_runner_checks_every_stage_before_running_any(utm_block, tmp_path, squar
         assert "square" not in ws.read_state()
     finally:
         registry.unregister("ruled")
+
+
+def test_atomic_write_refuses_a_folder(tmp_path) -> None:
+    """A folder where a file is to be written is refused before anything is written (os.replace raised
+    IsADirectoryError at the end, e.g. for 'export-block --out' naming a folder)."""
+    (tmp_path / "out").mkdir()
+    with pytest.raises(ConfigError, match="out is a folder: give a file name"):
+        write_text(tmp_path / "out", "x")
+    assert [p.name for p in tmp_path.iterdir()] == ["out"] and not list((tmp_path / "out").iterdir())
