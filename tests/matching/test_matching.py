@@ -67,15 +67,21 @@ def _two_views():
     return cam, pa, pb
 
 
-def test_guided_matching_rejects_planted_wrong_matches():
-    rng = np.random.default_rng(1)
-    cam, pa, pb = _two_views()
-    xyz = np.column_stack([rng.uniform(-100, 180, 800), rng.uniform(-120, 120, 800), rng.uniform(0, 30, 800)])
+def _seen_by_both(cam: CameraModel, pa: Pose, pb: Pose, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``(k, 2)`` in A and in B of the points among ``n`` random ones over the scene that both images see."""
+    xyz = np.column_stack([rng.uniform(-100, 180, n), rng.uniform(-120, 120, n), rng.uniform(0, 30, n)])
     uva, _ = project(cam, pa, xyz)
     uvb, _ = project(cam, pb, xyz)
     ok = cam.contains(uva) & cam.contains(uvb)
-    xyz, uva, uvb = xyz[ok], uva[ok] + rng.normal(0, 0.3, (ok.sum(), 2)), uvb[ok] + rng.normal(0, 0.3, (ok.sum(), 2))
-    n = len(xyz)
+    return uva[ok], uvb[ok]
+
+
+def test_guided_matching_rejects_planted_wrong_matches():
+    rng = np.random.default_rng(1)
+    cam, pa, pb = _two_views()
+    uva, uvb = _seen_by_both(cam, pa, pb, 800, rng)
+    uva, uvb = uva + rng.normal(0, 0.3, uva.shape), uvb + rng.normal(0, 0.3, uvb.shape)
+    n = len(uva)
     des = rng.normal(size=(n, 128)).astype(np.float32)
     des_b = des + rng.normal(0, 0.05, des.shape).astype(np.float32)
     # plant wrong correspondences: 60 points of B exchange descriptors with points far away (a permutation)
@@ -108,11 +114,7 @@ def test_epipolar_band_widens_with_coarse_navigation_data():
 
     rng = np.random.default_rng(3)
     cam, pa, pb = _two_views()
-    xyz = np.column_stack([rng.uniform(-100, 180, 1500), rng.uniform(-120, 120, 1500), rng.uniform(0, 30, 1500)])
-    uva, _ = project(cam, pa, xyz)
-    uvb, _ = project(cam, pb, xyz)
-    ok = cam.contains(uva) & cam.contains(uvb)
-    uva, uvb = uva[ok], uvb[ok]
+    uva, uvb = _seen_by_both(cam, pa, pb, 1500, rng)
     des = rng.normal(size=(len(uva), 128)).astype(np.float32)
     # the navigation data: image B turned by 1 degree and moved 10 m
     pb_nav = Pose(rotvec_to_matrix(np.radians([0.0, 1.0, 0.0])) @ pb.R, pb.C + np.array([0.0, 10.0, 0.0]))
