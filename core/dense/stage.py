@@ -122,13 +122,7 @@ class DenseConfig(CheckedOptions):
         "max_incidence_deg": Range(0.0, 90.0), "edge_radius_px": NON_NEGATIVE, "near_edge_radius_px": NON_NEGATIVE,
         "outlier_neighbours": NON_NEGATIVE, "outlier_ratio": Range(1.0), "display_points": AT_LEAST_ONE,
         "polar_below_deg": Range(0.0, 90.0)}
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.p2 <= self.p1:
-            raise ConfigError(f"option 'p2' must be greater than p1 ({self.p1}), got {self.p2}")
-        if not (np.isnan(self.z_min) or np.isnan(self.z_max) or self.z_min < self.z_max):
-            raise ConfigError(f"option 'z_max' must be above z_min ({self.z_min}), got {self.z_max}")
+    ORDERED: ClassVar[tuple[tuple[str, str, bool], ...]] = (("p1", "p2", True), ("z_min", "z_max", True))
 
 
 def master_step(cfg: DenseConfig, view: str) -> int:

@@ -96,9 +96,9 @@ def run_stages(ws: Workspace, names: list[str] | None = None, ctx: RunContext | 
     if not ws.has_block():
         raise WorkspaceError(f"{ws.root}: no block imported yet (run 'oblique-city import')")
     records: list[StageRecord] = []
-    for name in plan(names):  # every stage's options checked before any stage runs
-        get_stage(name).make_config(ws.stage_options(name))
-    for name in plan(names):
+    # every stage's options checked (its config built) before any stage runs
+    configs = {name: get_stage(name).make_config(ws.stage_options(name)) for name in plan(names)}
+    for name in configs:
         state = ws.read_state()
         if not force and is_up_to_date(ws, name, state):
             records.append(StageRecord(name, "skipped", 0.0, "up to date"))
@@ -108,7 +108,7 @@ def run_stages(ws: Workspace, names: list[str] | None = None, ctx: RunContext | 
         for dep in stage.requires:
             if dep != "block" and state.get(dep, {}).get("status") != "done":
                 raise WorkspaceError(f"stage '{name}' needs '{dep}', which has not finished")
-        cfg = stage.make_config(ws.stage_options(name))
+        cfg = configs[name]
         fp = fingerprint(ws, name, state)
         state[name] = {"status": "running", "fingerprint": None, "started": time.time()}
         ws.write_state(state)

@@ -82,6 +82,9 @@ class CheckedOptions:
     whatever built the options (project.toml, ``--set``, a Blender panel or a script)."""
 
     RULES: ClassVar[dict[str, Rule]] = {}
+    ORDERED: ClassVar[tuple[tuple[str, str, bool], ...]] = ()
+    """Pairs of options ``(lower, upper, strict)``: ``upper`` must be at least ``lower`` (greater than it where
+    ``strict``); a pair with a NaN is not compared."""
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):  # type: ignore[arg-type]
@@ -96,6 +99,11 @@ class CheckedOptions:
             msg = option_error(v, rule)
             if msg is not None:
                 raise ConfigError(f"option '{f.name}' must be {msg}, got {v!r}")
+        for lower, upper, strict in self.ORDERED:
+            a, b = getattr(self, lower), getattr(self, upper)
+            if b < a or (strict and b == a):
+                raise ConfigError(f"option '{upper}' must be {'greater than' if strict else 'at least'} {lower} "
+                                  f"({a}), got {b}")
 
 
 @dataclass(frozen=True)

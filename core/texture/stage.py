@@ -17,7 +17,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..buildings.model import SURFACE_KINDS, load_buildings
-from ..errors import ConfigError, WorkspaceError
+from ..errors import WorkspaceError
 from ..pipeline.stage import (
     AT_LEAST_ONE,
     FRACTION,
@@ -68,11 +68,7 @@ class TextureConfig(CheckedOptions):
         "page_size": Range(16.0), "gutter": NON_NEGATIVE, "max_sources": AT_LEAST_ONE, "feather": NON_NEGATIVE,
         "occlusion_margin": NON_NEGATIVE, "min_cos": FRACTION, "terrain_step": POSITIVE, "kinds": SURFACE_KINDS,
         "cache_images": AT_LEAST_ONE}
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.max_texel < self.min_texel:
-            raise ConfigError(f"option 'max_texel' must be at least min_texel ({self.min_texel}), got {self.max_texel}")
+    ORDERED: ClassVar[tuple[tuple[str, str, bool], ...]] = (("min_texel", "max_texel", False),)
 
 
 def occluder_scene(ws, buildings, terrain_step: float = 0.5) -> OcclusionScene:

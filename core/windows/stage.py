@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import ClassVar
 
 from ..buildings.model import load_buildings
-from ..errors import ConfigError, WorkspaceError
+from ..errors import WorkspaceError
 from ..pipeline.stage import (
     AT_LEAST_ONE,
     FRACTION,
@@ -43,12 +43,8 @@ class WindowsConfig(WindowOptions, CheckedOptions):
         "size_tol": Range(1.0), "fill_support": AT_LEAST_ONE, "fill_contrast": NON_NEGATIVE,
         "isolated_score": FRACTION, "min_seen": FRACTION, "polarity": ("dark", "bright", "colour", "auto"),
         "bar_m": NON_NEGATIVE, "min_score": FRACTION}
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        for lo, hi in (("min_width", "max_width"), ("min_height", "max_height"), ("min_aspect", "max_aspect")):
-            if getattr(self, hi) < getattr(self, lo):
-                raise ConfigError(f"option '{hi}' must be at least {lo} ({getattr(self, lo)}), got {getattr(self, hi)}")
+    ORDERED: ClassVar[tuple[tuple[str, str, bool], ...]] = (
+        ("min_width", "max_width", False), ("min_height", "max_height", False), ("min_aspect", "max_aspect", False))
 
     def detector(self) -> WindowOptions:
         """The detector options among these settings."""
