@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -63,17 +64,50 @@ def geocentric_crs(crs):
     return CRS.from_json_dict(d)
 
 
-def crs_transformer(src, dst, path: str | None = None, field: str = "crs") -> Callable[..., np.ndarray]:
-    """``f(xyz (n, 3), lines=None) -> (n, 3)`` from pyproj CRS ``src`` to ``dst``; refuses ballpark height
-    transformations and points it cannot transform, naming the first (its line from ``lines``, one per point, when
-    given)."""
-    from pyproj import Transformer
+def missing_grids(src, dst) -> list[str]:
+    """The grid files (PROJ's names, with their download address) that the best transformations from pyproj CRS
+    ``src`` to ``dst`` need and PROJ does not find here."""
+    from pyproj.transformer import TransformerGroup
 
-    t = Transformer.from_crs(src, dst, always_xy=True)
-    if "ballpark vertical" in t.description.lower():
-        raise InputError(f"heights from {src.name} to {dst.name} need a geoid model pyproj does not have here "
-                         f"({t.description}); choose a CRS with ellipsoidal heights (-o crs=EPSG:nnnn)",
-                         path=path, field=field)
+    found: dict[str, str] = {}
+    for op in TransformerGroup(src, dst, always_xy=True).unavailable_operations:
+        for g in op.grids:
+            if not g.available:
+                found.setdefault(g.short_name, g.url)
+    return [f"{name} ({url})" if url else name for name, url in found.items()]
+
+
+def crs_transformer(src, dst, path: str | None = None, field: str = "crs") -> Callable[..., np.ndarray]:
+    """``f(xyz (n, 3), lines=None) -> (n, 3)`` from pyproj CRS ``src`` to ``dst``; refuses points it cannot
+    transform, naming the first (its line from ``lines``, one per point, when given), and ballpark height
+    transformations.
+
+    Heights between ellipsoidal and a vertical datum need a geoid grid (e.g. ``de_bkg_gcg2016.tif`` for DHHN2016).
+    PROJ finds grid files in its user directory (``pyproj.datadir.get_user_data_dir()``, or the folder the
+    environment variable ``PROJ_USER_WRITABLE_DIRECTORY`` names); without one the transformation is refused, naming
+    the grid and where to put it, rather than heights left off by the geoid undulation. Ballpark operations are
+    never chosen where a better one exists: a point outside the grid is refused, not moved by a ballpark."""
+    from pyproj import Transformer
+    from pyproj.datadir import get_user_data_dir
+    from pyproj.exceptions import ProjError
+    from pyproj.transformer import TransformerGroup
+
+    with warnings.catch_warnings():  # pyproj's warning of a missing grid: named in the refusal below
+        warnings.simplefilter("ignore", UserWarning)
+        try:
+            t = Transformer.from_crs(src, dst, always_xy=True, allow_ballpark=False)
+            ballpark_heights = False
+        except ProjError:  # ballpark operations only: accepted for positions, not for heights
+            t = Transformer.from_crs(src, dst, always_xy=True)
+            ballpark_heights = any("ballpark vertical" in op.description.lower()
+                                   for op in TransformerGroup(src, dst, always_xy=True).transformers)
+        if ballpark_heights:
+            grids = missing_grids(src, dst)
+            need = f"the geoid grid {' or '.join(grids)}" if grids else "a geoid model"
+            raise InputError(f"heights from {src.name} to {dst.name} need {need}, which PROJ does not find here: put "
+                             f"the grid file in {get_user_data_dir()} (or the folder PROJ_USER_WRITABLE_DIRECTORY "
+                             f"names), or choose a CRS with ellipsoidal heights (-o crs=EPSG:nnnn)", path=path,
+                             field=field)
 
     def apply(xyz: np.ndarray, lines: Sequence[int | None] | None = None) -> np.ndarray:
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)

@@ -89,3 +89,56 @@ def test_cli_import_error_is_one_line_exit_2(tmp_path: Path, capsys):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "bex_billion_laughs.xml:3" in err and "DOCTYPE" in err
     assert not (tmp_path / "ws").exists()  # nothing half-imported
+
+
+_GEOID_PROBE = """
+import json, sys
+import numpy as np
+from oblique_city.core.errors import InputError
+from oblique_city.core.geometry.crs import transform_points
+out = {}
+for name, lon in (("inside", [9.0, 12.5]), ("outside", [30.0, 9.0])):
+    try:
+        xyz = transform_points(np.array([[lon[0], 48.0, 300.0], [lon[1], 50.25, 200.0]]), "EPSG:4979",
+                               "EPSG:32632+5773", path="events.txt")
+        out[name] = xyz[:, 2].tolist()
+    except InputError as e:
+        out[name] = str(e)
+print(json.dumps(out))
+"""
+
+
+def _geoid_probe(grid_dir: Path) -> dict:
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PROJ_USER_WRITABLE_DIRECTORY": str(grid_dir), "PROJ_NETWORK": "OFF"}
+    run = subprocess.run([sys.executable, "-c", _GEOID_PROBE], env=env, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def test_ellipsoidal_heights_take_the_geoid_grid_put_in_the_proj_user_folder(tmp_path: Path):
+    """EGM96 heights from ellipsoidal ones need PROJ's ``us_nga_egm96_15.tif`` (old name ``egm96_15.gtx``). Without
+    it the transformation is refused, naming the grid and the folder; with a grid there (a synthetic one, undulation
+    ``N = 30 + 0.4 lat + 0.2 lon`` metres, exact under bilinear interpolation) heights are ``h - N``, and a point
+    outside the grid is refused rather than moved by a ballpark."""
+    import struct
+
+    empty = tmp_path / "none"
+    empty.mkdir()
+    refused = _geoid_probe(empty)
+    assert "us_nga_egm96_15.tif" in refused["inside"] and str(empty) in refused["inside"], refused
+    grids = tmp_path / "grids"
+    grids.mkdir()
+    lat = 40.0 + 0.5 * np.arange(41)  # 40..60 N, 0..20 E, every half degree; GTX rows run from the south
+    lon = 0.5 * np.arange(41)
+    undulation = 30.0 + 0.4 * lat[:, None] + 0.2 * lon[None, :]
+    (grids / "egm96_15.gtx").write_bytes(struct.pack(">4d2i", 40.0, 0.0, 0.5, 0.5, 41, 41)
+                                         + undulation.astype(">f4").tobytes())
+    got = _geoid_probe(grids)
+    expected = [300.0 - (30.0 + 0.4 * 48.0 + 0.2 * 9.0), 200.0 - (30.0 + 0.4 * 50.25 + 0.2 * 12.5)]
+    np.testing.assert_allclose(got["inside"], expected, atol=1e-3)
+    assert "could not be transformed" in got["outside"], got
