@@ -53,9 +53,13 @@ def pose_sigma_px(camera: CameraModel, sigma_position: np.ndarray | None, sigma_
     errors move the image of a point ``distance`` metres away: the focal length times the attitude sigma
     (world-axis rotations, radians, their RMS over the axes) and the position sigma (RMS over the axes) over the
     distance, added in quadrature; 0 without sigmas."""
-    att = 0.0 if sigma_attitude is None else float(np.sqrt(np.mean(np.square(sigma_attitude))))
-    pos = 0.0 if sigma_position is None else float(np.sqrt(np.mean(np.square(sigma_position)))) / max(distance, 1.0)
+    att, pos = rms_sigma(sigma_attitude), rms_sigma(sigma_position) / max(distance, 1.0)
     return float(np.sqrt(camera.fx * camera.fy)) * float(np.hypot(att, pos))
+
+
+def rms_sigma(sigma: np.ndarray | None) -> float:
+    """RMS over the axes of a prior sigma ``(3,)``; 0 without one."""
+    return 0.0 if sigma is None else float(np.sqrt(np.mean(np.square(sigma))))
 
 
 SIFT_OFFSET_PX = 0.25
@@ -190,10 +194,10 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
     perm = np.lexsort((mid[:, 0], mid[:, 1]))
     s0, s1 = s0[perm], s1[perm]
     a_idx, b_idx = band_candidates(uv_b, s0, s1, np.flatnonzero(ok[perm]), max(opt.band_px, 0.5))
-    if len(a_idx) == 0:
-        return np.zeros((0, 2), np.int64)
     inside = segment_distance(uv_b[b_idx], s0[a_idx], s1[a_idx]) <= opt.band_px
     a_idx, b_idx = a_idx[inside], b_idx[inside]
+    if len(a_idx) == 0:
+        return np.zeros((0, 2), np.int64)
     d = descriptor_distances(des_a[perm], des_b, a_idx, b_idx)
     # per keypoint of A (its candidates are consecutive): the nearest candidate (the lowest index of B among equal
     # distances) and the next distance, for the ratio test; group minima instead of sorting every candidate
@@ -228,5 +232,8 @@ def verify(uv_a: np.ndarray, uv_b: np.ndarray, cam_a: CameraModel, cam_b: Camera
         return np.zeros(len(uv_a), bool)
     a = cam_a.normalized_to_pixel(cam_a.pixel_to_normalized(uv_a), distort=False)
     b = cam_b.normalized_to_pixel(cam_b.pixel_to_normalized(uv_b), distort=False)
-    _, mask = cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, threshold_px, 0.9999, 10000)
+    try:
+        _, mask = cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, threshold_px, 0.9999, 10000)
+    except cv2.error:  # USAC asserts when no sample of the matches gives a model (tests/data/usac_no_model.npz)
+        return np.zeros(len(uv_a), bool)
     return np.zeros(len(uv_a), bool) if mask is None else mask.ravel().astype(bool)

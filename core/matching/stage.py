@@ -35,8 +35,9 @@ from ..pipeline.stage import (
     Stage,
     StageResult,
 )
-from .features import BAND_SIGMAS, MatchOptions, guided_match, pose_sigma_px, sift_features, verify
+from .features import BAND_SIGMAS, MatchOptions, guided_match, pose_sigma_px, rms_sigma, sift_features, verify
 from .graph import GraphOptions, build_graph
+from .navigation import WIDE_BAND_FACTOR, coarse_guided_match
 from .targets import SUSPECT_PX, TARGET_MODES, TARGETS_FILE, TargetShape, measure_targets, target_summary
 from .tracks import build_tracks
 
@@ -60,7 +61,8 @@ class MatchConfig(CheckedOptions):
 
     ``z_ref`` is the footprint height and ``z_lo``/``z_hi`` the guided search range; NaN derives them from
     the ground points (or 0 m) and ``height_range`` metres above. ``band_px`` is the least half-width of the
-    epipolar band; a pair whose images' prior sigmas move its points farther gets a wider one (:func:`pair_bands`).
+    epipolar band; a pair whose images' prior sigmas move its points farther gets a wider one (:func:`pair_bands`),
+    and one more than twice as wide first corrects its second image's pose from a few matches (:mod:`.navigation`).
     ``tie_source``: ``images`` (SIFT and guided matching) or ``file`` (tie points already in
     ``matching/ties.npz``, e.g. from another matcher or the observation simulator: only the graph is built, its
     edges counting the shared tracks). ``lsm_refine``:
@@ -211,7 +213,8 @@ class PairBatch:
 
     edges : ``(k, 2)`` image indices; features, cameras, poses : the feature cache file, camera and approximate
     pose of each image index the edges use; bands : each edge's epipolar band half-width ``(k,)`` (pixels);
-    threads : OpenCV threads of the worker (0 = OpenCV's default)
+    sigmas : each edge's relative navigation errors ``(k, 2)``, attitude (radians) and position (metres)
+    (:func:`pair_sigmas`); threads : OpenCV threads of the worker (0 = OpenCV's default)
     """
 
     edges: np.ndarray
@@ -220,6 +223,7 @@ class PairBatch:
     poses: dict[int, Pose]
     opt: MatchOptions
     bands: np.ndarray
+    sigmas: np.ndarray
     threads: int = 0
 
 
@@ -233,11 +237,15 @@ def match_pairs(batch: PairBatch) -> list[np.ndarray]:
             feats[k] = z["uv"], z["des"]
     out = []
     with _opencv_threads(batch.threads):
-        for (a, b), band in zip(batch.edges, batch.bands, strict=True):
+        for (a, b), band, (sig_att, sig_pos) in zip(batch.edges, batch.bands, batch.sigmas, strict=True):
             (uv_a, des_a), (uv_b, des_b) = feats[a], feats[b]
             ca, cb = batch.cameras[a], batch.cameras[b]
-            m = guided_match(uv_a, des_a, uv_b, des_b, ca, batch.poses[a], cb, batch.poses[b],
-                             replace(batch.opt, band_px=float(band)))
+            if band > WIDE_BAND_FACTOR * batch.opt.band_px:
+                m = coarse_guided_match(uv_a, des_a, uv_b, des_b, ca, batch.poses[a], cb, batch.poses[b], batch.opt,
+                                        float(band), float(sig_att), float(sig_pos))
+            else:
+                m = guided_match(uv_a, des_a, uv_b, des_b, ca, batch.poses[a], cb, batch.poses[b],
+                                 replace(batch.opt, band_px=float(band)))
             if len(m):
                 m = m[verify(uv_a[m[:, 0]], uv_b[m[:, 1]], ca, cb, batch.opt.ransac_px)]
             out.append(m)
@@ -260,17 +268,27 @@ def pair_bands(block: ImageBlock, ids: list[str], edges: np.ndarray, band_px: fl
     return np.maximum(band_px, BAND_SIGMAS * np.hypot(sig[edges[:, 0]], sig[edges[:, 1]]))
 
 
+def pair_sigmas(block: ImageBlock, ids: list[str], edges: np.ndarray) -> np.ndarray:
+    """Each edge's relative navigation errors ``(k, 2)``: the two images' prior attitude sigmas (radians) and
+    position sigmas (metres), each the RMS over the axes, added in quadrature; 0 where the images have none."""
+    sig = np.array([[rms_sigma(block.images[iid].sigma_attitude), rms_sigma(block.images[iid].sigma_position)]
+                    for iid in ids]).reshape(len(ids), 2)
+    return np.hypot(sig[edges[:, 0]], sig[edges[:, 1]]) if len(edges) else np.zeros((0, 2))
+
+
 def pair_batches(block: ImageBlock, ids: list[str], edges: np.ndarray, feature_files: list[str], opt: MatchOptions,
                  bands: np.ndarray, threads: int = 0, size: int = PAIRS_PER_UNIT) -> list[PairBatch]:
     """The edges cut into units of ``size`` consecutive edges (their order kept), with what each unit needs
     (``bands``: each edge's band half-width, :func:`pair_bands`)."""
+    sigmas = pair_sigmas(block, ids, edges)
     out = []
     for k in range(0, len(edges), size):
         e = edges[k:k + size]
         used = [int(i) for i in np.unique(e)]
         imgs = {i: block.images[ids[i]] for i in used}
         out.append(PairBatch(e, {i: feature_files[i] for i in used}, {i: block.camera_of(imgs[i]) for i in used},
-                             {i: imgs[i].pose_approx for i in used}, opt, bands[k:k + size], threads))
+                             {i: imgs[i].pose_approx for i in used}, opt, bands[k:k + size], sigmas[k:k + size],
+                             threads))
     return out
 
 
@@ -326,7 +344,8 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     ctx.progress(1, 1, "done")
     return StageResult(
         outputs=("matching/graph.json", "matching/ties.npz", TARGETS_FILE),
-        metrics={"edges": len(graph.edges), "dropped_edges": dropped, "tracks": ties.n_tracks,
+        metrics={"edges": len(graph.edges), "dropped_edges": dropped,
+                 "corrected_pairs": int(np.sum(bands > WIDE_BAND_FACTOR * cfg.band_px)), "tracks": ties.n_tracks,
                  "observations": ties.n_obs, "mean_rays": float(rays.mean()) if len(rays) else 0.0, **lsm_metrics,
                  **target_metrics},
         message=f"{len(graph.edges)} pairs ({dropped} weak dropped), {ties.n_tracks} tracks, "

@@ -13,6 +13,7 @@ from oblique_city.core.matching.features import (
     MatchOptions,
     band_candidates,
     descriptor_distances,
+    epipolar_segments,
     guided_match,
     segment_distance,
     sift_features,
@@ -110,7 +111,7 @@ def test_epipolar_band_widens_with_coarse_navigation_data():
     loses the matches, the band from the images' prior sigmas (3 sigma) keeps them, all correct. Images with
     survey-grade sigmas, or none, keep ``band_px``."""
     from oblique_city.core.geometry.rotations import rotvec_to_matrix
-    from oblique_city.core.matching.stage import pair_bands
+    from oblique_city.core.matching.stage import pair_bands, pair_sigmas
 
     rng = np.random.default_rng(3)
     cam, pa, pb = _two_views()
@@ -125,6 +126,9 @@ def test_epipolar_band_widens_with_coarse_navigation_data():
     block.add_image(Image("b", "c", pose_approx=pb_nav, **coarse))
     band = pair_bands(block, ["a", "b"], np.array([[0, 1]]), 25.0, 0.0)[0]
     assert 160.0 < band < 170.0  # 3 sqrt(2) x 1500 px x hypot(1 deg, 10 m / 500 m)
+    # the pair's relative navigation errors, which coarse_guided_match takes as its correction's prior
+    np.testing.assert_allclose(pair_sigmas(block, ["a", "b"], np.array([[0, 1]])),
+                               [[np.radians(1.0) * np.sqrt(2), 10.0 * np.sqrt(2)]])
     found = {}
     for width in (25.0, band):
         m = guided_match(uva, des, uvb, des, cam, pa, cam, pb_nav, MatchOptions(band_px=width, z_lo=-5.0, z_hi=40.0))
@@ -137,6 +141,94 @@ def test_epipolar_band_widens_with_coarse_navigation_data():
     for img in block.images.values():
         img.sigma_position = img.sigma_attitude = None
     assert pair_bands(block, ["a", "b"], np.array([[0, 1]]), 25.0, 0.0)[0] == 25.0
+
+
+def _coarse_pair(rng, n: int):
+    """Two views, their ``n`` random scene points' pixels with 0.3 px noise, descriptors, and B's navigation data
+    turned by 1 degree and moved by 10 m."""
+    from oblique_city.core.geometry.rotations import rotvec_to_matrix
+
+    cam, pa, pb = _two_views()
+    uva, uvb = _seen_by_both(cam, pa, pb, n, rng)
+    uva, uvb = uva + rng.normal(0, 0.3, uva.shape), uvb + rng.normal(0, 0.3, uvb.shape)
+    des = rng.normal(size=(len(uva), 128)).astype(np.float32)
+    pb_nav = Pose(rotvec_to_matrix(np.radians([0.6, 1.0, -0.4])) @ pb.R, pb.C + np.array([-6.0, 10.0, 4.0]))
+    return cam, pa, pb_nav, uva, uvb, des
+
+
+def test_coarse_navigation_data_corrected_from_a_few_matches_then_matched_in_the_narrow_band():
+    """With B's navigation data 1 degree and 10 m off, the matches by descriptor alone over the whole image correct
+    B's pose, and the 25 px band around the corrected epipolar segments finds the matches. A repeated element
+    (keypoints of B sharing a descriptor, far apart) fails the ratio test over the whole image but is matched in
+    the narrow band."""
+    from oblique_city.core.matching.navigation import coarse_guided_match, corrected_pose, descriptor_matches
+
+    rng = np.random.default_rng(5)
+    cam, pa, pb_nav, uva, uvb, des = _coarse_pair(rng, 1500)
+    n = len(uva)
+    far = np.flatnonzero(np.linalg.norm(uvb[:100] - uvb[100:200], axis=1) > 150)
+    repeats = np.r_[far, 100 + far]
+    des[100 + far] = des[far]  # a repeated element: pairs of points far apart share a descriptor (up to noise)
+    des_a = des + rng.normal(0, 0.05, des.shape).astype(np.float32)
+    des_b = des + rng.normal(0, 0.05, des.shape).astype(np.float32)
+    coarse = descriptor_matches(des_a, des_b, 0.85)
+    assert len(far) > 50 and np.isin(repeats, coarse[:, 0]).mean() < 0.05  # the repeats fail the ratio test
+    opt = MatchOptions(z_lo=-5.0, z_hi=40.0)
+    s0, s1 = epipolar_segments(uva, cam, pa, cam, pb_nav, opt.z_lo, opt.z_hi)
+    assert np.median(segment_distance(uvb, s0, s1)) > 20.0  # the navigation data's segments miss the matches
+    sigma_att, sigma_pos = np.radians(1.0) * np.sqrt(2), 10.0 * np.sqrt(2)
+    pose, sigma = corrected_pose(uva[:60], uvb[:60], cam, pa, cam, pb_nav, opt.z_lo, opt.z_hi, sigma_att,
+                                 sigma_pos)
+    s0, s1 = epipolar_segments(uva, cam, pa, cam, pose, opt.z_lo, opt.z_hi)
+    off = segment_distance(uvb, s0, s1)
+    assert np.median(off) < 1.0 and np.percentile(off, 99) < 3.0 * 25.0 / 3.0, np.percentile(off, [50, 99])
+    assert sigma < 25.0 / 3.0
+    m = coarse_guided_match(uva, des_a, uvb, des_b, cam, pa, cam, pb_nav, opt, 165.0, sigma_att, sigma_pos)
+    right = m[:, 0] == m[:, 1]
+    assert right.all() and len(m) > 0.95 * n, (len(m), n, int((~right).sum()))
+    assert np.isin(repeats, m[:, 0]).mean() > 0.95
+
+
+def test_coarse_pair_without_enough_matches_gets_none():
+    """Fewer shared points than the correction needs: no matches rather than matches from the wide band."""
+    from oblique_city.core.matching.navigation import MIN_COARSE, coarse_guided_match
+
+    rng = np.random.default_rng(6)
+    cam, pa, pb_nav, uva, uvb, des = _coarse_pair(rng, 1500)
+    des_b = rng.normal(size=des.shape).astype(np.float32)  # unrelated features ...
+    des_b[:MIN_COARSE - 2] = des[:MIN_COARSE - 2]  # ... but for a few shared ones
+    m = coarse_guided_match(uva, des, uvb, des_b, cam, pa, cam, pb_nav, MatchOptions(z_lo=-5.0, z_hi=40.0), 165.0,
+                            np.radians(1.4), 14.0)
+    assert len(m) == 0
+
+
+def test_descriptor_matches_are_the_mutual_ratio_test_matches_of_brute_force():
+    from oblique_city.core.matching.navigation import descriptor_matches
+
+    rng = np.random.default_rng(7)
+    des_b = np.round(rng.uniform(0, 60, (700, 128))).astype(np.float32)
+    des_a = des_b[rng.permutation(700)[:500]] + np.round(rng.normal(0, 8, (500, 128))).astype(np.float32)
+    des_a[:40] = np.round(rng.uniform(0, 60, (40, 128)))  # no partner
+    d = np.linalg.norm(des_a[:, None].astype(np.float64) - des_b[None], axis=2)
+    order = np.argsort(d, axis=1)
+    nearest = order[:, 0]
+    passed = d[np.arange(500), nearest] <= 0.85 * d[np.arange(500), order[:, 1]]
+    mutual = np.argmin(d, axis=0)[nearest] == np.arange(500)
+    expected = np.stack([np.flatnonzero(passed & mutual), nearest[passed & mutual]], 1)
+    got = descriptor_matches(des_a, des_b, 0.85, rows=64)
+    assert 300 < len(expected) < 500
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_verification_without_a_model_keeps_no_match():
+    """68 coarse matches of a demo pair, for which OpenCV's MAGSAC++ asserts that no sample gave a model: no inlier,
+    no exception (it stopped the ``match`` stage)."""
+    from pathlib import Path
+
+    with np.load(Path(__file__).parents[1] / "data" / "usac_no_model.npz") as z:
+        a, b = z["a"], z["b"]
+    cam = CameraModel(id="c", width=1400, height=1050, fx=2087.0, fy=2087.0, cx=699.5, cy=524.5)
+    assert not verify(a, b, cam, cam, 1.5).any()
 
 
 def test_tracks_join_chains_and_drop_inconsistent_ones():
