@@ -328,6 +328,7 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
         graph.matches[e] = len(m)
         if len(m) >= opt.min_matches:
             matches[(int(a), int(b))] = m
+    corrected = int(np.sum((bands > WIDE_BAND_FACTOR * cfg.band_px) & (graph.matches >= opt.min_matches)))
     dropped = graph.drop_weak(opt.min_matches)
     ties = build_tracks(uv, matches, ids, min_rays=cfg.min_rays, max_per_image=cfg.max_tracks_per_image)
     lsm_metrics = {}
@@ -345,10 +346,12 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     return StageResult(
         outputs=("matching/graph.json", "matching/ties.npz", TARGETS_FILE),
         metrics={"edges": len(graph.edges), "dropped_edges": dropped,
-                 "corrected_pairs": int(np.sum(bands > WIDE_BAND_FACTOR * cfg.band_px)), "tracks": ties.n_tracks,
+                 "corrected_pairs": corrected, "tracks": ties.n_tracks,
                  "observations": ties.n_obs, "mean_rays": float(rays.mean()) if len(rays) else 0.0, **lsm_metrics,
                  **target_metrics},
-        message=f"{len(graph.edges)} pairs ({dropped} weak dropped), {ties.n_tracks} tracks, "
+        message=f"{len(graph.edges)} pairs ({dropped} weak dropped"
+                + (f", {corrected} matched after correcting coarse navigation data" if corrected else "")
+                + f"), {ties.n_tracks} tracks, "
                 f"{ties.n_obs} observations" + _targets_message(target_metrics))
 
 

@@ -365,6 +365,35 @@ def test_match_stage_in_worker_processes_gives_the_tie_points_of_pairs_matched_o
         assert ties.image_ids == ref.image_ids
 
 
+def test_match_stage_from_coarse_navigation_data_finds_the_tie_points_of_the_true_poses(tmp_path):
+    """Every image's navigation data turned by 1 degree and moved by 10 m, with those sigmas: every pair is matched
+    after correcting its pose (the band the sigmas give is about 180 px), and the stage finds the tie point
+    observations that matching from the true poses finds."""
+    from oblique_city.core.geometry.rotations import rotvec_to_matrix
+
+    ws, _ = _feature_workspace(tmp_path / "ws")
+    cfg = MatchConfig(z_ref=0.0, height_range=40.0, lsm_refine=False, max_features=6000)
+    run(ws, cfg, RunContext())
+    ref = TiePoints.load(str(ws.path("matching", "ties.npz")))
+    block = ws.load_block(adjusted=False)
+    rng = np.random.default_rng(8)
+    for img in block.images.values():
+        p = img.pose_approx
+        img.pose_approx = Pose(rotvec_to_matrix(np.radians(rng.normal(0, 1.0, 3))) @ p.R, p.C + rng.normal(0, 10, 3))
+        img.sigma_position, img.sigma_attitude = np.full(3, 10.0), np.radians(np.full(3, 1.0))
+    ws.save_block(block)
+    result = run(ws, cfg, RunContext())
+    got = TiePoints.load(str(ws.path("matching", "ties.npz")))
+    assert result.metrics["corrected_pairs"] == result.metrics["edges"] > 20
+
+    def observations(t: TiePoints) -> set:
+        return {(int(i), round(float(u), 3), round(float(v), 3)) for i, (u, v) in zip(t.obs_image, t.obs_uv)}
+
+    found, truth = observations(got), observations(ref)
+    assert len(found & truth) > 0.95 * len(truth), (len(found & truth), len(truth))
+    assert len(found - truth) < 0.01 * len(truth), len(found - truth)
+
+
 def test_band_candidates_hold_every_keypoint_in_the_band_once_and_descriptor_distances_are_exact():
     """Against brute force on random keypoints and segments (short, long, degenerate, some not searched): every
     keypoint within the band is a candidate, none twice, grouped by segment in ascending order. The matrix-product
