@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+from ..io.photos import read_photo
 from ..model.camera import CameraModel
 from ..model.pose import Pose
 from .polar import PolarPair, polar_rectify_pair
@@ -86,11 +87,8 @@ class PairDepth:
 
 
 def read_image(path: str) -> np.ndarray:
-    """An image file as (h, w, 3) uint8 BGR (raises InputError naming the file)."""
-    img = cv2.imread(path, cv2.IMREAD_COLOR)
-    if img is None:
-        raise InputError("cannot read image", path=path)
-    return img
+    """An image file as (h, w, 3) uint8 BGR, whatever its depth (raises InputError naming the file)."""
+    return read_photo(path, True)
 
 
 def master_grid(camera: CameraModel, step: int) -> tuple[np.ndarray, np.ndarray]:

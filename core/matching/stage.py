@@ -21,6 +21,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import InputError, WorkspaceError
+from ..io.photos import read_photo
 from ..io.validate import resolve_image
 from ..model import CameraModel, ImageBlock, Pose
 from ..pipeline.atomic import atomic_path, write_json
@@ -141,12 +142,7 @@ def _image_path(block, iid: str) -> str:
 
 
 def _read_grey(path: str, iid: str) -> np.ndarray:
-    import cv2
-
-    grey = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-    if grey is None:
-        raise InputError(f"cannot read image '{iid}'", path=path, field="file")
-    return grey
+    return read_photo(path, False, iid)
 
 
 def read_block_grey(block, iid: str) -> np.ndarray:

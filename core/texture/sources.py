@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.projection import project
+from ..io.photos import read_photo
 from ..model.camera import CameraModel
 from ..model.pose import Pose
 
@@ -62,9 +63,7 @@ class ImageCache:
             self._cache.move_to_end(key)
             return self._cache[key]
         if level == 0:
-            img = cv2.imread(src.path, cv2.IMREAD_COLOR)
-            if img is None:
-                raise InputError(f"cannot read image '{src.id}'", path=src.path, field="file")
+            img = read_photo(src.path, True, src.id)
             if img.shape[:2] != (src.camera.height, src.camera.width):
                 raise InputError(f"image '{src.id}' is {img.shape[1]}x{img.shape[0]} px, its camera says "
                                  f"{src.camera.width}x{src.camera.height}", path=src.path, field="file")

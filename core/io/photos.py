@@ -1,0 +1,80 @@
+"""The block's photographs read as 8-bit grey or colour, whatever their depth: what matching, dense matching,
+the true orthophoto and the textures take.
+
+Aerial cameras deliver 16-bit TIFFs whose values use 12 or 14 of the 16 bits. OpenCV's 8-bit reading keeps the top
+8 of the 16 bits (the value over 256): a 12-bit image came out with grey values 0 to 15, and SIFT found almost no
+features on it. A photograph deeper than 8 bits (a 16-bit TIFF or PNG, a float TIFF) is read as it is and scaled
+by the smallest of 8, 10, 12, 14 or 16 significant bits that holds its maximum, the same for every image of a
+camera unless one uses less than a quarter of the camera's range; a float image whose values stay within 0..1 is
+scaled from that range. 8-bit files are read by OpenCV as before (JPEG, 8-bit TIFF and PNG), a fourth band (alpha or
+near infrared) left out of the colour.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+SIGNIFICANT_BITS = (8, 10, 12, 14, 16)
+"""The bit depths a deep photograph's values are taken to use (the smallest that holds its maximum)."""
+
+
+def _deep(path: str) -> bool:
+    """True for a PNG or TIFF whose samples are deeper than 8 bits (from the file's header)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(32)
+        if head[:8] == b"\x89PNG\r\n\x1a\n":
+            return head[24] > 8  # IHDR bit depth
+        if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+            import tifffile
+
+            with tifffile.TiffFile(path) as t:
+                return t.pages[0].dtype is not None and np.dtype(t.pages[0].dtype).itemsize > 1
+    except (OSError, ValueError, struct.error, IndexError):
+        return False
+    return False
+
+
+def to_8bit(img: np.ndarray) -> np.ndarray:
+    """``img`` (any depth, ``(h, w)`` or ``(h, w, bands)``) scaled to uint8 (module docstring)."""
+    if img.dtype == np.uint8:
+        return img
+    peak = float(np.nanmax(img)) if img.size else 0.0
+    if img.dtype.kind == "f" and peak <= 1.0:
+        full = 1.0
+    else:
+        bits = next((b for b in SIGNIFICANT_BITS if peak < 2**b), SIGNIFICANT_BITS[-1])
+        full = float(2**bits - 1)
+    out = np.clip(np.nan_to_num(img.astype(np.float32), nan=0.0) * (255.0 / full) + 0.5, 0, 255)
+    return out.astype(np.uint8)
+
+
+def read_photo(path: str | Path, colour: bool, image_id: str | None = None) -> np.ndarray:
+    """The photograph at ``path`` as uint8 grey ``(h, w)`` or, with ``colour``, BGR ``(h, w, 3)``; an
+    :class:`InputError` naming the file (and the image ``image_id``) when it cannot be read."""
+    import cv2
+
+    path = str(path)
+    if _deep(path):
+        img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+        if img is not None:
+            img = to_8bit(img)
+            if img.ndim == 3 and img.shape[2] in (2, 4):  # grey or colour with a band beyond (alpha, infrared)
+                img = img[:, :, :1] if img.shape[2] == 2 else img[:, :, :3]
+            if img.ndim == 3 and img.shape[2] == 1:
+                img = img[:, :, 0]
+            if colour and img.ndim == 2:
+                img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+            elif not colour and img.ndim == 3:
+                img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    else:
+        img = cv2.imread(path, cv2.IMREAD_COLOR if colour else cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        name = f"image '{image_id}'" if image_id is not None else "image"
+        raise InputError(f"cannot read {name}", path=path, field="file")
+    return img

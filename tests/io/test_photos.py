@@ -1,0 +1,68 @@
+"""Photographs deeper than 8 bits (12- and 14-bit values in 16-bit TIFF and PNG, four bands, float) read as the
+8-bit image they hold, so that SIFT finds the same features; unreadable files refused naming the file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from oblique_city.core.errors import InputError
+from oblique_city.core.io.photos import read_photo
+from oblique_city.core.matching.features import sift_features
+
+
+def _scene(rng) -> np.ndarray:
+    """An 8-bit BGR picture with structure at several scales (blurred noise, edges)."""
+    img = np.zeros((300, 400, 3), np.float32)
+    for sigma in (1.5, 4.0, 10.0):
+        img += cv2.GaussianBlur(rng.normal(0, 60, (300, 400, 3)).astype(np.float32), (0, 0), sigma)
+    img[100:180, 120:260] += 60
+    return np.clip(img + 128, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("bits, ext", [(12, "tif"), (14, "tif"), (16, "tif"), (12, "png")])
+def test_deep_photographs_read_as_the_8_bit_image_they_hold(tmp_path: Path, bits: int, ext: str):
+    rng = np.random.default_rng(bits)
+    bgr = _scene(rng)
+    # the camera's values: the 8-bit picture on the sensor's full range, with noise in the bits below it
+    scale = (2**bits - 1) / 255.0
+    deep = np.clip(bgr * scale + rng.uniform(-0.4, 0.4, bgr.shape) * scale, 0, 2**bits - 1).astype(np.uint16)
+    path = str(tmp_path / f"photo.{ext}")
+    assert cv2.imwrite(path, deep)
+    if bits == 12:
+        assert cv2.imread(path, cv2.IMREAD_GRAYSCALE).max() <= 16  # OpenCV's own 8 bits: the top 8 of 16
+    colour = read_photo(path, True)
+    assert colour.dtype == np.uint8 and colour.shape == bgr.shape
+    assert np.abs(colour.astype(int) - bgr).max() <= 1
+    grey = read_photo(path, False)
+    assert np.abs(grey.astype(int) - cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)).max() <= 1
+    uv, _ = sift_features(grey, 2000)
+    uv8, _ = sift_features(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), 2000)
+    assert abs(len(uv) - len(uv8)) <= 0.05 * len(uv8) and len(uv8) > 100
+
+
+def test_four_bands_and_float_photographs(tmp_path: Path):
+    rng = np.random.default_rng(3)
+    bgr = _scene(rng)
+    nir = rng.integers(0, 4096, bgr.shape[:2]).astype(np.uint16)
+    four = np.dstack([np.round(bgr * (4095 / 255.0)).astype(np.uint16), nir])  # B, G, R and near infrared
+    assert cv2.imwrite(str(tmp_path / "rgbn.tif"), four)
+    assert np.abs(read_photo(tmp_path / "rgbn.tif", True).astype(int) - bgr).max() <= 1
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "float.tif", (bgr[:, :, ::-1] / 255.0).astype(np.float32), photometric="rgb")
+    assert np.abs(read_photo(tmp_path / "float.tif", True).astype(int) - bgr).max() <= 1
+    grey16 = np.round(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) * (4095 / 255.0)).astype(np.uint16)
+    assert cv2.imwrite(str(tmp_path / "grey.tif"), grey16)
+    assert read_photo(tmp_path / "grey.tif", True).shape == bgr.shape
+
+
+def test_unreadable_photograph_is_refused_naming_the_file(tmp_path: Path):
+    bad = tmp_path / "broken.tif"
+    bad.write_bytes(b"II*\x00" + b"\x00" * 20)
+    with pytest.raises(InputError) as e:
+        read_photo(bad, False, "S01_E001_nadir")
+    assert "broken.tif" in str(e.value) and "S01_E001_nadir" in str(e.value)
