@@ -63,7 +63,8 @@ def add_commands(subparsers) -> None:
     s.add_argument("--no-cross", action="store_true", help="no north-south cross strip")
     s.add_argument("--depth", action="store_true", help="also write per-image depth maps to truth/depth")
     s.add_argument("--workers", type=int, default=2, help="rendering processes")
-    s.add_argument("--image-format", choices=("jpg", "png"), default="jpg")
+    s.add_argument("--image-format", choices=("jpg", "png", "tif12"), default="jpg",
+                   help="tif12: 16-bit TIFF with 12 significant bits, as aerial cameras deliver them")
     s.add_argument("--targets", choices=("disc", "cross"), default="disc",
                    help="signalised targets: a white disc on a black square, or a white cross")
     s.add_argument("--json-progress", action="store_true", help="progress as JSON lines on stdout")

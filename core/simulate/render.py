@@ -5,7 +5,7 @@ direction of the pixel centre (``camera.pixel_to_normalized``), so the image car
 of :mod:`..model.camera`. Hits are textured procedurally from the triangle's material and its metric texture
 coordinates (no texture images), lit by a sun with cast shadows (one shadow ray per lit hit) plus sky light;
 misses show the sky. Per-head radiometry (exposure, colour balance, vignetting) and sensor noise follow, then
-sRGB-like gamma to 8 bits.
+sRGB-like gamma to 8 bits (or the ``bits`` of :class:`RenderConfig`).
 
 Anti-aliasing of the textures is analytic: every pattern and noise octave is faded out when its period falls
 below about two pixel footprints (the footprint comes from the hit distance and incidence), and the signalised
@@ -45,6 +45,8 @@ class RenderConfig:
     exposure : global scale before gamma; noise_dn : read noise (DN, 8 bit); shot : photon noise factor
     samples : rays per pixel (1 = centre ray; more = jittered sub-pixel rays averaged)
     shadows : cast shadow rays
+    bits : significant bits of the values (8: uint8; 10 to 16: uint16 up to ``2**bits - 1``, as aerial cameras
+    deliver them, the same picture and noise on a finer scale)
     """
 
     sun_azimuth_deg: float = 155.0
@@ -57,6 +59,7 @@ class RenderConfig:
     samples: int = 1
     shadows: bool = True
     seed: int = 0
+    bits: int = 8
 
     def sun_direction(self) -> np.ndarray:
         """Unit vector towards the sun (east, north, up)."""
@@ -413,7 +416,7 @@ class Renderer:
 
         Returns
         -------
-        rgb : (h, w, 3) uint8
+        rgb : (h, w, 3) uint8 (uint16 for ``bits`` above 8)
         depth : (h, w) float32 z-depth of the centre ray (+inf for sky) when ``depth``, else None
         """
         cfg = self.config
@@ -432,9 +435,11 @@ class Renderer:
         r2 = (((uu - (w - 1) / 2) / (w / 2)) ** 2 + ((vv - (h - 1) / 2) / (h / 2)) ** 2).ravel() / 2.0
         vig = (1.0 - hr.vignetting * r2).astype(np.float32)
         lin = lin * (cfg.exposure * hr.gain * vig)[:, None] * np.asarray(hr.tint, np.float32)
-        disp = np.clip(lin, 0, 1.5) ** (1 / 2.2) * 255.0
+        k = (2.0**cfg.bits - 1.0) / 255.0  # digital numbers per 8-bit one
+        disp = np.clip(lin, 0, 1.5) ** (1 / 2.2) * (255.0 * k)
         rng = np.random.default_rng(seed)
-        sigma = np.sqrt(cfg.noise_dn ** 2 + cfg.shot * disp)
-        img = disp + hr.offset + rng.standard_normal(disp.shape, dtype=np.float32) * sigma
-        rgb = np.clip(np.rint(img), 0, 255).astype(np.uint8).reshape(h, w, 3)
+        sigma = np.sqrt((cfg.noise_dn * k) ** 2 + cfg.shot * k * disp)
+        img = disp + hr.offset * k + rng.standard_normal(disp.shape, dtype=np.float32) * sigma
+        dtype = np.uint8 if cfg.bits <= 8 else np.uint16
+        rgb = np.clip(np.rint(img), 0, 2.0**cfg.bits - 1.0).astype(dtype).reshape(h, w, 3)
         return rgb, (z.reshape(h, w) if depth else None)

@@ -43,6 +43,7 @@ from ..geometry.views import cardinal_view
 from ..io import native
 from ..io.formats import write_block
 from ..io.gcp import write_ground_points, write_measurements
+from ..io.photos import read_photo
 from ..model import CameraModel, Pose
 from ..pipeline.atomic import atomic_path
 from ..pipeline.stage import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, CheckedOptions, Range, Rule
@@ -73,7 +74,8 @@ class SimulationConfig(CheckedOptions):
     gsd : nadir GSD in metres; flight : overlaps, direction, cross strips, extensions (as fractions of the flying
     height in ``extend_along_h`` / ``extend_across_h``)
     depth_maps : also write per-image depth maps to truth/depth; truth_cell : GT raster cell (m)
-    workers : rendering processes; image_format : jpg or png
+    workers : rendering processes; image_format : jpg, png or tif12 (16-bit TIFF with 12 significant bits, as
+    aerial cameras deliver them)
     target_pattern : the signalised targets, ``disc`` (a white disc on a black square) or ``cross`` (white bars)
     """
 
@@ -102,7 +104,7 @@ class SimulationConfig(CheckedOptions):
         "width": Range(16.0), "height": Range(16.0), "seed": NON_NEGATIVE, "gsd": POSITIVE,
         "forward_overlap": Range(0.0, 0.95), "side_overlap": Range(0.0, 0.95), "extend_along_h": NON_NEGATIVE,
         "extend_across_h": NON_NEGATIVE, "area_inset": NON_NEGATIVE, "truth_cell": POSITIVE, "workers": AT_LEAST_ONE,
-        "image_format": ("jpg", "png"), "jpeg_quality": Range(1.0, 100.0), "target_pattern": ("disc", "cross")}
+        "image_format": ("jpg", "png", "tif12"), "jpeg_quality": Range(1.0, 100.0), "target_pattern": ("disc", "cross")}
 
 
 def camera_system(cfg: SimulationConfig) -> CameraSystem:
@@ -203,7 +205,8 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
     exposures = plan_flight(system, area, ground_z, fcfg)
     nominal = system.rig()
     true_rig = perturbed_rig(nominal, cfg.nav)
-    ext = "." + cfg.image_format
+    ext = ".tif" if cfg.image_format == "tif12" else "." + cfg.image_format
+    render_cfg = replace(cfg.render, bits=12 if cfg.image_format == "tif12" else 8)
     truth = true_block(system, exposures, city.crs, rig=true_rig, image_ext=ext)
     approx = approximate_block(truth, exposures, nominal, cfg.nav)
     for gp in ground_points(truth, city.target_names, city.targets, city.scene(), city.origin, seed=cfg.seed):
@@ -215,7 +218,7 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
     jobs = [(img.id, truth.camera_of(img), img.pose_approx, img.head, cfg.seed * 100003 + k,
              str(out / img.file), cfg.jpeg_quality, depth_folder) for k, img in enumerate(truth.images.values())]
     t0, c0 = time.perf_counter(), os.times()
-    done = render_images(city, jobs, cfg.render, cfg.workers, progress)
+    done = render_images(city, jobs, render_cfg, cfg.workers, progress)
     t_render, c1 = time.perf_counter() - t0, os.times()
     cpu_render = (c1.user + c1.system + c1.children_user + c1.children_system
                   - c0.user - c0.system - c0.children_user - c0.children_system)
@@ -239,7 +242,7 @@ def simulate(out: str | Path, cfg: SimulationConfig = SimulationConfig(), city: 
             return int(np.sum((d > 0) & truth.camera_of(i).contains(np.nan_to_num(uv, nan=-1e9), margin=50)))
 
         best = max(imgs, key=seen)
-        pic = cv2.imread(str(out / best.file))
+        pic = read_photo(out / best.file, True)
         with atomic_path(preview / f"head_{head.name}.png") as tmp:
             cv2.imwrite(tmp, pic)
 

@@ -137,3 +137,18 @@ def test_render_is_deterministic_and_heads_differ(city, renderer):
     # textures have structure for matching: local contrast on the ground and roofs
     gray = a.astype(float).mean(2)
     assert np.std(np.diff(gray, axis=1)) > 3.0
+
+
+def test_twelve_bit_render_is_the_eight_bit_picture_on_a_finer_scale(city, renderer):
+    """``bits=12``: uint16 values up to 4095 (as aerial cameras deliver them) that read back (:mod:`..io.photos`)
+    as the 8-bit render of the same seed within one level; the noise is the same in 8-bit levels."""
+    from dataclasses import replace
+
+    from oblique_city.core.io.photos import to_8bit
+    from oblique_city.core.simulate.render import Renderer
+
+    pose = _pose_seeing(city.targets[4], 30.0, 120.0, 150.0, (320.0, 240.0))
+    eight, _ = renderer.render(CAM, pose, "left", seed=5)
+    deep, _ = Renderer(city, replace(renderer.config, bits=12)).render(CAM, pose, "left", seed=5)
+    assert deep.dtype == np.uint16 and 2048 <= deep.max() <= 4095
+    assert np.abs(to_8bit(deep).astype(int) - eight).max() <= 1
