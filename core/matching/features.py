@@ -88,6 +88,28 @@ def epipolar_segments(uv_a: np.ndarray, cam_a: CameraModel, pose_a: Pose, cam_b:
     return s0, s1
 
 
+def clip_segments(s0: np.ndarray, s1: np.ndarray, lo: np.ndarray, hi: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The parts of the segments ``s0 -> s1`` (``(n, 2)``) inside the rectangle ``lo..hi`` (``(2,)``, Liang-Barsky):
+    clipped end points and whether any part is inside ``(n,)`` (false for non-finite segments).
+
+    A ray of A that passes close to B's projection centre projects to a segment millions of pixels long; clipped
+    to the image it costs what any other does (unclipped, sampling it exhausted the memory)."""
+    d = s1 - s0
+    t0, t1 = np.zeros(len(s0)), np.ones(len(s0))
+    inside = np.all(np.isfinite(s0), 1) & np.all(np.isfinite(s1), 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for p, q in ((-d, s0 - lo), (d, hi - s0)):
+            for ax in (0, 1):
+                pa, qa = p[:, ax], q[:, ax]
+                inside &= ~((pa == 0) & (qa < 0))  # parallel to this border and beyond it
+                t = qa / pa
+                t0 = np.where(pa < 0, np.maximum(t0, t), t0)
+                t1 = np.where(pa > 0, np.minimum(t1, t), t1)
+    inside &= t0 <= t1
+    return s0 + t0[:, None] * d, s0 + t1[:, None] * d, inside
+
+
 def segment_distance(p: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> np.ndarray:
     """Distance of points ``p (k, 2)`` to segments ``s0, s1 (k, 2)`` (row-wise), by columns (no (k, 2)
     temporaries beyond the differences)."""
@@ -187,7 +209,8 @@ def guided_match(uv_a: np.ndarray, des_a: np.ndarray, uv_b: np.ndarray, des_b: n
     if len(uv_a) == 0 or len(uv_b) == 0:
         return np.zeros((0, 2), np.int64)
     s0, s1 = epipolar_segments(uv_a, cam_a, pose_a, cam_b, pose_b, opt.z_lo, opt.z_hi)
-    ok = np.all(np.isfinite(s0), 1) & np.all(np.isfinite(s1), 1)
+    s0, s1, ok = clip_segments(s0, s1, np.full(2, -opt.band_px),
+                               np.array([cam_b.width - 1 + opt.band_px, cam_b.height - 1 + opt.band_px]))
     # A's keypoints numbered by where their segments lie in B (rows of 64 px cells), so that consecutive ones
     # share candidates (descriptor_distances)
     mid = np.where(ok[:, None], (s0 + s1) / 2, 0.0) // 64.0

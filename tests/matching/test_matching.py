@@ -394,6 +394,45 @@ def test_match_stage_from_coarse_navigation_data_finds_the_tie_points_of_the_tru
     assert len(found - truth) < 0.01 * len(truth), len(found - truth)
 
 
+def test_segments_clipped_to_the_image_and_rays_through_the_projection_centre_cost_nothing():
+    """Liang-Barsky clipping against brute-force sampling; a pair where A's rays pass next to B's projection centre
+    (segments millions of pixels long, one through the centre itself) is matched without sampling them (it
+    exhausted the memory)."""
+    from oblique_city.core.matching.features import clip_segments
+
+    rng = np.random.default_rng(9)
+    s0, s1 = rng.uniform(-300, 1300, (400, 2)), rng.uniform(-300, 1300, (400, 2))
+    s1[:20] = s0[:20]  # points
+    s1[20:40, 0] = s0[20:40, 0]  # vertical
+    s1[40] = [np.nan, 3.0]
+    lo, hi = np.array([0.0, 0.0]), np.array([999.0, 799.0])
+    c0, c1, inside = clip_segments(s0, s1, lo, hi)
+    t = np.linspace(0, 1, 2001)
+    for k in range(400):
+        pts = s0[k] + t[:, None] * (s1[k] - s0[k])
+        hit = np.all((pts >= lo) & (pts <= hi), axis=1)
+        if k == 40:
+            assert not inside[k]
+            continue
+        assert inside[k] == hit.any() or abs(t[hit].min(initial=0) - t[hit].max(initial=0)) < 1e-3, k
+        if hit.any():
+            length = np.linalg.norm(s1[k] - s0[k])
+            tol = max(length * 1e-3, 1e-6)
+            assert np.linalg.norm(c0[k] - pts[hit][0]) <= tol and np.linalg.norm(c1[k] - pts[hit][-1]) <= tol, k
+    cam = CameraModel(id="c", width=1000, height=800, fx=1200.0, fy=1200.0, cx=499.5, cy=399.5)
+    pa = Pose(look_rotation(np.array([0.0, 0.0, -1.0]), np.array([0.0, -1.0, 0.0])), [0.0, 0.0, 500.0])
+    pb = Pose(look_rotation(np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])), [0.0, 0.0, 100.0])
+    uu, vv = np.meshgrid(np.linspace(480, 520, 41), np.linspace(380, 420, 41))
+    # and rays that meet z = 100 m a few nanometres in front of B's centre
+    uva = np.vstack([np.column_stack([uu.ravel(), vv.ravel()]), [[cam.cx + 1e-9, cam.cy + 5.0]] * 3])
+    s0, s1 = epipolar_segments(uva, cam, pa, cam, pb, 0.0, 100.0)
+    assert np.nanmax(np.linalg.norm(s1 - s0, axis=1)) > 1e12
+    des = rng.normal(size=(len(uva), 128)).astype(np.float32)
+    uvb = rng.uniform([0, 0], [999, 799], (len(uva), 2))
+    m = guided_match(uva, des, uvb, des, cam, pa, cam, pb, MatchOptions(band_px=25.0, z_lo=0.0, z_hi=100.0))
+    assert m.shape[1] == 2
+
+
 def test_band_candidates_hold_every_keypoint_in_the_band_once_and_descriptor_distances_are_exact():
     """Against brute force on random keypoints and segments (short, long, degenerate, some not searched): every
     keypoint within the band is a candidate, none twice, grouped by segment in ascending order. The matrix-product
