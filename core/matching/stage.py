@@ -42,8 +42,9 @@ from .navigation import WIDE_BAND_FACTOR, coarse_guided_match
 from .targets import SUSPECT_PX, TARGET_MODES, TARGETS_FILE, TargetShape, measure_targets, target_summary
 from .tracks import build_tracks
 
-FEATURES_VERSION = 2
-"""Version of the cached keypoint files (2: keypoints in the pixel-centre origin); older caches are recomputed."""
+FEATURES_VERSION = 3
+"""Version of the cached keypoint files (2: keypoints in the pixel-centre origin; 3: photographs deeper than 8 bits
+read by their significant bits); older caches are recomputed."""
 
 
 def _azimuth_error(value: str) -> str | None:
@@ -416,5 +417,5 @@ def pair_counts(ties, image_ids: list[str], edges: np.ndarray) -> np.ndarray:
 STAGE = Stage(name="match", run=run, config=MatchConfig, requires=("block",),
               description="connectivity graph, SIFT, guided matching along graph edges, tracks, LSM refinement, "
                           "signalised targets",
-              version="5",
+              version="6",
               adjusted_block=False)
