@@ -83,6 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out")
     args = ap.parse_args(argv)
+    if not (args.deg > 0 and args.metres > 0):
+        ap.error("--deg and --metres must be > 0: they are also the prior sigmas of the run with sigmas")
     rows = {name: run(args.simulation, args.deg, args.metres, args.seed, name == "with sigmas", args.workers)
             for name in ("with sigmas", "without sigmas")}
     print(f"Navigation data off by {args.deg} deg and {args.metres} m per axis (1 sigma, per exposure)")
