@@ -86,11 +86,6 @@ class PairDepth:
     disparities: float
 
 
-def read_image(path: str) -> np.ndarray:
-    """An image file as (h, w, 3) uint8 BGR, whatever its depth (raises InputError naming the file)."""
-    return read_photo(path, True)
-
-
 def master_grid(camera: CameraModel, step: int) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates ``u, v`` (rows, cols) of the master grid sampled every ``step`` pixels."""
     return np.meshgrid(np.arange(0, camera.width, step, dtype=np.float64),
@@ -129,7 +124,7 @@ def match_pair(task: PairTask) -> PairDepth:
     if task.threads > 0:
         cv2.setNumThreads(task.threads)
     t0 = time.perf_counter()
-    img_m, img_s = read_image(task.path_master), read_image(task.path_slave)
+    img_m, img_s = read_photo(task.path_master, True), read_photo(task.path_slave, True)
     for img, cam, path in ((img_m, task.cam_master, task.path_master), (img_s, task.cam_slave, task.path_slave)):
         if img.shape[1] != cam.width or img.shape[0] != cam.height:
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]}, camera says {cam.width}x{cam.height}",

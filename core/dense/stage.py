@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import ComputationError, ConfigError
 from ..geometry.views import VIEWS
+from ..io.photos import read_photo
 from ..io.pointcloud import PointCloud, display_subset, write_las, write_ply
 from ..io.validate import resolve_image
 from ..model.block import ImageBlock
@@ -51,7 +52,7 @@ from .fusion import (
     master_points,
     smooth_depth,
 )
-from .pairs import PairTask, match_pair, read_image
+from .pairs import PairTask, match_pair
 from .selection import SelectionConfig, select_pairs
 from .sgm import MODES as SGM_MODES
 from .sgm import SgmConfig
@@ -182,7 +183,7 @@ def fuse_master(task: FuseTask) -> dict[str, np.ndarray]:
     fused = erode_far_edges(fused, task.step, fcfg)
     valid_before = np.isfinite(fused)
     depth = smooth_depth(fused, fcfg)
-    pts = master_points(task.camera, task.pose, depth, task.step, read_image(task.image_path), fcfg)
+    pts = master_points(task.camera, task.pose, depth, task.step, read_photo(task.image_path, True), fcfg)
     slave_depths = [np.where(a, d, np.nan)[valid_before] for d, a in zip(task.depths, agree)]
     evaluations = [(task.pose, list(task.slave_poses))]
     if task.approx is not None:

@@ -64,13 +64,11 @@ def geocentric_crs(crs):
     return CRS.from_json_dict(d)
 
 
-def missing_grids(src, dst) -> list[str]:
-    """The grid files (PROJ's names, with their download address) that the best transformations from pyproj CRS
-    ``src`` to ``dst`` need and PROJ does not find here."""
-    from pyproj.transformer import TransformerGroup
-
+def missing_grids(group) -> list[str]:
+    """The grid files (PROJ's names, with their download address) that the best transformations of a pyproj
+    ``TransformerGroup`` need and PROJ does not find here."""
     found: dict[str, str] = {}
-    for op in TransformerGroup(src, dst, always_xy=True).unavailable_operations:
+    for op in group.unavailable_operations:
         for g in op.grids:
             if not g.available:
                 found.setdefault(g.short_name, g.url)
@@ -99,10 +97,10 @@ def crs_transformer(src, dst, path: str | None = None, field: str = "crs") -> Ca
             ballpark_heights = False
         except ProjError:  # ballpark operations only: accepted for positions, not for heights
             t = Transformer.from_crs(src, dst, always_xy=True)
-            ballpark_heights = any("ballpark vertical" in op.description.lower()
-                                   for op in TransformerGroup(src, dst, always_xy=True).transformers)
+            group = TransformerGroup(src, dst, always_xy=True)
+            ballpark_heights = any("ballpark vertical" in op.description.lower() for op in group.transformers)
         if ballpark_heights:
-            grids = missing_grids(src, dst)
+            grids = missing_grids(group)
             need = f"the geoid grid {' or '.join(grids)}" if grids else "a geoid model"
             raise InputError(f"heights from {src.name} to {dst.name} need {need}, which PROJ does not find here: put "
                              f"the grid file in {get_user_data_dir()} (or the folder PROJ_USER_WRITABLE_DIRECTORY "

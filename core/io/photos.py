@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .validate import PNG_SIGNATURE, TIFF_SIGNATURES
 
 SIGNIFICANT_BITS = (8, 10, 12, 14, 16)
 """The bit depths a deep photograph's values are taken to use (the smallest that holds its maximum)."""
@@ -28,9 +29,9 @@ def _deep(path: str) -> bool:
     try:
         with open(path, "rb") as f:
             head = f.read(32)
-        if head[:8] == b"\x89PNG\r\n\x1a\n":
+        if head[:8] == PNG_SIGNATURE:
             return head[24] > 8  # IHDR bit depth
-        if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        if head[:4] in TIFF_SIGNATURES:
             import tifffile
 
             with tifffile.TiffFile(path) as t:

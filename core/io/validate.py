@@ -244,6 +244,11 @@ def parse_xml(path: str | Path):
 
 # ----------------------------------------------------------------------------------------------- images
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+"""The first bytes of a PNG file, and of a TIFF or BigTIFF one (either byte order)."""
+
+
 def image_size(path: str | Path) -> tuple[int, int] | None:
     """(width, height) of an image file read from its header (PNG, JPEG, TIFF), else through OpenCV.
 
@@ -252,14 +257,14 @@ def image_size(path: str | Path) -> tuple[int, int] | None:
     p = Path(path)
     with open(p, "rb") as f:
         head = f.read(32)
-        if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        if head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR":
             w, h = struct.unpack(">II", head[16:24])
             return int(w), int(h)
         if head[:2] == b"\xff\xd8":
             size = _jpeg_size(f)
             if size is not None:
                 return size
-        if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        if head[:4] in TIFF_SIGNATURES:
             try:
                 import tifffile
 

@@ -38,6 +38,11 @@ from .features import MatchOptions, epipolar_segments, guided_match, segment_dis
 WIDE_BAND_FACTOR = 2.0
 """A pair whose epipolar band is wider than this many times ``band_px`` is matched by :func:`coarse_guided_match`."""
 
+
+def needs_correction(band: np.ndarray | float, band_px: float) -> np.ndarray | bool:
+    """Whether pairs of epipolar band half-widths ``band`` (pixels) are matched by :func:`coarse_guided_match`."""
+    return band > WIDE_BAND_FACTOR * band_px
+
 COARSE_KEYPOINTS = 1000
 """Keypoints of A tried first for the coarse matches."""
 

@@ -38,7 +38,7 @@ from ..pipeline.stage import (
 )
 from .features import BAND_SIGMAS, MatchOptions, guided_match, pose_sigma_px, rms_sigma, sift_features, verify
 from .graph import GraphOptions, build_graph
-from .navigation import WIDE_BAND_FACTOR, coarse_guided_match
+from .navigation import coarse_guided_match, needs_correction
 from .targets import SUSPECT_PX, TARGET_MODES, TARGETS_FILE, TargetShape, measure_targets, target_summary
 from .tracks import build_tracks
 
@@ -142,18 +142,14 @@ def _image_path(block, iid: str) -> str:
     return str(resolve_image(block, img.file))
 
 
-def _read_grey(path: str, iid: str) -> np.ndarray:
-    return read_photo(path, False, iid)
-
-
 def read_block_grey(block, iid: str) -> np.ndarray:
     """Image ``iid`` of ``block`` as grey values ``(h, w)`` from its file; :class:`InputError` naming it otherwise."""
-    return _read_grey(_image_path(block, iid), iid)
+    return read_photo(_image_path(block, iid), False, iid)
 
 
 def _read_image_of(paths: dict[str, str], iid: str) -> np.ndarray:
     """The grey image ``iid`` from its file in ``paths`` (picklable with :func:`functools.partial`: LSM units)."""
-    return _read_grey(paths[iid], iid)
+    return read_photo(paths[iid], False, iid)
 
 
 def _cached(path: Path, iid: str, max_features: int) -> bool:
@@ -194,7 +190,7 @@ def _opencv_threads(n: int) -> Iterator[None]:
 def extract_features(task: FeatureTask) -> None:
     """Executor unit of the ``match`` stage: SIFT of one image, written to its feature cache file."""
     with _opencv_threads(task.threads):
-        u, d = sift_features(_read_grey(task.path, task.image_id), task.max_features)
+        u, d = sift_features(read_photo(task.path, False, task.image_id), task.max_features)
     with atomic_path(Path(task.out), suffix=".npz") as tmp, open(tmp, "wb") as fh:
         np.savez(fh, uv=u, des=d, image=task.image_id, max_features=task.max_features, version=FEATURES_VERSION)
 
@@ -237,7 +233,7 @@ def match_pairs(batch: PairBatch) -> list[np.ndarray]:
         for (a, b), band, (sig_att, sig_pos) in zip(batch.edges, batch.bands, batch.sigmas, strict=True):
             (uv_a, des_a), (uv_b, des_b) = feats[a], feats[b]
             ca, cb = batch.cameras[a], batch.cameras[b]
-            if band > WIDE_BAND_FACTOR * batch.opt.band_px:
+            if needs_correction(band, batch.opt.band_px):
                 m = coarse_guided_match(uv_a, des_a, uv_b, des_b, ca, batch.poses[a], cb, batch.poses[b], batch.opt,
                                         float(band), float(sig_att), float(sig_pos))
             else:
@@ -325,7 +321,7 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
         graph.matches[e] = len(m)
         if len(m) >= opt.min_matches:
             matches[(int(a), int(b))] = m
-    corrected = int(np.sum((bands > WIDE_BAND_FACTOR * cfg.band_px) & (graph.matches >= opt.min_matches)))
+    corrected = int(np.sum(needs_correction(bands, cfg.band_px) & (graph.matches >= opt.min_matches)))
     dropped = graph.drop_weak(opt.min_matches)
     ties = build_tracks(uv, matches, ids, min_rays=cfg.min_rays, max_per_image=cfg.max_tracks_per_image)
     lsm_metrics = {}

@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import WorkspaceError
 from ..geometry.views import VIEWS
 from ..io.geotiff import write_geotiff, write_png
+from ..io.photos import read_photo
 from ..io.pointcloud import PointCloud, display_subset, write_las
 from ..io.validate import resolve_image
 from ..pipeline.stage import (
@@ -148,10 +149,8 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     ndsm = grid.raster((dsm.data - dtm.data).astype(np.float32), crs)
     ctx.progress(2, steps, "true orthophoto")
     by_view = block.images_by_view()
-    from ..dense.pairs import read_image
-
     sources = [OrthoSource(i, block.camera_of(i), block.images[i].pose,
-                           read_image(str(resolve_image(block, block.images[i].file))))
+                           read_photo(resolve_image(block, block.images[i].file), True))
                for v in cfg.ortho_views for i in by_view.get(v, [])]
     ortho, label = true_ortho(dsm, sources, OrthoConfig(),
                               progress=lambda d, t, m: ctx.progress(2 + d / t, steps, m)) if sources else (None, None)
