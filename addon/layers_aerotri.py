@@ -218,7 +218,9 @@ def report_summary(path: Path) -> dict:
     and how far a GNSS position and an IMU attitude error its test can miss moves an image at most
     (``prior_effect``: ``(metres, degrees)``, either None where no such prior was tested), and the oblique images
     HAT could not start from the nadir run's corrections (``oblique_without_nadir``: no nadir image in their
-    exposure; 0 in reports written before it existed).
+    exposure; 0 in reports written before it existed), and of a self-calibration the camera whose image corner it
+    moves the most (``self_calibration``: ``(cameras, camera, px, std px or None, significant, tested)``, the
+    last two counting the corrections with a standard deviation; None without one).
     Raises :class:`InputError` naming the file."""
     doc = read_json(path, "no triangulation report (run the 'aerotri' stage)")
     try:
@@ -240,7 +242,13 @@ def report_summary(path: Path) -> dict:
         tested = [((r.get("reliability") or {}).get("priors") or {}) for r in doc.get("runs") or []]
         effect = {key: max((float(a) for p in tested for a in (p.get(key) or {}).get("effect_max", [])), default=None)
                   for key in ("position_m", "attitude_deg")}
+        calib = doc.get("self_calibration") or {}
+        moved = max(calib, key=lambda c: float(calib[c]["corner_shift_px"]), default=None)
+        tested = [p["significant"] for c in calib.values() for p in c["parameters"] if p.get("significant") is not None]
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
+                "self_calibration": (len(calib), moved, float(calib[moved]["corner_shift_px"]),
+                                     calib[moved].get("corner_shift_std_px"), sum(tested), len(tested))
+                if moved else None,
                 "priors_rejected": (parts.count("position"), parts.count("attitude"),
                                     sorted({i for i, _ in priors})) if priors else None,
                 "systematic": largest_systematic(doc.get("image_residual_fields") or {}),

@@ -240,8 +240,9 @@ def targets_summary(root: Path) -> dict:
 
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (the connectivity graph's pairs, the targets measured; mode, images, sigma0,
-    check point RMS, blunders, the mounting calibration, the camera with the largest systematic image residual,
-    rejected control data and EO priors, the GNSS strip offsets, estimated or suspected, the weakest control point),
+    check point RMS, blunders, the mounting calibration, the self-calibration, the camera with the largest systematic
+    image residual, rejected control data and EO priors, the GNSS strip offsets, estimated or suspected, the weakest
+    control point),
     the tie points' colourings and Open Report."""
     root = workspace_root(context)
     g = graph_summary(root) if root is not None else {"error": ""}
@@ -269,6 +270,11 @@ def draw_triangulation(layout, context) -> None:
     if s["mounting"]:
         n, cam, angle = s["mounting"]
         col.label(text=f"Mounting calibrated for {n} cameras, largest boresight {angle:.4f} deg ({cam})")
+    if s["self_calibration"]:
+        n, cam, px, std, significant, tested = s["self_calibration"]
+        sd = f" +- {std:.2f}" if std is not None else ""
+        counted = f"; {significant} of {tested} corrections significant" if tested else ""
+        col.label(text=f"Self-calibrated {n} cameras: a corner of {cam} moves {px:.2f}{sd} px{counted}")
     if s["systematic"]:
         cam, px = s["systematic"]
         col.label(text=f"Largest systematic image residual: {px:.3f} px ({cam})")

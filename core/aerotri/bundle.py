@@ -84,6 +84,8 @@ from .strips import offsets_at
 
 CALIBRATION_GROUPS = {"focal": (0, 1), "principal_point": (2, 3), "radial": (4, 5, 8), "tangential": (6, 7)}
 """Self-calibration groups -> indices in COLMAP's FULL_OPENCV parameter vector."""
+CALIBRATION_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+"""The :class:`CameraModel` fields at the indices 0-8 of COLMAP's FULL_OPENCV parameter vector."""
 
 PRIOR_SPLIT_SHARE = 0.01
 """Connection points go in as 2-row blocks (:func:`_prior_rows`, Ceres' specialised Schur eliminator) when they
@@ -317,6 +319,31 @@ class BundleProblem:
         return len(self.xyz)
 
 
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """One camera's self-calibration in an adjustment (``BundleOptions.self_calibration``).
+
+    Attributes
+    ----------
+    params : indices of its free parameters in COLMAP's FULL_OPENCV vector (names in :data:`CALIBRATION_NAMES`)
+    initial, adjusted : (k,) their values before and after the adjustment, as :class:`CameraModel` holds them
+        (focal length and principal point in pixels, the principal point from the centre of the top-left pixel)
+    cov : (k, k) their marginal covariance, scaled by the run's sigma0 (the correlations with the orientations, the
+        points and the datum included; see :func:`marginal_image_std`), or None where the run computed no marginal
+        covariances (``BundleOptions.marginal_max_images``)
+    """
+
+    params: tuple[int, ...]
+    initial: np.ndarray
+    adjusted: np.ndarray
+    cov: np.ndarray | None
+
+
+def _calibration_values(cam: CameraModel, params: tuple[int, ...]) -> np.ndarray:
+    """The values ``(k,)`` of the FULL_OPENCV parameters ``params`` of ``cam`` (its :class:`CameraModel` fields)."""
+    return np.array([getattr(cam, CALIBRATION_NAMES[i]) for i in params], np.float64)
+
+
 @dataclass(eq=False)
 class BundleResult:
     """Adjusted values (control frame) with their precision and statistics.
@@ -356,6 +383,7 @@ class BundleResult:
         (radians, camera axes) and the camera centre's offset ``-R_M^T t_M`` from the frame's (metres, camera axes);
         NaN rows for cameras without one; mounting_std : (k, 6) their marginal standard deviations (NaN when the
         images' are the conditional ones, see ``BundleOptions.marginal_max_images``)
+    calibration : camera index -> its :class:`Calibration` (self-calibration; cameras the run adjusted)
     sigma0 : a posteriori, unitless (multiply by sigma_px for pixels); redundancy : degrees of freedom
     iterations, rounds, time_s : solver work; timing : seconds spent building the problems (``build_s``),
         in Ceres (``solve_s``, of which ``preprocess_s`` in its preprocessor (ordering, structure; a cost per
@@ -387,6 +415,7 @@ class BundleResult:
     image_std_kind: str = "conditional"
     mounting: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     mounting_std: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    calibration: dict[int, Calibration] = field(default_factory=dict)
     log: list[str] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)
     gcp_obs_rejected: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
@@ -1430,14 +1459,22 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     image_std = np.sqrt(np.abs(np.diagonal(q_image, axis1=1, axis2=2))) * sigma0
     image_std_kind = "conditional"
     mounting_std = np.full((len(prob.cameras), 6), np.nan)
+    # the cameras the run self-calibrated: their parameter blocks are variables of the problem
+    calibrated = {ci: p for ci, p in model.cam_params.items()
+                  if rd.problem.has_parameter_block(p) and not rd.problem.is_parameter_block_constant(p)}
+    camera_cov: dict[int, np.ndarray] = {}
     if 0 < adjusted.sum() <= opt.marginal_max_images:
         mount = {ci: model.mount[ci] for ci in model.mount_used}
-        marginal = marginal_image_std(model.rec, rd.problem, r, c - ref, adjusted, mount)
+        marginal = marginal_image_std(model.rec, rd.problem, r, c - ref, adjusted, mount, calibrated)
         if marginal is not None:
-            image_std = np.where(adjusted[:, None], marginal[0] * opt.sigma_px * sigma0, image_std)
+            image_std = np.where(adjusted[:, None], marginal.image_std * opt.sigma_px * sigma0, image_std)
             image_std_kind = "marginal"
-            for ci, std in marginal[1].items():
+            for ci, std in marginal.mounting_std.items():
                 mounting_std[ci] = std * opt.sigma_px * sigma0
+            camera_cov = {ci: cov * (opt.sigma_px * sigma0) ** 2 for ci, cov in marginal.camera_cov.items()}
+    free = tuple(sorted({i for g in opt.self_calibration for i in CALIBRATION_GROUPS[g]}))
+    calibration = {ci: Calibration(free, _calibration_values(prob.cameras[ci], free),
+                                   _calibration_values(cams[ci], free), camera_cov.get(ci)) for ci in calibrated}
     mounting = model.mounting()
     offsets, strips = model.strip_offsets(), model.strips()
     strips_std = _strip_std(prob, opt, strips, prior_ok & ~prior_off[:, 1] & adjusted, sigma0)
@@ -1468,7 +1505,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
         obs_w=w, gcp_xyz=gcp_out, gcp_residual=gcp_out - prob.gcp_xyz, datum_shift=shift, sigma0=sigma0,
-        image_std_kind=image_std_kind, mounting=mounting, mounting_std=mounting_std,
+        image_std_kind=image_std_kind, mounting=mounting, mounting_std=mounting_std, calibration=calibration,
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
         timing=timing, gcp_obs_rejected=gcp_obs_bad, gcp_rejected=~gcp_ok, gcp_w=gcp_w,
@@ -1526,14 +1563,24 @@ def frame_poses(r_cam_from_world: np.ndarray, c_world: np.ndarray, image_camera:
     return r_f, c_f
 
 
+class Marginal(NamedTuple):
+    """The outcome of :func:`marginal_image_std` (for unit weight: multiply standard deviations by sigma0 sigma_px)."""
+
+    image_std: np.ndarray
+    mounting_std: dict[int, np.ndarray]
+    camera_cov: dict[int, np.ndarray]
+
+
 def marginal_image_std(rec, problem, r_cam_from_world: np.ndarray, c_local: np.ndarray, adjusted: np.ndarray,
-                       mount: dict[int, tuple[np.ndarray, np.ndarray]] | None = None
-                       ) -> tuple[np.ndarray, dict[int, np.ndarray]] | None:
+                       mount: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+                       cameras: dict[int, np.ndarray] | None = None) -> Marginal | None:
     """Marginal standard deviations ``(n, 6)`` (rotation about world X Y Z in radians, centre in metres) of the
     adjusted images for unit weight, from pycolmap's covariance estimation on the solved Ceres ``problem`` of the
-    reconstruction ``rec`` (image ids ``k + 1``), and per camera those ``(6,)`` of its mounting correction in
+    reconstruction ``rec`` (image ids ``k + 1``); per camera those ``(6,)`` of its mounting correction in
     ``mount`` (camera -> quaternion and translation blocks in the problem; as the rows of
-    :attr:`BundleResult.mounting`); None when the estimation fails.
+    :attr:`BundleResult.mounting`); and per self-calibrated camera in ``cameras`` (camera -> its parameter block)
+    the covariance ``(k, k)`` of its free parameters (the block's free entries in order). None when the estimation
+    fails.
 
     pycolmap gives the 6 x 6 covariance of ``cam_from_world`` in its tangent space: the quaternion's increment
     ``d`` applied on the left (Ceres' quaternion manifold: a rotation by the vector ``2 d`` in camera axes, ``R' =
@@ -1544,17 +1591,20 @@ def marginal_image_std(rec, problem, r_cam_from_world: np.ndarray, c_local: np.n
     against RMS errors of 0.0018-0.0025 deg and 0.0061-0.0068 m.
 
     A mounting correction's quaternion increment is the same left one (its rotation vector changes by ``2 d``) and
-    the offset ``-R_M^T t_M`` turns its translation's covariance by ``R_M^T``. The corrections are parameter blocks
-    beside the poses and points, so with them pycolmap estimates the covariance of all blocks (on a 250-image block
-    1.2 s); on a simulated block the stds (0.0014 deg, 0.008-0.018 m) match the errors (at most 0.003 deg and
-    0.012 m).
+    the offset ``-R_M^T t_M`` turns its translation's covariance by ``R_M^T``. The corrections and the camera
+    parameters are parameter blocks beside the poses and points, so with them pycolmap estimates the covariance of
+    all blocks (on a 250-image block 1.2 s; on a 400-image block with 5 self-calibrated cameras 7.5 s); on a
+    simulated block the mounting stds (0.0014 deg, 0.008-0.018 m) match the errors (at most 0.003 deg and 0.012 m).
+    A camera block held in part (``SubsetManifold``) has the covariance of its free entries; they are Euclidean,
+    so that is the covariance of the parameters themselves.
 
     r_cam_from_world : (n, 3, 3); c_local : (n, 3) centres in the problem's local frame; adjusted : (n,) bool
     """
     import pycolmap
 
     opts = pycolmap.BACovarianceOptions()
-    opts.params = pycolmap.BACovarianceOptionsParams.ALL if mount else pycolmap.BACovarianceOptionsParams.POSES
+    opts.params = (pycolmap.BACovarianceOptionsParams.ALL if mount or cameras
+                   else pycolmap.BACovarianceOptionsParams.POSES)
     cov = pycolmap.estimate_ba_covariance_from_problem(opts, rec, problem)
     if cov is None:
         return None
@@ -1565,6 +1615,8 @@ def marginal_image_std(rec, problem, r_cam_from_world: np.ndarray, c_local: np.n
             rm = _matrix_from_quat(q)
             mount_std[ci] = np.concatenate([2.0 * np.sqrt(np.abs(np.diag(np.asarray(cq)))),
                                             np.sqrt(np.abs(np.diag(rm.T @ np.asarray(ct) @ rm)))])
+    camera_cov = {ci: np.asarray(cc, np.float64) for ci, p in (cameras or {}).items()
+                  if (cc := cov.get_other_params_cov(p)) is not None}
     out = np.full((len(r_cam_from_world), 6), np.nan)
     for k in np.flatnonzero(adjusted):
         m = cov.get_cam_cov_from_world(int(k) + 1)
@@ -1576,7 +1628,7 @@ def marginal_image_std(rec, problem, r_cam_from_world: np.ndarray, c_local: np.n
         j[3:, :3] = -2.0 * rt @ skew(-r_cam_from_world[k] @ c_local[k])
         j[3:, 3:] = -rt
         out[k] = np.sqrt(np.abs(np.diag(j @ np.asarray(m) @ j.T)))
-    return out, mount_std
+    return Marginal(out, mount_std, camera_cov)
 
 
 def release_heap() -> None:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 
@@ -139,6 +140,19 @@ class ATResult:
     def gnss_strips(self) -> dict[str, dict]:
         """The GNSS strip offsets and drifts the runs estimated (IAT's, or HAT's nadir run's), by strip name."""
         return {name: d for run in self.runs for name, d in run.gnss_strips.items()}
+
+
+def camera_runs(block: ImageBlock, runs: list[Run]) -> dict[str, tuple[Run, int, int]]:
+    """Camera id -> the run holding most of its images (in HAT a head that looks in two directions on crossing
+    strips takes part in two runs), the camera's index in that run's cameras and its image count there."""
+    best: dict[str, tuple[Run, int, int]] = {}
+    for run in runs:
+        counts = Counter(block.images[iid].camera_id for iid in run.poses)
+        for ci, cam in enumerate(run.result.cameras):
+            n = counts.get(cam.id, 0)
+            if n > (best[cam.id][2] if cam.id in best else 0):
+                best[cam.id] = (run, ci, n)
+    return best
 
 
 def rejected_control(runs: list[Run]) -> tuple[set[str], set[tuple[str, str]]]:

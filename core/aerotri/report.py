@@ -7,6 +7,9 @@
   estimated from the adjusted orientations of each exposure, each camera's mounting correction when the adjustment
   estimated one (``BundleOptions.mounting``), and the forward intersection error of all tie
   points before (navigation orientation) and after adjustment.
+* Per self-calibrated camera its parameters before and after, the corrections with their marginal standard
+  deviations and significance, their correlations (the strong ones listed) and how far the calibration moves the
+  image of a frame corner (:func:`self_calibration`).
 * Per run its internal reliability (:func:`reliability`): the smallest errors the blunder tests find with 80 %
   probability, of tie measurements by their rays, EO priors and each control point, with redundancy numbers; and
   its external reliability: how far such errors move a tie point (:func:`tie_point_shifts`), an image and the
@@ -28,7 +31,7 @@ from __future__ import annotations
 
 import base64
 import html
-from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -47,8 +50,8 @@ from ..geometry.rotations import matrix_to_rotvec
 from ..matching.targets import SUSPECT_PX
 from ..model import CameraModel, ImageBlock, Raster, TiePoints
 from . import precision
-from .bundle import DETECTION_POWER, PRIOR_PART_LABELS, PRIOR_PARTS, image_focals
-from .hierarchical import ATResult, Run
+from .bundle import CALIBRATION_NAMES, DETECTION_POWER, PRIOR_PART_LABELS, PRIOR_PARTS, image_focals
+from .hierarchical import ATResult, Run, camera_runs
 from .problem import intersect_ties, pose_arrays
 from .strips import flight_strips, strip_check
 
@@ -264,14 +267,81 @@ def mounting(block: ImageBlock, at: ATResult) -> dict:
     degrees and centre offset in metres, camera axes, with standard deviations where the run computed marginal
     ones) from the run holding most of its images (in HAT a head that
     looks in two directions on crossing strips takes part in two runs), with that run's name and image count."""
-    best: dict[str, dict] = {}
-    for run in at.runs:
-        counts = Counter(block.images[iid].camera_id for iid in run.poses)
-        for ci, cam in enumerate(run.result.cameras):
-            n = counts.get(cam.id, 0)
-            if np.all(np.isfinite(run.result.mounting[ci])) and n > best.get(cam.id, {}).get("images", 0):
-                best[cam.id] = {**_mounting_entry(run.result, ci), "run": run.name, "images": n}
-    return best
+    return {cid: {**_mounting_entry(run.result, ci), "run": run.name, "images": n}
+            for cid, (run, ci, n) in camera_runs(block, at.runs).items()
+            if np.all(np.isfinite(run.result.mounting[ci]))}
+
+
+SIGNIFICANCE_T = 1.96
+"""A self-calibrated parameter's correction is significant when it exceeds this many of its standard deviations
+(a two-sided test at 5 %)."""
+STRONG_CORRELATION = 0.9
+"""Pairs of self-calibrated parameters correlated at least this much are listed (:func:`self_calibration`): the block
+hardly tells them apart (k1, k2 and k3 of a lens, whose terms differ little over the frame; the focal length and the
+principal point of a head with the flying height and the attitude of its images)."""
+CALIBRATION_UNITS = {"fx": "px", "fy": "px", "cx": "px", "cy": "px"}
+"""Units of the self-calibrated parameters; the distortion coefficients have none."""
+
+
+def corner_shift(initial: CameraModel, adjusted: CameraModel) -> tuple[np.ndarray, int]:
+    """How the self-calibration moves the image of each frame corner: the pixel ``(4, 2)`` to which ``adjusted``
+    projects the ray that ``initial`` sees at the corner, minus the corner (corners top-left, top-right,
+    bottom-right, bottom-left, at the outer pixels' centres); and the index of the corner moved the most."""
+    w, h = initial.width - 1.0, initial.height - 1.0
+    corners = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+    shift = adjusted.normalized_to_pixel(initial.pixel_to_normalized(corners)) - corners
+    return shift, int(np.argmax(np.hypot(shift[:, 0], shift[:, 1])))
+
+
+def self_calibration(block: ImageBlock, at: ATResult) -> dict:
+    """Per self-calibrated camera (``BundleOptions.self_calibration``), from the run holding most of its images: its
+    free parameters with their values before and after, the correction with its marginal standard deviation and
+    the ratio of the two (``t``, ``significant`` above :data:`SIGNIFICANCE_T`; None where the run computed no
+    marginal covariance, ``BundleOptions.marginal_max_images``), their correlation matrix and the pairs correlated
+    at least :data:`STRONG_CORRELATION`, and the corner the calibration moves the most (:func:`corner_shift`:
+    ``corner_shift_px`` its length with the standard deviation ``corner_shift_std_px`` propagated from the
+    covariance). The run's name, its image count of the camera and whether its figures are ``marginal``."""
+    out = {}
+    for cid, (run, ci, n) in camera_runs(block, at.runs).items():
+        cal = run.result.calibration.get(ci)
+        if cal is None:
+            continue
+        names = [CALIBRATION_NAMES[i] for i in cal.params]
+        correction = cal.adjusted - cal.initial
+        std = corr = None
+        if cal.cov is not None:
+            std = np.sqrt(np.abs(np.diag(cal.cov)))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                corr = cal.cov / np.outer(std, std)
+        params = []
+        for k, name in enumerate(names):
+            t = float(correction[k] / std[k]) if std is not None and std[k] > 0 else None
+            params.append({"name": name, "unit": CALIBRATION_UNITS.get(name, ""), "initial": float(cal.initial[k]),
+                           "adjusted": float(cal.adjusted[k]), "correction": float(correction[k]),
+                           "std": float(std[k]) if std is not None else None, "t": t,
+                           "significant": None if t is None else bool(abs(t) > SIGNIFICANCE_T)})
+        initial = replace(run.result.cameras[ci], **{nm: float(v) for nm, v in zip(names, cal.initial)})
+        adjusted = run.result.cameras[ci]
+        shift, worst = corner_shift(initial, adjusted)
+        length = float(np.hypot(*shift[worst]))
+        shift_std = None
+        if cal.cov is not None and length > 0:
+            # the corner's displacement length, differentiated by each free parameter (the projection is linear or
+            # bilinear in them: a small step is exact enough)
+            grad = np.zeros(len(names))
+            for k, name in enumerate(names):
+                step = 1e-6 * max(abs(float(cal.adjusted[k])), 1.0)
+                moved = corner_shift(initial, replace(adjusted, **{name: float(cal.adjusted[k]) + step}))[0][worst]
+                grad[k] = (np.hypot(*moved) - length) / step
+            shift_std = float(np.sqrt(max(grad @ cal.cov @ grad, 0.0)))
+        out[cid] = {"run": run.name, "images": n, "marginal": cal.cov is not None, "parameters": params,
+                    "correlation": None if corr is None else np.round(corr, 4).tolist(),
+                    "strong_correlations": [] if corr is None else [
+                        [names[a], names[b], float(corr[a, b])] for a in range(len(names))
+                        for b in range(a + 1, len(names)) if abs(corr[a, b]) >= STRONG_CORRELATION],
+                    "corner_shift_px": length, "corner_shift_std_px": shift_std,
+                    "corner": ["top-left", "top-right", "bottom-right", "bottom-left"][worst]}
+    return out
 
 
 def boresight(block: ImageBlock, poses: dict) -> dict:
@@ -495,7 +565,8 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
             "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
             "ground_points": ground_point_residuals(block, at.poses, *at.control_rejections()),
             "weakest_control": weakest_control(runs),
-            "boresight": boresight(block, at.poses), "mounting": mounting(block, at), "wall_s": at.wall_s,
+            "boresight": boresight(block, at.poses), "mounting": mounting(block, at),
+            "self_calibration": self_calibration(block, at), "wall_s": at.wall_s,
             "gnss_strips": at.gnss_strips(), "gnss_strip_check": gnss_strip_check(block, at),
             "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0,
             "tie_point_rays": ray_counts(ties, at), "image_residual_fields": camera_residual_fields(
@@ -767,6 +838,37 @@ def _reliability_html(runs: list[dict]) -> list[str]:
     return parts
 
 
+def _calibration_html(cameras: dict[str, dict]) -> list[str]:
+    """The HTML of the report's :func:`self_calibration`: a table of parameters per camera, its strong correlations
+    and the corner it moves the most."""
+    if not cameras:
+        return []
+    parts = ["<h2>Self-calibration</h2><p>Per camera, from the run holding most of its images: the parameters before "
+             "and after the adjustment, the correction with its marginal standard deviation, and t, the correction "
+             f"in standard deviations (significant above {SIGNIFICANCE_T:g}: a two-sided test at 5 %). Principal "
+             "point in pixels from the centre of the top-left pixel.</p>"]
+    for cid, c in cameras.items():
+        rows = "".join(f"<tr><td>{p['name']}</td><td>{p['unit']}</td><td>{format_value(p['initial'])}</td>"
+                       f"<td>{format_value(p['adjusted'])}</td><td>{format_value(p['correction'])}</td>"
+                       f"<td>{format_value(p['std'])}</td><td>{format_value(p['t'])}</td>"
+                       f"<td>{'-' if p['significant'] is None else ('yes' if p['significant'] else 'no')}</td></tr>"
+                       for p in c["parameters"])
+        shift = format_value(c["corner_shift_px"]) + (
+            "" if c["corner_shift_std_px"] is None else f" &plusmn; {format_value(c['corner_shift_std_px'])}")
+        notes = [f"Run {html.escape(c['run'])}, {c['images']} images. The calibrated camera moves the image of the "
+                 f"{c['corner']} corner by {shift} px."]
+        if not c["marginal"]:
+            notes.append("No standard deviations: the run has more images than aerotri.marginal_std_max_images "
+                         "(raise it for the marginal covariance).")
+        if c["strong_correlations"]:
+            notes.append("Strongly correlated (the block hardly tells them apart): " + ", ".join(
+                f"{a} and {b} ({r:+.2f})" for a, b, r in c["strong_correlations"]) + ".")
+        parts.append(f"<h3>{html.escape(cid)}</h3><p>{' '.join(notes)}</p><table><tr><th>parameter</th><th>unit</th>"
+                     "<th>before</th><th>after</th><th>correction</th><th>std</th><th>t</th><th>significant</th>"
+                     f"</tr>{rows}</table>")
+    return parts
+
+
 def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarray) -> str:
     """A self-contained HTML page: tables of the report, layer pictures and a residual histogram."""
     parts = [f"<h1>Aerial triangulation: {html.escape(report['mode'])}"
@@ -833,6 +935,7 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
         parts.append("<h2>Mounting calibration (camera axes)</h2><table><tr><th>camera</th><th>boresight [deg]</th>"
                      "<th>std [deg]</th><th>centre offset [m]</th><th>std [m]</th><th>run</th><th>images</th></tr>"
                      f"{rows}</table>")
+    parts.extend(_calibration_html(report.get("self_calibration") or {}))
     parts.append("<h2>Image residuals</h2>" + _histogram_svg(np.linalg.norm(residuals_px, axis=1),
                                                              "|v| [px] of accepted observations"))
     parts.extend(_report_extras(report))

@@ -11,7 +11,6 @@ deviations ``std`` and RMS image residual ``residual_px``), ``aerotri/report.jso
 
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -25,7 +24,7 @@ from ..model.exposures import oblique_without_nadir
 from ..pipeline.atomic import write_json, write_text
 from ..pipeline.stage import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, CheckedOptions, Range, Rule, Stage, StageResult
 from .bundle import CALIBRATION_GROUPS, GNSS_STRIP_MODES, LINEAR_SOLVERS, BundleOptions
-from .hierarchical import CONNECTIONS, ATResult, hierarchical, integrated
+from .hierarchical import CONNECTIONS, ATResult, camera_runs, hierarchical, integrated
 from .report import (
     accepted_residuals,
     block_report,
@@ -150,14 +149,7 @@ class AerotriConfig(CheckedOptions):
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
     """Camera id -> the camera model as self-calibrated by the run holding most of its images (in HAT a head
     that looks in two directions on crossing strips takes part in two runs)."""
-    best: dict[str, tuple[int, CameraModel]] = {}
-    for run in at.runs:
-        counts = Counter(block.images[iid].camera_id for iid in run.poses)
-        for cam in run.result.cameras:
-            n = counts.get(cam.id, 0)
-            if n > best.get(cam.id, (0, cam))[0]:
-                best[cam.id] = (n, cam)
-    return {cid: cam for cid, (_, cam) in best.items()}
+    return {cid: run.result.cameras[ci] for cid, (run, ci, _) in camera_runs(block, at.runs).items()}
 
 
 def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
@@ -218,6 +210,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     suspect = {n: d for n, d in report["gnss_strip_check"].items() if d["flagged"]}
     strip = max(suspect, key=lambda n: max(suspect[n]["w"]), default=None)
     weak = report["weakest_control"]
+    calib = report["self_calibration"]
+    moved = max(calib, key=lambda cid: calib[cid]["corner_shift_px"], default=None)
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
@@ -228,7 +222,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "systematic_residual_px": worst[1] if worst else None, "priors_rejected": priors_off,
                  "gnss_strips": len(strips), "gnss_strip_offset_max_m": largest,
                  "gnss_strips_suspected": len(suspect), "control_mdb_max_m": weak["mdb_m"] if weak else None,
-                 "oblique_without_nadir": unpaired},
+                 "oblique_without_nadir": unpaired, "self_calibrated_cameras": len(calib),
+                 "calibration_corner_shift_max_px": calib[moved]["corner_shift_px"] if moved else None},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
                 + (f", largest systematic image residual {worst[1]:.3f} px ({worst[0]})" if worst else "")
@@ -237,6 +232,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                 + (f", the GNSS positions of {len(suspect)} strips share an offset (largest in {strip}: "
                    f"{float(np.linalg.norm(suspect[strip]['mean_m'])):.3f} m, {max(suspect[strip]['w']):.1f} sigma): "
                    "estimate it with aerotri.gnss_strips = shift" if suspect else "")
+                + (f", {len(calib)} cameras self-calibrated (the largest change moves a corner of {moved} by "
+                   f"{calib[moved]['corner_shift_px']:.2f} px)" if moved else "")
                 + (f", weakest control point {weak['name']} (errors below {weak['mdb_m']:.3f} m in {weak['axis']} can "
                    "pass its test)" if weak else "")
                 + (f"; {unpaired} oblique images have no nadir image in their exposure, so their runs started from "

@@ -59,7 +59,12 @@ def ws(tmp_path, utm_block):
                                    "L02": {"mean_m": [0.3, 0.0, 0.4], "w": [2.0, 0.1, 4.2], "flagged": False},
                                    "L03": {"mean_m": [0.0, 0.0, -0.2], "w": [0.0, 0.3, 8.0], "flagged": True}},
               "weakest_control": {"name": "G2", "run": "nadir", "axis": "Z", "mdb_m": 0.1364},
-              "oblique_without_nadir": 40}
+              "oblique_without_nadir": 40,
+              "self_calibration": {
+                  "nadir": {"corner_shift_px": 1.234, "corner_shift_std_px": 0.05,
+                            "parameters": [{"significant": True}, {"significant": False}]},
+                  "left": {"corner_shift_px": 6.789, "corner_shift_std_px": 0.21,
+                           "parameters": [{"significant": True}, {"significant": True}, {"significant": None}]}}}
     (w.stage_dir("aerotri") / "report.json").write_text(json.dumps(report))
     (w.stage_dir("aerotri") / "report.html").write_text("<html><body>report</body></html>")
     w.write_state({"aerotri": {"status": "done"}})
@@ -204,6 +209,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Rejected observations: 1.25 %" in labels
     assert "40 oblique images without a nadir image in their exposure: import the exposures" in labels
     assert "Mounting calibrated for 2 cameras, largest boresight 0.0500 deg (left)" in labels
+    assert "Self-calibrated 2 cameras: a corner of left moves 6.79 +- 0.21 px; 3 of 4 corrections significant" in labels
     assert "Largest systematic image residual: 0.084 px (left)" in labels
     assert "Rejected control: 1 points (G1), 2 measurements" in labels
     assert "Rejected priors: 2 GNSS positions, 1 IMU attitudes (n1, n2, o1)" in labels
