@@ -196,6 +196,9 @@ class BundleOptions:
         control included); above it, or when that fails, the conditional ones (each image's 6 x 6 normal block
         with the points held fixed), which are cheaper (the marginal ones added 14 s to a 19 s adjustment of 600
         images) and a lower bound
+    calibration_max_images : with ``self_calibration``, up to this many adjusted images the marginal covariances
+        are computed even above ``marginal_max_images``: they give the calibrated parameters' standard deviations
+        and correlations (:attr:`Calibration.cov`), and the images' marginal ones with them
     screen_start : for a start already close to the solution (HAT's oblique runs start from the adjusted nadir
         orientations propagated to their heads): the robust round is replaced by :func:`screen_points` at the start
         (cameras held, each point re-estimated from its rays with blunder tests, sigma0 estimated robustly), and the
@@ -240,6 +243,7 @@ class BundleOptions:
     settle_stop: bool = True
     resolve_tolerance: float = 1e-4
     marginal_max_images: int = 0
+    calibration_max_images: int = 0
     control_tests: bool = True
     prior_tests: bool = True
     screen_start: bool = False
@@ -330,7 +334,7 @@ class Calibration:
         (focal length and principal point in pixels, the principal point from the centre of the top-left pixel)
     cov : (k, k) their marginal covariance, scaled by the run's sigma0 (the correlations with the orientations, the
         points and the datum included; see :func:`marginal_image_std`), or None where the run computed no marginal
-        covariances (``BundleOptions.marginal_max_images``)
+        covariances (``BundleOptions.marginal_max_images``, ``calibration_max_images``)
     """
 
     params: tuple[int, ...]
@@ -1463,7 +1467,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     calibrated = {ci: p for ci, p in model.cam_params.items()
                   if rd.problem.has_parameter_block(p) and not rd.problem.is_parameter_block_constant(p)}
     camera_cov: dict[int, np.ndarray] = {}
-    if 0 < adjusted.sum() <= opt.marginal_max_images:
+    if 0 < adjusted.sum() <= max(opt.marginal_max_images, opt.calibration_max_images if calibrated else 0):
         mount = {ci: model.mount[ci] for ci in model.mount_used}
         marginal = marginal_image_std(model.rec, rd.problem, r, c - ref, adjusted, mount, calibrated)
         if marginal is not None:

@@ -297,7 +297,7 @@ def self_calibration(block: ImageBlock, at: ATResult) -> dict:
     """Per self-calibrated camera (``BundleOptions.self_calibration``), from the run holding most of its images: its
     free parameters with their values before and after, the correction with its marginal standard deviation and
     the ratio of the two (``t``, ``significant`` above :data:`SIGNIFICANCE_T`; None where the run computed no
-    marginal covariance, ``BundleOptions.marginal_max_images``), their correlation matrix and the pairs correlated
+    marginal covariance, ``BundleOptions.calibration_max_images``), their correlation matrix and the pairs correlated
     at least :data:`STRONG_CORRELATION`, and the corner the calibration moves the most (:func:`corner_shift`:
     ``corner_shift_px`` its length with the standard deviation ``corner_shift_std_px`` propagated from the
     covariance). The run's name, its image count of the camera and whether its figures are ``marginal``."""
@@ -858,8 +858,8 @@ def _calibration_html(cameras: dict[str, dict]) -> list[str]:
         notes = [f"Run {html.escape(c['run'])}, {c['images']} images. The calibrated camera moves the image of the "
                  f"{c['corner']} corner by {shift} px."]
         if not c["marginal"]:
-            notes.append("No standard deviations: the run has more images than aerotri.marginal_std_max_images "
-                         "(raise it for the marginal covariance).")
+            notes.append("No standard deviations: the run has more images than aerotri.calibration_std_max_images "
+                         "(raise it for the marginal covariance; its cost grows with the cube of the images).")
         if c["strong_correlations"]:
             notes.append("Strongly correlated (the block hardly tells them apart): " + ", ".join(
                 f"{a} and {b} ({r:+.2f})" for a, b, r in c["strong_correlations"]) + ".")

@@ -250,14 +250,15 @@ def test_residual_field_shows_a_distortion_error_that_self_calibration_removes(t
 
 def test_self_calibration_report_matches_the_true_cameras(tmp_path):
     """Every camera is imported with its focal length 0.3 % long, its principal point 2 px right and k1 0.01 too
-    large; IAT self-calibrates focal length, principal point and radial distortion. The report lists per camera each
+    large; IAT self-calibrates focal length, principal point and radial distortion (``marginal_std_max_images`` 0: the
+    covariance comes from ``calibration_std_max_images``). The report lists per camera each
     parameter's correction with its marginal standard deviation: every adjusted value lies within 4 of them of the
     truth (35 values: a miss at 4 sigma has odds of 0.2 %), their normalised errors have an RMS between 0.5 and 1.6
     (the standard deviations neither too small nor too large), the planted errors (fx, fy, cx, k1) are significant
     and of the 15 parameters without one at most 3 (a 5 % test on each: 3 or fewer with 99.5 %). k1, k2 and k3 are
     listed as strongly correlated, and the corner the calibration moves the most moves by the truth's amount within
-    4 of its standard deviations. Without marginal covariances (``marginal_std_max_images = 0``) the report gives the
-    corrections alone and says why."""
+    4 of its standard deviations. Without marginal covariances (``marginal_std_max_images`` and
+    ``calibration_std_max_images`` 0) the report gives the corrections alone and says why."""
     from oblique_city.core.aerotri.report import corner_shift
     from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
     from oblique_city.core.pipeline import RunContext
@@ -269,7 +270,7 @@ def test_self_calibration_report_matches_the_true_cameras(tmp_path):
         block.cameras[cid] = replace(cam, fx=cam.fx * 1.003, fy=cam.fy * 1.003, cx=cam.cx + 2.0, k1=cam.k1 + 0.01)
     ws.save_block(block)
     calib = ("focal", "principal_point", "radial")
-    STAGE.run(ws, AerotriConfig(self_calibration=calib, sigma_px=0.3), RunContext())
+    STAGE.run(ws, AerotriConfig(self_calibration=calib, sigma_px=0.3, marginal_std_max_images=0), RunContext())
     report = json.loads(ws.path("aerotri/report.json").read_text())["self_calibration"]
     assert set(report) == set(true)
     z, unplanted = [], []
@@ -294,13 +295,14 @@ def test_self_calibration_report_matches_the_true_cameras(tmp_path):
     assert sum(unplanted) <= 3, unplanted
     assert "Self-calibration" in ws.path("aerotri/report.html").read_text()
 
-    STAGE.run(ws, AerotriConfig(self_calibration=calib, sigma_px=0.3, marginal_std_max_images=0), RunContext())
+    STAGE.run(ws, AerotriConfig(self_calibration=calib, sigma_px=0.3, marginal_std_max_images=0,
+                                calibration_std_max_images=0), RunContext())
     report = json.loads(ws.path("aerotri/report.json").read_text())["self_calibration"]
     for cam in report.values():
         assert not cam["marginal"] and cam["corner_shift_std_px"] is None and cam["correlation"] is None
         assert all(p["std"] is None and p["significant"] is None for p in cam["parameters"])
         assert abs(next(p for p in cam["parameters"] if p["name"] == "k1")["correction"] + 0.01) < 0.005
-    assert "marginal_std_max_images" in ws.path("aerotri/report.html").read_text()
+    assert "calibration_std_max_images" in ws.path("aerotri/report.html").read_text()
 
 
 def test_a_wrong_control_point_is_rejected_and_reported(tmp_path):
