@@ -7,6 +7,7 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
     python benchmarks/bench_at.py --images 3000 --connections cba --repeat 3   # the wall ratio as a median of 3
     python benchmarks/bench_at.py --connections cba --control-blunders 5 --prior-blunders 5  # Tables 9 and 10
     python benchmarks/bench_at.py --connections cba --gnss-strips 0.3   # Table 11: GNSS offsets per strip
+    python benchmarks/bench_at.py --connections cba --camera-errors   # Table 12: self-calibration
     make bench-at ARGS="--images 3000"
 
 Prints the tables and writes them as JSON (``--out``, default ``build/bench_at_<images>.json``).
@@ -38,6 +39,7 @@ if str(ROOT.parent) not in sys.path:
 
 from oblique_city.core.aerotri.bundle import GNSS_STRIP_MODES, BundleOptions, _Model, adjust  # noqa: E402
 from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
+    central_images,
     direct_georeferencing,
     hierarchical,
     initial_tie_coordinates,
@@ -45,7 +47,8 @@ from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
     nadir_propagation,
 )
 from oblique_city.core.aerotri.problem import build_problem  # noqa: E402
-from oblique_city.core.aerotri.report import mounting  # noqa: E402
+from oblique_city.core.aerotri.report import mounting, self_calibration  # noqa: E402
+from oblique_city.core.aerotri.stage import calibrated_cameras  # noqa: E402
 from oblique_city.core.aerotri.strips import flight_strips  # noqa: E402
 from oblique_city.core.evaluate.aerotri import (  # noqa: E402
     SPLITS,
@@ -131,22 +134,6 @@ class CpuTime:
 
     def __exit__(self, *exc) -> None:
         self.seconds = self._cpu() - self._start
-
-
-def stock_sub_block(block, n_images: int) -> list[str]:
-    """Images of the exposures nearest the block's centre (every head of an exposure), about ``n_images``: a
-    compact sub-block on which pycolmap's stock adjuster finishes here (on 3,000 images it ran over 22 min)."""
-    exposures: dict[str, list[str]] = {}
-    for iid, im in block.images.items():
-        exposures.setdefault(im.exposure or iid, []).append(iid)
-    centre = {e: np.mean([block.images[i].pose_approx.C[:2] for i in ids], 0) for e, ids in exposures.items()}
-    mid = np.mean(list(centre.values()), 0)
-    out: list[str] = []
-    for e in sorted(exposures, key=lambda e: float(np.sum((centre[e] - mid) ** 2))):
-        if len(out) >= n_images:
-            break
-        out += exposures[e]
-    return out
 
 
 def stock_comparison(block, ties, xyz0, opt: BundleOptions, image_ids: list[str], time_limit: float) -> dict:
@@ -236,6 +223,10 @@ def main(argv=None) -> int:
                     help="also adjust a copy of the block whose GNSS positions carry an offset per strip and a drift "
                          "along it (normal, this many metres and metres per km), without and with the strip models, "
                          "with all and with 4 control points (Table 11)")
+    ap.add_argument("--camera-errors", dest="camera_errors", action="store_true",
+                    help="also adjust a copy of the block whose cameras are imported with the focal length 0.3 %% "
+                         "long, the principal point 2 px right and k1 0.01 too large, without and with "
+                         "self-calibration of focal length, principal point and radial distortion (Table 12)")
     ap.add_argument("--nav-scale", dest="nav_scale", type=float, default=1.0,
                     help="GNSS/IMU errors (and their prior sigmas) times this: 1 is a survey-grade system (5 cm, "
                          "0.004 deg), 100 a low-grade one (5 m, 0.4 deg)")
@@ -301,7 +292,7 @@ def main(argv=None) -> int:
                                                  "mounting": mounting(block, iat)}))
         print(f"IAT {wall:.1f} s, sigma0 {r.sigma0:.3f}, peak {mem.peak_gb:.2f} GB")
     if not args.skip_stock:
-        ids = stock_sub_block(block, args.stock_images)
+        ids = central_images(block, args.stock_images)
         st = stock_comparison(block, ties, xyz0, opt, ids, args.stock_time_limit)
         out["stock"] = st
         print(f"sub-block of {st['images']} images ({st['observations']} observations): our IAT engine "
@@ -370,6 +361,12 @@ def main(argv=None) -> int:
         if args.gnss_strips > 0:
             out["gnss_strips"] = gnss_strip_runs(block, ties, xyz0, sim.true_poses, opt, args.gnss_strips, args.seed,
                                                  run_blunder_hat)
+        if args.camera_errors:
+            out["camera_errors"] = camera_error_runs(
+                block, ties, xyz0, opt, lambda b, o, n: hierarchical(
+                    b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
+                    oblique_tie_grid=args.oblique_tie_grid, oblique_ties_per_cell=args.oblique_ties_per_cell,
+                    calibration_images=n))
     finally:
         if ex is not None:
             ex.close()
@@ -385,6 +382,8 @@ def main(argv=None) -> int:
         print_prior_blunders(out["prior_blunders"], sim.gsd)
     if "gnss_strips" in out:
         print_gnss_strips(out["gnss_strips"], sim.gsd)
+    if "camera_errors" in out:
+        print_camera_errors(out["camera_errors"], sim.gsd)
     targets(out)
     path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -538,6 +537,48 @@ def gnss_strip_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, sig
                 print(f"GNSS strips: {control} control, {method}, {mode}: check XY {xy:.4f} Z {z:.4f} m, centres "
                       f"{centre:.4f} m, {wall:.1f} s")
                 out["runs"].append(row)
+    return out
+
+
+CAMERA_ERRORS = {"fx": 1.003, "fy": 1.003, "cx": 2.0, "k1": 0.01}
+"""Table 12's errors of the imported cameras: focal lengths times these, the principal point's x and k1 plus these."""
+SELF_CALIBRATION = ("focal", "principal_point", "radial")
+
+
+def camera_error_runs(block, ties, xyz0, opt: BundleOptions, run_hat: Callable[[object, BundleOptions, int], object],
+                      calibration_images: int = 500) -> dict:
+    """Self-calibration (Table 12): in a copy of the block every camera is imported with the errors of
+    :data:`CAMERA_ERRORS` (the simulated measurements follow the true cameras); IAT and HAT-CBA adjust it without and
+    with self-calibration of :data:`SELF_CALIBRATION` (marginal covariances for runs of up to 1,000 images), HAT
+    with a calibration sub-block of ``calibration_images`` first and with each run calibrating its own cameras
+    (``run_hat(block, options, calibration_images)``). Returns per run the check point RMS and, calibrated, per
+    camera and parameter the error before (the planted one) and after, the reported standard deviation and
+    significance (:func:`.report.self_calibration`)."""
+    bad = copy.deepcopy(block)
+    for cid, cam in block.cameras.items():
+        bad.cameras[cid] = replace(cam, fx=cam.fx * CAMERA_ERRORS["fx"], fy=cam.fy * CAMERA_ERRORS["fy"],
+                                   cx=cam.cx + CAMERA_ERRORS["cx"], k1=cam.k1 + CAMERA_ERRORS["k1"])
+    out = {"runs": [], "calibration_images": calibration_images}
+    runs = [("IAT", (), 0), ("IAT", SELF_CALIBRATION, 0), ("HAT cba", (), 0),
+            ("HAT cba", SELF_CALIBRATION, calibration_images), ("HAT cba, per run", SELF_CALIBRATION, 0)]
+    for method, calib, n_cal in runs:
+        o = replace(opt, self_calibration=calib, calibration_max_images=1000 if calib else 0)
+        t = time.perf_counter()
+        at = integrated(bad, ties, o, xyz0=xyz0) if method == "IAT" else run_hat(bad, o, n_cal)
+        wall = time.perf_counter() - t
+        b = copy.copy(bad)
+        b.cameras = {**bad.cameras, **calibrated_cameras(bad, at)}
+        xy, z = rms_xy_z(check_point_errors(b, at.poses)[1])
+        row = {"method": method, "self_calibration": list(calib), "calibration_images": n_cal, "check_xy_m": xy,
+               "check_z_m": z, "wall_s": wall, "cameras": {}}
+        for cid, cam in self_calibration(b, at).items():
+            row["cameras"][cid] = {"run": cam["run"], "images": cam["images"], "parameters": {
+                p["name"]: {"before": p["initial"] - getattr(block.cameras[cid], p["name"]),
+                            "after": p["adjusted"] - getattr(block.cameras[cid], p["name"]), "std": p["std"],
+                            "significant": p["significant"]} for p in cam["parameters"]}}
+        print(f"camera errors: {method}, self-calibration {'+'.join(calib) or 'off'}: check XY {xy:.4f} "
+              f"Z {z:.4f} m, {wall:.1f} s")
+        out["runs"].append(row)
     return out
 
 
@@ -749,6 +790,28 @@ def print_gnss_strips(gs: dict, gsd: float) -> None:
         print(f"{r['control']:>7s} {r['method']:8s} {r['model']:6s} {_f(r['check_xy_m'], 1 / gsd):>6s} "
               f"{_f(r['check_z_m'], 1 / gsd):>6s} {r['centre_rms_m']:>8.4f} {r['attitude_rms_deg']:>8.4f} "
               f"{_f(r['offset_rms_m'], 1, 4):>8s} {_f(r['drift_rms_m_per_km'], 1, 3):>7s} {r['wall_s']:>8.1f}")
+
+
+def print_camera_errors(ce: dict, gsd: float) -> None:
+    planted = ", ".join(f"{k} {'x' if k in ('fx', 'fy') else '+'}{v:g}" for k, v in CAMERA_ERRORS.items())
+    print(f"\nTable 12. Self-calibration: the cameras imported with {planted}; check point RMS [GSD]; per parameter "
+          "over the cameras the RMS error against the truth before and after (px for focal and principal point), the "
+          "RMS of the errors in reported standard deviations (1: they fit), and the cameras whose correction is "
+          "significant")
+    for r in ce["runs"]:
+        head = f"{r['method']:16s} {'+'.join(r['self_calibration']) or 'off':28s} XY {_f(r['check_xy_m'], 1 / gsd)} " \
+               f"Z {_f(r['check_z_m'], 1 / gsd)}  {r['wall_s']:.1f} s" + (
+                   f"  (calibration sub-block of {r['calibration_images']} images)" if r["calibration_images"] else "")
+        print(head)
+        names = list(next(iter(r["cameras"].values()))["parameters"]) if r["cameras"] else []
+        for name in names:
+            ps = [c["parameters"][name] for c in r["cameras"].values()]
+            before = np.sqrt(np.mean([p["before"] ** 2 for p in ps]))
+            after = np.sqrt(np.mean([p["after"] ** 2 for p in ps]))
+            z = [p["after"] / p["std"] for p in ps if p["std"]]
+            sig = sum(bool(p["significant"]) for p in ps)
+            print(f"    {name:3s} before {before:10.4g}  after {after:10.4g}  error/std RMS "
+                  f"{_f(np.sqrt(np.mean(np.square(z))) if z else None, 1, 2):>5s}  significant {sig}/{len(ps)}")
 
 
 def _v(a, nd: int) -> str:

@@ -21,6 +21,14 @@
   refined from all control measurements (the nadir run saw only the nadir ones).
   GNSS offsets per strip (``BundleOptions.gnss_strips``) are estimated in the nadir run, like the datum shift, and
   held for the other heads of the same exposures (one antenna) in the oblique runs.
+  With self-calibration (``BundleOptions.self_calibration``) a calibration sub-block comes first: the images of the
+  exposures nearest the block's centre, all views, adjusted together (as IAT) with the cameras' parameters free;
+  the hierarchical runs then hold the cameras it calibrated. Calibrated in the runs themselves, a nadir run hardly
+  tells the focal length from the flying height (on 500 simulated images with every camera imported 0.3 % long in
+  focal length its focal length came out with a standard deviation of 1.2 px, against 0.08 px in IAT, and the check
+  points' Z RMS was 1.41 GSD against IAT's 0.18), and a head that looks in two directions on crossing strips would be
+  calibrated twice, once per view run, each time differently. After a 250-image calibration sub-block HAT's check
+  points came out at 0.14 / 0.18 GSD (XY / Z), as IAT's.
 * Baselines: direct georeferencing (the navigation orientations) and nadir-only AT whose per-exposure
   corrections are propagated to the oblique images of the same exposure.
 """
@@ -116,7 +124,8 @@ class Run:
 
 @dataclass(eq=False)
 class ATResult:
-    """Outcome of IAT or HAT: final poses, combined tie points and every run."""
+    """Outcome of IAT or HAT: final poses, combined tie points and every run; ``calibration`` the calibration
+    sub-block of HAT with self-calibration (its orientations are not the block's: the runs adjusted them again)."""
 
     mode: str
     poses: dict[str, Pose]
@@ -128,6 +137,11 @@ class ATResult:
     connection: str = ""
     wall_s: float = 0.0
     extra: dict = field(default_factory=dict)
+    calibration: Run | None = None
+
+    def calibrating_runs(self) -> list[Run]:
+        """The runs that self-calibrated the cameras: HAT's calibration sub-block when it had one, else the runs."""
+        return [self.calibration] if self.calibration is not None else self.runs
 
     def control_rejections(self) -> tuple[set[str], set[tuple[str, str]]]:
         """The control points whose coordinates a run rejected, and the (point, image) measurements rejected."""
@@ -202,6 +216,25 @@ def integrated(block: ImageBlock, ties: TiePoints, opt: BundleOptions,
     rej[run.obs_index] = run.obs_rejected
     return ATResult(mode="integrated", poses=run.poses, image_std=run.image_std, xyz=xyz, xyz_cov=cov,
                     obs_rejected=rej, runs=[run], wall_s=time.perf_counter() - t0)
+
+
+def central_images(block: ImageBlock, n_images: int) -> list[str]:
+    """The images of the exposures nearest the block's centre (every head of an exposure; an image without an
+    exposure counts as one), the nearest first, until about ``n_images`` (a whole exposure more at most)."""
+    exposures: dict[str, list[str]] = {}
+    for iid, im in block.images.items():
+        if im.pose_approx is not None:
+            exposures.setdefault(im.exposure or iid, []).append(iid)
+    centre = {e: np.mean([block.images[i].pose_approx.C[:2] for i in ids], 0) for e, ids in exposures.items()}
+    if not centre:
+        return []
+    mid = np.mean(list(centre.values()), 0)
+    out: list[str] = []
+    for e in sorted(exposures, key=lambda e: float(np.sum((centre[e] - mid) ** 2))):
+        if len(out) >= n_images:
+            break
+        out += exposures[e]
+    return out
 
 
 def _strips(block: ImageBlock, opt: BundleOptions) -> Strips | None:
@@ -409,7 +442,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
                  cell: float = 50.0, executor=None, progress: Callable[[int, int, str], None] | None = None,
                  xyz0: np.ndarray | None = None, connection_sigma_scale: float = 1.0,
                  oblique_control: bool = True, oblique_tie_grid: int = 8, oblique_ties_per_cell: int = 0,
-                 combined_datum: bool = True) -> ATResult:
+                 combined_datum: bool = True, calibration_images: int = 500) -> ATResult:
     """HAT as in the module docstring. ``executor`` has ``map(fn, items, on_done)`` (see pipeline.executor);
     ``connection_sigma_scale`` multiplies the propagated connection standard deviations; with
     ``oblique_control`` the control points measured in an oblique view are observations of its run too (with
@@ -425,11 +458,25 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
 
     With ``combined_datum`` the datum shift, estimated in the nadir run from the nadir measurements of the control
     points alone, is refined in step (3) from all their measurements (:func:`datum_correction`) and the whole
-    block is translated by the correction, as IAT estimates the shift from all views at once."""
+    block is translated by the correction, as IAT estimates the shift from all views at once.
+
+    With ``opt.self_calibration`` the cameras are calibrated first on the sub-block of :func:`central_images` of
+    ``calibration_images`` images (the module docstring; its run is :attr:`ATResult.calibration`); the runs then
+    hold them. ``0`` calibrates each camera in the runs holding its images instead (the run holding most of its
+    images gives the block its camera)."""
     t0 = time.perf_counter()
     if connection not in CONNECTIONS:
         raise ConfigError(f"unknown connection selection '{connection}' (use one of {', '.join(CONNECTIONS)})")
     xyz0 = initial_tie_coordinates(block, ties) if xyz0 is None else xyz0
+    calibration = None
+    if opt.self_calibration and calibration_images > 0:
+        ids = central_images(block, calibration_images)
+        sub_c = build_problem(block, ties, ids, xyz0, strips=_strips(block, opt))
+        res_c = adjust(sub_c.problem, opt, None if progress is None else
+                       (lambda d, t, m: progress(0, 2, f"self-calibration on the {len(ids)} central images: {m}")))
+        calibration = _to_run("calibration", sub_c, res_c, time.perf_counter() - t0)
+        block = replace(block, cameras={**block.cameras, **{cam.id: cam for cam in res_c.cameras}})
+        opt = replace(opt, self_calibration=())
     views = block.images_by_view()
     nadir_ids = views.get("nadir", [])
     if not nadir_ids:
@@ -583,8 +630,9 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         xyz[ok], cov[ok] = xt[ok], ct[ok]
         rej |= rj
     return ATResult(mode="hierarchical", poses=poses, image_std=std, xyz=xyz, xyz_cov=cov, obs_rejected=rej,
-                    runs=runs, connection=connection, wall_s=time.perf_counter() - t0,
-                    extra={"nadir_wall_s": nadir.wall_s, "setup_wall_s": setup_wall, "oblique_wall_s": oblique_wall,
+                    runs=runs, connection=connection, wall_s=time.perf_counter() - t0, calibration=calibration,
+                    extra={"calibration_wall_s": calibration.wall_s if calibration is not None else 0.0,
+                           "nadir_wall_s": nadir.wall_s, "setup_wall_s": setup_wall, "oblique_wall_s": oblique_wall,
                            "combine_wall_s": combine_wall, "intersection_wall_s": time.perf_counter() - t4,
                            "cell": cell, "thinned_observations": int(thinned_obs.sum()),
                            "datum_shift": res_n.datum_shift + datum_delta, "datum_correction": datum_delta})

@@ -294,7 +294,8 @@ def corner_shift(initial: CameraModel, adjusted: CameraModel) -> tuple[np.ndarra
 
 
 def self_calibration(block: ImageBlock, at: ATResult) -> dict:
-    """Per self-calibrated camera (``BundleOptions.self_calibration``), from the run holding most of its images: its
+    """Per self-calibrated camera (``BundleOptions.self_calibration``), from HAT's calibration sub-block or else the
+    run holding most of its images: its
     free parameters with their values before and after, the correction with its marginal standard deviation and
     the ratio of the two (``t``, ``significant`` above :data:`SIGNIFICANCE_T`; None where the run computed no
     marginal covariance, ``BundleOptions.calibration_max_images``), their correlation matrix and the pairs correlated
@@ -302,7 +303,7 @@ def self_calibration(block: ImageBlock, at: ATResult) -> dict:
     ``corner_shift_px`` its length with the standard deviation ``corner_shift_std_px`` propagated from the
     covariance). The run's name, its image count of the camera and whether its figures are ``marginal``."""
     out = {}
-    for cid, (run, ci, n) in camera_runs(block, at.runs).items():
+    for cid, (run, ci, n) in camera_runs(block, at.calibrating_runs()).items():
         cal = run.result.calibration.get(ci)
         if cal is None:
             continue
@@ -566,7 +567,9 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
             "ground_points": ground_point_residuals(block, at.poses, *at.control_rejections()),
             "weakest_control": weakest_control(runs),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at),
-            "self_calibration": self_calibration(block, at), "wall_s": at.wall_s,
+            "self_calibration": self_calibration(block, at),
+            "calibration_run": run_statistics(at.calibration, sigma_px) if at.calibration is not None else None,
+            "wall_s": at.wall_s,
             "gnss_strips": at.gnss_strips(), "gnss_strip_check": gnss_strip_check(block, at),
             "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0,
             "tie_point_rays": ray_counts(ties, at), "image_residual_fields": camera_residual_fields(
@@ -838,12 +841,17 @@ def _reliability_html(runs: list[dict]) -> list[str]:
     return parts
 
 
-def _calibration_html(cameras: dict[str, dict]) -> list[str]:
+def _calibration_html(cameras: dict[str, dict], sub_block: dict | None) -> list[str]:
     """The HTML of the report's :func:`self_calibration`: a table of parameters per camera, its strong correlations
-    and the corner it moves the most."""
+    and the corner it moves the most; ``sub_block`` the :func:`run_statistics` of HAT's calibration sub-block."""
     if not cameras:
         return []
-    parts = ["<h2>Self-calibration</h2><p>Per camera, from the run holding most of its images: the parameters before "
+    source = "the run holding most of its images" if sub_block is None else (
+        f"the calibration sub-block ({sub_block['images']} images of all views nearest the block's centre, adjusted "
+        f"together before the hierarchical runs, which held the cameras; sigma0 {format_value(sub_block['sigma0'])}, "
+        f"{sub_block['rejected']} of {sub_block['observations']} observations rejected, "
+        f"{format_value(sub_block['wall_s'])} s)")
+    parts = [f"<h2>Self-calibration</h2><p>Per camera, from {source}: the parameters before "
              "and after the adjustment, the correction with its marginal standard deviation, and t, the correction "
              f"in standard deviations (significant above {SIGNIFICANCE_T:g}: a two-sided test at 5 %). Principal "
              "point in pixels from the centre of the top-left pixel.</p>"]
@@ -935,7 +943,7 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
         parts.append("<h2>Mounting calibration (camera axes)</h2><table><tr><th>camera</th><th>boresight [deg]</th>"
                      "<th>std [deg]</th><th>centre offset [m]</th><th>std [m]</th><th>run</th><th>images</th></tr>"
                      f"{rows}</table>")
-    parts.extend(_calibration_html(report.get("self_calibration") or {}))
+    parts.extend(_calibration_html(report.get("self_calibration") or {}, report.get("calibration_run")))
     parts.append("<h2>Image residuals</h2>" + _histogram_svg(np.linalg.norm(residuals_px, axis=1),
                                                              "|v| [px] of accepted observations"))
     parts.extend(_report_extras(report))

@@ -76,6 +76,10 @@ class AerotriConfig(CheckedOptions):
     marginal_std_max_images : blocks (and HAT runs) of up to this many images report marginal standard deviations
         of their orientations (pycolmap's covariance estimation), larger ones the conditional ones (0: always the
         conditional ones)
+    calibration_images : HAT with ``self_calibration``: the cameras are calibrated first on the exposures nearest the
+        block's centre, about this many images of all views adjusted together, and the hierarchical runs hold them
+        (:func:`.hierarchical.hierarchical`); 0: each run calibrates the cameras of its images (a nadir run hardly
+        tells the focal length from the flying height)
     calibration_std_max_images : with ``self_calibration``, runs of up to this many images compute the marginal
         covariance all the same (larger than ``marginal_std_max_images``), for the standard deviations and
         correlations of the calibrated parameters in the report; it costs about 8 s on 400 images and 77 s on 1,000
@@ -118,6 +122,7 @@ class AerotriConfig(CheckedOptions):
     min_rays: int = 3
     marginal_std_max_images: int = 500
     calibration_std_max_images: int = 1000
+    calibration_images: int = 500
     default_sigma_position: float = 0.15
     default_sigma_attitude_deg: float = 0.05
     control_tests: bool = True
@@ -134,6 +139,7 @@ class AerotriConfig(CheckedOptions):
         "robust_scale": POSITIVE, "threads": AT_LEAST_ONE, "linear_solver": LINEAR_SOLVERS,
         "layer_cell": NON_NEGATIVE, "layer_views": ("all", "nadir", "oblique"), "min_rays": Range(2.0),
         "marginal_std_max_images": NON_NEGATIVE, "calibration_std_max_images": NON_NEGATIVE,
+        "calibration_images": NON_NEGATIVE,
         "default_sigma_position": POSITIVE,
         "default_sigma_attitude_deg": POSITIVE, "gnss_strips": GNSS_STRIP_MODES, "gnss_shift_sigma": POSITIVE,
         "gnss_drift_sigma": POSITIVE}
@@ -154,9 +160,9 @@ class AerotriConfig(CheckedOptions):
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
-    """Camera id -> the camera model as self-calibrated by the run holding most of its images (in HAT a head
-    that looks in two directions on crossing strips takes part in two runs)."""
-    return {cid: run.result.cameras[ci] for cid, (run, ci, _) in camera_runs(block, at.runs).items()}
+    """Camera id -> the camera model as self-calibrated: by HAT's calibration sub-block, else by the run holding most
+    of its images."""
+    return {cid: run.result.cameras[ci] for cid, (run, ci, _) in camera_runs(block, at.calibrating_runs()).items()}
 
 
 def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
@@ -185,7 +191,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
         at = hierarchical(block, ties, opt, connection=str(cfg.connection), cell=cfg.cell_size,
                           executor=ctx.get_executor(), progress=ctx.progress, oblique_control=cfg.oblique_control,
                           oblique_ties_per_cell=int(cfg.oblique_ties_per_cell),
-                          oblique_tie_grid=int(cfg.oblique_tie_grid))
+                          oblique_tie_grid=int(cfg.oblique_tie_grid), calibration_images=int(cfg.calibration_images))
     for iid, pose in at.poses.items():
         block.images[iid].pose_adjusted = pose
     if cfg.self_calibration:  # the adjusted orientations hold only with the cameras calibrated beside them
@@ -261,4 +267,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="11", adjusted_block=False, inputs=(MANUAL_FILE,))
+              version="12", adjusted_block=False, inputs=(MANUAL_FILE,))
