@@ -470,11 +470,12 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     xyz0 = initial_tie_coordinates(block, ties) if xyz0 is None else xyz0
     calibration = None
     if opt.self_calibration and calibration_images > 0:
+        t_c = time.perf_counter()
         ids = central_images(block, calibration_images)
         sub_c = build_problem(block, ties, ids, xyz0, strips=_strips(block, opt))
         res_c = adjust(sub_c.problem, opt, None if progress is None else
                        (lambda d, t, m: progress(0, 2, f"self-calibration on the {len(ids)} central images: {m}")))
-        calibration = _to_run("calibration", sub_c, res_c, time.perf_counter() - t0)
+        calibration = _to_run("calibration", sub_c, res_c, time.perf_counter() - t_c)
         block = replace(block, cameras={**block.cameras, **{cam.id: cam for cam in res_c.cameras}})
         opt = replace(opt, self_calibration=())
     views = block.images_by_view()

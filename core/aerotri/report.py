@@ -568,7 +568,10 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
             "weakest_control": weakest_control(runs),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at),
             "self_calibration": self_calibration(block, at),
-            "calibration_run": run_statistics(at.calibration, sigma_px) if at.calibration is not None else None,
+            "calibration_run": run_statistics(at.calibration, sigma_px) | {
+                "cameras_missing": sorted({block.images[i].camera_id for i in at.poses}
+                                          - {block.images[i].camera_id for i in at.calibration.poses})}
+            if at.calibration is not None else None,
             "wall_s": at.wall_s,
             "gnss_strips": at.gnss_strips(), "gnss_strip_check": gnss_strip_check(block, at),
             "blunder_percent": float(100.0 * at.obs_rejected.mean()) if ties.n_obs else 0.0,
@@ -851,6 +854,9 @@ def _calibration_html(cameras: dict[str, dict], sub_block: dict | None) -> list[
         f"together before the hierarchical runs, which held the cameras; sigma0 {format_value(sub_block['sigma0'])}, "
         f"{sub_block['rejected']} of {sub_block['observations']} observations rejected, "
         f"{format_value(sub_block['wall_s'])} s)")
+    if sub_block is not None and sub_block.get("cameras_missing"):
+        source += (" (" + ", ".join(html.escape(c) for c in sub_block["cameras_missing"]) + ": no image in the "
+                   "sub-block, held at the imported calibration)")
     parts = [f"<h2>Self-calibration</h2><p>Per camera, from {source}: the parameters before "
              "and after the adjustment, the correction with its marginal standard deviation, and t, the correction "
              f"in standard deviations (significant above {SIGNIFICANCE_T:g}: a two-sided test at 5 %). Principal "
