@@ -216,7 +216,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "are skipped")
     s.add_argument("workspace")
     s.add_argument("--stages", help="comma-separated stage names")
-    s.add_argument("--force", action="store_true", help="rerun even if up to date")
+    s.add_argument("--force", action="store_true",
+                   help="rerun the given stages (all without --stages) even if up to date; the stages they require "
+                        "still run only when stale")
     s.add_argument("--set", action="append", metavar="STAGE.OPTION=VALUE", help="set a stage option")
     s.add_argument("--executor", choices=("inline", "processes", "dask"), default="inline")
     s.add_argument("--workers", type=int, default=2)

@@ -860,7 +860,12 @@ def _calibration_html(cameras: dict[str, dict], sub_block: dict | None) -> list[
     parts = [f"<h2>Self-calibration</h2><p>Per camera, from {source}: the parameters before "
              "and after the adjustment, the correction with its marginal standard deviation, and t, the correction "
              f"in standard deviations (significant above {SIGNIFICANCE_T:g}: a two-sided test at 5 %). Principal "
-             "point in pixels from the centre of the top-left pixel.</p>"]
+             "point in pixels from the centre of the top-left pixel. Significant is not the same as large: with "
+             "hundreds of thousands of measurements a correction can be significant while it changes the residuals "
+             "by hundredths of a pixel, and parameters strongly correlated with one another or with the "
+             "orientations (a focal length with the flying height, an oblique head's principal point with its "
+             "boresight) move together, so that the corner shift overstates what the images see; judge a "
+             "calibration by the check points too.</p>"]
     for cid, c in cameras.items():
         rows = "".join(f"<tr><td>{p['name']}</td><td>{p['unit']}</td><td>{format_value(p['initial'])}</td>"
                        f"<td>{format_value(p['adjusted'])}</td><td>{format_value(p['correction'])}</td>"

@@ -87,7 +87,9 @@ def is_up_to_date(ws: Workspace, name: str, state: dict) -> bool:
 
 def run_stages(ws: Workspace, names: list[str] | None = None, ctx: RunContext | None = None,
                force: bool = False) -> list[StageRecord]:
-    """Run the given stages (all when None) and the stages they require, skipping up-to-date ones.
+    """Run the given stages (all when None) and the stages they require, skipping up-to-date ones; ``force`` reruns
+    the given stages even when up to date (the stages they require still only when stale: re-running AT with new
+    options does not redo the matching).
 
     Raises the first stage's :class:`CityError` after recording it in ``state.json``; a :class:`Cancelled`
     is recorded as ``cancelled`` and re-raised.
@@ -100,7 +102,8 @@ def run_stages(ws: Workspace, names: list[str] | None = None, ctx: RunContext | 
     configs = {name: get_stage(name).make_config(ws.stage_options(name)) for name in plan(names)}
     for name in configs:
         state = ws.read_state()
-        if not force and is_up_to_date(ws, name, state):
+        forced = force and (names is None or name in names)
+        if not forced and is_up_to_date(ws, name, state):
             records.append(StageRecord(name, "skipped", 0.0, "up to date"))
             log.info("%s: up to date", name)
             continue

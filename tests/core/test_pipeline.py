@@ -122,7 +122,8 @@ def test_runner_skips_unchanged_and_reruns_on_change(utm_block, tmp_path, square
 
 
 def test_downstream_follows_a_rerun_dependency_and_the_adjusted_block(utm_block, tmp_path, square_stage) -> None:
-    """A forced rerun of a stage makes the stages after it stale (same inputs, new outputs); an adjusted block
+    """A forced rerun of a stage makes the stages after it stale (same inputs, new outputs) and does not rerun the
+    up-to-date stages it requires; an adjusted block
     written by aerial triangulation makes the stages that read it stale, not those that read the imported one."""
     from oblique_city.core.pipeline.workspace import ADJUSTED_BLOCK_FILE
 
@@ -137,6 +138,8 @@ def test_downstream_follows_a_rerun_dependency_and_the_adjusted_block(utm_block,
         assert {r.status for r in run_stages(ws, ["before", "square", "after"])} == {"skipped"}
         run_stages(ws, ["square"], force=True)
         assert [r.status for r in run_stages(ws, ["after"])] == ["skipped", "done"]
+        # forcing a stage reruns it alone: the stages it requires run only when stale
+        assert [r.status for r in run_stages(ws, ["after"], force=True)] == ["skipped", "done"]
         write_block(utm_block, ws.path(ADJUSTED_BLOCK_FILE))
         stat = {r["stage"]: r["status"] for r in status(ws)}
         assert (stat["before"], stat["square"], stat["after"]) == ("done", "stale", "stale")
