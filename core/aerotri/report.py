@@ -301,7 +301,9 @@ def self_calibration(block: ImageBlock, at: ATResult) -> dict:
     marginal covariance, ``BundleOptions.calibration_max_images``), their correlation matrix and the pairs correlated
     at least :data:`STRONG_CORRELATION`, and the corner the calibration moves the most (:func:`corner_shift`:
     ``corner_shift_px`` its length with the standard deviation ``corner_shift_std_px`` propagated from the
-    covariance). The run's name, its image count of the camera and whether its figures are ``marginal``."""
+    covariance). The run's name, its image count of the camera, whether its figures are ``marginal``, and the
+    ``other_runs`` that calibrated the camera too (HAT calibrating in its runs: their images keep their own
+    calibration, which the block does not)."""
     out = {}
     for cid, (run, ci, n) in camera_runs(block, at.calibrating_runs()).items():
         cal = run.result.calibration.get(ci)
@@ -341,7 +343,9 @@ def self_calibration(block: ImageBlock, at: ATResult) -> dict:
                         [names[a], names[b], float(corr[a, b])] for a in range(len(names))
                         for b in range(a + 1, len(names)) if abs(corr[a, b]) >= STRONG_CORRELATION],
                     "corner_shift_px": length, "corner_shift_std_px": shift_std,
-                    "corner": ["top-left", "top-right", "bottom-right", "bottom-left"][worst]}
+                    "corner": ["top-left", "top-right", "bottom-right", "bottom-left"][worst],
+                    "other_runs": [r.name for r in at.calibrating_runs() if r is not run and any(
+                        cam.id == cid and k in r.result.calibration for k, cam in enumerate(r.result.cameras))]}
     return out
 
 
@@ -876,6 +880,10 @@ def _calibration_html(cameras: dict[str, dict], sub_block: dict | None) -> list[
             "" if c["corner_shift_std_px"] is None else f" &plusmn; {format_value(c['corner_shift_std_px'])}")
         notes = [f"Run {html.escape(c['run'])}, {c['images']} images. The calibrated camera moves the image of the "
                  f"{c['corner']} corner by {shift} px."]
+        if c.get("other_runs"):
+            notes.append("Its images in the runs " + ", ".join(html.escape(r) for r in c["other_runs"]) + " were "
+                         "adjusted with their own calibration of it, which the block does not keep (set "
+                         "aerotri.calibration_images to calibrate once, before the runs).")
         if not c["marginal"]:
             notes.append("No standard deviations: the run has more images than aerotri.calibration_std_max_images "
                          "(raise it for the marginal covariance; its cost grows with the cube of the images).")

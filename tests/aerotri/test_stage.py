@@ -309,7 +309,8 @@ def test_hat_self_calibrates_on_a_central_sub_block_first(tmp_path):
     """HAT with self-calibration calibrates the cameras on the 30 images nearest the block's centre (whole
     exposures, all views) before its runs, which hold them. The cameras imported with the errors of the test above
     come out within 4 standard deviations of the truth, from the run ``calibration``, and the check points within
-    the issue's 1.2 times IAT's with self-calibration (the seed's target for HAT-CBA against IAT)."""
+    the issue's 1.2 times IAT's with self-calibration (the seed's target for HAT-CBA against IAT). Calibrated in the
+    runs instead (``calibration_images = 0``), the report names the other run that calibrated each oblique head."""
     from oblique_city.core.aerotri.hierarchical import central_images
     from oblique_city.core.aerotri.stage import STAGE, AerotriConfig
     from oblique_city.core.pipeline import RunContext
@@ -348,6 +349,15 @@ def test_hat_self_calibrates_on_a_central_sub_block_first(tmp_path):
     for key in ("rms_xy_m", "rms_z_m"):
         assert checks["hierarchical"][key] <= 1.2 * checks["integrated"][key], (key, checks)
     assert "calibration sub-block" in ws.path("aerotri/report.html").read_text()
+    assert all(not cam["other_runs"] for cam in report["self_calibration"].values())
+    # calibrated in the runs instead, an oblique head looking two ways on crossing strips is calibrated twice: said
+    STAGE.run(ws, AerotriConfig(mode="hierarchical", self_calibration=calib, sigma_px=0.3, calibration_images=0),
+              RunContext())
+    report = json.loads(ws.path("aerotri/report.json").read_text())
+    assert report["calibration_run"] is None
+    twice = {c for c, cam in report["self_calibration"].items() if cam["other_runs"]}
+    assert twice == set(true) - {"penta_nadir"}, twice
+    assert "own calibration of it" in ws.path("aerotri/report.html").read_text()
 
 
 def test_a_wrong_control_point_is_rejected_and_reported(tmp_path):
