@@ -20,7 +20,8 @@ Observations and unknowns
   their callbacks to cost more than the specialisation saves go in as pycolmap's 3-row cost
   (:data:`PRIOR_SPLIT_SHARE`).
 * Optional self-calibration per camera: focal, principal point, radial (k1 k2 k3), tangential (p1 p2),
-  through a ``SubsetManifold`` on the camera's parameter block.
+  through a ``SubsetManifold`` on the camera's parameter block; the result carries each camera's values before and
+  after with their marginal covariance (:class:`Calibration`).
 * Optional mounting calibration (``BundleOptions.mounting``): per camera model a correction ``M`` (boresight
   rotation, lever-arm offset) common to all its images, between an image and the frame its GNSS/IMU prior
   describes: ``cam_from_world = M frame_from_world``. The navigation data reach the images through the nominal

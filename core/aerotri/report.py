@@ -295,11 +295,11 @@ def corner_shift(initial: CameraModel, adjusted: CameraModel) -> tuple[np.ndarra
 
 def self_calibration(block: ImageBlock, at: ATResult) -> dict:
     """Per self-calibrated camera (``BundleOptions.self_calibration``), from HAT's calibration sub-block or else the
-    run holding most of its images: its
-    free parameters with their values before and after, the correction with its marginal standard deviation and
-    the ratio of the two (``t``, ``significant`` above :data:`SIGNIFICANCE_T`; None where the run computed no
-    marginal covariance, ``BundleOptions.calibration_max_images``), their correlation matrix and the pairs correlated
-    at least :data:`STRONG_CORRELATION`, and the corner the calibration moves the most (:func:`corner_shift`:
+    run holding most of its images: its free parameters with their values before and after, the correction with its
+    marginal standard deviation and the ratio of the two (``t``, ``significant`` above :data:`SIGNIFICANCE_T`; None
+    where the run computed no marginal covariance, ``BundleOptions.calibration_max_images``), their correlation
+    matrix and the pairs correlated at least :data:`STRONG_CORRELATION`, and the corner the calibration moves the
+    most (:func:`corner_shift`:
     ``corner_shift_px`` its length with the standard deviation ``corner_shift_std_px`` propagated from the
     covariance). The run's name, its image count of the camera, whether its figures are ``marginal``, and the
     ``other_runs`` that calibrated the camera too (HAT calibrating in its runs: their images keep their own
@@ -886,7 +886,8 @@ def _calibration_html(cameras: dict[str, dict], sub_block: dict | None) -> list[
                          "aerotri.calibration_images to calibrate once, before the runs).")
         if not c["marginal"]:
             notes.append("No standard deviations: the run has more images than aerotri.calibration_std_max_images "
-                         "(raise it for the marginal covariance; its cost grows with the cube of the images).")
+                         "(raise it for the marginal covariance; its cost grows with the cube of the images), or its "
+                         "covariance could not be estimated.")
         if c["strong_correlations"]:
             notes.append("Strongly correlated (the block hardly tells them apart): " + ", ".join(
                 f"{a} and {b} ({r:+.2f})" for a, b, r in c["strong_correlations"]) + ".")
