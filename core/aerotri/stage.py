@@ -245,8 +245,11 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                 + (f", the GNSS positions of {len(suspect)} strips share an offset (largest in {strip}: "
                    f"{float(np.linalg.norm(suspect[strip]['mean_m'])):.3f} m, {max(suspect[strip]['w']):.1f} sigma): "
                    "estimate it with aerotri.gnss_strips = shift" if suspect else "")
-                + (f", {len(calib)} cameras self-calibrated (the largest change moves a corner of {moved} by "
-                   f"{calib[moved]['corner_shift_px']:.2f} px)" if moved else "")
+                + (f", {len(calib)} cameras self-calibrated"
+                   + (f" on the {report['calibration_run']['images']} central images" if report["calibration_run"]
+                      else "")
+                   + f" (the largest change moves a corner of {moved} by {calib[moved]['corner_shift_px']:.2f} px)"
+                   if moved else "")
                 + (f", weakest control point {weak['name']} (errors below {weak['mdb_m']:.3f} m in {weak['axis']} can "
                    "pass its test)" if weak else "")
                 + (f"; {unpaired} oblique images have no nadir image in their exposure, so their runs started from "

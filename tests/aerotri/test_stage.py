@@ -333,10 +333,11 @@ def test_hat_self_calibrates_on_a_central_sub_block_first(tmp_path):
     calib = ("focal", "principal_point", "radial")
     checks = {}
     for mode in ("integrated", "hierarchical"):
-        STAGE.run(ws, AerotriConfig(mode=mode, self_calibration=calib, sigma_px=0.3, calibration_images=30),
-                  RunContext())
+        result = STAGE.run(ws, AerotriConfig(mode=mode, self_calibration=calib, sigma_px=0.3, calibration_images=30),
+                           RunContext())
         report = json.loads(ws.path("aerotri/report.json").read_text())
         checks[mode] = report["check_points"]["all"]
+    assert "5 cameras self-calibrated on the 30 central images" in result.message
     assert report["calibration_run"]["images"] == 30 and report["calibration_run"]["cameras_missing"] == []
     assert {r["name"] for r in report["runs"]} == {"nadir", "north", "east", "south", "west"}
     for cid, cam in report["self_calibration"].items():
