@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.aerotri.report import largest_systematic
+from ..core.aerotri.report import largest_corner_shift, largest_systematic
 from ..core.errors import InputError
 from ..core.io.geotiff import read_geotiff
 from ..core.io.validate import read_json
@@ -243,7 +243,7 @@ def report_summary(path: Path) -> dict:
         effect = {key: max((float(a) for p in tested for a in (p.get(key) or {}).get("effect_max", [])), default=None)
                   for key in ("position_m", "attitude_deg")}
         calib = doc.get("self_calibration") or {}
-        moved = max(calib, key=lambda c: float(calib[c]["corner_shift_px"]), default=None)
+        moved = largest_corner_shift(calib)
         tested = [p["significant"] for c in calib.values() for p in c["parameters"] if p.get("significant") is not None]
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
                 "self_calibration": (len(calib), moved, float(calib[moved]["corner_shift_px"]),

@@ -471,15 +471,18 @@ def _rigid(r: np.ndarray, c_local: np.ndarray):
     return pycolmap.Rigid3d(pycolmap.Rotation3d(_quat_xyzw(r)), -r @ c_local)
 
 
+_PIXEL_ORIGIN = np.array([0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0])
+"""Added to the :data:`CALIBRATION_NAMES` values on the way into COLMAP (its pixel origin is the top-left corner)."""
+
+
 def _colmap_params(cam: CameraModel) -> list[float]:
-    return [cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, cam.k1, cam.k2, cam.p1, cam.p2, cam.k3, 0.0, 0.0, 0.0]
+    return [*(_calibration_values(cam, tuple(range(9))) + _PIXEL_ORIGIN), 0.0, 0.0, 0.0]
 
 
 def _camera_from_params(cam: CameraModel, p: np.ndarray) -> CameraModel:
     from dataclasses import replace
 
-    return replace(cam, fx=float(p[0]), fy=float(p[1]), cx=float(p[2]) - 0.5, cy=float(p[3]) - 0.5,
-                   k1=float(p[4]), k2=float(p[5]), p1=float(p[6]), p2=float(p[7]), k3=float(p[8]))
+    return replace(cam, **{n: float(v) for n, v in zip(CALIBRATION_NAMES, np.asarray(p[:9]) - _PIXEL_ORIGIN)})
 
 
 def project_obs(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,

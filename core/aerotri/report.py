@@ -272,6 +272,12 @@ def mounting(block: ImageBlock, at: ATResult) -> dict:
             if np.all(np.isfinite(run.result.mounting[ci]))}
 
 
+def largest_corner_shift(cameras: dict[str, dict]) -> str | None:
+    """Of a report's :func:`self_calibration` (as in report.json), the camera whose corner the calibration moves the
+    most, or None without one."""
+    return max(cameras, key=lambda c: float(cameras[c]["corner_shift_px"]), default=None)
+
+
 SIGNIFICANCE_T = 1.96
 """A self-calibrated parameter's correction is significant when it exceeds this many of its standard deviations
 (a two-sided test at 5 %)."""

@@ -29,6 +29,7 @@ from .report import (
     accepted_residuals,
     block_report,
     html_report,
+    largest_corner_shift,
     largest_systematic,
     quality_layers,
     track_residual_rms,
@@ -224,7 +225,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     strip = max(suspect, key=lambda n: max(suspect[n]["w"]), default=None)
     weak = report["weakest_control"]
     calib = report["self_calibration"]
-    moved = max(calib, key=lambda cid: calib[cid]["corner_shift_px"], default=None)
+    moved = largest_corner_shift(calib)
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
