@@ -220,7 +220,9 @@ def report_summary(path: Path) -> dict:
     HAT could not start from the nadir run's corrections (``oblique_without_nadir``: no nadir image in their
     exposure; 0 in reports written before it existed), and of a self-calibration the camera whose image corner it
     moves the most (``self_calibration``: ``(cameras, camera, px, std px or None, significant, tested)``, the
-    last two counting the corrections with a standard deviation; None without one).
+    last two counting the corrections with a standard deviation; None without one), and the tie measurements' sigma
+    when the adjustment estimated one other than the given (``tie_sigma``: ``(given px, estimated px)`` of its first
+    run, None otherwise and in reports written before it existed).
     Raises :class:`InputError` naming the file."""
     doc = read_json(path, "no triangulation report (run the 'aerotri' stage)")
     try:
@@ -245,6 +247,9 @@ def report_summary(path: Path) -> dict:
         calib = doc.get("self_calibration") or {}
         moved = largest_corner_shift(calib)
         tested = [p["significant"] for c in calib.values() for p in c["parameters"] if p.get("significant") is not None]
+        runs = doc.get("runs") or []
+        first = doc.get("calibration_run") or (runs[0] if runs else {})
+        given, used = first.get("sigma_px_given"), first.get("sigma0_a_priori_px")
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
                 "self_calibration": (len(calib), moved, float(calib[moved]["corner_shift_px"]),
                                      calib[moved].get("corner_shift_std_px"), sum(tested), len(tested))
@@ -261,6 +266,8 @@ def report_summary(path: Path) -> dict:
                 "prior_effect": (effect["position_m"], effect["attitude_deg"])
                 if effect["position_m"] is not None or effect["attitude_deg"] is not None else None,
                 "oblique_without_nadir": int(doc.get("oblique_without_nadir") or 0),
+                "tie_sigma": (float(given), float(used)) if given is not None and used is not None and given != used
+                else None,
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),
                 "check_n": int(check["n"]), "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],

@@ -115,6 +115,10 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                        ("radial", "Radial", "Radial distortion k1 k2 k3"),
                                        ("tangential", "Tangential", "Tangential distortion p1 p2"))},
         "sigma_px": {"description": "A priori sigma of the tie measurements (px)"},
+        "tie_sigma_estimate": {"description": "Estimate the tie measurements' sigma from their residuals and adjust "
+                                              "again with it when it differs from the given one"},
+        "tie_sigma_tolerance": {"description": "Relative difference between the estimated and the given tie sigma "
+                                               "that makes the adjustment run again"},
         "calibration_images": {"description": "HAT with self-calibration: images nearest the block's centre (all "
                                               "views) that calibrate the cameras before the runs (0: each run)"},
         "calibration_std_max_images": {"description": "With self-calibration, runs of up to this many images get "

@@ -8,6 +8,7 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
     python benchmarks/bench_at.py --connections cba --control-blunders 5 --prior-blunders 5  # Tables 9 and 10
     python benchmarks/bench_at.py --connections cba --gnss-strips 0.3   # Table 11: GNSS offsets per strip
     python benchmarks/bench_at.py --connections cba --camera-errors   # Table 12: self-calibration
+    python benchmarks/bench_at.py --connections cba --tie-sigma 3   # Table 13: tie sigma given 3 times too large
     make bench-at ARGS="--images 3000"
 
 Prints the tables and writes them as JSON (``--out``, default ``build/bench_at_<images>.json``).
@@ -227,6 +228,9 @@ def main(argv=None) -> int:
                     help="also adjust a copy of the block whose cameras are imported with the focal length 0.3 %% "
                          "long, the principal point 2 px right and k1 0.01 too large, without and with "
                          "self-calibration of focal length, principal point and radial distortion (Table 12)")
+    ap.add_argument("--tie-sigma", dest="tie_sigma", type=float, default=0.0,
+                    help="also adjust with the tie measurements' a priori sigma given this many times the simulated "
+                         "noise, with and without its estimation from the residuals, beside the right one (Table 13)")
     ap.add_argument("--nav-scale", dest="nav_scale", type=float, default=1.0,
                     help="GNSS/IMU errors (and their prior sigmas) times this: 1 is a survey-grade system (5 cm, "
                          "0.004 deg), 100 a low-grade one (5 m, 0.4 deg)")
@@ -284,8 +288,9 @@ def main(argv=None) -> int:
             iat = integrated(block, ties, opt, xyz0=xyz0)
             wall = time.perf_counter() - t
         r = iat.runs[0].result
-        rows.append(evaluate("IAT", block, ties, sim, iat.poses, iat.xyz, ~iat.obs_rejected, r.sigma0, noise,
-                             wall, mem.peak_gb, {"blunders": blunder_scores(ties.obs_blunder, iat.obs_rejected),
+        # sigma0 in units of the simulated noise (the a priori sigma of the solution may be an estimate)
+        rows.append(evaluate("IAT", block, ties, sim, iat.poses, iat.xyz, ~iat.obs_rejected, iat.sigma0_px() / noise,
+                             noise, wall, mem.peak_gb, {"blunders": blunder_scores(ties.obs_blunder, iat.obs_rejected),
                                                  "iterations": r.iterations, "rounds": r.rounds,
                                                  "datum_shift": r.datum_shift.tolist(), "cpu_s": cpu.seconds,
                                                  "profile": {"iat": _run_profile(iat.runs[0])},
@@ -313,9 +318,6 @@ def main(argv=None) -> int:
             hats[conn] = hat
             if conn == "cba":
                 cba_cpu = cpu.seconds
-            chi = sum(r.result.sigma0**2 * r.result.redundancy for r in hat.runs)
-            dof = sum(r.result.redundancy for r in hat.runs)
-            s0 = float(np.sqrt(chi / dof))
             extra = {"blunders": blunder_scores(ties.obs_blunder, hat.obs_rejected),
                      "runs": {r.name: {"wall_s": r.wall_s, "sigma0": r.result.sigma0, "images": len(r.poses),
                                        "connection_points": r.connection_count} for r in hat.runs},
@@ -331,7 +333,8 @@ def main(argv=None) -> int:
                     dxy = float(np.sqrt(np.mean((d[sel, 0] ** 2 + d[sel, 1] ** 2) / 2)))
                     extra[f"diff_vs_iat_rays{k}"] = {"n": int(sel.sum()), "xy_m": dxy,
                                                      "z_m": float(np.sqrt(np.mean(d[sel, 2] ** 2)))}
-            rows.append(evaluate(f"HAT {conn}", block, ties, sim, hat.poses, hat.xyz, ~hat.obs_rejected, s0, noise,
+            rows.append(evaluate(f"HAT {conn}", block, ties, sim, hat.poses, hat.xyz, ~hat.obs_rejected,
+                                 hat.sigma0_px() / noise, noise,
                                  wall, mem.peak_gb, extra))
             print(f"HAT {conn}: {wall:.1f} s (" + ", ".join(f"{r.name} {r.wall_s:.1f}" for r in hat.runs)
                   + f"), peak {mem.peak_gb:.2f} GB")
@@ -367,14 +370,19 @@ def main(argv=None) -> int:
                     b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
                     oblique_tie_grid=args.oblique_tie_grid, oblique_ties_per_cell=args.oblique_ties_per_cell,
                     calibration_images=n))
+        if args.tie_sigma > 0:
+            out["tie_sigma"] = tie_sigma_runs(
+                block, ties, xyz0, sim.true_poses, opt, args.tie_sigma, lambda b, o: hierarchical(
+                    b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
+                    oblique_tie_grid=args.oblique_tie_grid, oblique_ties_per_cell=args.oblique_ties_per_cell))
     finally:
         if ex is not None:
             ex.close()
     if hats:
         nadir_run = next(iter(hats.values())).runs[0]
         prop = {**nadir_propagation(block, nadir_run.frames), **nadir_run.poses}
-        rows.append(evaluate("nadir AT + propagation", block, ties, sim, prop, None, None, nadir_run.result.sigma0,
-                             noise, nadir_run.wall_s, 0.0))
+        rows.append(evaluate("nadir AT + propagation", block, ties, sim, prop, None, None,
+                             nadir_run.result.sigma0 * nadir_run.result.sigma_px / noise, noise, nadir_run.wall_s, 0.0))
     print_tables(out, sim)
     if "control_blunders" in out:
         print_control_blunders(out["control_blunders"], sim.gsd)
@@ -384,6 +392,8 @@ def main(argv=None) -> int:
         print_gnss_strips(out["gnss_strips"], sim.gsd)
     if "camera_errors" in out:
         print_camera_errors(out["camera_errors"], sim.gsd)
+    if "tie_sigma" in out:
+        print_tie_sigma(out["tie_sigma"], sim.gsd)
     targets(out)
     path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -578,6 +588,33 @@ def camera_error_runs(block, ties, xyz0, opt: BundleOptions, run_hat: Callable[[
                             "significant": p["significant"]} for p in cam["parameters"]}}
         print(f"camera errors: {method}, self-calibration {'+'.join(calib) or 'off'}: check XY {xy:.4f} "
               f"Z {z:.4f} m, {wall:.1f} s")
+        out["runs"].append(row)
+    return out
+
+
+def tie_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, factor: float,
+                   run_hat: Callable[[object, BundleOptions], object]) -> dict:
+    """The tie sigma (Table 13): IAT and HAT-CBA given the simulated noise as the tie measurements' a priori sigma,
+    and given ``factor`` times it with and without its estimation (``BundleOptions.tie_sigma_estimate``). Per run
+    the sigma each of its adjustments ended with, the a posteriori sigma (px), the check point RMS and the image
+    centres' errors against the truth in their reported standard deviations (RMS; 1: the precision is told right)."""
+    out = {"factor": factor, "noise_px": opt.sigma_px, "runs": []}
+    for method, f, estimate in (("IAT", 1.0, True), ("IAT", factor, True), ("IAT", factor, False),
+                                ("HAT cba", 1.0, True), ("HAT cba", factor, True), ("HAT cba", factor, False)):
+        o = replace(opt, sigma_px=opt.sigma_px * f, tie_sigma_estimate=estimate)
+        t = time.perf_counter()
+        at = integrated(block, ties, o, xyz0=xyz0) if method == "IAT" else run_hat(block, o)
+        wall = time.perf_counter() - t
+        xy, z = rms_xy_z(check_point_errors(block, at.poses)[1])
+        ids = list(at.poses)
+        err = np.array([at.poses[i].C - true_poses[i].C for i in ids])
+        std = np.array([at.image_std[i][3:] for i in ids])
+        row = {"method": method, "given_px": o.sigma_px, "estimate": estimate,
+               "sigma_px": {r.name: r.result.sigma_px for r in at.runs}, "sigma0_px": at.sigma0_px(),
+               "check_xy_m": xy, "check_z_m": z,
+               "centre_error_over_std": np.sqrt(np.mean((err / std) ** 2, 0)).tolist(), "wall_s": wall}
+        print(f"tie sigma: {method} given {o.sigma_px:.3f} px, estimate {estimate}: check XY {xy:.4f} Z {z:.4f} m, "
+              f"{wall:.1f} s")
         out["runs"].append(row)
     return out
 
@@ -812,6 +849,18 @@ def print_camera_errors(ce: dict, gsd: float) -> None:
             sig = sum(bool(p["significant"]) for p in ps)
             print(f"    {name:3s} before {before:10.4g}  after {after:10.4g}  error/std RMS "
                   f"{_f(np.sqrt(np.mean(np.square(z))) if z else None, 1, 2):>5s}  significant {sig}/{len(ps)}")
+
+
+def print_tie_sigma(ts: dict, gsd: float) -> None:
+    print(f"\nTable 13. Tie sigma: given the simulated {ts['noise_px']:g} px or {ts['factor']:g} times it, estimated "
+          "from the residuals or not; the sigma each adjustment ended with [px], the a posteriori sigma [px], check "
+          "point RMS [GSD], image centre errors against the truth in their reported standard deviations (RMS X Y Z; "
+          "1: the precision is told right), wall time")
+    for r in ts["runs"]:
+        ended = " ".join(f"{k} {v:.3f}" for k, v in r["sigma_px"].items())
+        print(f"{r['method']:8s} given {r['given_px']:6.3f}  {'estimated' if r['estimate'] else 'fixed    '}  "
+              f"a posteriori {r['sigma0_px']:.3f}  XY {_f(r['check_xy_m'], 1 / gsd)} Z {_f(r['check_z_m'], 1 / gsd)}  "
+              f"error/std {_v(r['centre_error_over_std'], 2)}  {r['wall_s']:6.1f} s  ended with: {ended}")
 
 
 def _v(a, nd: int) -> str:

@@ -261,6 +261,9 @@ def draw_triangulation(layout, context) -> None:
     mode = s["mode"] + (f" ({s['connection']})" if s["connection"] else "")
     col.label(text=f"Mode: {mode}, {s['images']} images")
     col.label(text=f"Sigma0: {s['sigma0']:.3f} ({s['sigma0_px']:.3f} px)")
+    if s["tie_sigma"]:
+        given, used = s["tie_sigma"]
+        col.label(text=f"Tie sigma estimated: {used:.3f} px ({given:g} px given)")
     col.label(text=f"Check points ({s['check_n']}): RMS XY {_metres(s['check_rms_xy_m'])}, "
                    f"Z {_metres(s['check_rms_z_m'])}")
     col.label(text=f"Rejected observations: {s['blunder_percent']:.2f} %")

@@ -155,6 +155,19 @@ class ATResult:
         """The GNSS strip offsets and drifts the runs estimated (IAT's, or HAT's nadir run's), by strip name."""
         return {name: d for run in self.runs for name, d in run.gnss_strips.items()}
 
+    def sigma0_px(self) -> float:
+        """The tie measurements' a posteriori sigma over all runs, pixels (:func:`sigma0_px`)."""
+        return sigma0_px(self.runs)
+
+
+def sigma0_px(runs: list[Run]) -> float:
+    """The a posteriori sigma of the tie measurements over ``runs``, pixels: each run's sigma0 times its a priori
+    sigma (runs may have estimated different ones, see ``BundleOptions.tie_sigma_estimate``), combined by their
+    degrees of freedom."""
+    dof = sum(r.result.redundancy for r in runs)
+    chi = sum((r.result.sigma0 * r.result.sigma_px) ** 2 * r.result.redundancy for r in runs)
+    return float(np.sqrt(chi / max(dof, 1)))
+
 
 def camera_runs(block: ImageBlock, runs: list[Run]) -> dict[str, tuple[Run, int, int]]:
     """Camera id -> the run holding most of its images (in HAT a head that looks in two directions on crossing
@@ -477,7 +490,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
                        (lambda d, t, m: progress(0, 2, f"self-calibration on the {len(ids)} central images: {m}")))
         calibration = _to_run("calibration", sub_c, res_c, time.perf_counter() - t_c)
         block = replace(block, cameras={**block.cameras, **{cam.id: cam for cam in res_c.cameras}})
-        opt = replace(opt, self_calibration=())
+        # the runs start from the tie sigma the sub-block estimated (BundleOptions.tie_sigma_estimate)
+        opt = replace(opt, self_calibration=(), sigma_px=res_c.sigma_px)
     views = block.images_by_view()
     nadir_ids = views.get("nadir", [])
     if not nadir_ids:
@@ -559,9 +573,10 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
         opt_v = replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True,
-                        gnss_strips="off", threads=threads)
+                        gnss_strips="off", threads=threads, sigma_px=res_n.sigma_px)
         initial, x_v = start_poses, np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
-        if pre is not None and pre[5] <= opt.screen_max_sigma0:
+        # (the early start's sigma0 is in units of the given tie sigma, the gate in those of the nadir run's)
+        if pre is not None and pre[5] * opt.sigma_px / res_n.sigma_px <= opt.screen_max_sigma0:
             # moved to its inliers already: the run starts there and screens once
             ids_e, tracks_e, r_e, c_e, x_e, _ = pre
             initial = {iid: Pose(r_e[k], c_e[k]) for k, iid in enumerate(ids_e)}
@@ -623,10 +638,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     if thinned_obs.any():
         thinned = np.zeros(n, bool)
         thinned[ties.obs_track[thinned_obs]] = True
-        s0 = float(np.sqrt(sum(r.result.sigma0**2 * r.result.redundancy for r in runs)
-                           / max(sum(r.result.redundancy for r in runs), 1)))
-        xt, ct, rj = intersect_and_test(block, ties, poses, ~rej, thinned, opt.sigma_px, s0, opt.blunder_threshold,
-                                        executor=executor, xyz_start=xyz)
+        xt, ct, rj = intersect_and_test(block, ties, poses, ~rej, thinned, sigma0_px(runs), 1.0,
+                                        opt.blunder_threshold, executor=executor, xyz_start=xyz)
         ok = thinned & np.isfinite(xt[:, 0])
         xyz[ok], cov[ok] = xt[ok], ct[ok]
         rej |= rj

@@ -2,7 +2,9 @@
 
 * Per run: sigma0 a priori and a posteriori, iterations, rejection rounds, blunder share, RMS of image residuals,
   control point residuals, EO prior residuals, datum shift, median standard deviations of orientations and
-  points, wall time, connection points, the estimated mounting corrections.
+  points, wall time, connection points, the estimated mounting corrections; the variance components of its
+  observation groups (tie measurements, GNSS, IMU, control points: :func:`variance_table`) and the tie sigma given
+  and estimated.
 * For the block: check point RMS (all / nadir / oblique views), internal accuracy, the boresight of each head
   estimated from the adjusted orientations of each exposure, each camera's mounting correction when the adjustment
   estimated one (``BundleOptions.mounting``), and the forward intersection error of all tie
@@ -50,7 +52,15 @@ from ..geometry.rotations import matrix_to_rotvec
 from ..matching.targets import SUSPECT_PX
 from ..model import CameraModel, ImageBlock, Raster, TiePoints
 from . import precision
-from .bundle import CALIBRATION_NAMES, DETECTION_POWER, PRIOR_PART_LABELS, PRIOR_PARTS, image_focals
+from .bundle import (
+    CALIBRATION_NAMES,
+    DETECTION_POWER,
+    PRIOR_PART_LABELS,
+    PRIOR_PARTS,
+    VARIANCE_GROUPS,
+    BundleResult,
+    image_focals,
+)
 from .hierarchical import ATResult, Run, camera_runs
 from .problem import intersect_ties, pose_arrays
 from .strips import flight_strips, strip_check
@@ -132,7 +142,7 @@ def largest_systematic(fields: dict[str, dict]) -> tuple[str, float] | None:
     return (worst, px[worst]) if worst else None
 
 
-def run_statistics(run: Run, sigma_px: float) -> dict:
+def run_statistics(run: Run) -> dict:
     """Figures of one adjustment run (see the module docstring)."""
     res = run.result
     v = run.obs_residual[_used(run)]
@@ -148,7 +158,8 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
         "name": run.name, "images": len(run.poses), "points": int(np.isfinite(run.xyz[:, 0]).sum()),
         "observations": int(len(run.obs_index)), "rejected": int(run.obs_rejected.sum()),
         "blunder_percent": float(100.0 * run.obs_rejected.mean()) if len(run.obs_rejected) else 0.0,
-        "sigma0_a_priori_px": sigma_px, "sigma0": res.sigma0, "sigma0_px": res.sigma0 * sigma_px,
+        "sigma0_a_priori_px": res.sigma_px, "sigma_px_given": res.sigma_px_given, "sigma0": res.sigma0,
+        "sigma0_px": res.sigma0 * res.sigma_px, "variance_components": variance_table(res),
         "redundancy": res.redundancy, "iterations": res.iterations, "rounds": res.rounds,
         "rms_image_px": [float(np.sqrt(np.mean(v[:, 0] ** 2))), float(np.sqrt(np.mean(v[:, 1] ** 2)))]
         if len(v) else [None, None],
@@ -169,11 +180,27 @@ def run_statistics(run: Run, sigma_px: float) -> dict:
     }
 
 
-def tie_point_shifts(run: Run, ties: TiePoints, block: ImageBlock, sigma_px: float, used: np.ndarray) -> np.ndarray:
+def variance_table(res: BundleResult) -> list[dict]:
+    """The run's variance components (``BundleResult.variance_components``) of the groups that took part: group,
+    words, observations, redundancy, factor (how many times its a priori sigmas its errors are) with its standard
+    deviation; for the tie measurements also the a priori sigma of the solution and the one their residuals give."""
+    rows = []
+    for key, comp in res.variance_components.items():
+        if comp.count == 0 or comp.redundancy <= 0:
+            continue
+        row = {"group": key, "label": VARIANCE_GROUPS[key], "count": comp.count, "redundancy": comp.redundancy,
+               "factor": comp.factor, "factor_std": comp.factor_std}
+        if key == "ties":
+            row |= {"sigma_px": res.sigma_px, "estimated_sigma_px": comp.factor * res.sigma_px}
+        rows.append(row)
+    return rows
+
+
+def tie_point_shifts(run: Run, ties: TiePoints, block: ImageBlock, used: np.ndarray) -> np.ndarray:
     """External reliability of the run's tie measurements ``used (m,)`` (bool over the run's observations, each with
     a smallest detectable error ``obs_mdb``): how far an error of that size, in its worst direction, moves the
     measurement's tie point with the images held (metres, :func:`.precision.point_shifts` with the run's point
-    cofactors ``xyz_cov / sigma0^2`` and the weight ``1 / sigma_px^2``). The Jacobians use the adjusted
+    cofactors ``xyz_cov / sigma0^2`` and the weight ``1 / sigma_px^2`` of its solution). The Jacobians use the adjusted
     orientations and the block's focal lengths (a self-calibration changes them by far less than these figures
     are worth). Returns ``(k,)`` for the ``k`` measurements used."""
     res = run.result
@@ -187,10 +214,10 @@ def tie_point_shifts(run: Run, ties: TiePoints, block: ImageBlock, sigma_px: flo
     oi = ties.obs_image[obs]
     jp = precision.point_jacobians(r[oi], c[oi], fx[oi], fy[oi], run.xyz[op])
     q = run.xyz_cov / max(res.sigma0, 1e-12) ** 2
-    return precision.point_shifts(jp, q, op) / sigma_px**2 * res.obs_mdb[used]
+    return precision.point_shifts(jp, q, op) / res.sigma_px**2 * res.obs_mdb[used]
 
 
-def reliability(run: Run, ties: TiePoints, block: ImageBlock, sigma_px: float) -> dict:
+def reliability(run: Run, ties: TiePoints, block: ImageBlock) -> dict:
     """Internal and external reliability of one run: the smallest errors its blunder tests find with probability
     :data:`.bundle.DETECTION_POWER` (Baarda's minimal detectable blunders, see :func:`.bundle.detectable_shift`),
     and what such errors do to the result.
@@ -212,9 +239,9 @@ def reliability(run: Run, ties: TiePoints, block: ImageBlock, sigma_px: float) -
     track = ties.obs_track[run.obs_index[used]]
     rays = np.bincount(track, minlength=ties.n_tracks)[track]
     red, mdb = res.obs_redundancy[used], res.obs_mdb[used]
-    shift = tie_point_shifts(run, ties, block, sigma_px, used)
+    shift = tie_point_shifts(run, ties, block, used)
     # delta0 sqrt((1 - r) / r), with delta0 = mdb sqrt(r) / (sigma_px sigma0)
-    bnr = mdb * np.sqrt(1.0 - red) / (sigma_px * max(res.sigma0, 1e-12))
+    bnr = mdb * np.sqrt(1.0 - red) / (res.sigma_px * max(res.sigma0, 1e-12))
     rows = []
     for label, fewest, most in RAY_CLASSES:
         sel = (rays >= fewest) & (rays <= (most or np.inf))
@@ -554,9 +581,9 @@ def ray_counts(ties: TiePoints, at: ATResult, top: int = RAYS_TOP) -> dict:
             "two_ray_share": float(np.mean(n == 2)) if len(n) else None}
 
 
-def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float) -> dict:
+def block_report(block: ImageBlock, ties: TiePoints, at: ATResult) -> dict:
     """Figures of the whole adjustment (combined over runs)."""
-    runs = [run_statistics(r, sigma_px) | {"reliability": reliability(r, ties, block, sigma_px)} for r in at.runs]
+    runs = [run_statistics(r) | {"reliability": reliability(r, ties, block)} for r in at.runs]
     obs, v = accepted_residuals(at)
     obs_ok = ~at.obs_rejected
     chi = sum(r.result.sigma0**2 * r.result.redundancy for r in at.runs)
@@ -569,16 +596,16 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
         check[split] = {"n": len(names), "rms_xy_m": xy, "rms_z_m": z}
     internal = {}
     for split in SPLITS:
-        std = tie_point_std(block, ties, at.poses, at.xyz, obs_ok, sigma0, sigma_px, split)
+        std = tie_point_std(block, ties, at.poses, at.xyz, obs_ok, 1.0, at.sigma0_px(), split)
         xy, z = std_xy_z(std)
         internal[split] = {"points": int(np.isfinite(std[:, 0]).sum()), "std_xy_m": xy, "std_z_m": z}
     return {"mode": at.mode, "connection": at.connection, "images": len(at.poses), "sigma0": sigma0,
-            "sigma0_px": sigma0 * sigma_px, "runs": runs, "check_points": check, "internal_accuracy": internal,
+            "sigma0_px": at.sigma0_px(), "runs": runs, "check_points": check, "internal_accuracy": internal,
             "ground_points": ground_point_residuals(block, at.poses, *at.control_rejections()),
             "weakest_control": weakest_control(runs),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at),
             "self_calibration": self_calibration(block, at),
-            "calibration_run": run_statistics(at.calibration, sigma_px) | {
+            "calibration_run": run_statistics(at.calibration) | {
                 "cameras_missing": sorted({block.images[i].camera_id for i in at.poses}
                                           - {block.images[i].camera_id for i in at.calibration.poses})}
             if at.calibration is not None else None,
@@ -589,8 +616,8 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: flo
                 block, ties, obs, v), "images_table": image_statistics(block, ties, at, obs, v)}
 
 
-def quality_layers(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: float,
-                   cell: float, views: str = "all") -> dict[str, Raster]:
+def quality_layers(block: ImageBlock, ties: TiePoints, at: ATResult, cell: float,
+                   views: str = "all") -> dict[str, Raster]:
     """CBA layers and intersection error maps (see the module docstring).
 
     ``views``: ``all`` uses the combined adjustment's point covariances and every ray; ``nadir`` or
@@ -608,9 +635,7 @@ def quality_layers(block: ImageBlock, ties: TiePoints, at: ATResult, sigma_px: f
         in_split = (img_view == "nadir") if views == "nadir" else (img_view != "nadir")
         sel = ok & in_split[ties.obs_image]
         rays = np.bincount(ties.obs_track[sel], minlength=ties.n_tracks).astype(np.float64)
-        chi = sum(r.result.sigma0**2 * r.result.redundancy for r in at.runs)
-        sigma0 = float(np.sqrt(chi / max(sum(r.result.redundancy for r in at.runs), 1)))
-        std = tie_point_std(block, ties, at.poses, xyz, ok, sigma0, sigma_px, views)
+        std = tie_point_std(block, ties, at.poses, xyz, ok, 1.0, at.sigma0_px(), views)
         rays[rays < 2] = np.nan
     fin = np.isfinite(xyz[:, 0])
     # the grid covers the bulk of the points (a few badly determined points far away must not blow it up)
@@ -809,6 +834,29 @@ def _report_extras(report: dict) -> list[str]:
     return parts
 
 
+def _variance_html(runs: list[dict]) -> list[str]:
+    """The HTML of the runs' :func:`variance_table`."""
+    rows = "".join(f"<tr><td>{html.escape(r['name'])}</td><td>{html.escape(v['label'])}</td><td>{v['count']}</td>"
+                   f"<td>{format_value(v['redundancy'])}</td><td>{format_value(v['factor'])} &plusmn; "
+                   f"{format_value(v['factor_std'])}</td><td>{format_value(v.get('sigma_px'))}</td>"
+                   f"<td>{format_value(v.get('estimated_sigma_px'))}</td></tr>"
+                   for r in runs for v in r.get("variance_components") or [])
+    if not rows:
+        return []
+    return ["<h2>Variance components</h2><p>Per group of observations, how many times its a priori sigmas its "
+            "residuals show its errors to be (the weighted squares of its residuals over its share of the "
+            "redundancy), with the estimate's standard deviation: 1 means weighted as it should be. The tie "
+            "measurements' sigma is estimated and the adjustment solved again with it when they differ by more "
+            "than aerotri.tie_sigma_tolerance (sigma_px_given in the runs table is the one configured). A group far "
+            "from 1 is weighted wrongly against the others, and the standard deviations and tests of what it "
+            "determines are off by about that factor: scale its sigmas (GNSS and IMU: the images' sigma_position, "
+            "sigma_attitude or aerotri.default_sigma_*; control points: their sigmas). With a redundancy of a few "
+            "tens the estimate itself is rough. The redundancy numbers are those of the blunder tests (the priors' "
+            "and the control points' with the tie points held).</p><table><tr><th>run</th><th>group</th>"
+            "<th>observations</th><th>redundancy</th><th>factor</th><th>a priori sigma [px]</th>"
+            f"<th>estimated sigma [px]</th></tr>{rows}</table>"]
+
+
 def _reliability_html(runs: list[dict]) -> list[str]:
     """The HTML of the runs' :func:`reliability`: tie measurements by rays, EO priors, control points."""
     rel = [(r["name"], r["reliability"]) for r in runs if r.get("reliability")]
@@ -915,7 +963,8 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
                      "their runs started from the navigation data, not from the nadir run's corrections, and needed "
                      "a robust round. Import the block with its exposures (OPK columns exposure and head, or "
                      "<code>-o exposures=time</code> or <code>-o exposures=name</code>).</p>")
-    keys = ["images", "points", "observations", "connection_points", "sigma0", "sigma0_px", "iterations", "rounds",
+    keys = ["images", "points", "observations", "connection_points", "sigma_px_given", "sigma0_a_priori_px", "sigma0",
+            "sigma0_px", "iterations", "rounds",
             "blunder_percent", "rms_image_px", "rms_control_m", "rms_prior_position_m", "rms_prior_attitude_deg",
             "datum_shift_m", "median_std_attitude_deg", "median_std_position_m", "std_kind", "point_std_xy_m",
             "point_std_z_m", "wall_s"]
@@ -923,6 +972,7 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
     rows = "".join(f"<tr><td>{k}</td>" + "".join(f"<td>{format_value(r.get(k))}</td>" for r in report["runs"]) + "</tr>"
                    for k in keys)
     parts.append(f"<h2>Runs</h2><table><tr><th></th>{head}</tr>{rows}</table>")
+    parts.extend(_variance_html(report["runs"]))
     rows = "".join(f"<tr><td>{s}</td><td>{c['n']}</td><td>{format_value(c['rms_xy_m'])}</td>"
                    f"<td>{format_value(c['rms_z_m'])}</td>"
                    f"<td>{format_value(report['internal_accuracy'][s]['std_xy_m'])}</td>"

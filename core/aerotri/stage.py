@@ -11,6 +11,7 @@ deviations ``std`` and RMS image residual ``residual_px``), ``aerotri/report.jso
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -55,6 +56,10 @@ class AerotriConfig(CheckedOptions):
         a grid ``oblique_tie_grid`` cells across each image (connection points kept; the thinned points are
         intersected afterwards with the final orientations); 0 keeps every tie point (the seed's method)
     sigma_px : a priori standard deviation of tie measurements, pixels
+    tie_sigma_estimate, tie_sigma_tolerance : estimate the tie measurements' sigma from their residuals (their
+        variance component) and adjust again with it when it differs from ``sigma_px`` by more than this share
+        (:attr:`.bundle.BundleOptions.tie_sigma_estimate`): a wrong one weighs the priors and the control wrongly
+        against the ties and makes the standard deviations and tests of what they determine wrong
     self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
     datum_shift : estimate a 3D shift between the GNSS frame and the control frame
     rig, rig_sigma_deg, rig_sigma_m : constrain the heads of each exposure to the rig's boresight and lever arms
@@ -104,6 +109,8 @@ class AerotriConfig(CheckedOptions):
     oblique_ties_per_cell: int = 0
     oblique_tie_grid: int = 8
     sigma_px: float = 0.5
+    tie_sigma_estimate: bool = True
+    tie_sigma_tolerance: float = 0.1
     self_calibration: tuple[str, ...] = ()
     datum_shift: bool = True
     rig: bool = False
@@ -134,7 +141,8 @@ class AerotriConfig(CheckedOptions):
 
     RULES: ClassVar[dict[str, Rule]] = {
         "mode": MODES, "connection": CONNECTIONS, "cell_size": POSITIVE, "oblique_ties_per_cell": NON_NEGATIVE,
-        "oblique_tie_grid": AT_LEAST_ONE, "sigma_px": POSITIVE, "self_calibration": tuple(CALIBRATION_GROUPS),
+        "oblique_tie_grid": AT_LEAST_ONE, "sigma_px": POSITIVE, "tie_sigma_tolerance": POSITIVE,
+        "self_calibration": tuple(CALIBRATION_GROUPS),
         "rig_sigma_deg": POSITIVE, "rig_sigma_m": POSITIVE, "mounting_sigma_deg": POSITIVE,
         "mounting_sigma_m": POSITIVE, "blunder_threshold": POSITIVE, "max_rejection_rounds": NON_NEGATIVE,
         "robust_scale": POSITIVE, "threads": AT_LEAST_ONE, "linear_solver": LINEAR_SOLVERS,
@@ -157,7 +165,8 @@ class AerotriConfig(CheckedOptions):
                              marginal_max_images=self.marginal_std_max_images,
                              calibration_max_images=self.calibration_std_max_images, control_tests=self.control_tests,
                              prior_tests=self.prior_tests, gnss_strips=self.gnss_strips,
-                             gnss_shift_sigma=self.gnss_shift_sigma, gnss_drift_sigma=self.gnss_drift_sigma)
+                             gnss_shift_sigma=self.gnss_shift_sigma, gnss_drift_sigma=self.gnss_drift_sigma,
+                             tie_sigma_estimate=self.tie_sigma_estimate, tie_sigma_tolerance=self.tie_sigma_tolerance)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
@@ -205,13 +214,13 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                            "residual_px": track_residual_rms(ties, at)})
     adj.save(str(out / "ties.npz"))
     ctx.progress(1, 2, "statistics and layers")
-    report = block_report(block, ties, at, cfg.sigma_px)
+    report = block_report(block, ties, at)
     report["thinned_observations"] = int(at.extra.get("thinned_observations", 0))
     report["target_measurements"] = (target_summary(targets) if targets is not None and targets.get("mode") != "none"
                                      else None)
     report["manual_measurements"] = {"set": manual[0], "removed": manual[1], "skipped": manual[2]}
     report["oblique_without_nadir"] = unpaired
-    layers = quality_layers(block, ties, at, cfg.sigma_px, cfg.layer_cell or cfg.cell_size, cfg.layer_views)
+    layers = quality_layers(block, ties, at, cfg.layer_cell or cfg.cell_size, cfg.layer_views)
     files = write_layers(layers, out / "layers")
     write_json(out / "report.json", report)
     write_text(out / "report.html", html_report(report, layers, accepted_residuals(at)[1]))
@@ -226,6 +235,13 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     weak = report["weakest_control"]
     calib = report["self_calibration"]
     moved = largest_corner_shift(calib)
+    # the tie sigma of the first run (IAT's, HAT's calibration sub-block's or nadir run's), where it was re-estimated
+    first = report["calibration_run"] or report["runs"][0]
+    estimated = first["sigma0_a_priori_px"] if first["sigma0_a_priori_px"] != cfg.sigma_px else None
+    # priors whose residuals are far from their sigmas (beyond a factor 2 and 3 of the estimate's std)
+    off = {v["label"]: v["factor"] for v in first["variance_components"]
+           if v["group"] in ("gnss", "imu") and v["factor"] > 0.0 and abs(math.log(v["factor"])) > math.log(2.0)
+           and abs(v["factor"] - 1.0) > 3.0 * v["factor_std"]}
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
@@ -237,9 +253,15 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "gnss_strips": len(strips), "gnss_strip_offset_max_m": largest,
                  "gnss_strips_suspected": len(suspect), "control_mdb_max_m": weak["mdb_m"] if weak else None,
                  "oblique_without_nadir": unpaired, "self_calibrated_cameras": len(calib),
-                 "calibration_corner_shift_max_px": calib[moved]["corner_shift_px"] if moved else None},
+                 "calibration_corner_shift_max_px": calib[moved]["corner_shift_px"] if moved else None,
+                 "tie_sigma_px": first["sigma0_a_priori_px"]},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
+                + (f", tie measurements' sigma estimated at {estimated:.3f} px ({cfg.sigma_px:g} px given) and "
+                   "adjusted again with it" if estimated is not None else "")
+                + (", the residuals of the " + " and ".join(f"{k} are {f:.2f} times" for k, f in off.items())
+                   + " their a priori sigmas (set realistic ones: see the variance components in report.html)"
+                   if off else "")
                 + (f", largest systematic image residual {worst[1]:.3f} px ({worst[0]})" if worst else "")
                 + (f", {priors_off} GNSS/IMU priors rejected (see report.html)" if priors_off else "")
                 + (f", GNSS offsets of {len(strips)} strips estimated (largest {largest:.3f} m)" if strips else "")
@@ -271,4 +293,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="12", adjusted_block=False, inputs=(MANUAL_FILE,))
+              version="13", adjusted_block=False, inputs=(MANUAL_FILE,))

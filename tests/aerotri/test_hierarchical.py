@@ -326,7 +326,7 @@ def test_prior_effect_is_what_the_adjustment_does(sim, xyz0, options, iat):
     ratio = (moved.poses[iid].C[2] - iat.poses[iid].C[2]) / res.prior_effect[k, 5]
     assert 0.8 < ratio < 1.25
     # the report's largest effect of a GNSS error in Z is this one
-    priors = reliability(iat.runs[0], sim.ties, sim.block, options.sigma_px)["priors"]
+    priors = reliability(iat.runs[0], sim.ties, sim.block)["priors"]
     assert priors["position_m"]["effect_max"][2] == res.prior_effect[k, 5]
 
 
@@ -336,7 +336,7 @@ def test_tie_redundancy_numbers_follow_the_rays(sim, iat, options):
     here 0.243 and 0.494), and the smallest detectable errors shrink as the rays grow (3.1 px for 2 rays, 1.6 for
     10 and more at 0.3 px), and so do their effects: the shift of the point (median 2.5 m for 2 rays, 0.012 m for 10
     and more) and the bias-to-noise ratio (8.9 and 1.3)."""
-    rows = reliability(iat.runs[0], sim.ties, sim.block, options.sigma_px)["ties"]
+    rows = reliability(iat.runs[0], sim.ties, sim.block)["ties"]
     by_rays = {r["rays"]: r for r in rows}
     for k in (2, 3):
         assert abs(by_rays[str(k)]["redundancy_mean"] - (2 * k - 3) / (2 * k)) < 0.02
@@ -377,7 +377,7 @@ def test_tie_point_shift_is_what_the_adjustment_does(sim, xyz0, options, iat):
     run = iat.runs[0]
     res = run.result
     used = res.obs_used & np.isfinite(res.obs_mdb)
-    shift = tie_point_shifts(run, sim.ties, sim.block, options.sigma_px, used)
+    shift = tie_point_shifts(run, sim.ties, sim.block, used)
     idx = np.flatnonzero(used)
     track = sim.ties.obs_track[run.obs_index[idx]]
     rays = np.bincount(track, minlength=sim.ties.n_tracks)[track]

@@ -49,6 +49,7 @@ def ws(tmp_path, utm_block):
                                 {"name": "G2", "rejected_coordinates": False, "rejected_images": ["a", "b"]},
                                 {"name": "C3"}],
               "runs": [{"name": "nadir", "priors_rejected": [["n1", "position"], ["n2", "attitude"]],
+                        "sigma_px_given": 0.5, "sigma0_a_priori_px": 0.3,
                         "reliability": {"priors": {"position_m": {"effect_max": [0.01, 0.02, 0.1273]},
                                                    "attitude_deg": {"effect_max": [0.002, 0.0201, 0.001]}}}},
                        {"name": "north", "priors_rejected": [["o1", "position"]],
@@ -205,6 +206,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     labels = [e[1] for e in log if e[0] == "label"]
     assert "Mode: hierarchical (5), 12 images" in labels
     assert "Sigma0: 0.987 (0.296 px)" in labels
+    assert "Tie sigma estimated: 0.300 px (0.5 px given)" in labels
     assert "Check points (4): RMS XY 0.031 m, Z 0.046 m" in labels
     assert "Rejected observations: 1.25 %" in labels
     assert "40 oblique images without a nadir image in their exposure: import the exposures" in labels
