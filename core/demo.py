@@ -64,6 +64,10 @@ def _set_demo_options(ws: Workspace, sim: Path) -> None:
       ground under the extended strips.
     * The triangulation calibrates each camera's mounting: the simulated heads are mounted off their nominal
       boresight, as real ones are, and the imported block has one camera per head.
+    * The GNSS/IMU priors get the sigmas of the simulated navigation system (its specification, as an operator enters
+      it; the imported BlocksExchange block carries none): the largest of its GNSS sigmas and of its IMU sigmas (the
+      boresight error is the mounting calibration's). With the stage's defaults (0.15 m, 0.05 deg) their variance
+      components came out at 0.38 and 0.15.
     * The control and check points are measured in the images (the rendered targets, ``match.targets = all``): the
       simulator's own image measurements (true projections plus noise) serve only to compare with."""
     doc = json.loads((sim / "truth" / "simulation.json").read_text())
@@ -80,6 +84,11 @@ def _set_demo_options(ws: Workspace, sim: Path) -> None:
     if "mounting" not in stages.setdefault("aerotri", {}):
         stages["aerotri"]["mounting"] = True
         changed = True
+    nav = doc["config"].get("nav") or {}
+    for key, spec in (("default_sigma_position", "gnss_sigma"), ("default_sigma_attitude_deg", "imu_sigma_deg")):
+        if spec in nav and key not in stages["aerotri"]:
+            stages["aerotri"][key] = float(max(nav[spec]))
+            changed = True
     if "targets" not in stages.setdefault("match", {}):
         stages["match"]["targets"] = "all"
         changed = True
