@@ -2113,8 +2113,8 @@ def variance_components(v: np.ndarray, red: np.ndarray, used: np.ndarray, sigma_
     residuals (attitude about world X Y Z in radians, position in metres), ``prior_sigma (n, 6)`` their sigmas,
     ``prior_red (n, 6)`` their redundancy numbers (NaN: not in the solution or not tested); ``gcp_v, gcp_sigma,
     gcp_red (g, 3)``: the same for the control points' coordinates. The redundancy numbers are those of the blunder
-    tests: the ties' leave out the coupling of points and images (about 1 %, see :mod:`.precision`), the priors' and
-    the control points' are taken with the points held."""
+    tests: the ties' leave out the coupling of points and images (about 1 %, see :mod:`.precision`), the priors' are
+    taken with the other images held (:func:`prior_tests`), the control points' with the images held."""
     ok = used & np.isfinite(red) & np.all(np.isfinite(v), 1)
     out = {"ties": VarianceComponent(2 * int(ok.sum()), float(2.0 * red[ok].sum()),
                                      float(np.sum(v[ok] ** 2)) / sigma_px**2)}

@@ -852,8 +852,8 @@ def _variance_html(runs: list[dict]) -> list[str]:
             "determines are off by about that factor: scale its sigmas (GNSS and IMU: the images' sigma_position, "
             "sigma_attitude or aerotri.default_sigma_*; control points: their sigmas). With a redundancy of a few "
             "tens the estimate itself is rough. The redundancy numbers are those of the blunder tests (the priors' "
-            "and the control points' with the tie points held).</p><table><tr><th>run</th><th>group</th>"
-            "<th>observations</th><th>redundancy</th><th>factor</th><th>a priori sigma [px]</th>"
+            "with the other images held, the control points' with the images held).</p><table><tr><th>run</th>"
+            "<th>group</th><th>observations</th><th>redundancy</th><th>factor</th><th>a priori sigma [px]</th>"
             f"<th>estimated sigma [px]</th></tr>{rows}</table>"]
 
 
