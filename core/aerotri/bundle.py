@@ -1322,7 +1322,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         # wrong matches, the Cauchy round ran out of iterations far off and rejected correct control and priors)
         opt = replace(opt, sigma_px=opt.sigma_px * f, screen_start=True, screen_resect=False)
         del res  # (the previous solution's covariances go before the next pass: peak memory)
-        res = _adjust_pass(start, opt, progress, None)
+        res = _adjust_pass(start, opt, None if progress is None else (
+            lambda d, t, m, s=opt.sigma_px: progress(d, t, f"with the tie sigma estimated ({s:.3f} px): {m}")), None)
         res.log[:0] = log
         res.iterations += iterations
         res.time_s += time_s
