@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.aerotri.report import largest_corner_shift, largest_systematic
+from ..core.aerotri.report import estimated_tie_sigma, largest_corner_shift, largest_systematic
 from ..core.errors import InputError
 from ..core.io.geotiff import read_geotiff
 from ..core.io.validate import read_json
@@ -247,9 +247,6 @@ def report_summary(path: Path) -> dict:
         calib = doc.get("self_calibration") or {}
         moved = largest_corner_shift(calib)
         tested = [p["significant"] for c in calib.values() for p in c["parameters"] if p.get("significant") is not None]
-        runs = doc.get("runs") or []
-        first = doc.get("calibration_run") or (runs[0] if runs else {})
-        given, used = first.get("sigma_px_given"), first.get("sigma0_a_priori_px")
         return {"mounting": (len(angles), largest, angles[largest]) if largest else None,
                 "self_calibration": (len(calib), moved, float(calib[moved]["corner_shift_px"]),
                                      calib[moved].get("corner_shift_std_px"), sum(tested), len(tested))
@@ -266,8 +263,7 @@ def report_summary(path: Path) -> dict:
                 "prior_effect": (effect["position_m"], effect["attitude_deg"])
                 if effect["position_m"] is not None or effect["attitude_deg"] is not None else None,
                 "oblique_without_nadir": int(doc.get("oblique_without_nadir") or 0),
-                "tie_sigma": (float(given), float(used)) if given is not None and used is not None and given != used
-                else None,
+                "tie_sigma": estimated_tie_sigma(doc),
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),
                 "check_n": int(check["n"]), "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],

@@ -363,7 +363,7 @@ def _calibration_values(cam: CameraModel, params: tuple[int, ...]) -> np.ndarray
 
 
 VARIANCE_GROUPS = {"ties": "tie measurements", "gnss": "GNSS positions", "imu": "IMU attitudes",
-                   "control": "control point coordinates"}
+                   "control": "control point coordinates", "control_measurements": "control point measurements"}
 """The observation groups of :func:`variance_components`, with their names in words."""
 
 
@@ -1592,10 +1592,13 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
     gcp_mdb, prior_mdb = delta * gcp_sd, delta * prior_sd
     in_use6 = np.repeat(prior_ok[:, None] & ~prior_off & adjusted[:, None], 3, axis=1)
     gcp_red = prob.gcp_sigma**2 / gcp_sd**2
+    meas_v, meas_red = _control_measurements(prob, cams, r, c, gcp_xyz, gcp_obs_ok & gcp_ok[prob.gcp_obs_point]
+                                             & adjusted[prob.gcp_obs_image], gcp_ok)
     components = variance_components(
         v, red, active, opt.sigma_px, np.concatenate([att_res, pos_res], 1),
         np.concatenate([prob.prior_sigma_att, prob.prior_sigma_pos], 1), np.where(in_use6, 1.0 - prior_share, np.nan),
-        gcp_out - prob.gcp_xyz, prob.gcp_sigma, np.where(gcp_ok[:, None], gcp_red, np.nan))
+        gcp_out - prob.gcp_xyz, prob.gcp_sigma, np.where(gcp_ok[:, None], gcp_red, np.nan), meas_v,
+        prob.gcp_sigma_px[prob.gcp_obs_point], meas_red)
     return BundleResult(
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
@@ -2105,7 +2108,8 @@ def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray,
 
 def variance_components(v: np.ndarray, red: np.ndarray, used: np.ndarray, sigma_px: float, prior_v: np.ndarray,
                         prior_sigma: np.ndarray, prior_red: np.ndarray, gcp_v: np.ndarray, gcp_sigma: np.ndarray,
-                        gcp_red: np.ndarray) -> dict[str, VarianceComponent]:
+                        gcp_red: np.ndarray, meas_v: np.ndarray, meas_sigma_px: np.ndarray,
+                        meas_red: np.ndarray) -> dict[str, VarianceComponent]:
     """The variance components (:class:`VarianceComponent`) of an adjustment's observation groups
     (:data:`VARIANCE_GROUPS`).
 
@@ -2113,9 +2117,11 @@ def variance_components(v: np.ndarray, red: np.ndarray, used: np.ndarray, sigma_
     ``used (m,)`` those in the solution, ``sigma_px`` their a priori sigma; ``prior_v (n, 6)``: the EO priors'
     residuals (attitude about world X Y Z in radians, position in metres), ``prior_sigma (n, 6)`` their sigmas,
     ``prior_red (n, 6)`` their redundancy numbers (NaN: not in the solution or not tested); ``gcp_v, gcp_sigma,
-    gcp_red (g, 3)``: the same for the control points' coordinates. The redundancy numbers are those of the blunder
-    tests: the ties' leave out the coupling of points and images (about 1 %, see :mod:`.precision`), the priors' are
-    taken with the other images held (:func:`prior_tests`), the control points' with the images held."""
+    gcp_red (g, 3)``: the same for the control points' coordinates; ``meas_v (k, 2), meas_sigma_px (k,), meas_red
+    (k,)``: the same for their image measurements (redundancy per coordinate, NaN: not in the solution, see
+    :func:`_control_measurements`). The redundancy numbers are those of the blunder tests: the ties' leave out the
+    coupling of points and images (about 1 %, see :mod:`.precision`), the priors' are taken with the other images
+    held (:func:`prior_tests`), the control points' (coordinates and measurements) with the images held."""
     ok = used & np.isfinite(red) & np.all(np.isfinite(v), 1)
     out = {"ties": VarianceComponent(2 * int(ok.sum()), float(2.0 * red[ok].sum()),
                                      float(np.sum(v[ok] ** 2)) / sigma_px**2)}
@@ -2124,7 +2130,28 @@ def variance_components(v: np.ndarray, red: np.ndarray, used: np.ndarray, sigma_
                              ("control", gcp_v, gcp_sigma, gcp_red)):
         sel = np.isfinite(vv) & np.isfinite(sg) & np.isfinite(rr) & (sg > 0)
         out[name] = VarianceComponent(int(sel.sum()), float(rr[sel].sum()), float(np.sum((vv[sel] / sg[sel]) ** 2)))
+    ok = np.isfinite(meas_red) & np.all(np.isfinite(meas_v), 1) & (meas_sigma_px > 0)
+    out["control_measurements"] = VarianceComponent(2 * int(ok.sum()), float(2.0 * meas_red[ok].sum()),
+                                                    float(np.sum(meas_v[ok] ** 2 / meas_sigma_px[ok, None] ** 2)))
     return out
+
+
+def _control_measurements(prob: BundleProblem, cams: list[CameraModel], r: np.ndarray, c: np.ndarray,
+                          gcp_xyz: np.ndarray, use: np.ndarray, gcp_ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The control points' image measurements after an adjustment: residuals ``(k, 2)`` (pixels) and redundancy numbers
+    ``(k,)`` per coordinate with the images held (each point from its measurements ``use (k,)`` and, where ``gcp_ok``,
+    its given coordinates; NaN for those not in use). ``r, c, gcp_xyz``: the adjustment's frame."""
+    op, oi = prob.gcp_obs_point, prob.gcp_obs_image
+    v = prob.gcp_obs_uv - project_obs(cams, prob.image_camera, r, c, gcp_xyz, op, oi)
+    fx, fy = image_focals(cams, prob.image_camera)
+    jp = precision.point_jacobians(r[oi], c[oi], fx[oi], fy[oi], gcp_xyz[op])
+    w = np.where(use, 1.0 / prob.gcp_sigma_px[op] ** 2, 0.0)
+    prior = np.zeros((len(gcp_xyz), 3, 3))
+    ok = gcp_ok & np.all(np.isfinite(prob.gcp_sigma), 1)
+    prior[ok] = np.einsum("gi,ij->gij", 1.0 / prob.gcp_sigma[ok] ** 2, np.eye(3))
+    q = precision.safe_inverse(precision.point_normals(np.nan_to_num(jp), w, op, len(gcp_xyz), prior))
+    red = 1.0 - precision.quadratic_forms(np.nan_to_num(jp), q, op) * w / 2.0
+    return v, np.where(use & np.isfinite(red), red, np.nan)
 
 
 @cache

@@ -305,6 +305,16 @@ def largest_corner_shift(cameras: dict[str, dict]) -> str | None:
     return max(cameras, key=lambda c: float(cameras[c]["corner_shift_px"]), default=None)
 
 
+def estimated_tie_sigma(report: dict) -> tuple[float, float] | None:
+    """Of a report (as in report.json), the tie sigma given and the one the first adjustment (IAT, HAT's calibration
+    sub-block or nadir run) estimated and adjusted again with (``BundleOptions.tie_sigma_estimate``), pixels; None when
+    it kept the given one, and for reports written before the estimate existed."""
+    runs = report.get("runs") or []
+    first = report.get("calibration_run") or (runs[0] if runs else {})
+    given, used = first.get("sigma_px_given"), first.get("sigma0_a_priori_px")
+    return (float(given), float(used)) if given is not None and used is not None and given != used else None
+
+
 SIGNIFICANCE_T = 1.96
 """A self-calibrated parameter's correction is significant when it exceeds this many of its standard deviations
 (a two-sided test at 5 %)."""
@@ -850,7 +860,8 @@ def _variance_html(runs: list[dict]) -> list[str]:
             "than aerotri.tie_sigma_tolerance (sigma_px_given in the runs table is the one configured). A group far "
             "from 1 is weighted wrongly against the others, and the standard deviations and tests of what it "
             "determines are off by about that factor: scale its sigmas (GNSS and IMU: the images' sigma_position, "
-            "sigma_attitude or aerotri.default_sigma_*; control points: their sigmas). With a redundancy of a few "
+            "sigma_attitude or aerotri.default_sigma_*; control points: the sigmas of their coordinates and of "
+            "their image measurements). With a redundancy of a few "
             "tens the estimate itself is rough. The redundancy numbers are those of the blunder tests (the priors' "
             "with the other images held, the control points' with the images held).</p><table><tr><th>run</th>"
             "<th>group</th><th>observations</th><th>redundancy</th><th>factor</th><th>a priori sigma [px]</th>"

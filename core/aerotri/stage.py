@@ -29,6 +29,7 @@ from .hierarchical import CONNECTIONS, ATResult, camera_runs, hierarchical, inte
 from .report import (
     accepted_residuals,
     block_report,
+    estimated_tie_sigma,
     html_report,
     largest_corner_shift,
     largest_systematic,
@@ -235,12 +236,13 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     weak = report["weakest_control"]
     calib = report["self_calibration"]
     moved = largest_corner_shift(calib)
-    # the tie sigma of the first run (IAT's, HAT's calibration sub-block's or nadir run's), where it was re-estimated
+    estimated = estimated_tie_sigma(report)
     first = report["calibration_run"] or report["runs"][0]
-    estimated = first["sigma0_a_priori_px"] if first["sigma0_a_priori_px"] != cfg.sigma_px else None
-    # priors whose residuals are far from their sigmas (beyond a factor 2 and 3 of the estimate's std)
+    # priors and control measurements whose residuals are far from their sigmas (beyond a factor 2 and 3 of the
+    # estimate's std)
     off = {v["label"]: v["factor"] for v in first["variance_components"]
-           if v["group"] in ("gnss", "imu") and v["factor"] > 0.0 and abs(math.log(v["factor"])) > math.log(2.0)
+           if v["group"] in ("gnss", "imu", "control_measurements") and v["factor"] > 0.0
+           and abs(math.log(v["factor"])) > math.log(2.0)
            and abs(v["factor"] - 1.0) > 3.0 * v["factor_std"]}
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
@@ -257,7 +259,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "tie_sigma_px": first["sigma0_a_priori_px"]},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
-                + (f", tie measurements' sigma estimated at {estimated:.3f} px ({cfg.sigma_px:g} px given) and "
+                + (f", tie measurements' sigma estimated at {estimated[1]:.3f} px ({estimated[0]:g} px given) and "
                    "adjusted again with it" if estimated is not None else "")
                 + (", the residuals of the " + " and ".join(f"{k} are {f:.2f} times" for k, f in off.items())
                    + " their a priori sigmas (set realistic ones: see the variance components in report.html)"

@@ -45,7 +45,7 @@ def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
     assert [r["name"] for r in report["runs"]][0] == "nadir"
     assert abs(report["sigma0_px"] / 0.3 - 1.0) < 0.1
     assert report["check_points"]["all"]["n"] >= 20
-    # the variance components of every run: the ties weighted right (the given 0.3 px kept), and the GNSS positions'
+    # the variance components of every run: the ties weighted right (the given 0.3 px kept), the GNSS positions'
     # factor is their simulated errors' spread (the datum offset aside) over their sigmas, within 4 of its std
     err = np.array([im.pose_approx.C - s.true_poses[i].C for i, im in s.block.images.items()])
     sigma = np.array([im.sigma_position for im in s.block.images.values()])
@@ -56,6 +56,9 @@ def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
         assert abs(groups["ties"]["factor"] - 1.0) < 0.1 and groups["ties"]["estimated_sigma_px"] > 0.27
         gnss = groups["gnss"]
         assert abs(gnss["factor"] - spread) < 4 * gnss["factor_std"] + 0.05, (run["name"], gnss, spread)
+        # the control points' image measurements carry the simulated 0.3 px, their given sigma
+        meas = groups["control_measurements"]
+        assert meas["count"] > 0 and abs(meas["factor"] - 1.0) < 4 * meas["factor_std"] + 0.05, (run["name"], meas)
     assert "Variance components" in ws.path("aerotri/report.html").read_text()
     # per ground point: the check points' differences are those of the RMS above, measurements fit their
     # intersection to the simulated noise, and control points are listed too
