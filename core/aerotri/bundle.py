@@ -1315,12 +1315,12 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         start = replace(prob, r_cam_from_world=res.r_cam_from_world, c_world=res.c_world - shift,
                         xyz=np.where(np.isfinite(res.xyz[:, :1]), res.xyz - shift, prob.xyz), cameras=res.cameras)
         log, iterations, time_s, timing = res.log, res.iterations, res.time_s, res.timing
-        log.append(f"tie measurements: variance factor {f:.3f}, their sigma re-estimated {opt.sigma_px:.3f} -> "
-                   f"{opt.sigma_px * f:.3f} px; adjusted again from this solution, its blunders screened anew")
+        log.append(f"tie measurements: variance factor {f:.3f}, their sigma re-estimated {res.sigma_px:.3f} -> "
+                   f"{res.sigma_px * f:.3f} px; adjusted again from this solution, its blunders screened anew")
         # the solution is the closest start there is: blunders screened there (BundleOptions.screen_start), no robust
         # round (from a converged solution of the rendered demo's oblique runs, with a quarter of their measurements
         # wrong matches, the Cauchy round ran out of iterations far off and rejected correct control and priors)
-        opt = replace(opt, sigma_px=opt.sigma_px * f, screen_start=True, screen_resect=False)
+        opt = replace(opt, sigma_px=res.sigma_px * f, screen_start=True, screen_resect=False)
         del res  # (the previous solution's covariances go before the next pass: peak memory)
         res = _adjust_pass(start, opt, None if progress is None else (
             lambda d, t, m, s=opt.sigma_px: progress(d, t, f"with the tie sigma estimated ({s:.3f} px): {m}")), None)
