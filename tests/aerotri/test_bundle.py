@@ -53,7 +53,8 @@ def test_sigma0_matches_simulated_noise(iat):
 def test_tie_sigma_estimated_from_the_residuals(sim, xyz0, iat):
     """Given 1 px for the simulated 0.3 px, the adjustment estimates the tie sigma from the tie measurements' variance
     component (0.301 px when written) and solves again: the centres and their standard deviations are those of the
-    adjustment given 0.3 px (0.009 of a standard deviation apart, 0.1 % when written). Kept at 1 px, the priors weigh 11
+    adjustment given 0.3 px (0.044 of a standard deviation apart, the second pass screening its blunders anew; the
+    standard deviations within 0.1 % when written). Kept at 1 px, the priors weigh 11
     times too much against the ties: the centres move by about one standard deviation (0.99) and their standard
     deviations come out 0.55-0.62 times too small. The GNSS positions' variance component is the simulated errors'
     spread over their a priori sigmas (1.116 against 1.12)."""
@@ -70,7 +71,7 @@ def test_tie_sigma_estimated_from_the_residuals(sim, xyz0, iat):
     assert res.sigma_px_given == 1.0 and abs(res.sigma_px / 0.3 - 1.0) < 0.03
     assert any("sigma re-estimated 1.000 ->" in line for line in res.log)
     c, s = centres(est)
-    assert np.sqrt(np.mean(((c - c_ref) / s_ref) ** 2)) < 0.05
+    assert np.sqrt(np.mean(((c - c_ref) / s_ref) ** 2)) < 0.1
     assert np.all(np.abs(np.median(s / s_ref, 0) - 1.0) < 0.02)
     fixed = integrated(sim.block, sim.ties, BundleOptions(sigma_px=1.0, tie_sigma_estimate=False), xyz0=xyz0)
     assert fixed.runs[0].result.sigma_px == 1.0
