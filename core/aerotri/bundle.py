@@ -2067,10 +2067,9 @@ def prior_tests(att_res: np.ndarray, pos_res: np.ndarray, sigma_att: np.ndarray,
     ``att_res, pos_res (n, 3)``: adjusted minus prior (world axes, see :func:`_prior_residuals`); ``sigma_att,
     sigma_pos (n, 3)`` the priors' standard deviations; ``n_ties (n, 6, 6)`` the normal blocks of the images from
     their tie observations alone (rotation about the world axes, centre; weights of the measurements' a priori
-    sigma), with the points free (:func:`.precision.reduced_image_normals`: with the points held, the tests took the
-    tie-only poses of a weak sub-block for several times more precise than they are, and with the tie sigma right
-    rejected correct priors by the dozen on the rendered demo's oblique runs); ``in_use (n, 2)`` the parts
-    (attitude, position) still in the adjustment.
+    sigma), with the points free (:func:`.precision.reduced_image_normals`; held points overstate what the ties
+    tell of the pose, most in a weak sub-block); ``in_use (n, 2)`` the parts (attitude, position) still in the
+    adjustment.
 
     The adjusted pose minimises tie and prior terms, so ``x = N^-1 (N_t x_t + P x_p)`` with ``N = N_t + P``; the
     tie-only pose differs from the prior by ``d = x_t - x_p = v + N_t^-1 P v`` (v the prior's residual), with the

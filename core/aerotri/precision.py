@@ -146,8 +146,7 @@ def reduced_image_normals(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndar
     an image's measurements with ``A`` their image rows (:func:`image_rows`), ``J`` their point Jacobians and ``Q``
     their points' cofactor blocks ``q_point (p, 3, 3)`` (all rays and point priors, cameras fixed; NaN blocks count
     as known points). Against :func:`image_normals` (points held) they leave out what the measurements spend on
-    their points: on a weak sub-block (a one-view run of two short strips) held points made an image's pose from its
-    ties look several times more precise than it is."""
+    their points, so they do not overstate what the ties tell of an image's pose."""
     a = quadratic_forms(j_point[:, :1], q_point, obs_point)
     c = quadratic_forms(j_point[:, 1:], q_point, obs_point)
     b = (quadratic_forms((j_point[:, 0] + j_point[:, 1])[:, None], q_point, obs_point) - a - c) / 2.0
