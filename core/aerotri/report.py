@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import base64
 import html
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -305,14 +306,35 @@ def largest_corner_shift(cameras: dict[str, dict]) -> str | None:
     return max(cameras, key=lambda c: float(cameras[c]["corner_shift_px"]), default=None)
 
 
-def estimated_tie_sigma(report: dict) -> tuple[float, float] | None:
-    """Of a report (as in report.json), the tie sigma given and the one the first adjustment (IAT, HAT's calibration
-    sub-block or nadir run) estimated and adjusted again with (``BundleOptions.tie_sigma_estimate``), pixels; None when
-    it kept the given one, and for reports written before the estimate existed."""
+def first_run(report: dict) -> dict:
+    """Of a report (as in report.json), the :func:`run_statistics` of its first adjustment: HAT's calibration
+    sub-block when it had one, else IAT's run or HAT's nadir run ({} without runs)."""
     runs = report.get("runs") or []
-    first = report.get("calibration_run") or (runs[0] if runs else {})
+    return report.get("calibration_run") or (runs[0] if runs else {})
+
+
+def estimated_tie_sigma(report: dict) -> tuple[float, float] | None:
+    """Of a report (as in report.json), the tie sigma given and the one its :func:`first_run` estimated and adjusted
+    again with (``BundleOptions.tie_sigma_estimate``), pixels; None when it kept the given one, and for reports written
+    before the estimate existed."""
+    first = first_run(report)
     given, used = first.get("sigma_px_given"), first.get("sigma0_a_priori_px")
     return (float(given), float(used)) if given is not None and used is not None and given != used else None
+
+
+MISWEIGHTED_FACTOR = 2.0
+"""A group of priors or control measurements whose variance component is off by more than this factor (either way,
+and by more than 3 of its standard deviations) is named as weighted wrongly (:func:`misweighted_groups`)."""
+
+
+def misweighted_groups(run: dict) -> dict[str, float]:
+    """Of a run's :func:`run_statistics`, the GNSS, IMU and control measurement groups whose residuals are far from
+    their a priori sigmas (:data:`MISWEIGHTED_FACTOR`): their names in words -> their factor. The tie measurements'
+    sigma is estimated instead (``BundleOptions.tie_sigma_estimate``)."""
+    return {v["label"]: v["factor"] for v in run.get("variance_components") or []
+            if v["group"] in ("gnss", "imu", "control_measurements") and v["factor"] > 0.0
+            and abs(math.log(v["factor"])) > math.log(MISWEIGHTED_FACTOR)
+            and abs(v["factor"] - 1.0) > 3.0 * v["factor_std"]}
 
 
 SIGNIFICANCE_T = 1.96
@@ -861,10 +883,10 @@ def _variance_html(runs: list[dict]) -> list[str]:
             "from 1 is weighted wrongly against the others, and the standard deviations and tests of what it "
             "determines are off by about that factor: scale its sigmas (GNSS and IMU: the images' sigma_position, "
             "sigma_attitude or aerotri.default_sigma_*; control points: the sigmas of their coordinates and of "
-            "their image measurements). With a redundancy of a few "
-            "tens the estimate itself is rough. The redundancy numbers are those of the blunder tests (the priors' "
-            "with the other images held, the control points' with the images held).</p><table><tr><th>run</th>"
-            "<th>group</th><th>observations</th><th>redundancy</th><th>factor</th><th>a priori sigma [px]</th>"
+            "their image measurements). With a redundancy of a few tens the estimate itself is rough. The redundancy "
+            "numbers are those of the blunder tests (the priors' with the other images held, the control points' "
+            "with the images held).</p><table><tr><th>run</th><th>group</th><th>observations</th>"
+            "<th>redundancy</th><th>factor</th><th>a priori sigma [px]</th>"
             f"<th>estimated sigma [px]</th></tr>{rows}</table>"]
 
 

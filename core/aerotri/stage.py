@@ -11,7 +11,6 @@ deviations ``std`` and RMS image residual ``residual_px``), ``aerotri/report.jso
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -30,9 +29,11 @@ from .report import (
     accepted_residuals,
     block_report,
     estimated_tie_sigma,
+    first_run,
     html_report,
     largest_corner_shift,
     largest_systematic,
+    misweighted_groups,
     quality_layers,
     track_residual_rms,
     write_layers,
@@ -237,13 +238,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     calib = report["self_calibration"]
     moved = largest_corner_shift(calib)
     estimated = estimated_tie_sigma(report)
-    first = report["calibration_run"] or report["runs"][0]
-    # priors and control measurements whose residuals are far from their sigmas (beyond a factor 2 and 3 of the
-    # estimate's std)
-    off = {v["label"]: v["factor"] for v in first["variance_components"]
-           if v["group"] in ("gnss", "imu", "control_measurements") and v["factor"] > 0.0
-           and abs(math.log(v["factor"])) > math.log(2.0)
-           and abs(v["factor"] - 1.0) > 3.0 * v["factor_std"]}
+    first = first_run(report)
+    off = misweighted_groups(first)
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
