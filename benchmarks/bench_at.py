@@ -5,6 +5,7 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
     python benchmarks/bench_at.py --images 3000   # the size of the targets
     python benchmarks/bench_at.py --boresight-sigma-deg 0.05 --mounting --connections cba  # boresight calibration
     python benchmarks/bench_at.py --images 3000 --connections cba --repeat 3   # the wall ratio as a median of 3
+    python benchmarks/bench_at.py --images 3000 --connections cba --oblique-ties-per-cell 1   # thinned oblique runs
     python benchmarks/bench_at.py --connections cba --control-blunders 5 --prior-blunders 5  # Tables 9 and 10
     python benchmarks/bench_at.py --connections cba --gnss-strips 0.3   # Table 11: GNSS offsets per strip
     python benchmarks/bench_at.py --connections cba --camera-errors   # Table 12: self-calibration
@@ -203,8 +204,9 @@ def main(argv=None) -> int:
     ap.add_argument("--stock-images", type=int, default=300,
                     help="sub-block (central exposures) on which our engine and pycolmap's stock adjuster are timed")
     ap.add_argument("--stock-time-limit", type=float, default=900.0, help="seconds, for the stock adjuster")
-    ap.add_argument("--oblique-ties-per-cell", type=int, default=1,
-                    help="HAT: tie point reduction in the oblique runs, tracks kept per image grid cell (0: all)")
+    ap.add_argument("--oblique-ties-per-cell", type=int, default=0,
+                    help="HAT: tie point reduction in the oblique runs, tracks kept per image grid cell (0: all, the "
+                         "aerotri stage's default; the wall-time target is named thinned when it is not 0)")
     ap.add_argument("--oblique-tie-grid", type=int, default=6,
                     help="HAT: grid cells across an oblique image (6: 6 x 4 cells on 1200 x 900 px; on 3,000 images "
                          "it halved the oblique runs' observations against 8 with the same check point RMS)")
@@ -872,14 +874,18 @@ def targets(out: dict) -> None:
     iat, cba = rows.get("IAT"), rows.get("HAT cba")
     res = {}
     pairs = out.get("timing_pairs", [])
+    # the issue's HAT adjusts every tie point (the stage's default): a run with thinned oblique runs says so
+    thinned = " (thinned oblique)" if out["config"].get("oblique_ties_per_cell", 0) > 0 else ""
     if len(pairs) > 1:
         wall, cpu = (float(np.median([p[k] for p in pairs])) for k in ("wall_ratio", "cpu_ratio"))
         each = ", ".join(f"{p['wall_ratio']:.2f}" for p in pairs)
-        res["HAT-CBA wall <= IAT / 5"] = (wall >= 5, f"{wall:.2f}x (median of {len(pairs)} pairs: {each})")
-        res["(HAT-CBA CPU <= IAT CPU / 5)"] = (cpu >= 5, f"{cpu:.2f}x (median)")
+        res[f"HAT-CBA wall <= IAT / 5{thinned}"] = (wall >= 5, f"{wall:.2f}x (median of {len(pairs)} pairs: {each})")
+        res[f"(HAT-CBA CPU <= IAT CPU / 5){thinned}"] = (cpu >= 5, f"{cpu:.2f}x (median)")
     elif iat and cba:
-        res["HAT-CBA wall <= IAT / 5"] = (cba["wall_s"] <= iat["wall_s"] / 5, f"{iat['wall_s'] / cba['wall_s']:.2f}x")
-        res["(HAT-CBA CPU <= IAT CPU / 5)"] = (cba["cpu_s"] <= iat["cpu_s"] / 5, f"{iat['cpu_s'] / cba['cpu_s']:.2f}x")
+        res[f"HAT-CBA wall <= IAT / 5{thinned}"] = (cba["wall_s"] <= iat["wall_s"] / 5,
+                                                    f"{iat['wall_s'] / cba['wall_s']:.2f}x")
+        res[f"(HAT-CBA CPU <= IAT CPU / 5){thinned}"] = (cba["cpu_s"] <= iat["cpu_s"] / 5,
+                                                         f"{iat['cpu_s'] / cba['cpu_s']:.2f}x")
     if iat and cba:
         for ax in ("xy", "z"):
             ratio = cba["check_all"][f"{ax}_m"] / iat["check_all"][f"{ax}_m"]
@@ -905,7 +911,7 @@ def targets(out: dict) -> None:
             f"{st['ours_over_stock']:.2f}" + (" (stock stopped at its limit)" if st["stock_hit_limit"] else ""))
     print("\nTargets")
     for k, (ok, v) in res.items():
-        print(f"  {'PASS' if ok else 'FAIL'}  {k:38s} {v}")
+        print(f"  {'PASS' if ok else 'FAIL'}  {k:48s} {v}")
     out["targets"] = {k: {"pass": bool(ok), "value": v} for k, (ok, v) in res.items()}
 
 
