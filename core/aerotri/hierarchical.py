@@ -18,7 +18,9 @@
   tie points (a production practice); the rest are intersected afterwards with the final orientations.
   (3) Combined statistics by error propagation: a point's information is the nadir information plus each
   oblique block's own contribution (its information minus the connection prior it received); the datum shift is
-  refined from all control measurements (the nadir run saw only the nadir ones).
+  refined from all control measurements (the nadir run saw only the nadir ones). (4) The tracks a run held with
+  one or two rays (where its tests cannot find a blunder) are tested again over all their rays with the final
+  orientations (:func:`weak_tracks`).
   GNSS offsets per strip (``BundleOptions.gnss_strips``) are estimated in the nadir run, like the datum shift, and
   held for the other heads of the same exposures (one antenna) in the oblique runs.
   With self-calibration (``BundleOptions.self_calibration``) a calibration sub-block comes first: the images of the
@@ -643,13 +645,45 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         ok = thinned & np.isfinite(xt[:, 0])
         xyz[ok], cov[ok] = xt[ok], ct[ok]
         rej |= rj
+    # (4) the tracks a run held with one or two rays tested again over all their rays (see weak_tracks), from
+    # scratch: of two rays a run rejects either (their tests are equal); they are intersected from the rays kept
+    weak = weak_tracks(ties, [run.obs_index for run in runs])
+    weak[ties.obs_track[thinned_obs]] = False  # tested over all their rays above
+    in_weak = weak[ties.obs_track]
+    xw, cw, rw = intersect_and_test(block, ties, poses, ~rej | in_weak, weak, sigma0_px(runs), 1.0,
+                                    opt.blunder_threshold, executor=executor, xyz_start=xyz)
+    xyz[weak], cov[weak] = xw[weak], cw[weak]
+    final_tests = {"final_test_tracks": int(weak.sum()), "final_test_rejected": int((rw & ~rej).sum()),
+                   "final_test_restored": int((rej & in_weak & ~rw).sum())}
+    rej = np.where(in_weak, rw, rej)
     return ATResult(mode="hierarchical", poses=poses, image_std=std, xyz=xyz, xyz_cov=cov, obs_rejected=rej,
                     runs=runs, connection=connection, wall_s=time.perf_counter() - t0, calibration=calibration,
                     extra={"calibration_wall_s": calibration.wall_s if calibration is not None else 0.0,
                            "nadir_wall_s": nadir.wall_s, "setup_wall_s": setup_wall, "oblique_wall_s": oblique_wall,
                            "combine_wall_s": combine_wall, "intersection_wall_s": time.perf_counter() - t4,
-                           "cell": cell, "thinned_observations": int(thinned_obs.sum()),
+                           "cell": cell, "thinned_observations": int(thinned_obs.sum()), **final_tests,
                            "datum_shift": res_n.datum_shift + datum_delta, "datum_correction": datum_delta})
+
+
+def weak_tracks(ties: TiePoints, run_obs: list[np.ndarray]) -> np.ndarray:
+    """The tracks ``(n,) bool`` that some run holds with one or two rays, or that have an observation no run holds.
+
+    A run sees a track's rays in its own view only. One ray there is not adjusted (nor tested), and two rays test
+    only across their epipolar line: a blunder along it moves the point and stays. The other views see most of these
+    tracks too (a median of 16 rays in all views for the blunders HAT-CBA missed on the 3,000-image block), so HAT
+    tests their observations again over all their rays with the final orientations (:func:`intersect_and_test`).
+    On the 3,000-image block that is 23 % of the tracks and 17 % of the observations, 0.4 s on 2 processes; the
+    planted blunders found went from 98.8 % to 99.8 % (IAT 100 %), false alarms from 0.051 % to 0.056 %.
+
+    ``run_obs``: per run the indices ``(k,)`` of its observations."""
+    weak = np.zeros(ties.n_tracks, bool)
+    held = np.zeros(ties.n_obs, bool)
+    for idx in run_obs:
+        held[idx] = True
+        counts = np.bincount(ties.obs_track[idx], minlength=ties.n_tracks)
+        weak |= (counts > 0) & (counts <= 2)
+    weak[ties.obs_track[~held]] = True
+    return weak
 
 
 def combine_points(n: int, runs: list[Run], conn_masks: dict[str, np.ndarray], cov_nadir: np.ndarray,

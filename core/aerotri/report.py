@@ -991,6 +991,11 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
              f"<p>{report['images']} images; sigma0 {report['sigma0']:.3f} "
              f"({report['sigma0_px']:.3f} px); wall time {report['wall_s']:.1f} s; "
              f"rejected {report['blunder_percent']:.2f} % of the observations.</p>"]
+    if report.get("final_tests"):
+        ft = report["final_tests"]
+        parts.append(f"<p>{ft['tracks']} tie points that a run held with one or two rays (where its tests cannot "
+                     f"find a blunder) were tested again over all their rays with the final orientations: "
+                     f"{ft['rejected']} more observations rejected, {ft['restored']} a run had rejected kept.</p>")
     if report.get("oblique_without_nadir"):
         parts.append(f"<p>{report['oblique_without_nadir']} oblique images have no nadir image in their exposure: "
                      "their runs started from the navigation data, not from the nadir run's corrections, and needed "

@@ -218,6 +218,9 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     ctx.progress(1, 2, "statistics and layers")
     report = block_report(block, ties, at)
     report["thinned_observations"] = int(at.extra.get("thinned_observations", 0))
+    # HAT's final tests of the tracks a run held with one or two rays (hierarchical.weak_tracks)
+    final = ("final_test_tracks", "final_test_rejected", "final_test_restored")
+    report["final_tests"] = {k[len("final_test_"):]: int(at.extra[k]) for k in final if k in at.extra} or None
     report["target_measurements"] = (target_summary(targets) if targets is not None and targets.get("mode") != "none"
                                      else None)
     report["manual_measurements"] = {"set": manual[0], "removed": manual[1], "skipped": manual[2]}
@@ -291,4 +294,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="13", adjusted_block=False, inputs=(MANUAL_FILE,))
+              version="14", adjusted_block=False, inputs=(MANUAL_FILE,))

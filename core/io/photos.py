@@ -6,8 +6,8 @@ Aerial cameras deliver 16-bit TIFFs whose values use 12 or 14 of the 16 bits. Op
 features on it. A photograph deeper than 8 bits (a 16-bit TIFF or PNG, a float TIFF) is read as it is and scaled
 by the smallest of 8, 10, 12, 14 or 16 significant bits that holds its maximum, image by image (a 12-bit image
 whose brightest value stays under 1024 is taken as a 10-bit one: four times as bright as its neighbours); a float
-image whose values stay within 0..1 is scaled from that range. 8-bit files are read by OpenCV as before (JPEG, 8-bit TIFF and PNG), a fourth band (alpha or
-near infrared) left out of the colour.
+image whose values stay within 0..1 is scaled from that range. 8-bit files are read by OpenCV as before (JPEG,
+8-bit TIFF and PNG), a fourth band (alpha or near infrared) left out of the colour.
 """
 
 from __future__ import annotations

@@ -16,6 +16,7 @@ from oblique_city.core.aerotri.hierarchical import (
     integrated,
     nadir_propagation,
     select_connections,
+    weak_tracks,
 )
 from oblique_city.core.aerotri.precision import point_jacobians
 from oblique_city.core.aerotri.problem import build_problem
@@ -42,7 +43,14 @@ def test_hat_cba_agrees_with_iat(sim, xyz0, options, iat):
         # points and 6-DoF images (the dynamic one, "d,d,d", is about a third slower on the linear solves)
         assert all("Schur structure 2,3,6" in line for line in run.result.log if "least squares" in line)
     s = blunder_scores(sim.ties.obs_blunder, hat.obs_rejected)
-    assert s["recall"] >= 0.95 and s["false_alarm"] <= 0.01
+    assert s["recall"] >= 0.99 and s["false_alarm"] <= 0.01
+    # the tracks a run held with one or two rays are tested again over all their rays: the runs alone found 92 % of
+    # the blunders there (97.4 % of all) with 0.21 % false alarms, the final tests 99.9 % (99.5 % of all) with 0.10 %
+    weak = weak_tracks(sim.ties, [r.obs_index for r in hat.runs])[sim.ties.obs_track]
+    truth = sim.ties.obs_blunder
+    assert hat.extra["final_test_rejected"] > 0
+    assert (truth & weak & hat.obs_rejected).sum() > 0.98 * (truth & weak).sum()
+    assert (~truth & weak & hat.obs_rejected).sum() < 0.002 * (~truth & weak).sum()
     assert set(hat.poses) == set(iat.poses)
     xy_h, z_h = rms_xy_z(check_point_errors(sim.block, hat.poses)[1])
     xy_i, z_i = rms_xy_z(check_point_errors(sim.block, iat.poses)[1])
