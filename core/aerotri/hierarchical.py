@@ -635,27 +635,21 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
             run.poses = {i: Pose(p.R, p.C + datum_delta) for i, p in run.poses.items()}
             run.xyz = run.xyz + datum_delta
     combine_wall = time.perf_counter() - t3
-    # tie points thinned out of the oblique runs: intersected from all their rays with the final orientations
+    # tracks tested over all their rays with the final orientations and intersected from the rays kept, in one
+    # pass: those thinned out of the oblique runs, and (4) those a run held with one or two rays (weak_tracks), from
+    # scratch (of two rays a run rejects either: their tests are equal)
     t4 = time.perf_counter()
-    if thinned_obs.any():
-        thinned = np.zeros(n, bool)
-        thinned[ties.obs_track[thinned_obs]] = True
-        xt, ct, rj = intersect_and_test(block, ties, poses, ~rej, thinned, sigma0_px(runs), 1.0,
-                                        opt.blunder_threshold, executor=executor, xyz_start=xyz)
-        ok = thinned & np.isfinite(xt[:, 0])
-        xyz[ok], cov[ok] = xt[ok], ct[ok]
-        rej |= rj
-    # (4) the tracks a run held with one or two rays tested again over all their rays (see weak_tracks), from
-    # scratch: of two rays a run rejects either (their tests are equal); they are intersected from the rays kept
-    weak = weak_tracks(ties, [run.obs_index for run in runs])
-    weak[ties.obs_track[thinned_obs]] = False  # tested over all their rays above
+    thinned = np.zeros(n, bool)
+    thinned[ties.obs_track[thinned_obs]] = True
+    weak = weak_tracks(ties, [run.obs_index for run in runs]) & ~thinned
     in_weak = weak[ties.obs_track]
-    xw, cw, rw = intersect_and_test(block, ties, poses, ~rej | in_weak, weak, sigma0_px(runs), 1.0,
+    xt, ct, rt = intersect_and_test(block, ties, poses, ~rej | in_weak, thinned | weak, sigma0_px(runs), 1.0,
                                     opt.blunder_threshold, executor=executor, xyz_start=xyz)
-    xyz[weak], cov[weak] = xw[weak], cw[weak]
-    final_tests = {"final_test_tracks": int(weak.sum()), "final_test_rejected": int((rw & ~rej).sum()),
-                   "final_test_restored": int((rej & in_weak & ~rw).sum())}
-    rej = np.where(in_weak, rw, rej)
+    ok = weak | (thinned & np.isfinite(xt[:, 0]))
+    xyz[ok], cov[ok] = xt[ok], ct[ok]
+    final_tests = {"final_test_tracks": int(weak.sum()), "final_test_rejected": int((rt & in_weak & ~rej).sum()),
+                   "final_test_restored": int((rej & in_weak & ~rt).sum())}
+    rej = np.where(in_weak, rt, rej | rt)
     return ATResult(mode="hierarchical", poses=poses, image_std=std, xyz=xyz, xyz_cov=cov, obs_rejected=rej,
                     runs=runs, connection=connection, wall_s=time.perf_counter() - t0, calibration=calibration,
                     extra={"calibration_wall_s": calibration.wall_s if calibration is not None else 0.0,
