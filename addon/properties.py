@@ -121,8 +121,9 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                                "that makes the adjustment run again"},
         "calibration_images": {"description": "HAT with self-calibration: images nearest the block's centre (all "
                                               "views) that calibrate the cameras before the runs (0: each run)"},
-        "calibration_std_max_images": {"description": "With self-calibration, runs of up to this many images get "
-                                                      "the calibration's standard deviations and correlations"},
+        "calibration_std_max_images": {"description": "With self- or mounting calibration, runs of up to this many "
+                                                      "images get the calibration's standard deviations and "
+                                                      "correlations"},
         "mounting": {"description": "Calibrate each camera's boresight and lever arm against the GNSS/IMU priors"},
         "control_tests": {"description": "Test the control points' measurements and coordinates for blunders"},
         "prior_tests": {"description": "Test each image's GNSS position and IMU attitude prior for blunders"},

@@ -561,7 +561,7 @@ def camera_error_runs(block, ties, xyz0, opt: BundleOptions, run_hat: Callable[[
                       calibration_images: int = 500) -> dict:
     """Self-calibration (Table 12): in a copy of the block every camera is imported with the errors of
     :data:`CAMERA_ERRORS` (the simulated measurements follow the true cameras); IAT and HAT-CBA adjust it without and
-    with self-calibration of :data:`SELF_CALIBRATION` (marginal covariances for runs of up to 1,000 images), HAT
+    with self-calibration of :data:`SELF_CALIBRATION` (marginal covariances for runs of up to 3,000 images), HAT
     with a calibration sub-block of ``calibration_images`` first and with each run calibrating its own cameras
     (``run_hat(block, options, calibration_images)``). Returns per run the check point RMS and, calibrated, per
     camera and parameter the error before (the planted one) and after, the reported standard deviation and
@@ -574,7 +574,7 @@ def camera_error_runs(block, ties, xyz0, opt: BundleOptions, run_hat: Callable[[
     runs = [("IAT", (), 0), ("IAT", SELF_CALIBRATION, 0), ("HAT cba", (), 0),
             ("HAT cba", SELF_CALIBRATION, calibration_images), ("HAT cba, per run", SELF_CALIBRATION, 0)]
     for method, calib, n_cal in runs:
-        o = replace(opt, self_calibration=calib, calibration_max_images=1000 if calib else 0)
+        o = replace(opt, self_calibration=calib, calibration_max_images=3000 if calib else 0)
         t = time.perf_counter()
         at = integrated(bad, ties, o, xyz0=xyz0) if method == "IAT" else run_hat(bad, o, n_cal)
         wall = time.perf_counter() - t
