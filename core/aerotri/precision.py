@@ -286,7 +286,7 @@ def marginal_globals(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, n_r
     with_point = np.flatnonzero(row_point >= 0)
     pt = row_point[with_point]
     jp = jp[with_point]
-    q = safe_inverse(sum_outer(jp[:, None, :], np.ones(len(jp)), pt, n_points))
+    q = safe_inverse(point_normals(jp[:, None, :], np.ones(len(jp)), pt, n_points))
     ok = np.all(np.isfinite(q.reshape(n_points, 9)), axis=1)
     q[~ok] = np.eye(3)
     try:
