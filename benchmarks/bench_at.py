@@ -10,6 +10,7 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
     python benchmarks/bench_at.py --connections cba --gnss-strips 0.3   # Table 11: GNSS offsets per strip
     python benchmarks/bench_at.py --connections cba --camera-errors   # Table 12: self-calibration
     python benchmarks/bench_at.py --connections cba --tie-sigma 3   # Table 13: tie sigma given 3 times too large
+    python benchmarks/bench_at.py --images 3000 --connections cba --skip-stock --precision   # Table 14: precision
     make bench-at ARGS="--images 3000"
 
 Prints the tables and writes them as JSON (``--out``, default ``build/bench_at_<images>.json``).
@@ -233,6 +234,9 @@ def main(argv=None) -> int:
     ap.add_argument("--tie-sigma", dest="tie_sigma", type=float, default=0.0,
                     help="also adjust with the tie measurements' a priori sigma given this many times the simulated "
                          "noise, with and without its estimation from the residuals, beside the right one (Table 13)")
+    ap.add_argument("--precision", action="store_true",
+                    help="also adjust with the orientations' marginal standard deviations (IAT and HAT-CBA; the "
+                         "timed runs report the conditional ones) and compare both with the true errors (Table 14)")
     ap.add_argument("--nav-scale", dest="nav_scale", type=float, default=1.0,
                     help="GNSS/IMU errors (and their prior sigmas) times this: 1 is a survey-grade system (5 cm, "
                          "0.004 deg), 100 a low-grade one (5 m, 0.4 deg)")
@@ -241,6 +245,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.repeat < 1:
         ap.error("--repeat must be at least 1")
+    if args.precision and (args.skip_iat or "cba" not in args.connections):
+        ap.error("--precision compares with IAT and HAT-CBA: leave IAT in and name cba in --connections")
     noise = 0.3
     lever = 0.01 if args.boresight_sigma_deg > 0 else 0.0
     base = SimulationConfig()
@@ -377,6 +383,12 @@ def main(argv=None) -> int:
                 block, ties, xyz0, sim.true_poses, opt, args.tie_sigma, lambda b, o: hierarchical(
                     b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
                     oblique_tie_grid=args.oblique_tie_grid, oblique_ties_per_cell=args.oblique_ties_per_cell))
+        if args.precision:
+            out["precision"] = precision_runs(block, sim.true_poses, {"IAT": iat, "HAT cba": hats["cba"]}, {
+                "IAT": lambda o: integrated(block, ties, o, xyz0=xyz0),
+                "HAT cba": lambda o: hierarchical(block, ties, o, connection="cba", cell=args.cell, executor=ex,
+                                                  xyz0=xyz0, oblique_tie_grid=args.oblique_tie_grid,
+                                                  oblique_ties_per_cell=args.oblique_ties_per_cell)}, opt)
     finally:
         if ex is not None:
             ex.close()
@@ -396,6 +408,8 @@ def main(argv=None) -> int:
         print_camera_errors(out["camera_errors"], sim.gsd)
     if "tie_sigma" in out:
         print_tie_sigma(out["tie_sigma"], sim.gsd)
+    if "precision" in out:
+        print_precision(out["precision"])
     targets(out)
     path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -618,6 +632,34 @@ def tie_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, fact
         print(f"tie sigma: {method} given {o.sigma_px:.3f} px, estimate {estimate}: check XY {xy:.4f} Z {z:.4f} m, "
               f"{wall:.1f} s")
         out["runs"].append(row)
+    return out
+
+
+def precision_runs(block, true_poses: dict, conditional: dict, run: dict[str, Callable[[BundleOptions], object]],
+                   opt: BundleOptions) -> dict:
+    """The orientations' precision (Table 14): per method the results of the timed runs (``conditional``: method ->
+    its adjustment, whose image standard deviations are the conditional ones) and those of ``run[method]`` with
+    every run's marginal ones (``BundleOptions.marginal_max_images``); per result the kind its runs reported, the
+    median standard deviations (attitude about X Y Z in degrees, centre X Y Z in metres), the true errors in them
+    (RMS per axis; 1: the precision is told right) and the time the marginal covariances took."""
+    out = {"runs": []}
+    for method, cond in conditional.items():
+        t = time.perf_counter()
+        marg = run[method](replace(opt, marginal_max_images=10**9))
+        wall = time.perf_counter() - t
+        for at, w in ((cond, None), (marg, wall)):
+            ids = list(at.poses)
+            err = np.array([np.concatenate([matrix_to_rotvec(true_poses[i].R.T @ at.poses[i].R),
+                                            at.poses[i].C - true_poses[i].C]) for i in ids])
+            std = np.array([at.image_std[i] for i in ids])
+            seconds = [float(line.split(" in ")[-1].rstrip(" s")) for r in at.runs for line in r.result.log
+                       if line.startswith("marginal covariance")]
+            out["runs"].append({
+                "method": method, "kinds": sorted({r.result.image_std_kind for r in at.runs}),
+                "median_std": np.concatenate([np.degrees(np.median(std[:, :3], 0)), np.median(std[:, 3:], 0)]).tolist(),
+                "error_over_std": np.sqrt(np.mean((err / std) ** 2, 0)).tolist(),
+                "covariance_s": sum(seconds) if seconds else None, "wall_s": w})
+        print(f"precision: {method} with marginal standard deviations {wall:.1f} s")
     return out
 
 
@@ -863,6 +905,19 @@ def print_tie_sigma(ts: dict, gsd: float) -> None:
         print(f"{r['method']:8s} given {r['given_px']:6.3f}  {'estimated' if r['estimate'] else 'fixed    '}  "
               f"a posteriori {r['sigma0_px']:.3f}  XY {_f(r['check_xy_m'], 1 / gsd)} Z {_f(r['check_z_m'], 1 / gsd)}  "
               f"error/std {_v(r['centre_error_over_std'], 2)}  {r['wall_s']:6.1f} s  ended with: {ended}")
+
+
+def print_precision(pr: dict) -> None:
+    print("\nTable 14. Orientation precision: standard deviations conditional (each image with the points held) or "
+          "marginal (all correlations); median std (attitude X Y Z [deg], centre X Y Z [m]); true errors in them (RMS "
+          "per axis; 1: the precision is told right); time of the marginal covariances [s] (the run's wall time)")
+    for r in pr["runs"]:
+        med = r["median_std"]
+        wall = "" if r["wall_s"] is None else f" (run {r['wall_s']:.1f})"
+        cov = "     -" if r["covariance_s"] is None else f"{r['covariance_s']:6.1f}"
+        print(f"{r['method']:8s} {'/'.join(r['kinds']):12s} std att {' '.join(f'{x:.5f}' for x in med[:3])}  "
+              f"centre {' '.join(f'{x:.4f}' for x in med[3:])}  error/std att {_v(r['error_over_std'][:3], 2)} "
+              f"centre {_v(r['error_over_std'][3:], 2)}  covariance {cov} s{wall}")
 
 
 def _v(a, nd: int) -> str:

@@ -193,15 +193,16 @@ class BundleOptions:
         ends the rejection without another solve: they are rejected and only the points that lost them are
         re-estimated (cameras fixed), since a full solve would move the cameras by far less than their precision
     marginal_max_images : up to this many adjusted images (0: never), the images' standard deviations are the
-        marginal ones (:func:`marginal_image_std`: the correlations between images and with the datum and the
-        control included); above it, or when that fails, the conditional ones (each image's 6 x 6 normal block
-        with the points held fixed), which are cheaper (the marginal ones added 14 s to a 19 s adjustment of 600
-        images) and a lower bound
+        marginal ones (:func:`marginal_covariances`: the correlations between images and with the datum, the control
+        and the calibrated parameters included); above it the conditional ones (each image's 6 x 6 normal block with
+        the points held fixed), a lower bound. On the simulated 3,000-image block the marginal ones took 51-65 s
+        after a 113-122 s adjustment (peak 4.9 GB for the whole run) and fit the true errors: RMS error over
+        standard deviation 0.97-1.03 per axis of attitude and centre, where the conditional ones are 5-7 % smaller
     calibration_max_images : with ``self_calibration`` or ``mounting``, up to this many adjusted images the
-        calibrated parameters' marginal covariance is computed (:func:`marginal_global_cov`: the points and the
-        images eliminated, the images' reduced system factorised densely) for their standard deviations and
-        correlations (:attr:`Calibration.cov`, ``BundleResult.mounting_std``). It took 11 s on 1,000 images and
-        100 s (peak 9.9 GB) on 3,000 (the factorisation grows with the cube of the images, its memory with the square)
+        calibrated parameters' marginal covariance is computed (:func:`marginal_covariances`) for their standard
+        deviations and correlations (:attr:`Calibration.cov`, ``BundleResult.mounting_std``): 56 s on 3,000 images
+        (the Jacobian evaluated, the points eliminated, the images' sparse reduced system factorised). Computed
+        whenever the images' marginal ones are
     screen_start : for a start already close to the solution (HAT's oblique runs start from the adjusted nadir
         orientations propagated to their heads): the robust round is replaced by :func:`screen_points` at the start
         (cameras held, each point re-estimated from its rays with blunder tests, sigma0 estimated robustly), and the
@@ -349,7 +350,7 @@ class Calibration:
     initial, adjusted : (k,) their values before and after the adjustment, as :class:`CameraModel` holds them
         (focal length and principal point in pixels, the principal point from the centre of the top-left pixel)
     cov : (k, k) their marginal covariance, scaled by the run's sigma0 (the correlations with the orientations, the
-        points and the datum included; see :func:`marginal_global_cov`), or None where the run computed none
+        points and the datum included; see :func:`marginal_covariances`), or None where the run computed none
         (``BundleOptions.calibration_max_images``)
     """
 
@@ -1174,19 +1175,21 @@ class _Round:
                 self.padded_rows += 2
         return frame, drift
 
-    def global_covariance(self, model: _Model, calibrated: dict[int, np.ndarray],
-                          mount: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[tuple, np.ndarray] | None:
-        """The marginal covariances (unit weight, tangent space) of the solved problem's global parameters, by
-        :func:`marginal_global_cov`: per camera of ``calibrated`` (camera -> its parameter block) ``("camera", ci)``,
-        per mounting correction of ``mount`` ``("mount_q", ci)`` and ``("mount_t", ci)``; the strips' offsets and the
-        datum shift are eliminated beside the images and points. None when the problem holds variable blocks this
-        does not know (the count of blocks disagrees) or the reduced system is singular."""
+    def marginal(self, model: _Model, calibrated: dict[int, np.ndarray],
+                 mount: dict[int, tuple[np.ndarray, np.ndarray]],
+                 poses: bool) -> tuple[dict[int, np.ndarray], dict[tuple, np.ndarray]] | None:
+        """The marginal covariances (unit weight, tangent space) of the solved problem, by
+        :func:`marginal_covariances`: with ``poses`` each adjusted image's pose (image -> 6 x 6), and the global
+        parameters: per camera of ``calibrated`` (camera -> its parameter block) ``("camera", ci)``, per mounting
+        correction of ``mount`` ``("mount_q", ci)`` and ``("mount_t", ci)``, per strip ``("strip", st)`` and
+        ``("drift", st)``, the datum shift ``("shift",)``. None when the problem holds variable blocks this does not
+        know (the count of blocks disagrees) or the reduced system is singular."""
         problem = self.problem
 
         def variable(b: np.ndarray) -> bool:
             return problem.has_parameter_block(b) and not problem.is_parameter_block_constant(b)
 
-        poses = [fp for fp in self.frame_params.values() if variable(fp)]
+        images = [k for k, fp in self.frame_params.items() if variable(fp)]
         glob: dict[tuple, np.ndarray] = {("camera", ci): p for ci, p in calibrated.items()}
         for ci, (q, t) in mount.items():
             glob["mount_q", ci], glob["mount_t", ci] = q, t
@@ -1202,10 +1205,14 @@ class _Round:
         points += [self.gcp_x[g] for g in np.flatnonzero(self.gcp_seen) if variable(self.gcp_x[g])]
         held = [b for b in (*self.frame_params.values(), *model.cam_params.values(), self.sim_const, self.shift)
                 if problem.has_parameter_block(b) and problem.is_parameter_block_constant(b)]
-        if len(poses) + len(glob) + len(points) + len(held) != problem.num_parameter_blocks():
+        if len(images) + len(glob) + len(points) + len(held) != problem.num_parameter_blocks():
             return None
-        cov = marginal_global_cov(problem, poses, list(glob.values()), points)
-        return None if cov is None else dict(zip(glob, cov))
+        got = marginal_covariances(problem, [self.frame_params[k] for k in images], list(glob.values()), points,
+                                   poses)
+        if got is None:
+            return None
+        pose_cov, glob_cov = got
+        return dict(zip(images, pose_cov)) if poses else {}, dict(zip(glob, glob_cov))
 
     def solve(self, opt: BundleOptions, kind: str, robust: bool):
         import pyceres
@@ -1586,27 +1593,30 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
     # the cameras the run self-calibrated: their parameter blocks are variables of the problem
     calibrated = {ci: p for ci, p in model.cam_params.items()
                   if rd.problem.has_parameter_block(p) and not rd.problem.is_parameter_block_constant(p)}
-    if 0 < adjusted.sum() <= opt.marginal_max_images:
-        marginal = marginal_image_std(model.rec, rd.problem, r, c - ref, adjusted)
-        if marginal is not None:
-            image_std = np.where(adjusted[:, None], marginal * opt.sigma_px * sigma0, image_std)
-            image_std_kind = "marginal"
     camera_cov: dict[int, np.ndarray] = {}
     mount = {ci: model.mount[ci] for ci in model.mount_used}
-    if (calibrated or mount) and 0 < adjusted.sum() <= opt.calibration_max_images:
+    want_poses = 0 < adjusted.sum() <= opt.marginal_max_images
+    if want_poses or ((calibrated or mount) and 0 < adjusted.sum() <= opt.calibration_max_images):
         t_cov = time.perf_counter()
-        glob = rd.global_covariance(model, calibrated, mount)
-        if glob is None:
-            log.append("calibrated parameters: no covariance (the reduced system is singular, or the problem holds "
-                       "parameters the estimate does not know)")
+        marg = rd.marginal(model, calibrated, mount, want_poses)
+        if marg is None:
+            log.append("marginal covariance: none (the reduced system is singular, or the problem holds parameters "
+                       "the estimate does not know)")
         else:
+            pose_cov, glob = marg
             scale = (opt.sigma_px * sigma0) ** 2
+            if want_poses:
+                k_cov = np.array(list(pose_cov), np.int64)
+                image_std[k_cov] = world_pose_std(np.array(list(pose_cov.values())), r[k_cov],
+                                                  c[k_cov] - ref) * np.sqrt(scale)
+                image_std_kind = "marginal"
             camera_cov = {key[1]: cov * scale for key, cov in glob.items() if key[0] == "camera"}
             for ci, (q, _) in mount.items():
                 rm = _matrix_from_quat(q)
                 mounting_std[ci] = np.sqrt(np.concatenate([4.0 * np.abs(np.diag(glob["mount_q", ci])),
                                                            np.abs(np.diag(rm.T @ glob["mount_t", ci] @ rm))]) * scale)
-            log.append(f"calibrated parameters: marginal covariance in {time.perf_counter() - t_cov:.1f} s")
+            log.append(f"marginal covariance ({'images and ' if want_poses else ''}global parameters) in "
+                       f"{time.perf_counter() - t_cov:.1f} s")
     free = tuple(sorted({i for g in opt.self_calibration for i in CALIBRATION_GROUPS[g]}))
     calibration = {ci: Calibration(free, _calibration_values(prob.cameras[ci], free),
                                    _calibration_values(cams[ci], free), camera_cov.get(ci)) for ci in calibrated}
@@ -1708,57 +1718,39 @@ def frame_poses(r_cam_from_world: np.ndarray, c_world: np.ndarray, image_camera:
     return r_f, c_f
 
 
-def marginal_image_std(rec, problem, r_cam_from_world: np.ndarray, c_local: np.ndarray,
-                       adjusted: np.ndarray) -> np.ndarray | None:
-    """Marginal standard deviations ``(n, 6)`` (rotation about world X Y Z in radians, centre in metres) of the
-    adjusted images for unit weight, from pycolmap's covariance estimation on the solved Ceres ``problem`` of the
-    reconstruction ``rec`` (image ids ``k + 1``); the other parameters (cameras, mounting corrections, the datum
-    shift) are eliminated with the points, so their correlations with the images count. None when the estimation
-    fails.
+def world_pose_std(pose_cov: np.ndarray, r_cam_from_world: np.ndarray, c_local: np.ndarray) -> np.ndarray:
+    """Standard deviations ``(n, 6)`` (rotation about world X Y Z in radians, centre in metres) of images from the
+    covariances ``pose_cov (n, 6, 6)`` of their ``cam_from_world`` in Ceres' tangent space: the quaternion's
+    increment ``d`` applied on the left (its quaternion manifold: a rotation by the vector ``2 d`` in camera axes,
+    ``R' = exp([2d]x) R``) and an added translation ``dt``. With ``C = -R^T t`` that is the world-axes rotation
+    ``2 R^T d`` (``R' = R exp([2 R^T d]x)``, the convention of :mod:`.precision`) and the centre change
+    ``-2 R^T [t]x d - R^T dt``.
 
-    pycolmap gives the 6 x 6 covariance of ``cam_from_world`` in its tangent space: the quaternion's increment
-    ``d`` applied on the left (Ceres' quaternion manifold: a rotation by the vector ``2 d`` in camera axes, ``R' =
-    exp([2d]x) R``) and an added translation ``dt``. With ``C = -R^T t`` that is the world-axes rotation ``2 R^T d``
-    (``R' = R exp([2 R^T d]x)``, the convention of :mod:`.precision`) and the centre change
-    ``-2 R^T [t]x d - R^T dt``. On a simulated 600-image block the result is above the conditional figures, as a
-    marginal must be, and matches the true errors: median std per axis 0.0015-0.0023 deg and 0.0066-0.0077 m
-    against RMS errors of 0.0018-0.0025 deg and 0.0061-0.0068 m.
-
-    r_cam_from_world : (n, 3, 3); c_local : (n, 3) centres in the problem's local frame; adjusted : (n,) bool
+    r_cam_from_world : (n, 3, 3); c_local : (n, 3) centres in the problem's local frame
     """
-    import pycolmap
-
-    opts = pycolmap.BACovarianceOptions()
-    opts.params = pycolmap.BACovarianceOptionsParams.POSES
-    cov = pycolmap.estimate_ba_covariance_from_problem(opts, rec, problem)
-    if cov is None:
-        return None
-    out = np.full((len(r_cam_from_world), 6), np.nan)
-    for k in np.flatnonzero(adjusted):
-        m = cov.get_cam_cov_from_world(int(k) + 1)
-        if m is None:
-            continue
-        rt = r_cam_from_world[k].T
-        j = np.zeros((6, 6))
-        j[:3, :3] = 2.0 * rt
-        j[3:, :3] = -2.0 * rt @ skew(-r_cam_from_world[k] @ c_local[k])
-        j[3:, 3:] = -rt
-        out[k] = np.sqrt(np.abs(np.diag(j @ np.asarray(m) @ j.T)))
-    return out
+    rt = np.transpose(r_cam_from_world, (0, 2, 1))
+    t = -np.einsum("nij,nj->ni", r_cam_from_world, c_local)
+    j = np.zeros((len(rt), 6, 6))
+    j[:, :3, :3] = 2.0 * rt
+    j[:, 3:, :3] = -2.0 * rt @ np.array([skew(v) for v in t]).reshape(-1, 3, 3)
+    j[:, 3:, 3:] = -rt
+    return np.sqrt(np.abs(np.einsum("nij,njk,nik->ni", j, pose_cov, j)))
 
 
-def marginal_global_cov(problem, poses: list[np.ndarray], globals_: list[np.ndarray],
-                        points: list[np.ndarray]) -> list[np.ndarray] | None:
-    """Marginal covariances (unit weight, in each block's tangent space) of the parameter blocks ``globals_`` of
-    the solved Ceres ``problem``, whose other variable blocks are the images' ``poses`` (tangent size 6) and the
-    ``points`` (3): :func:`.precision.marginal_globals` on the problem's Jacobian. The list must hold every variable
-    block of the problem (one left out would count as known and the covariances come out too small). None when the
-    reduced system is singular.
+def marginal_covariances(problem, poses: list[np.ndarray], globals_: list[np.ndarray], points: list[np.ndarray],
+                         pose_blocks: bool) -> tuple[np.ndarray | None, list[np.ndarray]] | None:
+    """Marginal covariances (unit weight, in each block's tangent space) of the solved Ceres ``problem``, whose
+    variable blocks are the images' ``poses`` (tangent size 6), the global parameter blocks ``globals_`` and the
+    ``points`` (3): with ``pose_blocks`` each pose's ``(n, 6, 6)`` (else None), and each global block's, by
+    :func:`.precision.marginal_covariance` on the problem's Jacobian. The lists must hold every variable block of
+    the problem (one left out would count as known and the covariances come out too small). None when the reduced
+    system is singular.
 
-    Against pycolmap's covariance estimation (the marginal of everything, which grows with the cube of the images
-    and more: 3.6 s on 240 images, 74 s on 1,000) the two agree to 4 digits in every camera parameter's standard
-    deviation on simulated blocks of 240 and 1,000 images with 5 self-calibrated cameras. The Jacobian is evaluated
-    on one thread: the Python costs hold the interpreter's lock, which Ceres' other threads would wait for."""
+    The reference is pycolmap's covariance estimation: the globals' standard deviations agree with those of its
+    estimate of everything to 4 digits on simulated blocks of 240 and 1,000 images with 5 self-calibrated cameras
+    (which took it 3.6 s and 74 s, and grows faster than the cube of the images), the images' with its estimate of
+    the poses (tests). The Jacobian is evaluated on one thread: the Python costs hold the interpreter's lock, which
+    Ceres' other threads would wait for."""
     import pyceres
 
     eo = pyceres.EvaluateOptions()
@@ -1773,11 +1765,12 @@ def marginal_global_cov(problem, poses: list[np.ndarray], globals_: list[np.ndar
     if jac.num_cols != n_pose + sum(tangent) + 3 * len(points):
         raise ComputationError(f"the Jacobian has {jac.num_cols} columns, not the {n_pose + sum(tangent)} of the "
                                f"poses and globals plus 3 per point ({len(points)} points)")
-    cov = precision.marginal_globals(rows, cols, values, jac.num_rows, n_pose, sum(tangent), len(points))
-    if cov is None:
+    got = precision.marginal_covariance(rows, cols, values, jac.num_rows, n_pose, sum(tangent), len(points),
+                                        pose_blocks)
+    if got is None:
         return None
     edges = np.cumsum([0, *tangent])
-    return [cov[a:b, a:b] for a, b in zip(edges[:-1], edges[1:])]
+    return got.poses, [got.globals_[a:b, a:b] for a, b in zip(edges[:-1], edges[1:])]
 
 
 def release_heap() -> None:

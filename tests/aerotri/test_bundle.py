@@ -126,23 +126,23 @@ def test_self_calibration_recovers_focal_length(sim, xyz0, monkeypatch):
     """Every head's focal length is given 0.3 % too long; with focal self-calibration on the whole penta block
     (the obliques make focal length and flying height separable) the adjustment returns each within 0.02 %, and
     within 4 of its standard deviations. Those come from our elimination of the points and poses
-    (:func:`.bundle.marginal_global_cov`) and equal pycolmap's covariance estimation of everything on the same
+    (:func:`.bundle.marginal_covariances`) and equal pycolmap's covariance estimation of everything on the same
     solved problem (the reference, to 0.1 %)."""
     import pycolmap
 
     from oblique_city.core.aerotri import bundle
 
     reference = {}
-    ours = bundle._Round.global_covariance
+    ours = bundle._Round.marginal
 
-    def with_reference(rd, model, calibrated, mount):
+    def with_reference(rd, model, calibrated, mount, poses):
         opts = pycolmap.BACovarianceOptions()
         opts.params = pycolmap.BACovarianceOptionsParams.ALL
         cov = pycolmap.estimate_ba_covariance_from_problem(opts, model.rec, rd.problem)
         reference.update({ci: np.asarray(cov.get_other_params_cov(p)) for ci, p in calibrated.items()})
-        return ours(rd, model, calibrated, mount)
+        return ours(rd, model, calibrated, mount, poses)
 
-    monkeypatch.setattr(bundle._Round, "global_covariance", with_reference)
+    monkeypatch.setattr(bundle._Round, "marginal", with_reference)
     block = sim.block
     saved = dict(block.cameras)
     for cid, cam in saved.items():
@@ -312,20 +312,40 @@ def assert_same_solution(ref, other, share: float) -> None:
     assert abs(other.sigma0 - ref.sigma0) < 1e-4
 
 
-def test_marginal_image_std_bounds_the_conditional_and_matches_the_errors():
-    """On a 60-image block the marginal standard deviations of the orientations (pycolmap's covariance on the
-    solved problem) are at least the conditional ones (each image alone with the points fixed) and agree with the
-    true errors: RMS error / median std between 0.5 and 2 for attitude and centre."""
+def test_marginal_image_std_equals_pycolmap_bounds_the_conditional_and_matches_the_errors(monkeypatch):
+    """On a 60-image block the marginal standard deviations of the orientations (our sparse factorisation of the
+    solved problem's reduced system, :func:`.bundle.marginal_covariances`) equal those of pycolmap's covariance
+    estimation of the poses on the same problem (the reference, to 1e-6), are at least the conditional ones (each
+    image alone with the points fixed) and agree with the true errors: RMS error / median std between 0.5 and 2 for
+    attitude and centre."""
+    import pycolmap
+
+    from oblique_city.core.aerotri import bundle
     from oblique_city.core.aerotri.hierarchical import integrated
     from oblique_city.core.geometry.rotations import matrix_to_rotvec
 
+    reference, ours = {}, bundle._Round.marginal
+
+    def with_reference(rd, model, calibrated, mount, poses):
+        got = ours(rd, model, calibrated, mount, poses)
+        opts = pycolmap.BACovarianceOptions()
+        opts.params = pycolmap.BACovarianceOptionsParams.POSES
+        cov = pycolmap.estimate_ba_covariance_from_problem(opts, model.rec, rd.problem)
+        for k, c in got[0].items():  # relative to each pose's standard deviations
+            d = np.sqrt(np.diag(c))
+            reference[k] = np.abs(np.asarray(cov.get_cam_cov_from_world(k + 1)) - c).max() / np.outer(d, d).max()
+        return got
+
+    monkeypatch.setattr(bundle._Round, "marginal", with_reference)
     s = simulate_block(SimulationConfig(n_images=60, tie_density=0.0006, seed=5, noise_px=0.3))
     cond = integrated(s.block, s.ties, BundleOptions(sigma_px=0.3))
+    assert not reference
     marg = integrated(s.block, s.ties, BundleOptions(sigma_px=0.3, marginal_max_images=100))
-    assert cond.runs[0].result.image_std_kind == "conditional"
-    assert marg.runs[0].result.image_std_kind == "marginal"
-    sc = np.array(list(cond.image_std.values()))
+    res = marg.runs[0].result
+    assert cond.runs[0].result.image_std_kind == "conditional" and res.image_std_kind == "marginal"
+    assert len(reference) == 60 and max(reference.values()) < 1e-6
     sm = np.array(list(marg.image_std.values()))
+    sc = np.array(list(cond.image_std.values()))
     assert np.all(np.nanmedian(sm, 0) >= 0.99 * np.nanmedian(sc, 0))
     att = np.array([matrix_to_rotvec(s.true_poses[i].R.T @ p.R) for i, p in marg.poses.items()])
     cen = np.array([p.C - s.true_poses[i].C for i, p in marg.poses.items()])
@@ -531,11 +551,12 @@ def test_reduced_image_normals_are_the_diagonal_blocks_of_the_schur_complement()
     assert np.all(np.linalg.eigvalsh(held - got) > -1e-9 * np.abs(held).max())
 
 
-def test_marginal_globals_equal_the_dense_inverse():
-    """The globals' marginal covariance from the points' and then the poses' elimination equals the matching block
-    of the dense inverse of ``J^T J`` on a small random problem of the bundle's structure (6 pose columns per image,
-    globals touched by every image measurement of their camera and by priors, 3 columns per point); a point of one
-    ray with nothing else is singular and is left out; a global that nothing determines makes it None."""
+def test_marginal_covariance_equals_the_dense_inverse():
+    """The poses' and the globals' marginal covariances from the points' elimination and a sparse factorisation
+    equal the matching blocks of the dense inverse of ``J^T J`` on a small random problem of the bundle's structure
+    (6 pose columns per image, globals touched by every image measurement of their camera and by priors, 3 columns
+    per point); a point of one ray with nothing else is singular and is left out; a global that nothing determines
+    makes it None."""
     from oblique_city.core.aerotri import precision
 
     rng = np.random.default_rng(3)
@@ -567,7 +588,7 @@ def test_marginal_globals_equal_the_dense_inverse():
         n_rows += int(r.max()) + 1
     rows, cols = np.concatenate(rows).astype(np.int32), np.concatenate(cols).astype(np.int32)
     vals = np.concatenate(vals)
-    got = precision.marginal_globals(rows, cols, vals, n_rows, n_pose, n_glob, n_pt + 1)
+    got = precision.marginal_covariance(rows, cols, vals, n_rows, n_pose, n_glob, n_pt + 1, poses=True)
     keep = ~np.isin(cols, np.arange(3) + n_pose + n_glob + 3 * lone)
     lone_rows = np.unique(rows[~keep])
     use = ~np.isin(rows, lone_rows)
@@ -575,10 +596,13 @@ def test_marginal_globals_equal_the_dense_inverse():
     jac[rows[use], cols[use]] = vals[use]
     full = np.linalg.inv(jac.T @ jac)
     ref = full[n_pose:n_pose + n_glob, n_pose:n_pose + n_glob]
-    assert got is not None and np.allclose(got, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
+    assert got is not None and np.allclose(got.globals_, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
+    ref_poses = np.array([full[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n_img)])
+    assert np.allclose(got.poses, ref_poses, rtol=1e-8, atol=1e-12 * np.abs(ref_poses).max())
+    assert precision.marginal_covariance(rows, cols, vals, n_rows, n_pose, n_glob, n_pt + 1).poses is None
     # a global no observation touches is not determined: the reduced system is singular
     shifted = np.where(cols >= n_pose + n_glob, cols + 1, cols).astype(np.int32)
-    assert precision.marginal_globals(rows, shifted, vals, n_rows, n_pose, n_glob + 1, n_pt + 1) is None
+    assert precision.marginal_covariance(rows, shifted, vals, n_rows, n_pose, n_glob + 1, n_pt + 1) is None
 
 
 def test_least_squares_rounds_start_with_the_gauss_newton_step(sim, xyz0, options):
