@@ -324,6 +324,11 @@ def reduced_normals(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, n_ro
     q = safe_inverse(point_normals(jp[:, None, :], np.ones(len(jp)), pt, n_points))
     ok = np.all(np.isfinite(q.reshape(n_points, 9)), axis=1)
     q[~ok] = np.eye(3)
+    # a nearly singular block's inverse may come out indefinite in rounding (leading minors of that inverse not
+    # clearly positive): such a point is left out too, rather than failing the whole Cholesky
+    d0, m2 = q[:, 0, 0], q[:, 0, 0] * q[:, 1, 1] - q[:, 0, 1] ** 2
+    ok &= (d0 > 0) & (m2 > 1e-12 * d0 * q[:, 1, 1]) & (np.linalg.det(q) > 1e-12 * m2 * q[:, 2, 2])
+    q[~ok] = np.eye(3)
     chol = np.linalg.cholesky(q)
     keep = ok[pt]
     jpt = np.einsum("ri,rij->rj", jp[keep], chol[pt[keep]])
