@@ -437,7 +437,8 @@ class BundleResult:
     iterations, rounds, time_s : solver work; timing : seconds spent building the problems (``build_s``),
         in Ceres (``solve_s``, of which ``preprocess_s`` in its preprocessor (ordering, structure; a cost per
         solve whatever the iterations), ``jacobian_s`` evaluating and ``linear_s`` solving) and on residuals,
-        precision and rejection (``statistics_s``), over all rounds
+        precision and rejection (``statistics_s``), over all rounds, and on the marginal covariances at the end
+        (``covariance_s``, see ``BundleOptions.marginal_max_images``)
     """
 
     r_cam_from_world: np.ndarray
@@ -1418,7 +1419,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
     log: list[str] = []
     total_rounds = opt.max_rejection_rounds + 1
     timing = {"build_s": 0.0, "solve_s": 0.0, "statistics_s": 0.0, "preprocess_s": 0.0, "jacobian_s": 0.0,
-              "linear_s": 0.0}
+              "linear_s": 0.0, "covariance_s": 0.0}
     clock = [time.perf_counter()]
 
     def lap(key: str) -> None:
@@ -1596,6 +1597,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
     camera_cov: dict[int, np.ndarray] = {}
     mount = {ci: model.mount[ci] for ci in model.mount_used}
     want_poses = 0 < adjusted.sum() <= opt.marginal_max_images
+    lap("statistics_s")
     if want_poses or ((calibrated or mount) and 0 < adjusted.sum() <= opt.calibration_max_images):
         t_cov = time.perf_counter()
         marg = rd.marginal(model, calibrated, mount, want_poses)
@@ -1617,6 +1619,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
                                                            np.abs(np.diag(rm.T @ glob["mount_t", ci] @ rm))]) * scale)
             log.append(f"marginal covariance ({'images and ' if want_poses else ''}global parameters) in "
                        f"{time.perf_counter() - t_cov:.1f} s")
+    lap("covariance_s")
     free = tuple(sorted({i for g in opt.self_calibration for i in CALIBRATION_GROUPS[g]}))
     calibration = {ci: Calibration(free, _calibration_values(prob.cameras[ci], free),
                                    _calibration_values(cams[ci], free), camera_cov.get(ci)) for ci in calibrated}
