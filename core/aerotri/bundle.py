@@ -1178,9 +1178,10 @@ class _Round:
 
     def marginal(self, model: _Model, calibrated: dict[int, np.ndarray],
                  mount: dict[int, tuple[np.ndarray, np.ndarray]],
-                 poses: bool) -> tuple[dict[int, np.ndarray], dict[tuple, np.ndarray]] | None:
+                 poses: bool) -> tuple[np.ndarray, np.ndarray | None, dict[tuple, np.ndarray]] | None:
         """The marginal covariances (unit weight, tangent space) of the solved problem, by
-        :func:`marginal_covariances`: with ``poses`` each adjusted image's pose (image -> 6 x 6), and the global
+        :func:`marginal_covariances`: the adjusted images ``(n,)``, with ``poses`` their poses' ``(n, 6, 6)`` (else
+        None), and the global
         parameters: per camera of ``calibrated`` (camera -> its parameter block) ``("camera", ci)``, per mounting
         correction of ``mount`` ``("mount_q", ci)`` and ``("mount_t", ci)``, per strip ``("strip", st)`` and
         ``("drift", st)``, the datum shift ``("shift",)``. None when the problem holds variable blocks this does not
@@ -1212,8 +1213,7 @@ class _Round:
                                    poses)
         if got is None:
             return None
-        pose_cov, glob_cov = got
-        return dict(zip(images, pose_cov)) if poses else {}, dict(zip(glob, glob_cov))
+        return np.array(images, np.int64), got[0], dict(zip(glob, got[1]))
 
     def solve(self, opt: BundleOptions, kind: str, robust: bool):
         import pyceres
@@ -1605,12 +1605,10 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
             log.append("marginal covariance: none (the reduced system is singular, or the problem holds parameters "
                        "the estimate does not know)")
         else:
-            pose_cov, glob = marg
+            k_cov, pose_cov, glob = marg
             scale = (opt.sigma_px * sigma0) ** 2
-            if want_poses:
-                k_cov = np.array(list(pose_cov), np.int64)
-                image_std[k_cov] = world_pose_std(np.array(list(pose_cov.values())), r[k_cov],
-                                                  c[k_cov] - ref) * np.sqrt(scale)
+            if pose_cov is not None:
+                image_std[k_cov] = world_pose_std(pose_cov, r[k_cov], c[k_cov] - ref) * np.sqrt(scale)
                 image_std_kind = "marginal"
             camera_cov = {key[1]: cov * scale for key, cov in glob.items() if key[0] == "camera"}
             for ci, (q, _) in mount.items():

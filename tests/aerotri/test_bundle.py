@@ -331,9 +331,9 @@ def test_marginal_image_std_equals_pycolmap_bounds_the_conditional_and_matches_t
         opts = pycolmap.BACovarianceOptions()
         opts.params = pycolmap.BACovarianceOptionsParams.POSES
         cov = pycolmap.estimate_ba_covariance_from_problem(opts, model.rec, rd.problem)
-        for k, c in got[0].items():  # relative to each pose's standard deviations
+        for k, c in zip(got[0], got[1]):  # relative to each pose's standard deviations
             d = np.sqrt(np.diag(c))
-            reference[k] = np.abs(np.asarray(cov.get_cam_cov_from_world(k + 1)) - c).max() / np.outer(d, d).max()
+            reference[k] = np.abs(np.asarray(cov.get_cam_cov_from_world(int(k) + 1)) - c).max() / np.outer(d, d).max()
         return got
 
     monkeypatch.setattr(bundle._Round, "marginal", with_reference)
