@@ -397,8 +397,10 @@ class BundleResult:
     Attributes
     ----------
     r_cam_from_world, c_world : (n, 3, 3), (n, 3); image_adjusted : (n,) bool (images with observations)
-    image_std : (n, 6) std of rotation about world X Y Z (radians) and of the centre (metres);
-        image_std_kind : ``marginal`` or ``conditional`` (see ``BundleOptions.marginal_max_images``)
+    image_std : (n, 6) std of rotation about world X Y Z (radians) and of the centre (metres) in the control frame
+        (the marginal ones with the datum shift's uncertainty, common to all images); image_std_relative : (n, 6)
+        the same relative to the datum (the shift held; equal to ``image_std`` without a marginal covariance or an
+        estimated shift); image_std_kind : ``marginal`` or ``conditional`` (see ``BundleOptions.marginal_max_images``)
     cameras : adjusted camera models
     xyz : (p, 3) tie points (NaN for points dropped); xyz_cov : (p, 3, 3) covariance with cameras fixed
     obs_residual : (m, 2) pixels (observed - computed); obs_rejected : (m,) bool; obs_w : (m,) normalised residual
@@ -420,7 +422,8 @@ class BundleResult:
         point error of the size in gcp_mdb moves the datum shift (external reliability, metres; NaN where untested
         or the shift is held); prior_effect : (n, 6) how far a prior error of the size in prior_mdb moves the
         adjusted orientation along its axis (external reliability, with the points held; NaN: untested)
-    datum_shift : (3,) control frame - GNSS frame
+    datum_shift : (3,) control frame - GNSS frame; datum_shift_std : (3,) its marginal standard deviations (NaN where
+        the shift is held or the run computed no marginal covariance, see ``BundleOptions.marginal_max_images``)
     gnss_strip : (s, 6) per strip of ``BundleProblem.strip_names`` its GNSS offset (metres) and drift (metres per
         km) as estimated with ``BundleOptions.gnss_strips`` (NaN: not estimated); gnss_strip_std : (s, 6) their
         standard deviations with the orientations held (conditional, a lower bound), the heads of one exposure
@@ -466,6 +469,8 @@ class BundleResult:
     mounting: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     mounting_std: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     calibration: dict[int, Calibration] = field(default_factory=dict)
+    datum_shift_std: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    image_std_relative: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     log: list[str] = field(default_factory=list)
     timing: dict[str, float] = field(default_factory=dict)
     gcp_obs_rejected: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
@@ -1178,14 +1183,15 @@ class _Round:
 
     def marginal(self, model: _Model, calibrated: dict[int, np.ndarray],
                  mount: dict[int, tuple[np.ndarray, np.ndarray]],
-                 poses: bool) -> tuple[np.ndarray, np.ndarray | None, dict[tuple, np.ndarray]] | None:
+                 poses: bool) -> tuple[np.ndarray, np.ndarray | None, dict[tuple, np.ndarray], np.ndarray | None
+                                       ] | None:
         """The marginal covariances (unit weight, tangent space) of the solved problem, by
         :func:`marginal_covariances`: the adjusted images ``(n,)``, with ``poses`` their poses' ``(n, 6, 6)`` (else
-        None), and the global
-        parameters: per camera of ``calibrated`` (camera -> its parameter block) ``("camera", ci)``, per mounting
-        correction of ``mount`` ``("mount_q", ci)`` and ``("mount_t", ci)``, per strip ``("strip", st)`` and
-        ``("drift", st)``, the datum shift ``("shift",)``. None when the problem holds variable blocks this does not
-        know (the count of blocks disagrees) or the reduced system is singular."""
+        None), the global parameters' (per camera of ``calibrated`` (camera -> its parameter block)
+        ``("camera", ci)``, per mounting correction of ``mount`` ``("mount_q", ci)`` and ``("mount_t", ci)``, per
+        strip ``("strip", st)`` and ``("drift", st)``, the datum shift ``("shift",)``), and with ``poses`` and an
+        estimated datum shift the poses' covariances with it ``(n, 6, 3)`` (else None). None when the problem holds
+        variable blocks this does not know (the count of blocks disagrees) or the reduced system is singular."""
         problem = self.problem
 
         def variable(b: np.ndarray) -> bool:
@@ -1209,11 +1215,12 @@ class _Round:
                 if problem.has_parameter_block(b) and problem.is_parameter_block_constant(b)]
         if len(images) + len(glob) + len(points) + len(held) != problem.num_parameter_blocks():
             return None
+        cross = list(glob).index(("shift",)) if ("shift",) in glob else None
         got = marginal_covariances(problem, [self.frame_params[k] for k in images], list(glob.values()), points,
-                                   poses)
+                                   poses, cross)
         if got is None:
             return None
-        return np.array(images, np.int64), got[0], dict(zip(glob, got[1]))
+        return np.array(images, np.int64), got[0], dict(zip(glob, got[1])), got[2]
 
     def solve(self, opt: BundleOptions, kind: str, robust: bool):
         import pyceres
@@ -1589,6 +1596,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
         rnd += 1
     adjusted = rd.adjusted
     image_std = np.sqrt(np.abs(np.diagonal(q_image, axis1=1, axis2=2))) * sigma0
+    image_std_relative = image_std
     image_std_kind = "conditional"
     mounting_std = np.full((len(prob.cameras), 6), np.nan)
     # the cameras the run self-calibrated: their parameter blocks are variables of the problem
@@ -1596,6 +1604,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
                   if rd.problem.has_parameter_block(p) and not rd.problem.is_parameter_block_constant(p)}
     camera_cov: dict[int, np.ndarray] = {}
     mount = {ci: model.mount[ci] for ci in model.mount_used}
+    shift_std = np.full(3, np.nan)
     want_poses = 0 < adjusted.sum() <= opt.marginal_max_images
     lap("statistics_s")
     if want_poses or ((calibrated or mount) and 0 < adjusted.sum() <= opt.calibration_max_images):
@@ -1605,12 +1614,18 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
             log.append("marginal covariance: none (the reduced system is singular, or the problem holds parameters "
                        "the estimate does not know)")
         else:
-            k_cov, pose_cov, glob = marg
+            k_cov, pose_cov, glob, pose_shift = marg
             scale = (opt.sigma_px * sigma0) ** 2
             if pose_cov is not None:
                 image_std[k_cov] = world_pose_std(pose_cov, r[k_cov], c[k_cov] - ref) * np.sqrt(scale)
+                image_std_relative = image_std.copy()
+                if ("shift",) in glob:
+                    image_std[k_cov] = world_pose_std(pose_cov, r[k_cov], c[k_cov] - ref, glob["shift",],
+                                                      pose_shift) * np.sqrt(scale)
                 image_std_kind = "marginal"
             camera_cov = {key[1]: cov * scale for key, cov in glob.items() if key[0] == "camera"}
+            if ("shift",) in glob:
+                shift_std = np.sqrt(np.abs(np.diag(glob["shift",])) * scale)
             for ci, (q, _) in mount.items():
                 rm = _matrix_from_quat(q)
                 mounting_std[ci] = np.sqrt(np.concatenate([4.0 * np.abs(np.diag(glob["mount_q", ci])),
@@ -1659,8 +1674,9 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
     return BundleResult(
         r_cam_from_world=r, c_world=c + shift, image_adjusted=adjusted, image_std=image_std, cameras=cams,
         xyz=xyz_out, xyz_cov=xyz_cov, obs_residual=v, obs_rejected=rejected,
-        obs_w=w, gcp_xyz=gcp_out, gcp_residual=gcp_out - prob.gcp_xyz, datum_shift=shift, sigma0=sigma0,
-        image_std_kind=image_std_kind, mounting=mounting, mounting_std=mounting_std, calibration=calibration,
+        obs_w=w, gcp_xyz=gcp_out, gcp_residual=gcp_out - prob.gcp_xyz, datum_shift=shift, datum_shift_std=shift_std,
+        sigma0=sigma0, image_std_kind=image_std_kind, image_std_relative=image_std_relative, mounting=mounting,
+        mounting_std=mounting_std, calibration=calibration,
         redundancy=redundancy, iterations=iterations, rounds=rnd + 1, time_s=time.perf_counter() - t0,
         prior_residual_pos=pos_res, prior_residual_att=att_res, obs_used=active.copy(), log=log,
         timing=timing, gcp_obs_rejected=gcp_obs_bad, gcp_rejected=~gcp_ok, gcp_w=gcp_w,
@@ -1719,7 +1735,8 @@ def frame_poses(r_cam_from_world: np.ndarray, c_world: np.ndarray, image_camera:
     return r_f, c_f
 
 
-def world_pose_std(pose_cov: np.ndarray, r_cam_from_world: np.ndarray, c_local: np.ndarray) -> np.ndarray:
+def world_pose_std(pose_cov: np.ndarray, r_cam_from_world: np.ndarray, c_local: np.ndarray,
+                   shift_cov: np.ndarray | None = None, pose_shift_cov: np.ndarray | None = None) -> np.ndarray:
     """Standard deviations ``(n, 6)`` (rotation about world X Y Z in radians, centre in metres) of images from the
     covariances ``pose_cov (n, 6, 6)`` of their ``cam_from_world`` in Ceres' tangent space: the quaternion's
     increment ``d`` applied on the left (its quaternion manifold: a rotation by the vector ``2 d`` in camera axes,
@@ -1727,23 +1744,41 @@ def world_pose_std(pose_cov: np.ndarray, r_cam_from_world: np.ndarray, c_local: 
     ``2 R^T d`` (``R' = R exp([2 R^T d]x)``, the convention of :mod:`.precision`) and the centre change
     ``-2 R^T [t]x d - R^T dt``.
 
+    With an estimated datum shift ``s`` (the centre in the control frame is ``C + s``) its covariance
+    ``shift_cov (3, 3)`` and each pose's covariances with it ``pose_shift_cov (n, 6, 3)`` enter the centres': the
+    shift's uncertainty is common to all images (on a simulated 6,000-image block it made up a third of the centres'
+    RMS error in Z).
+
     r_cam_from_world : (n, 3, 3); c_local : (n, 3) centres in the problem's local frame
     """
     rt = np.transpose(r_cam_from_world, (0, 2, 1))
     t = -np.einsum("nij,nj->ni", r_cam_from_world, c_local)
-    j = np.zeros((len(rt), 6, 6))
+    n = len(rt)
+    with_shift = shift_cov is not None
+    j = np.zeros((n, 6, 9 if with_shift else 6))
     j[:, :3, :3] = 2.0 * rt
     j[:, 3:, :3] = -2.0 * rt @ np.array([skew(v) for v in t]).reshape(-1, 3, 3)
-    j[:, 3:, 3:] = -rt
-    return np.sqrt(np.abs(np.einsum("nij,njk,nik->ni", j, pose_cov, j)))
+    j[:, 3:, 3:6] = -rt
+    cov = pose_cov
+    if with_shift:
+        j[:, 3:, 6:] = np.eye(3)
+        cov = np.zeros((n, 9, 9))
+        cov[:, :6, :6] = pose_cov
+        cov[:, :6, 6:] = pose_shift_cov
+        cov[:, 6:, :6] = np.transpose(pose_shift_cov, (0, 2, 1))
+        cov[:, 6:, 6:] = shift_cov
+    return np.sqrt(np.abs(np.einsum("nij,njk,nik->ni", j, cov, j)))
 
 
 def marginal_covariances(problem, poses: list[np.ndarray], globals_: list[np.ndarray], points: list[np.ndarray],
-                         pose_blocks: bool) -> tuple[np.ndarray | None, list[np.ndarray]] | None:
+                         pose_blocks: bool, cross: int | None = None
+                         ) -> tuple[np.ndarray | None, list[np.ndarray], np.ndarray | None] | None:
     """Marginal covariances (unit weight, in each block's tangent space) of the solved Ceres ``problem``, whose
     variable blocks are the images' ``poses`` (tangent size 6), the global parameter blocks ``globals_`` and the
-    ``points`` (3): with ``pose_blocks`` each pose's ``(n, 6, 6)`` (else None), and each global block's, by
-    :func:`.precision.marginal_covariance` on the problem's Jacobian. The lists must hold every variable block of
+    ``points`` (3): with ``pose_blocks`` each pose's ``(n, 6, 6)`` (else None), each global block's, and with
+    ``pose_blocks`` and ``cross`` (an index into ``globals_``) each pose's covariances ``(n, 6, t)`` with that global
+    block (else None), by :func:`.precision.marginal_covariance` on the problem's Jacobian. The lists must hold every
+    variable block of
     the problem (one left out would count as known and the covariances come out too small). None when the reduced
     system is singular.
 
@@ -1766,12 +1801,14 @@ def marginal_covariances(problem, poses: list[np.ndarray], globals_: list[np.nda
     if jac.num_cols != n_pose + sum(tangent) + 3 * len(points):
         raise ComputationError(f"the Jacobian has {jac.num_cols} columns, not the {n_pose + sum(tangent)} of the "
                                f"poses and globals plus 3 per point ({len(points)} points)")
+    edges = np.cumsum([0, *tangent])
     got = precision.marginal_covariance(rows, cols, values, jac.num_rows, n_pose, sum(tangent), len(points),
-                                        pose_blocks)
+                                        pose_blocks, None if cross is None else np.arange(edges[cross],
+                                                                                          edges[cross + 1]))
     if got is None:
         return None
-    edges = np.cumsum([0, *tangent])
-    return got.poses, [got.globals_[a:b, a:b] for a, b in zip(edges[:-1], edges[1:])]
+    return (got.poses, [got.globals_[a:b, a:b] for a, b in zip(edges[:-1], edges[1:])],
+            got.pose_globals if cross is not None else None)
 
 
 def release_heap() -> None:

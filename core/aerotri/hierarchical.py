@@ -618,22 +618,32 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         runs.append(run)
     # (3) combination by error propagation
     t3 = time.perf_counter()
-    poses, std = {}, {}
+    poses = {}
     for run in runs:
         poses.update(run.poses)
-        std.update(run.image_std)
     xyz, cov = combine_points(n, runs, conn_masks, cov_nadir, connection_sigma_scale)
     rej = np.zeros(ties.n_obs, bool)
     for run in runs:
         rej[run.obs_index] |= run.obs_rejected
     datum_delta = np.zeros(3)
+    datum_cov = np.diag(res_n.datum_shift_std**2)
     if combined_datum:
-        datum_delta = datum_correction(block, poses, *rejected_control(runs))
+        centre_var = {iid: s[3:] ** 2 for run, sub in zip(runs, [sub_n, *(subs[v] for v in by_view)])
+                      for iid, s in zip(sub.problem.image_ids, run.result.image_std_relative)}
+        datum_delta, datum_cov = datum_correction(block, poses, *rejected_control(runs), centre_var)
         poses = {i: Pose(p.R, p.C + datum_delta) for i, p in poses.items()}
         xyz = xyz + datum_delta
         for run in runs:
             run.poses = {i: Pose(p.R, p.C + datum_delta) for i, p in run.poses.items()}
             run.xyz = run.xyz + datum_delta
+    if res_n.image_std_kind == "marginal" and np.all(np.isfinite(datum_cov)):
+        # the datum's uncertainty, common to all images (the oblique runs hold the nadir run's shift): that of the
+        # block's shift enters every centre's standard deviations, in place of the nadir run's own
+        for run, sub in zip(runs, [sub_n, *(subs[v] for v in by_view)]):
+            run.image_std = datum_std(sub.problem.image_ids, run.result, datum_cov)
+    std = {}
+    for run in runs:
+        std.update(run.image_std)
     combine_wall = time.perf_counter() - t3
     # tracks tested over all their rays with the final orientations and intersected from the rays kept, in one
     # pass: those thinned out of the oblique runs, and (4) those a run held with one or two rays (weak_tracks), from
@@ -656,7 +666,17 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
                            "nadir_wall_s": nadir.wall_s, "setup_wall_s": setup_wall, "oblique_wall_s": oblique_wall,
                            "combine_wall_s": combine_wall, "intersection_wall_s": time.perf_counter() - t4,
                            "cell": cell, "thinned_observations": int(thinned_obs.sum()), **final_tests,
-                           "datum_shift": res_n.datum_shift + datum_delta, "datum_correction": datum_delta})
+                           "datum_shift": res_n.datum_shift + datum_delta, "datum_correction": datum_delta,
+                           "datum_shift_std": np.sqrt(np.diag(datum_cov))})
+
+
+def datum_std(image_ids: list[str], res: BundleResult, datum_cov: np.ndarray) -> dict[str, np.ndarray]:
+    """Standard deviations ``(6,)`` per adjusted image of a run (ids in the order of its problem) in the control
+    frame: those relative to the datum (``BundleResult.image_std_relative``) with the variances of a datum shift of
+    covariance ``datum_cov (3, 3)`` added to the centres' (the shift's correlation with the orientations left out)."""
+    var = np.diag(datum_cov)
+    return {iid: np.concatenate([s[:3], np.sqrt(s[3:] ** 2 + var)])
+            for iid, s, adjusted in zip(image_ids, res.image_std_relative, res.image_adjusted) if adjusted}
 
 
 def weak_tracks(ties: TiePoints, run_obs: list[np.ndarray]) -> np.ndarray:
@@ -824,13 +844,16 @@ def _intersect_share(cameras: list, image_camera: np.ndarray, r: np.ndarray, c: 
 
 
 def datum_correction(block: ImageBlock, poses: dict[str, Pose], rejected: set[str] | None = None,
-                     rejected_obs: set[tuple[str, str]] | None = None) -> np.ndarray:
-    """Translation ``(3,)`` that best moves the block onto its control points: each control point is intersected
-    from all its image measurements with ``poses`` (covariance from its pixel sigma), and the differences to the
-    given coordinates are averaged with the inverse of (intersection covariance + control covariance). Zero when
-    no control point has two measured rays. All control points are intersected together (arrays over their
-    measurements). Control points named in ``rejected`` and the (point, image) measurements in ``rejected_obs``
-    (the adjustment's blunder tests, :meth:`ATResult.control_rejections`) are left out."""
+                     rejected_obs: set[tuple[str, str]] | None = None,
+                     centre_var: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Translation ``(3,)`` that best moves the block onto its control points, with its covariance ``(3, 3)``: each
+    control point is intersected from all its image measurements with ``poses`` (covariance from its pixel sigma,
+    plus the mean of its images' centre variances ``centre_var`` (image -> ``(3,)``, relative to the datum) where
+    given: the block's local position error, which the images around a point share), and the differences to the
+    given coordinates are averaged with the inverse of (intersection covariance + control covariance). Zero, with an
+    infinite covariance, when no control point has two measured rays. All control points are intersected together
+    (arrays over their measurements). Control points named in ``rejected`` and the (point, image) measurements in
+    ``rejected_obs`` (the adjustment's blunder tests, :meth:`ATResult.control_rejections`) are left out."""
     rejected, rejected_obs = rejected or set(), rejected_obs or set()
 
     def used(gp, iid: str) -> bool:
@@ -840,7 +863,7 @@ def datum_correction(block: ImageBlock, poses: dict[str, Pose], rejected: set[st
            if gp.kind == "control" and gp.xyz is not None and gp.name not in rejected
            and sum(used(gp, i) for i in gp.observations) >= 2]
     if not gps:
-        return np.zeros(3)
+        return np.zeros(3), np.diag(np.full(3, np.inf))
     image_ids = sorted({i for gp in gps for i in gp.observations if used(gp, i)})
     k_of = {iid: k for k, iid in enumerate(image_ids)}
     obs = [(g, k_of[i], uv) for g, gp in enumerate(gps) for i, uv in gp.observations.items() if used(gp, i)]
@@ -861,9 +884,11 @@ def datum_correction(block: ImageBlock, poses: dict[str, Pose], rejected: set[st
     for g, gp in enumerate(gps):
         if not np.all(np.isfinite(q[g])) or not np.all(np.isfinite(x[g])):
             continue
-        w = np.linalg.inv(q[g] + np.diag(np.asarray(gp.sigma, np.float64) ** 2))
+        local = [centre_var[i] for i in gp.observations if used(gp, i) and centre_var and i in centre_var]
+        w = np.linalg.inv(q[g] + np.diag(np.asarray(gp.sigma, np.float64) ** 2 + (np.mean(local, 0) if local else 0.0)))
         info += w
         rhs += w @ (np.asarray(gp.xyz, np.float64) - x[g])
     if not np.any(info):
-        return np.zeros(3)
-    return np.linalg.solve(info, rhs)
+        return np.zeros(3), np.diag(np.full(3, np.inf))
+    cov = np.linalg.inv(info)
+    return cov @ rhs, cov

@@ -265,17 +265,22 @@ class Marginals(NamedTuple):
 
     poses : (n_images, 6, 6) each image's pose block, or None when not asked for
     globals_ : (n_global, n_global) the global parameters' block
+    pose_globals : (n_images, 6, k) with the poses, each pose's covariances with the ``k`` globals asked for
+        (``pose_cross``), else None
     """
 
     poses: np.ndarray | None
     globals_: np.ndarray
+    pose_globals: np.ndarray | None = None
 
 
 def marginal_covariance(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, n_rows: int, n_pose: int,
-                        n_global: int, n_points: int, poses: bool = False) -> Marginals | None:
+                        n_global: int, n_points: int, poses: bool = False,
+                        pose_cross: np.ndarray | None = None) -> Marginals | None:
     """Marginal covariances of the global parameters of a least-squares problem (camera calibrations, mounting
-    corrections, the datum shift) and, with ``poses``, of each image's pose, for unit weight: blocks of the
-    inverse of ``J^T J``, every other parameter's uncertainty and correlation included.
+    corrections, the datum shift) and, with ``poses``, of each image's pose and its covariances with the globals
+    ``pose_cross (k,)`` (indices among the globals), for unit weight: blocks of the inverse of ``J^T J``, every other
+    parameter's uncertainty and correlation included.
 
     ``rows, cols, values (nnz,)`` are the whitened Jacobian ``J (n_rows, n)`` in triplets, its columns in the order
     images' poses (``n_pose``, 6 per image), globals (``n_global``), points (3 each, ``n_points``); a row touches at
@@ -287,13 +292,16 @@ def marginal_covariance(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, 
     six = np.arange(6)
     pose_r = (6 * np.arange(n_img if poses else 0)[:, None, None] + six[:, None]).repeat(6, 2)
     glob = n_pose + np.arange(n_global)
-    want_r = np.concatenate([pose_r.ravel(), np.repeat(glob, n_global)])
-    want_c = np.concatenate([pose_r.transpose(0, 2, 1).ravel(), np.tile(glob, n_global)])
+    cross = n_pose + np.asarray(pose_cross if poses and pose_cross is not None else [], np.int64)
+    want_r = np.concatenate([pose_r.ravel(), np.repeat(glob, n_global), np.repeat(pose_r[:, :, 0], len(cross))])
+    want_c = np.concatenate([pose_r.transpose(0, 2, 1).ravel(), np.tile(glob, n_global),
+                             np.tile(cross, pose_r[:, :, 0].size)])
     got = inverse_entries(upper, want_r, want_c)
     if got is None:
         return None
-    split = pose_r.size
-    return Marginals(got[:split].reshape(-1, 6, 6) if poses else None, got[split:].reshape(n_global, n_global))
+    a, b = pose_r.size, pose_r.size + n_global**2
+    return Marginals(got[:a].reshape(-1, 6, 6) if poses else None, got[a:b].reshape(n_global, n_global),
+                     got[b:].reshape(n_img, 6, len(cross)) if poses else None)
 
 
 def reduced_normals(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, n_rows: int, n_pose: int,

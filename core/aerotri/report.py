@@ -168,6 +168,7 @@ def run_statistics(run: Run) -> dict:
         "rms_prior_position_m": np.sqrt(np.mean(pos**2, 0)).tolist() if len(pos) else None,
         "rms_prior_attitude_deg": np.degrees(np.sqrt(np.mean(att**2, 0))).tolist() if len(att) else None,
         "datum_shift_m": res.datum_shift.tolist(),
+        "datum_shift_std_m": res.datum_shift_std.tolist() if np.all(np.isfinite(res.datum_shift_std)) else None,
         "median_std_attitude_deg": np.degrees(np.nanmedian(std[:, :3], 0)).tolist() if len(std) else None,
         "median_std_position_m": np.nanmedian(std[:, 3:], 0).tolist() if len(std) else None,
         "std_kind": res.image_std_kind,
@@ -1004,8 +1005,8 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
     keys = ["images", "points", "observations", "connection_points", "sigma_px_given", "sigma0_a_priori_px", "sigma0",
             "sigma0_px", "iterations", "rounds",
             "blunder_percent", "rms_image_px", "rms_control_m", "rms_prior_position_m", "rms_prior_attitude_deg",
-            "datum_shift_m", "median_std_attitude_deg", "median_std_position_m", "std_kind", "point_std_xy_m",
-            "point_std_z_m", "wall_s"]
+            "datum_shift_m", "datum_shift_std_m", "median_std_attitude_deg", "median_std_position_m", "std_kind",
+            "point_std_xy_m", "point_std_z_m", "wall_s"]
     head = "".join(f"<th>{html.escape(r['name'])}</th>" for r in report["runs"])
     rows = "".join(f"<tr><td>{k}</td>" + "".join(f"<td>{format_value(r.get(k))}</td>" for r in report["runs"]) + "</tr>"
                    for k in keys)

@@ -315,25 +315,26 @@ def assert_same_solution(ref, other, share: float) -> None:
 def test_marginal_image_std_equals_pycolmap_bounds_the_conditional_and_matches_the_errors(monkeypatch):
     """On a 60-image block the marginal standard deviations of the orientations (our sparse factorisation of the
     solved problem's reduced system, :func:`.bundle.marginal_covariances`) equal those of pycolmap's covariance
-    estimation of the poses on the same problem (the reference, to 1e-6), are at least the conditional ones (each
-    image alone with the points fixed) and agree with the true errors: RMS error / median std between 0.5 and 2 for
-    attitude and centre."""
+    estimation of the poses on the same problem (the reference, to 1e-6), as does the datum shift's, are at least
+    the conditional ones (each image alone with the points fixed) and agree with the true errors: RMS error / median
+    std between 0.5 and 2 for attitude and centre."""
     import pycolmap
 
     from oblique_city.core.aerotri import bundle
     from oblique_city.core.aerotri.hierarchical import integrated
     from oblique_city.core.geometry.rotations import matrix_to_rotvec
 
-    reference, ours = {}, bundle._Round.marginal
+    reference, ours, shift = {}, bundle._Round.marginal, {}
 
     def with_reference(rd, model, calibrated, mount, poses):
         got = ours(rd, model, calibrated, mount, poses)
         opts = pycolmap.BACovarianceOptions()
-        opts.params = pycolmap.BACovarianceOptionsParams.POSES
+        opts.params = pycolmap.BACovarianceOptionsParams.ALL
         cov = pycolmap.estimate_ba_covariance_from_problem(opts, model.rec, rd.problem)
         for k, c in zip(got[0], got[1]):  # relative to each pose's standard deviations
             d = np.sqrt(np.diag(c))
             reference[k] = np.abs(np.asarray(cov.get_cam_cov_from_world(int(k) + 1)) - c).max() / np.outer(d, d).max()
+        shift.update(ours=got[2]["shift",], reference=np.asarray(cov.get_other_params_cov(rd.shift)))
         return got
 
     monkeypatch.setattr(bundle._Round, "marginal", with_reference)
@@ -344,6 +345,8 @@ def test_marginal_image_std_equals_pycolmap_bounds_the_conditional_and_matches_t
     res = marg.runs[0].result
     assert cond.runs[0].result.image_std_kind == "conditional" and res.image_std_kind == "marginal"
     assert len(reference) == 60 and max(reference.values()) < 1e-6
+    assert np.allclose(shift["ours"], shift["reference"], rtol=1e-6, atol=1e-6 * np.abs(shift["reference"]).max())
+    assert np.allclose(res.datum_shift_std, np.sqrt(np.diag(shift["ours"])) * res.sigma_px * res.sigma0, rtol=1e-12)
     sm = np.array(list(marg.image_std.values()))
     sc = np.array(list(cond.image_std.values()))
     assert np.all(np.nanmedian(sm, 0) >= 0.99 * np.nanmedian(sc, 0))
@@ -552,11 +555,11 @@ def test_reduced_image_normals_are_the_diagonal_blocks_of_the_schur_complement()
 
 
 def test_marginal_covariance_equals_the_dense_inverse():
-    """The poses' and the globals' marginal covariances from the points' elimination and a sparse factorisation
-    equal the matching blocks of the dense inverse of ``J^T J`` on a small random problem of the bundle's structure
-    (6 pose columns per image, globals touched by every image measurement of their camera and by priors, 3 columns
-    per point); a point of one ray with nothing else is singular and is left out; a global that nothing determines
-    makes it None."""
+    """The poses' and the globals' marginal covariances and the poses' covariances with chosen globals, from the
+    points' elimination and a sparse factorisation, equal the matching blocks of the dense inverse of ``J^T J`` on a
+    small random problem of the bundle's structure (6 pose columns per image, globals touched by every image
+    measurement of their camera and by priors, 3 columns per point); a point of one ray with nothing else is
+    singular and is left out; a global that nothing determines makes it None."""
     from oblique_city.core.aerotri import precision
 
     rng = np.random.default_rng(3)
@@ -588,7 +591,8 @@ def test_marginal_covariance_equals_the_dense_inverse():
         n_rows += int(r.max()) + 1
     rows, cols = np.concatenate(rows).astype(np.int32), np.concatenate(cols).astype(np.int32)
     vals = np.concatenate(vals)
-    got = precision.marginal_covariance(rows, cols, vals, n_rows, n_pose, n_glob, n_pt + 1, poses=True)
+    got = precision.marginal_covariance(rows, cols, vals, n_rows, n_pose, n_glob, n_pt + 1, poses=True,
+                                        pose_cross=np.array([1, 4]))
     keep = ~np.isin(cols, np.arange(3) + n_pose + n_glob + 3 * lone)
     lone_rows = np.unique(rows[~keep])
     use = ~np.isin(rows, lone_rows)
@@ -599,10 +603,43 @@ def test_marginal_covariance_equals_the_dense_inverse():
     assert got is not None and np.allclose(got.globals_, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
     ref_poses = np.array([full[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n_img)])
     assert np.allclose(got.poses, ref_poses, rtol=1e-8, atol=1e-12 * np.abs(ref_poses).max())
+    ref_cross = np.array([full[6 * i:6 * i + 6, [n_pose + 1, n_pose + 4]] for i in range(n_img)])
+    assert np.allclose(got.pose_globals, ref_cross, rtol=1e-8, atol=1e-12 * np.abs(ref_poses).max())
     assert precision.marginal_covariance(rows, cols, vals, n_rows, n_pose, n_glob, n_pt + 1).poses is None
+    alone = precision.marginal_covariance(rows, cols, vals, n_rows, n_pose, n_glob, n_pt + 1, poses=True)
+    assert np.allclose(alone.poses, got.poses, rtol=1e-12) and alone.pose_globals.shape == (n_img, 6, 0)
     # a global no observation touches is not determined: the reduced system is singular
     shifted = np.where(cols >= n_pose + n_glob, cols + 1, cols).astype(np.int32)
     assert precision.marginal_covariance(rows, shifted, vals, n_rows, n_pose, n_glob + 1, n_pt + 1) is None
+
+
+def test_world_pose_std_propagates_the_tangent_covariance_and_the_datum_shift():
+    """The world-axes standard deviations of an image (:func:`.bundle.world_pose_std`) equal those propagated by
+    numerical derivatives of the world rotation vector and of the centre in the control frame (``C + shift``) with
+    respect to Ceres' tangent parameters of ``cam_from_world`` (a left quaternion increment ``d``: rotation ``2 d``
+    in camera axes, an added translation) and the datum shift, for a random joint covariance of pose and shift."""
+    from oblique_city.core.aerotri.bundle import world_pose_std
+    from oblique_city.core.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix
+
+    rng = np.random.default_rng(11)
+    r = rotvec_to_matrix(rng.normal(size=3))
+    c = rng.normal(size=3) * 300.0
+    a = rng.normal(size=(9, 9)) * np.array([1e-4] * 3 + [0.05] * 3 + [0.01] * 3)
+    cov = a @ a.T
+    t = -r @ c
+
+    def world(x: np.ndarray) -> np.ndarray:
+        r2 = rotvec_to_matrix(2.0 * x[:3]) @ r
+        return np.concatenate([matrix_to_rotvec(r.T @ r2),
+                               -r2.T @ (t + x[3:6]) + x[6:]])
+
+    h = 1e-7
+    jac = np.array([(world(h * e) - world(-h * e)) / (2 * h) for e in np.eye(9)]).T
+    want = np.sqrt(np.diag(jac @ cov @ jac.T))
+    got = world_pose_std(cov[None, :6, :6], r[None], c[None], cov[6:, 6:], cov[None, :6, 6:])[0]
+    assert np.allclose(got, want, rtol=1e-6)
+    alone = world_pose_std(cov[None, :6, :6], r[None], c[None])[0]
+    assert np.allclose(alone, np.sqrt(np.diag(jac[:, :6] @ cov[:6, :6] @ jac[:, :6].T)), rtol=1e-6)
 
 
 def test_least_squares_rounds_start_with_the_gauss_newton_step(sim, xyz0, options):
