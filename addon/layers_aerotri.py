@@ -222,7 +222,8 @@ def report_summary(path: Path) -> dict:
     moves the most (``self_calibration``: ``(cameras, camera, px, std px or None, significant, tested)``, the
     last two counting the corrections with a standard deviation; None without one), and the tie measurements' sigma
     when the adjustment estimated one other than the given (``tie_sigma``: ``(given px, estimated px)`` of its first
-    run, None otherwise and in reports written before it existed).
+    run, None otherwise and in reports written before it existed), and the block's datum shift (``datum``: ``(shift
+    (3,) m, its standard deviations (3,) m or None)``, None without one and in reports written before it existed).
     Raises :class:`InputError` naming the file."""
     doc = read_json(path, "no triangulation report (run the 'aerotri' stage)")
     try:
@@ -264,6 +265,9 @@ def report_summary(path: Path) -> dict:
                 if effect["position_m"] is not None or effect["attitude_deg"] is not None else None,
                 "oblique_without_nadir": int(doc.get("oblique_without_nadir") or 0),
                 "tie_sigma": estimated_tie_sigma(doc),
+                "datum": ([float(v) for v in doc["datum"]["shift_m"]],
+                          None if doc["datum"]["std_m"] is None else [float(v) for v in doc["datum"]["std_m"]])
+                if doc.get("datum") else None,
                 "mode": str(doc["mode"]), "connection": str(doc.get("connection") or ""),
                 "images": int(doc["images"]), "sigma0": float(doc["sigma0"]), "sigma0_px": float(doc["sigma0_px"]),
                 "check_n": int(check["n"]), "check_rms_xy_m": check["rms_xy_m"], "check_rms_z_m": check["rms_z_m"],

@@ -50,7 +50,7 @@ from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
     nadir_propagation,
 )
 from oblique_city.core.aerotri.problem import build_problem  # noqa: E402
-from oblique_city.core.aerotri.report import mounting, self_calibration  # noqa: E402
+from oblique_city.core.aerotri.report import block_datum, mounting, self_calibration  # noqa: E402
 from oblique_city.core.aerotri.stage import calibrated_cameras  # noqa: E402
 from oblique_city.core.aerotri.strips import flight_strips  # noqa: E402
 from oblique_city.core.evaluate.aerotri import (  # noqa: E402
@@ -641,7 +641,9 @@ def precision_runs(block, true_poses: dict, conditional: dict, run: dict[str, Ca
     its adjustment, whose image standard deviations are the conditional ones) and those of ``run[method]`` with
     every run's marginal ones (``BundleOptions.marginal_max_images``); per result the kind its runs reported, the
     median standard deviations (attitude about X Y Z in degrees, centre X Y Z in metres), the true errors in them
-    (RMS per axis; 1: the precision is told right) and the time the marginal covariances took."""
+    (RMS per axis; 1: the precision is told right), the centres' common error (their mean, metres) beside the block
+    datum's standard deviations (:func:`.report.block_datum`, None where unknown) and the time the marginal
+    covariances took."""
     out = {"runs": []}
     for method, cond in conditional.items():
         t = time.perf_counter()
@@ -658,6 +660,7 @@ def precision_runs(block, true_poses: dict, conditional: dict, run: dict[str, Ca
                 "method": method, "kinds": kinds,
                 "median_std": np.concatenate([np.degrees(np.median(std[:, :3], 0)), np.median(std[:, 3:], 0)]).tolist(),
                 "error_over_std": np.sqrt(np.mean((err / std) ** 2, 0)).tolist(),
+                "centre_error_mean_m": err[:, 3:].mean(0).tolist(), "datum_std_m": block_datum(at)["std_m"],
                 "covariance_s": seconds if "marginal" in kinds else None, "wall_s": w})
         print(f"precision: {method} with marginal standard deviations {wall:.1f} s")
     return out
@@ -910,14 +913,18 @@ def print_tie_sigma(ts: dict, gsd: float) -> None:
 def print_precision(pr: dict) -> None:
     print("\nTable 14. Orientation precision: standard deviations conditional (each image with the points held) or "
           "marginal (all correlations); median std (attitude X Y Z [deg], centre X Y Z [m]); true errors in them (RMS "
-          "per axis; 1: the precision is told right); time of the marginal covariances [s] (the run's wall time)")
+          "per axis; 1: the precision is told right); the centres' common error (mean) and the block datum's std "
+          "[mm], which the marginal std hold; time of the marginal covariances [s] (the run's wall time)")
     for r in pr["runs"]:
         med = r["median_std"]
         wall = "" if r["wall_s"] is None else f" (run {r['wall_s']:.1f})"
         cov = "     -" if r["covariance_s"] is None else f"{r['covariance_s']:6.1f}"
+        datum = "-" if r["datum_std_m"] is None else _v(1000 * np.array(r["datum_std_m"]), 1)
+        common = _v(1000 * np.array(r["centre_error_mean_m"]), 1)
         print(f"{r['method']:8s} {'/'.join(r['kinds']):12s} std att {' '.join(f'{x:.5f}' for x in med[:3])}  "
               f"centre {' '.join(f'{x:.4f}' for x in med[3:])}  error/std att {_v(r['error_over_std'][:3], 2)} "
-              f"centre {_v(r['error_over_std'][3:], 2)}  covariance {cov} s{wall}")
+              f"centre {_v(r['error_over_std'][3:], 2)}  common error {common} datum std {datum}  covariance {cov} s"
+              f"{wall}")
 
 
 def _v(a, nd: int) -> str:

@@ -240,9 +240,9 @@ def targets_summary(root: Path) -> dict:
 
 def draw_triangulation(layout, context) -> None:
     """The Triangulation panel's figures (the connectivity graph's pairs, the targets measured; mode, images, sigma0,
-    check point RMS, blunders, the mounting calibration, the self-calibration, the camera with the largest systematic
-    image residual, rejected control data and EO priors, the GNSS strip offsets, estimated or suspected, the weakest
-    control point),
+    check point RMS, the datum shift, blunders, the mounting calibration, the self-calibration, the camera with the
+    largest systematic image residual, rejected control data and EO priors, the GNSS strip offsets, estimated or
+    suspected, the weakest control point),
     the tie points' colourings and Open Report."""
     root = workspace_root(context)
     g = graph_summary(root) if root is not None else {"error": ""}
@@ -266,6 +266,10 @@ def draw_triangulation(layout, context) -> None:
         col.label(text=f"Tie sigma estimated: {used:.3f} px ({given:g} px given)")
     col.label(text=f"Check points ({s['check_n']}): RMS XY {_metres(s['check_rms_xy_m'])}, "
                    f"Z {_metres(s['check_rms_z_m'])}")
+    if s["datum"]:
+        shift, std = s["datum"]
+        col.label(text="Datum shift: " + ", ".join(f"{v:.3f}" + (f" +- {d:.3f}" if std else "")
+                                                  for v, d in zip(shift, std or shift)) + " m")
     col.label(text=f"Rejected observations: {s['blunder_percent']:.2f} %")
     if s["oblique_without_nadir"]:
         col.label(text=f"{s['oblique_without_nadir']} oblique images without a nadir image in their exposure: "

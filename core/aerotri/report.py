@@ -614,6 +614,20 @@ def ray_counts(ties: TiePoints, at: ATResult, top: int = RAYS_TOP) -> dict:
             "two_ray_share": float(np.mean(n == 2)) if len(n) else None}
 
 
+def block_datum(at: ATResult) -> dict | None:
+    """The whole block's datum shift (control frame - GNSS frame, metres) with its standard deviations (None where
+    unknown): IAT's as its run estimated it (marginal, see ``BundleOptions.marginal_max_images``); HAT's as the nadir
+    run estimated it, refined from all control measurements (:func:`.hierarchical.datum_correction`). None without
+    runs."""
+    if "datum_shift" in at.extra:
+        shift, std = np.asarray(at.extra["datum_shift"]), np.asarray(at.extra["datum_shift_std"])
+    elif at.runs:
+        shift, std = at.runs[0].result.datum_shift, at.runs[0].result.datum_shift_std
+    else:
+        return None
+    return {"shift_m": shift.tolist(), "std_m": std.tolist() if np.all(np.isfinite(std)) else None}
+
+
 def block_report(block: ImageBlock, ties: TiePoints, at: ATResult) -> dict:
     """Figures of the whole adjustment (combined over runs)."""
     runs = [run_statistics(r) | {"reliability": reliability(r, ties, block)} for r in at.runs]
@@ -634,6 +648,7 @@ def block_report(block: ImageBlock, ties: TiePoints, at: ATResult) -> dict:
         internal[split] = {"points": int(np.isfinite(std[:, 0]).sum()), "std_xy_m": xy, "std_z_m": z}
     return {"mode": at.mode, "connection": at.connection, "images": len(at.poses), "sigma0": sigma0,
             "sigma0_px": at.sigma0_px(), "runs": runs, "check_points": check, "internal_accuracy": internal,
+            "datum": block_datum(at),
             "ground_points": ground_point_residuals(block, at.poses, *at.control_rejections()),
             "weakest_control": weakest_control(runs),
             "boresight": boresight(block, at.poses), "mounting": mounting(block, at),
@@ -992,6 +1007,14 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
              f"<p>{report['images']} images; sigma0 {report['sigma0']:.3f} "
              f"({report['sigma0_px']:.3f} px); wall time {report['wall_s']:.1f} s; "
              f"rejected {report['blunder_percent']:.2f} % of the observations.</p>"]
+    datum = report.get("datum")
+    if datum:
+        std = datum["std_m"]
+        parts.append("<p>Datum shift (control frame - GNSS frame): "
+                     + ", ".join(f"{a} {v:.3f}" + (f" &plusmn; {sd:.3f}" if std else "")
+                                 for a, v, sd in zip("XYZ", datum["shift_m"], std or [0.0] * 3))
+                     + " m." + (" The orientations' marginal standard deviations (std_kind in the runs table) "
+                                "include its uncertainty, common to all images." if std else "") + "</p>")
     if report.get("final_tests"):
         ft = report["final_tests"]
         parts.append(f"<p>{ft['tracks']} tie points that a run held with one or two rays (where its tests cannot "

@@ -60,6 +60,12 @@ def test_aerotri_cli_hierarchical_writes_block_report_and_layers(tmp_path):
         meas = groups["control_measurements"]
         assert meas["count"] > 0 and abs(meas["factor"] - 1.0) < 4 * meas["factor_std"] + 0.05, (run["name"], meas)
     assert "Variance components" in ws.path("aerotri/report.html").read_text()
+    # the block's datum shift: the simulated GNSS offset, the nadir run's refined from all control measurements,
+    # more precise than the nadir run's own (which saw the nadir measurements only)
+    datum, nadir = report["datum"], report["runs"][0]
+    assert np.allclose(datum["shift_m"], -np.array(s.config.gnss_bias), atol=0.04)
+    assert nadir["std_kind"] == "marginal" and np.all(np.array(datum["std_m"]) < np.array(nadir["datum_shift_std_m"]))
+    assert "Datum shift (control frame - GNSS frame)" in ws.path("aerotri/report.html").read_text()
     # per ground point: the check points' differences are those of the RMS above, measurements fit their
     # intersection to the simulated noise, and control points are listed too
     rows = {g["name"]: g for g in report["ground_points"]}

@@ -61,6 +61,7 @@ def ws(tmp_path, utm_block):
                                    "L03": {"mean_m": [0.0, 0.0, -0.2], "w": [0.0, 0.3, 8.0], "flagged": True}},
               "weakest_control": {"name": "G2", "run": "nadir", "axis": "Z", "mdb_m": 0.1364},
               "oblique_without_nadir": 40,
+              "datum": {"shift_m": [-0.0612, 0.0398, -0.1003], "std_m": [0.003, 0.003, 0.0046]},
               "self_calibration": {
                   "nadir": {"corner_shift_px": 1.234, "corner_shift_std_px": 0.05,
                             "parameters": [{"significant": True}, {"significant": False}]},
@@ -208,6 +209,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Sigma0: 0.987 (0.296 px)" in labels
     assert "Tie sigma estimated: 0.300 px (0.5 px given)" in labels
     assert "Check points (4): RMS XY 0.031 m, Z 0.046 m" in labels
+    assert "Datum shift: -0.061 +- 0.003, 0.040 +- 0.003, -0.100 +- 0.005 m" in labels
     assert "Rejected observations: 1.25 %" in labels
     assert "40 oblique images without a nadir image in their exposure: import the exposures" in labels
     assert "Mounting calibrated for 2 cameras, largest boresight 0.0500 deg (left)" in labels
