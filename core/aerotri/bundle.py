@@ -1746,8 +1746,9 @@ def world_pose_std(pose_cov: np.ndarray, r_cam_from_world: np.ndarray, c_local: 
 
     With an estimated datum shift ``s`` (the centre in the control frame is ``C + s``) its covariance
     ``shift_cov (3, 3)`` and each pose's covariances with it ``pose_shift_cov (n, 6, 3)`` enter the centres': the
-    shift's uncertainty is common to all images (on a simulated 6,000-image block it made up a third of the centres'
-    RMS error in Z).
+    shift's uncertainty is common to all images. On a simulated 6,000-image block the centres' errors had a common
+    part of 2.6 / 4.5 / 4.6 mm (X Y Z, their mean) and were 1.11 / 1.34 / 1.32 times the standard deviations without
+    the shift, 1.02 / 1.24 / 1.13 times those with it.
 
     r_cam_from_world : (n, 3, 3); c_local : (n, 3) centres in the problem's local frame
     """
@@ -1778,9 +1779,8 @@ def marginal_covariances(problem, poses: list[np.ndarray], globals_: list[np.nda
     ``points`` (3): with ``pose_blocks`` each pose's ``(n, 6, 6)`` (else None), each global block's, and with
     ``pose_blocks`` and ``cross`` (an index into ``globals_``) each pose's covariances ``(n, 6, t)`` with that global
     block (else None), by :func:`.precision.marginal_covariance` on the problem's Jacobian. The lists must hold every
-    variable block of
-    the problem (one left out would count as known and the covariances come out too small). None when the reduced
-    system is singular.
+    variable block of the problem (one left out would count as known and the covariances come out too small). None
+    when the reduced system is singular.
 
     The reference is pycolmap's covariance estimation: the globals' standard deviations agree with those of its
     estimate of everything to 4 digits on simulated blocks of 240 and 1,000 images with 5 self-calibrated cameras
