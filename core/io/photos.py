@@ -4,10 +4,11 @@ the true orthophoto and the textures take.
 Aerial cameras deliver 16-bit TIFFs whose values use 12 or 14 of the 16 bits. OpenCV's 8-bit reading keeps the top
 8 of the 16 bits (the value over 256): a 12-bit image came out with grey values 0 to 15, and SIFT found almost no
 features on it. A photograph deeper than 8 bits (a 16-bit TIFF or PNG, a float TIFF) is read as it is and scaled
-by the smallest of 8, 10, 12, 14 or 16 significant bits that holds its maximum, image by image (a 12-bit image
-whose brightest value stays under 1024 is taken as a 10-bit one: four times as bright as its neighbours); a float
-image whose values stay within 0..1 is scaled from that range. 8-bit files are read by OpenCV as before (JPEG,
-8-bit TIFF and PNG), a fourth band (alpha or near infrared) left out of the colour.
+by the significant bits its file declares (a TIFF's MaxSampleValue tag, a PNG's sBIT chunk), else by the smallest
+of 8, 10, 12, 14 or 16 significant bits that holds its maximum, image by image (then a 12-bit image whose brightest
+value stays under 1024 is taken as a 10-bit one: four times as bright as its neighbours); a float image whose values
+stay within 0..1 is scaled from that range. 8-bit files are read by OpenCV as before (JPEG, 8-bit TIFF and PNG), a
+fourth band (alpha or near infrared) left out of the colour.
 """
 
 from __future__ import annotations
@@ -41,13 +42,47 @@ def _deep(path: str) -> bool:
     return False
 
 
-def to_8bit(img: np.ndarray) -> np.ndarray:
-    """``img`` (any depth, ``(h, w)`` or ``(h, w, bands)``) scaled to uint8 (module docstring)."""
+def declared_bits(path: str) -> int | None:
+    """The significant bits a deep photograph's file declares for its samples: from a TIFF's MaxSampleValue (tag
+    281; the largest over the samples) or a PNG's sBIT chunk (the largest over the colour samples); None where the
+    file declares none or cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+            if head == PNG_SIGNATURE:
+                while True:  # chunks: length, type, data, CRC; sBIT comes before the first IDAT
+                    size, kind = struct.unpack(">I4s", f.read(8))
+                    if kind == b"sBIT":
+                        data = f.read(size)
+                        bits = max(data[:3] if len(data) >= 3 else data[:1])
+                        return int(bits) if 0 < bits <= 16 else None
+                    if kind in (b"IDAT", b"IEND"):
+                        return None
+                    f.seek(size + 4, 1)
+        if head[:4] in TIFF_SIGNATURES:
+            import tifffile
+
+            with tifffile.TiffFile(path) as t:
+                tag = t.pages[0].tags.get(281)
+                if tag is None:
+                    return None
+                peak = int(np.max(np.atleast_1d(tag.value)))
+                return peak.bit_length() if 0 < peak < 2**16 else None
+    except (OSError, ValueError, struct.error, IndexError):
+        return None
+    return None
+
+
+def to_8bit(img: np.ndarray, bits: int | None = None) -> np.ndarray:
+    """``img`` (any depth, ``(h, w)`` or ``(h, w, bands)``) scaled to uint8 (module docstring); integer values by
+    ``bits`` significant bits where given (values above ``2**bits - 1`` saturate)."""
     if img.dtype == np.uint8:
         return img
     peak = float(np.nanmax(img)) if img.size else 0.0
     if img.dtype.kind == "f" and peak <= 1.0:
         full = 1.0
+    elif bits is not None and img.dtype.kind in "ui":
+        full = float(2**bits - 1)
     else:
         bits = next((b for b in SIGNIFICANT_BITS if peak < 2**b), SIGNIFICANT_BITS[-1])
         full = float(2**bits - 1)
@@ -64,7 +99,7 @@ def read_photo(path: str | Path, colour: bool, image_id: str | None = None) -> n
     if _deep(path):
         img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
         if img is not None:
-            img = to_8bit(img)
+            img = to_8bit(img, declared_bits(path))
             if img.ndim == 3 and img.shape[2] in (2, 4):  # grey or colour with a band beyond (alpha, infrared)
                 img = img[:, :, :1] if img.shape[2] == 2 else img[:, :, :3]
             if img.ndim == 3 and img.shape[2] == 1:

@@ -1,8 +1,10 @@
 """Photographs deeper than 8 bits (12- and 14-bit values in 16-bit TIFF and PNG, four bands, float) read as the
-8-bit image they hold, so that SIFT finds the same features; unreadable files refused naming the file."""
+8-bit image they hold, so that SIFT finds the same features; the significant bits a file declares (TIFF
+MaxSampleValue, PNG sBIT) keep a dark image dark; unreadable files refused naming the file."""
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import cv2
@@ -10,7 +12,7 @@ import numpy as np
 import pytest
 
 from oblique_city.core.errors import InputError
-from oblique_city.core.io.photos import read_photo
+from oblique_city.core.io.photos import declared_bits, read_photo
 from oblique_city.core.matching.features import sift_features
 
 
@@ -58,6 +60,42 @@ def test_four_bands_and_float_photographs(tmp_path: Path):
     grey16 = np.round(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) * (4095 / 255.0)).astype(np.uint16)
     assert cv2.imwrite(str(tmp_path / "grey.tif"), grey16)
     assert read_photo(tmp_path / "grey.tif", True).shape == bgr.shape
+
+
+def _with_sbit(png: bytes, bits: int, samples: int) -> bytes:
+    """A PNG file's bytes with an sBIT chunk of ``bits`` per sample inserted after its header chunk."""
+    import zlib
+
+    data = bytes([bits] * samples)
+    chunk = struct.pack(">I", len(data)) + b"sBIT" + data + struct.pack(">I", zlib.crc32(b"sBIT" + data))
+    end = 8 + 8 + 13 + 4  # signature, IHDR length and type, its 13 bytes, its CRC
+    return png[:end] + chunk + png[end:]
+
+
+def test_a_dark_photograph_keeps_the_bits_its_file_declares(tmp_path: Path):
+    """A dark 12-bit exposure (its brightest value 900, under 1024) is scaled by the 12 bits its file declares, as
+    its neighbours are, not taken as a 10-bit one four times as bright; a file that declares nothing falls back on
+    the smallest depth holding its maximum."""
+    import tifffile
+
+    rng = np.random.default_rng(5)
+    grey = rng.integers(0, 901, (60, 80)).astype(np.uint16)
+    grey[0, 0] = 900
+    want = np.round(grey * (255.0 / 4095.0)).astype(int)
+    tifffile.imwrite(tmp_path / "tagged.tif", grey, extratags=[(281, "H", 1, 4095, True)])
+    assert declared_bits(str(tmp_path / "tagged.tif")) == 12
+    assert np.abs(read_photo(tmp_path / "tagged.tif", False).astype(int) - want).max() <= 1
+    ok, png = cv2.imencode(".png", grey)
+    (tmp_path / "sbit.png").write_bytes(_with_sbit(png.tobytes(), 12, 1))
+    assert declared_bits(str(tmp_path / "sbit.png")) == 12
+    assert np.abs(read_photo(tmp_path / "sbit.png", False).astype(int) - want).max() <= 1
+    colour = np.dstack([grey] * 3)
+    ok, png = cv2.imencode(".png", colour)
+    (tmp_path / "sbit3.png").write_bytes(_with_sbit(png.tobytes(), 12, 3))
+    assert np.abs(read_photo(tmp_path / "sbit3.png", True).astype(int) - want[:, :, None]).max() <= 1
+    # without a declaration: the 10 bits that hold 900
+    assert cv2.imwrite(str(tmp_path / "plain.tif"), grey) and declared_bits(str(tmp_path / "plain.tif")) is None
+    assert read_photo(tmp_path / "plain.tif", False).max() == 224
 
 
 def test_unreadable_photograph_is_refused_naming_the_file(tmp_path: Path):
