@@ -197,7 +197,8 @@ class BundleOptions:
         and the calibrated parameters included); above it the conditional ones (each image's 6 x 6 normal block with
         the points held fixed), a lower bound. On the simulated 3,000-image block the marginal ones took 51-65 s
         after a 113-122 s adjustment (peak 4.9 GB for the whole run) and fit the true errors: RMS error over
-        standard deviation 0.97-1.03 per axis of attitude and centre, where the conditional ones are 5-7 % smaller
+        standard deviation 0.97-1.01 per axis of attitude, 0.91-0.95 of centre (with the datum's uncertainty, see
+        :func:`world_pose_std`), where the conditional ones are 5-7 % smaller
     calibration_max_images : with ``self_calibration`` or ``mounting``, up to this many adjusted images the
         calibrated parameters' marginal covariance is computed (:func:`marginal_covariances`) for their standard
         deviations and correlations (:attr:`Calibration.cov`, ``BundleResult.mounting_std``): 56 s on 3,000 images

@@ -627,8 +627,9 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         rej[run.obs_index] |= run.obs_rejected
     datum_delta = np.zeros(3)
     datum_cov = np.diag(res_n.datum_shift_std**2)
+    run_subs = list(zip(runs, [sub_n, *(subs[v] for v in by_view)]))
     if combined_datum:
-        centre_var = {iid: s[3:] ** 2 for run, sub in zip(runs, [sub_n, *(subs[v] for v in by_view)])
+        centre_var = {iid: s[3:] ** 2 for run, sub in run_subs
                       for iid, s in zip(sub.problem.image_ids, run.result.image_std_relative)}
         datum_delta, datum_cov = datum_correction(block, poses, *rejected_control(runs), centre_var)
         poses = {i: Pose(p.R, p.C + datum_delta) for i, p in poses.items()}
@@ -639,7 +640,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     if res_n.image_std_kind == "marginal" and np.all(np.isfinite(datum_cov)):
         # the datum's uncertainty, common to all images (the oblique runs hold the nadir run's shift): that of the
         # block's shift enters every centre's standard deviations, in place of the nadir run's own
-        for run, sub in zip(runs, [sub_n, *(subs[v] for v in by_view)]):
+        for run, sub in run_subs:
             run.image_std = datum_std(sub.problem.image_ids, run.result, datum_cov)
     std = {}
     for run in runs:
