@@ -219,6 +219,57 @@ def _inv3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return c / det[:, None, None], det
 
 
+def coupled_inverse(normals: np.ndarray, pairs: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Diagonal blocks ``(n, 6, 6)`` of the inverse of the normal matrix whose diagonal blocks are ``normals
+    (n, 6, 6)`` and whose only couplings are observations of the differences of ``pairs (q, 2)`` of blocks with the
+    weights ``weight (6,)`` (each adds ``W`` to both diagonal blocks and ``-W`` to the two off-diagonal ones): per
+    connected set of blocks, the inverse of its joint matrix (NaN where singular); a block in no pair is inverted
+    alone (:func:`safe_inverse`). Rig constraints between the heads of an exposure are such observations when their
+    covariance is isotropic and the lever arms' coupling of rotation and centre is left out."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(normals)
+    w = np.diag(weight)
+    full = np.array(normals, np.float64)
+    if len(pairs) == 0:
+        return safe_inverse(full)
+    for a in (0, 1):
+        np.add.at(full, pairs[:, a], w)
+    _, comp = connected_components(coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)),
+                                   directed=False)
+    sizes = np.bincount(comp)
+    out = np.full((n, 6, 6), np.nan)
+    alone = sizes[comp] == 1
+    out[alone] = safe_inverse(full[alone])
+    pos = np.zeros(n, np.int64)  # each block's place in its set
+    order = np.argsort(comp, kind="stable")
+    starts = np.cumsum(sizes) - sizes
+    pos[order] = np.arange(n) - starts[comp[order]]
+    for size in np.unique(sizes[sizes > 1]):
+        sets = np.flatnonzero(sizes == size)
+        slot = np.full(len(sizes), -1)
+        slot[sets] = np.arange(len(sets))
+        joint = np.zeros((len(sets), size, 6, size, 6))
+        members = np.flatnonzero(sizes[comp] == size)
+        joint[slot[comp[members]], pos[members], :, pos[members], :] = full[members]
+        for i, j in pairs[sizes[comp[pairs[:, 0]]] == size]:
+            joint[slot[comp[i]], pos[i], :, pos[j], :] -= w
+            joint[slot[comp[i]], pos[j], :, pos[i], :] -= w
+        joint = joint.reshape(len(sets), 6 * size, 6 * size)
+        scale = 1.0 / np.sqrt(np.abs(np.diagonal(joint, axis1=1, axis2=2)) + 1e-300)
+        inv = np.full(joint.shape, np.nan)
+        for k in range(len(sets)):  # each set alone: one singular set must not take the others' values
+            try:
+                d = scale[k][:, None] * scale[k][None]
+                inv[k] = np.linalg.inv(joint[k] * d) * d
+            except np.linalg.LinAlgError:
+                pass
+        inv = inv.reshape(len(sets), size, 6, size, 6)
+        out[members] = inv[slot[comp[members]], pos[members], :, pos[members], :]
+    return out
+
+
 def safe_inverse(n: np.ndarray) -> np.ndarray:
     """Inverse of a stack of symmetric positive (semi-)definite matrices ``(k, d, d)``, d = 3 or 6; singular
     or badly conditioned ones give NaN. Closed forms (adjugate, Schur complement) keep it vectorised: batched

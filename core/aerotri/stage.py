@@ -65,7 +65,9 @@ class AerotriConfig(CheckedOptions):
     self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
     datum_shift : estimate a 3D shift between the GNSS frame and the control frame
     rig, rig_sigma_deg, rig_sigma_m : constrain the heads of each exposure to the rig's boresight and lever arms
-        (integrated mode; a hierarchical sub-block holds one view, so it has no head pairs)
+        (integrated mode; a hierarchical sub-block holds one view, so it has no head pairs); the heads so tied share
+        their exposure's one GNSS/IMU measurement (:func:`.bundle.shared_prior_fraction`), where without the rig each
+        head's prior counts in full and the datum's standard deviations come out too small
     mounting, mounting_sigma_deg, mounting_sigma_m : calibrate each camera's mounting: a boresight rotation and a
         lever-arm offset common to all its images, between the images and their GNSS/IMU priors, with a prior of
         zero and these standard deviations (degrees about, metres along each camera axis); with ``rig`` the heads
@@ -296,4 +298,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="17", adjusted_block=False, inputs=(MANUAL_FILE,))
+              version="18", adjusted_block=False, inputs=(MANUAL_FILE,))
