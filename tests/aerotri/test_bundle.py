@@ -995,15 +995,16 @@ def test_heads_tied_by_the_rig_share_their_exposures_prior(sim, xyz0):
     np.testing.assert_allclose(frac[~mates], 0.2)
 
 
-def test_shared_priors_are_one_measurement_per_exposure(sim, xyz0):
+def test_shared_priors_are_one_measurement_per_exposure(sim, xyz0, iat):
     """Under a tight rig (0.0002 deg, 1 mm; the simulated rig is exact) the heads' shares of their exposure's prior
     are the textbook model of one GNSS/IMU measurement per exposure, the adjustment in which only the reference
     (nadir) head holds the prior, in full. They differ only in the weak prior weight on the heads' relative poses,
     which the rig holds: the same datum shift (written: within 0.0001 of its standard deviation; asserted 0.02), the
     same standard deviations of it and of the images (0.3 %; 1 %), the same centres (0.003 of their standard
-    deviations; 0.02). The prior tests, taken per exposure (the heads move as one body), reject no prior in either:
-    per image, the nadir head's own ties against the full prior of the exposure, they rejected an attitude prior
-    and took the attitude priors 1.6 times too optimistic."""
+    deviations; 0.02); the log does not say that the priors counted in full, as it does without the rig. The prior
+    tests, taken per exposure (the heads move as one body), reject no prior in either: per image, the nadir head's
+    own ties against the full prior of the exposure, they rejected an attitude prior and took the attitude priors
+    1.6 times too optimistic."""
     opt = BundleOptions(sigma_px=0.3, rig=True, rig_sigma_deg=0.0002, rig_sigma_m=0.001, marginal_max_images=1000)
     sub = build_problem(sim.block, sim.ties, list(sim.block.images), xyz0, obs_mask=~sim.ties.obs_blunder)
     shared = adjust(sub.problem, opt)
@@ -1020,6 +1021,9 @@ def test_shared_priors_are_one_measurement_per_exposure(sim, xyz0):
     dc = np.abs(shared.c_world - single.c_world) / single.image_std[:, 3:]
     assert np.all(dc < 0.02), dc.max()
     assert not shared.prior_rejected.any() and not single.prior_rejected.any()
+    # without the rig (the fixture's IAT) the log says that each head's prior counted in full
+    full = "each counted in full without rig constraints"
+    assert any(full in line for line in iat.runs[0].result.log) and not any(full in line for line in shared.log)
 
 
 def test_prior_tests_per_exposure_recover_the_tie_only_pose_of_the_rig():
