@@ -194,12 +194,13 @@ class BundleOptions:
         ends the rejection without another solve: they are rejected and only the points that lost them are
         re-estimated (cameras fixed), since a full solve would move the cameras by far less than their precision
     marginal_max_images : up to this many adjusted images (0: never), the images' standard deviations are the
-        marginal ones (:func:`marginal_covariances`: the correlations between images and with the datum, the control
-        and the calibrated parameters included); above it the conditional ones (each image's 6 x 6 normal block with
-        the points held fixed), a lower bound. On the simulated 3,000-image block the marginal ones took 51-65 s
-        after a 113-122 s adjustment (peak 4.9 GB for the whole run) and fit the true errors: RMS error over
-        standard deviation 0.97-1.01 per axis of attitude, 0.91-0.95 of centre (with the datum's uncertainty, see
-        :func:`world_pose_std`), where the conditional ones are 5-7 % smaller
+        marginal ones (:func:`marginal_covariances`: the correlations between images and with the datum, the control and
+        the calibrated parameters included); above it the conditional ones (each image's 6 x 6 normal block with the
+        points held fixed; with ``rig`` each exposure's heads together, the other exposures held), a lower bound. On the
+        simulated 3,000-image block the marginal ones took 51-65 s after a 113-122 s adjustment (peak 4.9 GB for the
+        whole run) and fit the true errors: RMS error over standard deviation 0.97-1.01 per axis of attitude, 0.91-0.95
+        of centre (with the datum's uncertainty, see :func:`world_pose_std`), where the conditional ones are 5-7 %
+        smaller
     calibration_max_images : with ``self_calibration`` or ``mounting``, up to this many adjusted images the
         calibrated parameters' marginal covariance is computed (:func:`marginal_covariances`) for their standard
         deviations and correlations (:attr:`Calibration.cov`, ``BundleResult.mounting_std``): 56 s on 3,000 images
@@ -2350,7 +2351,7 @@ def shared_prior_fraction(prob: BundleProblem, opt: BundleOptions, in_use: np.nd
     six simulated 250-image penta blocks (rig constraints of 0.0002 deg and 1 mm, the simulated rig being exact) the
     datum shift's errors were 1.90 / 1.72 / 1.15 times its standard deviations (RMS of the z-scores, X Y Z) and the
     centres' 1.38 / 1.28 / 1.19 times theirs; with each head's share 1.02 / 0.92 / 0.64 and 1.08 / 1.04 / 1.12, and
-    the centres 15 % more accurate (3.5 / 3.6 / 4.3 mm RMS against 4.2 / 4.1 / 4.4). Without the rig the heads are
+    the centres more accurate (3.5 / 3.6 / 4.3 mm RMS against 4.2 / 4.1 / 4.4). Without the rig the heads are
     separate images whose priors count in full: their relative orientation then rests on those priors, and a share
     of the weight would lose it (the centres 5-10 % less accurate on five of six blocks). On the bench's 3,000-image
     block (``bench_at.py --rig``) IAT on the rig oriented the images to 0.0008 deg and 1.8-1.9 mm RMS, against
@@ -2380,9 +2381,8 @@ def _precision(prob: BundleProblem, opt: BundleOptions, r: np.ndarray, c: np.nda
     """Cofactor blocks of points ``(p, 3, 3)`` and images ``(n, 6, 6)`` (the priors' parts in ``prior_off (n, 2)``
     left out, the others with their share ``prior_frac (n, 2)`` of the weight; with ``opt.rig`` the heads of an
     exposure held together by their rig constraints, :func:`.precision.coupled_inverse`), redundancy numbers
-    ``(m,)`` and, for the prior tests, the images' normal blocks from their tie
-    observations alone with the points free (:func:`.precision.reduced_image_normals`, ``(n, 6, 6)``; None without
-    ``opt.prior_tests``)."""
+    ``(m,)`` and, for the prior tests, the images' normal blocks from their tie observations alone with the points
+    free (:func:`.precision.reduced_image_normals`, ``(n, 6, 6)``; None without ``opt.prior_tests``)."""
     fx, fy = image_focals(cams, prob.image_camera)
     op, oi = prob.obs_point, prob.obs_image
     jp, jr = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
