@@ -1,4 +1,4 @@
-"""CLI command ``oblique-city aerotri WS --mode integrated|hierarchical --connection cba|2|3|5|10 [--mounting]
+"""CLI command ``oblique-city aerotri WS --mode integrated|hierarchical --connection cba|2|3|5|10 [--rig] [--mounting]
 [--no-control-tests] [--no-prior-tests] [--gnss-strips off|shift|drift]``.
 
 A shortcut for ``oblique-city run WS --stages aerotri --set aerotri.mode=... --set aerotri.connection=...``
@@ -24,7 +24,7 @@ def cmd_aerotri(args: argparse.Namespace) -> int:
         value = getattr(args, key)
         if value is not None:
             opts[key] = value
-    for key in ("mounting", "control_tests", "prior_tests"):
+    for key in ("rig", "mounting", "control_tests", "prior_tests"):
         if getattr(args, key) is not None:
             opts[key] = getattr(args, key)
     if args.self_calibration is not None:
@@ -42,6 +42,9 @@ def add_commands(sub) -> None:
     s.add_argument("--cell-size", dest="cell_size", type=float, help="CBA grid cell, metres")
     s.add_argument("--sigma-px", dest="sigma_px", type=float, help="a priori tie measurement sigma, pixels")
     s.add_argument("--self-calibration", help="comma-separated: focal,principal_point,radial,tangential")
+    s.add_argument("--rig", action=argparse.BooleanOptionalAction,
+                   help="tie the heads of each exposure to the block's rig (integrated mode); they then share their "
+                        "exposure's one GNSS/IMU measurement")
     s.add_argument("--mounting", action=argparse.BooleanOptionalAction,
                    help="calibrate each camera's boresight and lever arm against the GNSS/IMU priors")
     s.add_argument("--control-tests", dest="control_tests", action=argparse.BooleanOptionalAction,

@@ -626,3 +626,24 @@ def test_manual_measurements_override_the_others_and_make_the_adjustment_stale(t
     capsys.readouterr()
     assert main(["measure", str(ws.root), image]) == 2
     assert f"manual_measurements.json, field 'observations.{name}.{image}.uv'" in capsys.readouterr().err
+
+
+def test_rig_through_the_cli_shares_each_exposures_prior(tmp_path):
+    """``oblique-city aerotri --rig`` stores the option and ties the heads: the run's log no longer says that each
+    head's prior counted in full, as the run without it does, and the datum shift's standard deviations grow by
+    the shares (the heads' priors were counted five times; the control points' part stays, so by less than
+    sqrt(5) = 2.24: 1.92-2.05 when written, asserted between 1.1 and 2.24)."""
+    _, ws = _simulated_workspace(tmp_path)
+    full = "each counted in full without rig constraints"
+
+    def run(*flags: str) -> dict:
+        assert main(["aerotri", str(ws.root), "--mode", "integrated", *flags]) == 0
+        return json.loads(Workspace.open(ws.root).path("aerotri/report.json").read_text())
+
+    free = run()
+    tied = run("--rig")
+    assert Workspace.open(ws.root).stage_options("aerotri")["rig"] is True
+    assert any(full in line for line in free["runs"][0]["log"])
+    assert not any(full in line for line in tied["runs"][0]["log"])
+    ratio = np.array(tied["datum"]["std_m"]) / np.array(free["datum"]["std_m"])
+    assert np.all((ratio > 1.1) & (ratio < np.sqrt(5))), ratio
