@@ -124,6 +124,10 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
         "calibration_std_max_images": {"description": "With self- or mounting calibration, runs of up to this many "
                                                       "images get the calibration's standard deviations and "
                                                       "correlations"},
+        "rig": {"description": "Tie the heads of each exposure to the block's rig (IAT); they then share their "
+                               "exposure's one GNSS/IMU measurement"},
+        "rig_sigma_deg": {"description": "Rig constraints' boresight sigma (degrees about each camera axis)"},
+        "rig_sigma_m": {"description": "Rig constraints' lever-arm sigma (m along each camera axis)"},
         "mounting": {"description": "Calibrate each camera's boresight and lever arm against the GNSS/IMU priors"},
         "control_tests": {"description": "Test the control points' measurements and coordinates for blunders"},
         "prior_tests": {"description": "Test each image's GNSS position and IMU attitude prior for blunders"},
