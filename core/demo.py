@@ -63,7 +63,10 @@ def _set_demo_options(ws: Workspace, sim: Path) -> None:
     * Dense matching and surfaces cover the simulated city (the planned flight area plus its inset), not the whole
       ground under the extended strips.
     * The triangulation calibrates each camera's mounting: the simulated heads are mounted off their nominal
-      boresight, as real ones are, and the imported block has one camera per head.
+      boresight, as real ones are, and the imported block has one camera per head. It ties the heads of each
+      exposure by rig constraints between their calibrated mountings, so that the exposure's one GNSS/IMU
+      measurement counts once (:func:`.aerotri.bundle.shared_prior_fraction`): on the demo the orientations' errors
+      against the truth halved (attitude 0.0064 -> 0.0031 deg RMS, centres 16-19 -> 9-10 mm).
     * The GNSS/IMU priors get the sigmas of the simulated navigation system (its specification, as an operator enters
       it; the imported BlocksExchange block carries none): the largest of its GNSS sigmas and of its IMU sigmas (the
       boresight error is the mounting calibration's). With the stage's defaults (0.15 m, 0.05 deg) their variance
@@ -81,9 +84,10 @@ def _set_demo_options(ws: Workspace, sim: Path) -> None:
         if not opts.get("aoi"):
             opts["aoi"] = aoi
             changed = True
-    if "mounting" not in stages.setdefault("aerotri", {}):
-        stages["aerotri"]["mounting"] = True
-        changed = True
+    for key in ("mounting", "rig"):
+        if key not in stages.setdefault("aerotri", {}):
+            stages["aerotri"][key] = True
+            changed = True
     nav = doc["config"].get("nav") or {}
     for key, spec in (("default_sigma_position", "gnss_sigma"), ("default_sigma_attitude_deg", "imu_sigma_deg")):
         if spec in nav and key not in stages["aerotri"]:

@@ -1,5 +1,5 @@
-"""The demo limits dense matching and surfaces to the simulated city, calibrates the mounting and gives the GNSS/IMU
-priors the simulated navigation system's sigmas, keeping what the user set."""
+"""The demo limits dense matching and surfaces to the simulated city, calibrates the mounting, ties the heads by
+the rig and gives the GNSS/IMU priors the simulated navigation system's sigmas, keeping what the user set."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ def test_demo_options_area_of_interest_mounting_and_navigation_sigmas(tmp_path):
     again = Workspace.open(tmp_path / "ws")
     assert again.project["stages"]["dense"]["aoi"] == [80.0, 180.0, 320.0, 370.0]
     assert again.project["stages"]["surface"]["aoi"] == [1.0, 2.0, 3.0, 4.0]
-    assert again.project["stages"]["aerotri"] == {"mode": "hierarchical", "mounting": True,
+    assert again.project["stages"]["aerotri"] == {"mode": "hierarchical", "mounting": True, "rig": True,
                                                   "default_sigma_position": 0.08, "default_sigma_attitude_deg": 0.008}
     again.project["stages"]["aerotri"]["mounting"] = False
     _set_demo_options(again, sim)
