@@ -1477,17 +1477,20 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
                    gnss_strips=opt.gnss_strips if len(prob.prior_strip) else "off")
     solver = linear_solver_kind(prob, opt, active)
     log.append(f"linear solver {solver}")
-    shared = np.bincount(prob.image_exposure[prior_ok & (prob.image_exposure >= 0)]) if len(prob.image_exposure) else []
-    if not (opt.rig and len(prob.rig_pairs)) and np.any(np.asarray(shared) > 1):
-        log.append(f"{int(np.sum(np.asarray(shared) > 1))} exposures give several heads their GNSS/IMU priors, each "
-                   "counted in full without rig constraints: the datum shift's standard deviations are too small by "
-                   "up to the square root of the heads (see shared_prior_fraction)")
+    # the images sharing one GNSS/IMU measurement; without the rig, the exposures whose heads count it several times
+    group = rig_groups(prob, opt)
+    with_prior = prob.image_exposure[prior_ok & (prob.image_exposure >= 0)] if len(prob.image_exposure) else []
+    multiple = int(np.sum(np.bincount(with_prior) > 1)) if not (opt.rig and len(prob.rig_pairs)) else 0
+    if multiple:
+        log.append(f"{multiple} exposures give several heads their GNSS/IMU priors, each counted in full without rig "
+                   "constraints: the datum shift's standard deviations are too small by up to the square root of the "
+                   "heads (see shared_prior_fraction)")
     while True:
         if progress is not None:
             progress(rnd, total_rounds, f"bundle adjustment round {rnd + 1}")
         model.keep_only(active)
         rd = None  # the previous round's Ceres problem goes before the next one is built (peak memory)
-        prior_frac = shared_prior_fraction(prob, opt, prior_ok[:, None] & ~prior_off)
+        prior_frac = shared_prior_fraction(group, prior_ok[:, None] & ~prior_off)
         rd = _Round(model, opt, ref, xyz, gcp_xyz, shift, active, robust=(rnd == 0), gcp_obs_ok=gcp_obs_ok,
                     prior_off=prior_off, prior_frac=prior_frac)
         lap("build_s")
@@ -1556,8 +1559,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
                                             model.strip_offsets())
             bad_p, w_p, scale, sd_p, share_p = prior_tests(
                 att_v, pos_v, prob.prior_sigma_att, prob.prior_sigma_pos, n_ties,
-                prior_ok[:, None] & ~prior_off & rd.adjusted[:, None], opt.blunder_threshold, prior_frac,
-                rig_groups(prob, opt))
+                prior_ok[:, None] & ~prior_off & rd.adjusted[:, None], opt.blunder_threshold, prior_frac, group)
             prior_w = np.where(prior_off, prior_w, w_p)
             prior_sd = np.where(np.repeat(prior_off, 3, axis=1), prior_sd, sd_p)
             prior_share = np.where(np.repeat(prior_off, 3, axis=1), prior_share, share_p)
@@ -2341,10 +2343,10 @@ def worst_per_track(w: np.ndarray, obs_point: np.ndarray, active: np.ndarray, th
     return out
 
 
-def shared_prior_fraction(prob: BundleProblem, opt: BundleOptions, in_use: np.ndarray) -> np.ndarray:
+def shared_prior_fraction(group: np.ndarray, in_use: np.ndarray) -> np.ndarray:
     """The share ``(n, 2)`` of its weight each image's EO prior part (attitude, position; ``in_use (n, 2)``) carries
-    in the adjustment: ``1 / h`` for the ``h`` heads of one exposure tied by rig constraints (``opt.rig``) whose part
-    is in use, 1 otherwise.
+    in the adjustment: ``1 / h`` for the ``h`` images of one ``group (n,)`` (:func:`rig_groups`: the heads of one
+    exposure tied by rig constraints) whose part is in use, 1 for an image of its own.
 
     The heads of one exposure do not have five GNSS/IMU measurements but one, seen through the calibrated rig, so
     their priors' errors are the same. Counted in full they told the adjustment the exposure's pose five times: on
@@ -2356,8 +2358,7 @@ def shared_prior_fraction(prob: BundleProblem, opt: BundleOptions, in_use: np.nd
     of the weight would lose it (the centres 5-10 % less accurate on five of six blocks). On the bench's 3,000-image
     block (``bench_at.py --rig``) IAT on the rig oriented the images to 0.0008 deg and 1.8-1.9 mm RMS, against
     0.0037 deg and 5.8-6.6 mm without it, the check points unchanged (0.100 / 0.112 GSD)."""
-    group = rig_groups(prob, opt)
-    out = np.ones((prob.n_images, 2))
+    out = np.ones((len(group), 2))
     for part in range(2):
         sel = np.flatnonzero(in_use[:, part])
         out[sel, part] = 1.0 / np.bincount(group[sel])[group[sel]]

@@ -979,16 +979,16 @@ def test_prior_detectable_errors_are_found_at_the_stated_power():
 def test_heads_tied_by_the_rig_share_their_exposures_prior(sim, xyz0):
     """With rig constraints the 5 heads of an exposure carry a fifth of its GNSS/IMU prior each (a quarter for the 4
     whose position is still in use when one head's is rejected), without them each its full prior."""
-    from oblique_city.core.aerotri.bundle import shared_prior_fraction
+    from oblique_city.core.aerotri.bundle import rig_groups, shared_prior_fraction
 
     prob = build_problem(sim.block, sim.ties, list(sim.block.images), xyz0).problem
     in_use = np.ones((prob.n_images, 2), bool)
-    np.testing.assert_array_equal(shared_prior_fraction(prob, BundleOptions(), in_use), 1.0)
-    frac = shared_prior_fraction(prob, BundleOptions(rig=True), in_use)
+    np.testing.assert_array_equal(shared_prior_fraction(rig_groups(prob, BundleOptions()), in_use), 1.0)
+    frac = shared_prior_fraction(rig_groups(prob, BundleOptions(rig=True)), in_use)
     np.testing.assert_allclose(frac, 0.2)
     k = int(prob.rig_pairs[0, 1])
     in_use[k, 1] = False
-    frac = shared_prior_fraction(prob, BundleOptions(rig=True), in_use)
+    frac = shared_prior_fraction(rig_groups(prob, BundleOptions(rig=True)), in_use)
     mates = prob.image_exposure == prob.image_exposure[k]
     np.testing.assert_allclose(frac[mates & (np.arange(prob.n_images) != k), 1], 0.25)
     np.testing.assert_allclose(frac[:, 0], 0.2)
