@@ -20,7 +20,8 @@
   oblique block's own contribution (its information minus the connection prior it received); the datum shift is
   refined from all control measurements (the nadir run saw only the nadir ones). (4) The tracks a run held with
   one or two rays (where its tests cannot find a blunder) are tested again over all their rays with the final
-  orientations (:func:`weak_tracks`).
+  orientations (:func:`weak_tracks`). With rig constraints (``BundleOptions.rig``), between (3) and (4) the heads of
+  each exposure, adjusted apart in their runs, are fused into one body on the calibrated rig (:mod:`.rigfusion`).
   GNSS offsets per strip (``BundleOptions.gnss_strips``) are estimated in the nadir run, like the datum shift, and
   held for the other heads of the same exposures (one antenna) in the oblique runs.
   With self-calibration (``BundleOptions.self_calibration``) a calibration sub-block comes first: the images of the
@@ -46,6 +47,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import ConfigError
+from ..geometry.rotations import rotvec_to_matrix
 from ..geometry.views import OBLIQUE_VIEWS
 from ..model import ImageBlock, Pose, TiePoints
 from .bundle import (
@@ -73,6 +75,7 @@ from .problem import (
     thin_ties,
     track_shares,
 )
+from .rigfusion import FusionStats, fuse_on_rig, rig_relations
 from .strips import Strips, flight_strips, strip_offsets, strip_table
 
 CONNECTIONS = ("cba", "2", "3", "5", "10")
@@ -646,6 +649,16 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     for run in runs:
         std.update(run.image_std)
     combine_wall = time.perf_counter() - t3
+    # (3b) on a rig, each exposure's heads fused into one body (module rigfusion)
+    fusion = {}
+    if opt.rig and block.rigs:
+        t_f = time.perf_counter()
+        used = np.zeros(ties.n_obs, bool)
+        for run in runs:
+            used[run.obs_index[run.result.obs_used]] = True
+        poses, xyz, fused_std, stats = fuse_heads(block, ties, runs, poses, xyz, used, datum_cov, progress)
+        std.update(fused_std)
+        fusion = {"rig_fusion": stats.as_dict(), "rig_fusion_wall_s": time.perf_counter() - t_f}
     # tracks tested over all their rays with the final orientations and intersected from the rays kept, in one
     # pass: those thinned out of the oblique runs, and (4) those a run held with one or two rays (weak_tracks), from
     # scratch (of two rays a run rejects either: their tests are equal)
@@ -668,7 +681,48 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
                            "combine_wall_s": combine_wall, "intersection_wall_s": time.perf_counter() - t4,
                            "cell": cell, "thinned_observations": int(thinned_obs.sum()), **final_tests,
                            "datum_shift": res_n.datum_shift + datum_delta, "datum_correction": datum_delta,
-                           "datum_shift_std": np.sqrt(np.diag(datum_cov))})
+                           "datum_shift_std": np.sqrt(np.diag(datum_cov)), **fusion})
+
+
+def fuse_heads(block: ImageBlock, ties: TiePoints, runs: list[Run], poses: dict[str, Pose], xyz: np.ndarray,
+               obs_ok: np.ndarray, datum_cov: np.ndarray, progress: Callable[[int, int, str], None] | None = None
+               ) -> tuple[dict[str, Pose], np.ndarray, dict[str, np.ndarray], FusionStats]:
+    """HAT's step (3b) with ``BundleOptions.rig``: the heads of each exposure fused on the rig
+    (:func:`.rigfusion.fuse_on_rig`) from the combined ``poses`` and tie points ``xyz (n, 3)``, with the tie
+    measurements ``obs_ok (m,)`` the runs accepted, the cameras (and mounting corrections) of the runs holding most
+    of their images (:func:`camera_runs`) and the runs' a posteriori tie sigma.
+
+    Returns the poses, the tie points, the fused images' standard deviations ``(6,)`` (rotation about world X Y Z,
+    centre; the datum's variance ``datum_cov (3, 3)`` added to the centres' where known) and the statistics."""
+    ids = [i for i in ties.image_ids if i in poses]
+    index = np.full(len(ties.image_ids), -1, np.int64)
+    index[[k for k, i in enumerate(ties.image_ids) if i in poses]] = np.arange(len(ids))
+    best = camera_runs(block, runs)
+    cam_ids = sorted({block.images[i].camera_id for i in ids})
+    cameras = [best[cid][0].result.cameras[best[cid][1]] if cid in best else block.cameras[cid] for cid in cam_ids]
+    image_camera = np.array([cam_ids.index(block.images[i].camera_id) for i in ids], np.int64)
+    mounting = {}
+    for cid, (run, ci, _) in best.items():
+        m = run.result.mounting[ci] if ci < len(run.result.mounting) else np.full(6, np.nan)
+        if np.all(np.isfinite(m)):
+            rm = rotvec_to_matrix(m[:3])
+            mounting[cid] = (rm, rm @ m[3:])
+    ref, rel_r, rel_b = rig_relations(block, ids, mounting)
+    use = obs_ok & (index[ties.obs_image] >= 0)
+    r = np.array([poses[i].R for i in ids])
+    c = np.array([poses[i].C for i in ids])
+    r, c, xyz, cof, stats = fuse_on_rig(cameras, image_camera, r, c, xyz, ties.obs_track[use],
+                                        index[ties.obs_image[use]], ties.obs_uv[use], ref, rel_r, rel_b,
+                                        progress=progress)
+    sigma = sigma0_px(runs)
+    var = np.diag(datum_cov) if np.all(np.isfinite(datum_cov)) else np.zeros(3)
+    fused_std = {}
+    for k in np.flatnonzero(np.isfinite(cof[:, 0, 0])):
+        s2 = np.diagonal(cof[k]) * sigma**2
+        fused_std[ids[k]] = np.sqrt(np.concatenate([s2[:3], s2[3:] + var]))
+    out = dict(poses)
+    out.update({iid: Pose(r[k], c[k]) for k, iid in enumerate(ids)})
+    return out, xyz, fused_std, stats
 
 
 def datum_std(image_ids: list[str], res: BundleResult, datum_cov: np.ndarray) -> dict[str, np.ndarray]:
