@@ -141,24 +141,38 @@ def _sum_by(values: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
 
 def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                 xyz: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray, obs_uv: np.ndarray,
-                ref: np.ndarray, rel_r: np.ndarray, rel_b: np.ndarray, max_iterations: int = 3,
+                ref: np.ndarray, rel_r: np.ndarray, rel_b: np.ndarray, prior_residual: np.ndarray,
+                prior_info: np.ndarray, max_iterations: int = 3,
                 progress: Callable[[int, int, str], None] | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, FusionStats]:
     """The exposures' heads fused on the rig (the module docstring).
 
     ``r (n, 3, 3)``, ``c (n, 3)``: the runs' poses of the images (``image_camera (n,)`` into ``cameras``);
     ``xyz (p, 3)`` tie points (NaN: not used); the accepted tie measurements ``obs_point``, ``obs_image (m,)``,
-    ``obs_uv (m, 2)``; the bodies ``ref``, ``rel_r``, ``rel_b`` of :func:`rig_relations`.
+    ``obs_uv (m, 2)`` (pixels, all of one sigma); the bodies ``ref``, ``rel_r``, ``rel_b`` of :func:`rig_relations`.
+    ``prior_residual (n, 6)``: each image's GNSS/IMU prior residual at the given pose (adjusted minus prior: the
+    rotation about the world axes with ``R = R_prior exp([theta]x)``, the centre), as its run left it (its datum
+    shift, strip offset and mounting correction included); ``prior_info (n, 6)``: the prior's weights relative to a
+    tie measurement (``sigma_px^2 / sigma^2`` per axis; 0 for a part without a prior or rejected). A body's heads
+    carry one measurement between them, each part ``1 / h`` of its weight over the ``h`` heads that have it
+    (:func:`.bundle.shared_prior_fraction`).
 
     Returns the poses ``r``, ``c``, the points ``xyz`` (those with fewer than two usable rays keep theirs), each
-    fused image's pose cofactor ``(n, 6, 6)`` (rotation about the world axes, centre; in squared units of the tie
-    sigma: times ``sigma_px^2`` a covariance; NaN for images not fused) and the :class:`FusionStats`."""
+    fused image's pose cofactor ``(n, 6, 6)`` (its body's ties with the points free, the other exposures held, and
+    its one prior; rotation about the world axes and centre, in squared tie sigmas: times ``sigma_px^2`` a
+    covariance; NaN for images not fused) and the :class:`FusionStats`."""
     n = len(r)
     own = ref == np.arange(n)
     fused = ~own
     fused[ref[~own]] = True
     bodies = np.flatnonzero(fused & own)
     r0, c0 = np.array(r, np.float64), np.array(c, np.float64)
+    info_run = np.nan_to_num(np.asarray(prior_info, np.float64))
+    e_run = np.nan_to_num(np.asarray(prior_residual, np.float64))
+    # the exposure's one measurement: each part shared by the heads of the body that have it
+    has = info_run > 0
+    heads_with = _sum_by(has[fused].astype(np.float64), ref[fused], n)[ref]
+    info = np.where(fused[:, None] & has, info_run / np.maximum(heads_with, 1.0), info_run)
     r, c = place_heads(r0, c0, ref, rel_r, rel_b)
     r[~fused], c[~fused] = r0[~fused], c0[~fused]
     xyz = np.array(xyz, np.float64)
@@ -188,6 +202,10 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
         a = _body_map(c, ref)
         n_img = precision.image_normals(jp, jr, w, oi, n)
         g_img = _sum_by(np.einsum("kri,kr->ki", rows, v), oi, n)
+        # the priors at the current poses, from the runs' residuals (first order)
+        e_now = e_run + _pose_change(r0, c0, r, c)
+        n_img += info[:, :, None] * np.eye(6)
+        g_img -= info * e_now
         n_body = _sum_by(np.einsum("kji,kjl,klm->kim", a, n_img, a)[fused], ref[fused], n)
         g_body = _sum_by(np.einsum("kji,kj->ki", a, g_img)[fused], ref[fused], n)
         q_body = precision.safe_inverse(n_body[bodies])
@@ -223,15 +241,22 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     w = good.astype(np.float64)
     q_pt = precision.safe_inverse(precision.point_normals(jp, w, op, len(xyz)))
     a = _body_map(c, ref)
-    n_red = precision.reduced_image_normals(jp, jr, w, q_pt, op, oi, n)
+    n_red = precision.reduced_image_normals(jp, jr, w, q_pt, op, oi, n) + info[:, :, None] * np.eye(6)
     n_body = _sum_by(np.einsum("kji,kjl,klm->kim", a, n_red, a)[fused], ref[fused], n)
     q_body = np.full((n, 6, 6), np.nan)
     q_body[bodies] = precision.safe_inverse(n_body[bodies])
     cof[fused] = np.einsum("kij,kjl,kml->kim", a[fused], q_body[ref[fused]], a[fused])
-    moved = np.array([np.linalg.norm(matrix_to_rotvec(r0[k].T @ r[k])) for k in np.flatnonzero(fused)])
+    change = _pose_change(r0[fused], c0[fused], r[fused], c[fused])
     stats = FusionStats(exposures=len(bodies), images=int(fused.sum()), iterations=it, rms_px_before=rms_before,
                         rms_px_after=rms_after,
-                        moved_deg=float(np.degrees(np.sqrt(np.mean(moved**2)))) if len(moved) else 0.0,
-                        moved_m=float(np.sqrt(np.mean(np.sum((c - c0)[fused] ** 2, 1)))) if fused.any() else 0.0,
+                        moved_deg=float(np.degrees(np.sqrt(np.mean(np.sum(change[:, :3] ** 2, 1))))) if fused.any()
+                        else 0.0,
+                        moved_m=float(np.sqrt(np.mean(np.sum(change[:, 3:] ** 2, 1)))) if fused.any() else 0.0,
                         last_step=last)
     return r, c, xyz, cof, stats
+
+
+def _pose_change(r0: np.ndarray, c0: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``(n, 6)``: the rotation ``theta`` with ``R = R0 exp([theta]x)`` (about the world axes) and the centre's
+    change, from poses ``r0``, ``c0`` to ``r``, ``c``."""
+    return np.concatenate([np.array([matrix_to_rotvec(a.T @ b) for a, b in zip(r0, r)]), c - c0], 1)

@@ -64,10 +64,12 @@ class AerotriConfig(CheckedOptions):
         against the ties and makes the standard deviations and tests of what they determine wrong
     self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
     datum_shift : estimate a 3D shift between the GNSS frame and the control frame
-    rig, rig_sigma_deg, rig_sigma_m : constrain the heads of each exposure to the rig's boresight and lever arms
-        (integrated mode; a hierarchical sub-block holds one view, so it has no head pairs); the heads so tied share
-        their exposure's one GNSS/IMU measurement (:func:`.bundle.shared_prior_fraction`), where without the rig each
-        head's prior counts in full and the datum's standard deviations come out too small
+    rig, rig_sigma_deg, rig_sigma_m : constrain the heads of each exposure to the rig's boresight and lever arms;
+        the heads so tied share their exposure's one GNSS/IMU measurement (:func:`.bundle.shared_prior_fraction`),
+        where without the rig each head's prior counts in full and the datum's standard deviations come out too
+        small. Integrated mode adjusts with these constraints (a relative pose prior per head pair); hierarchical
+        mode, whose runs hold one view each, fuses each exposure's heads into one body on the rig after its runs
+        (:mod:`.rigfusion`, the rig taken as exact)
     mounting, mounting_sigma_deg, mounting_sigma_m : calibrate each camera's mounting: a boresight rotation and a
         lever-arm offset common to all its images, between the images and their GNSS/IMU priors, with a prior of
         zero and these standard deviations (degrees about, metres along each camera axis); with ``rig`` the heads
@@ -225,6 +227,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     # HAT's final tests of the tracks a run held with one or two rays (hierarchical.weak_tracks)
     final = ("final_test_tracks", "final_test_rejected", "final_test_restored")
     report["final_tests"] = {k[len("final_test_"):]: int(at.extra[k]) for k in final if k in at.extra} or None
+    report["rig_fusion"] = at.extra.get("rig_fusion")
     report["target_measurements"] = (target_summary(targets) if targets is not None and targets.get("mode") != "none"
                                      else None)
     report["manual_measurements"] = {"set": manual[0], "removed": manual[1], "skipped": manual[2]}
@@ -298,4 +301,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="18", adjusted_block=False, inputs=(MANUAL_FILE,))
+              version="19", adjusted_block=False, inputs=(MANUAL_FILE,))
