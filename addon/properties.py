@@ -124,8 +124,8 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
         "calibration_std_max_images": {"description": "With self- or mounting calibration, runs of up to this many "
                                                       "images get the calibration's standard deviations and "
                                                       "correlations"},
-        "rig": {"description": "Tie the heads of each exposure to the block's rig (IAT); they then share their "
-                               "exposure's one GNSS/IMU measurement"},
+        "rig": {"description": "Tie the heads of each exposure to the block's rig: they share their exposure's "
+                               "one GNSS/IMU measurement (IAT: rig constraints; HAT: the heads fused after the runs)"},
         "rig_sigma_deg": {"description": "Rig constraints' boresight sigma (degrees about each camera axis)"},
         "rig_sigma_m": {"description": "Rig constraints' lever-arm sigma (m along each camera axis)"},
         "mounting": {"description": "Calibrate each camera's boresight and lever arm against the GNSS/IMU priors"},

@@ -32,11 +32,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.rotations import matrix_to_rotvec, rotvec_to_matrix
+from ..geometry.rotations import rotation_angle, rotvec_to_matrix
 from ..model.block import ImageBlock
 from ..model.camera import CameraModel
 from . import precision
 from .bundle import image_focals, pixels_from_camera
+
+CHUNK = 200_000
+"""Tie measurements linearised at a time (a few tens of megabytes of temporaries)."""
 
 SETTLED = 0.05
 """An exposure has settled when its last step is less than this share of its standard deviation (the step's
@@ -161,6 +164,8 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     fused image's pose cofactor ``(n, 6, 6)`` (its body's ties with the points free, the other exposures held, and
     its one prior; rotation about the world axes and centre, in squared tie sigmas: times ``sigma_px^2`` a
     covariance; NaN for images not fused) and the :class:`FusionStats`."""
+    if max_iterations < 1:
+        raise ValueError(f"rig fusion takes at least one step, got max_iterations={max_iterations}")
     n = len(r)
     own = ref == np.arange(n)
     fused = ~own
@@ -183,25 +188,29 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     cof = np.full((n, 6, 6), np.nan)
     rms_before = float("nan")
     last, it = float("nan"), 0
+    m = len(op)
+    chunks = [slice(k, min(k + CHUNK, m)) for k in range(0, m, CHUNK)]
+    # the image Jacobians of the current linearisation (rotation, centre: the centre's are the point's negative),
+    # written chunk by chunk (temporaries of a chunk's size only: those of millions of measurements cost more in
+    # fresh pages than in arithmetic)
+    rows = precision.stacked_rows(m, 2, 6)
+    v = np.empty((m, 2))
+    w = np.empty(m)
     for it in range(1, max_iterations + 1):
         if progress is not None:
             progress(it - 1, max_iterations, f"rig fusion: step {it}")
-        rr = np.take(r, oi, 0)
-        d = np.take(xyz, op, 0) - np.take(c, oi, 0)
-        xc = (rr @ d[:, :, None])[:, :, 0]
-        v = uv - pixels_from_camera(cameras, image_camera, xc, oi)
-        good = np.all(np.isfinite(v), 1)
-        v[~good] = 0.0
+        n_img, g_img = np.zeros((n, 6, 6)), np.zeros((n, 6))
+        n_pt = np.zeros((len(xyz), 3, 3))
+        for sl in chunks:
+            v[sl], good, jp, jr = _linearised(cameras, image_camera, r, c, xyz, op[sl], oi[sl], uv[sl], fx, fy)
+            w[sl] = good
+            rows[sl] = precision.image_rows(jp, jr)
+            n_img += precision.sum_outer(rows[sl], w[sl], oi[sl], n)
+            g_img += _row_sums(rows[sl], v[sl], oi[sl], n)
+            n_pt += precision.sum_outer(jp, w[sl], op[sl], len(xyz))
         if it == 1:
-            rms_before = float(np.sqrt(np.mean(v[good] ** 2)))
-        jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
-        jr = precision.rotation_jacobians(d, jp)
-        del rr, xc
-        rows = precision.image_rows(jp, jr)
-        w = good.astype(np.float64)
+            rms_before = float(np.sqrt(np.sum(v**2) / max(2 * np.sum(w), 1)))
         a = _body_map(c, ref)
-        n_img = precision.image_normals(jp, jr, w, oi, n)
-        g_img = _sum_by(np.einsum("kri,kr->ki", rows, v), oi, n)
         # the priors at the current poses, from the runs' residuals (first order)
         e_now = e_run + _pose_change(r0, c0, r, c)
         n_img += info[:, :, None] * np.eye(6)
@@ -215,9 +224,14 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
                                               step_body[bodies]), initial=0.0)))
         # the points on the same linearisation, with the heads' steps applied
         step_img = np.where(fused[:, None], np.einsum("kij,kj->ki", a, step_body[ref]), 0.0)
-        v -= np.einsum("kri,ki->kr", rows, np.take(step_img, oi, 0))
-        q_pt = precision.safe_inverse(precision.point_normals(jp, w, op, len(xyz)))
-        g_pt = _sum_by(np.einsum("kri,kr->ki", jp, v), op, len(xyz))
+        g_pt = np.zeros((len(xyz), 3))
+        for sl in chunks:
+            dimg = np.take(step_img, oi[sl], 0)
+            rows_sl, v_sl = rows[sl], v[sl]
+            for i in range(6):
+                v_sl -= rows_sl[:, :, i] * dimg[:, i, None]
+            g_pt -= _row_sums(rows_sl[:, :, 3:], v_sl, op[sl], len(xyz))
+        q_pt = precision.safe_inverse(n_pt)
         step_pt = np.einsum("kij,kj->ki", q_pt, g_pt)
         move = (rays >= 2) & np.all(np.isfinite(step_pt), 1)
         xyz[move] += step_pt[move]
@@ -228,20 +242,21 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
         r[fused], c[fused] = placed_r[fused], placed_c[fused]
         if last < SETTLED:
             break
-    # the residuals at the end, and the bodies' normal blocks with the points free for their precision
-    rr = np.take(r, oi, 0)
-    d = np.take(xyz, op, 0) - np.take(c, oi, 0)
-    xc = (rr @ d[:, :, None])[:, :, 0]
-    v = uv - pixels_from_camera(cameras, image_camera, xc, oi)
-    good = np.all(np.isfinite(v), 1)
-    rms_after = float(np.sqrt(np.mean(v[good] ** 2)))
-    jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
-    jr = precision.rotation_jacobians(d, jp)
-    del rr, xc
-    w = good.astype(np.float64)
-    q_pt = precision.safe_inverse(precision.point_normals(jp, w, op, len(xyz)))
+    # the residuals at the end; the bodies' normal blocks with the points free, for their precision, on the last
+    # linearisation (the last steps change the Jacobians by far less than a percent)
+    sq, count = 0.0, 0
+    n_red = info[:, :, None] * np.eye(6)
+    for sl in chunks:
+        rr = np.take(r, oi[sl], 0)
+        xc = (rr @ (np.take(xyz, op[sl], 0) - np.take(c, oi[sl], 0))[:, :, None])[:, :, 0]
+        v_end = uv[sl] - pixels_from_camera(cameras, image_camera, xc, oi[sl])
+        fin = np.all(np.isfinite(v_end), 1)
+        sq, count = sq + float(np.sum(v_end[fin] ** 2)), count + 2 * int(fin.sum())
+        n_red += precision.reduced_image_normals(-rows[sl][:, :, 3:], rows[sl][:, :, :3], w[sl], q_pt, op[sl],
+                                                 oi[sl], n)
+    rms_after = float(np.sqrt(sq / max(count, 1)))
+    del rows, v
     a = _body_map(c, ref)
-    n_red = precision.reduced_image_normals(jp, jr, w, q_pt, op, oi, n) + info[:, :, None] * np.eye(6)
     n_body = _sum_by(np.einsum("kji,kjl,klm->kim", a, n_red, a)[fused], ref[fused], n)
     q_body = np.full((n, 6, 6), np.nan)
     q_body[bodies] = precision.safe_inverse(n_body[bodies])
@@ -258,5 +273,30 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
 
 def _pose_change(r0: np.ndarray, c0: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
     """``(n, 6)``: the rotation ``theta`` with ``R = R0 exp([theta]x)`` (about the world axes) and the centre's
-    change, from poses ``r0``, ``c0`` to ``r``, ``c``."""
-    return np.concatenate([np.array([matrix_to_rotvec(a.T @ b) for a, b in zip(r0, r)]), c - c0], 1)
+    change, from poses ``r0``, ``c0`` to ``r``, ``c`` (rotations well below 180 degrees)."""
+    d = np.swapaxes(r0, 1, 2) @ r
+    a = rotation_angle(d, np.eye(3))
+    w = np.stack([d[:, 2, 1] - d[:, 1, 2], d[:, 0, 2] - d[:, 2, 0], d[:, 1, 0] - d[:, 0, 1]], 1)
+    scale = np.where(a < 1e-12, 0.5, a / (2.0 * np.sin(np.maximum(a, 1e-12))))
+    return np.concatenate([w * scale[:, None], c - c0], 1)
+
+
+def _linearised(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
+                xyz: np.ndarray, op: np.ndarray, oi: np.ndarray, uv: np.ndarray, fx: np.ndarray, fy: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The residuals ``(m, 2)`` (observed - computed; 0 where not finite), which are finite ``(m,)``, and the point
+    and rotation Jacobians ``(m, 2, 3)`` of the measurements ``op``, ``oi``, ``uv``."""
+    rr = np.take(r, oi, 0)
+    d = np.take(xyz, op, 0) - np.take(c, oi, 0)
+    xc = (rr @ d[:, :, None])[:, :, 0]
+    v = uv - pixels_from_camera(cameras, image_camera, xc, oi)
+    good = np.all(np.isfinite(v), 1)
+    v[~good] = 0.0
+    jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
+    return v, good, jp, precision.rotation_jacobians(d, jp)
+
+
+def _row_sums(rows: np.ndarray, v: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
+    """``out[g] = sum over k with index[k] = g of rows[k]^T v[k]``: ``rows (m, 2, d)``, ``v (m, 2)`` -> ``(n, d)``."""
+    return np.stack([np.bincount(index, weights=rows[:, 0, i] * v[:, 0] + rows[:, 1, i] * v[:, 1], minlength=n)
+                     for i in range(rows.shape[2])], 1)

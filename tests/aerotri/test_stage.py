@@ -647,3 +647,12 @@ def test_rig_through_the_cli_shares_each_exposures_prior(tmp_path):
     assert not any(full in line for line in tied["runs"][0]["log"])
     ratio = np.array(tied["datum"]["std_m"]) / np.array(free["datum"]["std_m"])
     assert np.all((ratio > 1.1) & (ratio < np.sqrt(5))), ratio
+    assert tied["rig_fusion"] is None
+    # HAT with the stored option fuses each exposure's heads after its runs, and its report says so
+    assert main(["aerotri", str(ws.root), "--mode", "hierarchical"]) == 0
+    ws = Workspace.open(ws.root)
+    fused = json.loads(ws.path("aerotri/report.json").read_text())["rig_fusion"]
+    block = ws.load_block()
+    assert fused["exposures"] == len({im.exposure for im in block.images.values()})
+    assert fused["rms_px_after"] <= fused["rms_px_before"]
+    assert "Rig fusion: the heads of" in ws.path("aerotri/report.html").read_text()
