@@ -43,8 +43,9 @@ def add_commands(sub) -> None:
     s.add_argument("--sigma-px", dest="sigma_px", type=float, help="a priori tie measurement sigma, pixels")
     s.add_argument("--self-calibration", help="comma-separated: focal,principal_point,radial,tangential")
     s.add_argument("--rig", action=argparse.BooleanOptionalAction,
-                   help="tie the heads of each exposure to the block's rig (integrated mode); they then share their "
-                        "exposure's one GNSS/IMU measurement")
+                   help="tie the heads of each exposure to the block's rig; they then share their exposure's one "
+                        "GNSS/IMU measurement (integrated: rig constraints; hierarchical: the heads fused into one "
+                        "body after the view runs)")
     s.add_argument("--mounting", action=argparse.BooleanOptionalAction,
                    help="calibrate each camera's boresight and lever arm against the GNSS/IMU priors")
     s.add_argument("--control-tests", dest="control_tests", action=argparse.BooleanOptionalAction,
