@@ -657,7 +657,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         for run in runs:
             used[run.obs_index[run.result.obs_used]] = True
         poses, xyz, fused_std, stats = fuse_heads(block, ties, run_subs, poses, xyz, used, datum_cov,
-                                                  opt.blunder_threshold, opt.mounting, progress)
+                                                  opt.blunder_threshold, opt.mounting, opt.threads, progress)
         std.update(fused_std)
         fusion = {"rig_fusion": stats.as_dict(), "rig_fusion_wall_s": time.perf_counter() - t_f}
     # tracks tested over all their rays with the final orientations and intersected from the rays kept, in one
@@ -699,7 +699,7 @@ def runs_rig(block: ImageBlock, poses: dict[str, Pose]) -> ImageBlock:
 
 def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, SubProblem]], poses: dict[str, Pose],
                xyz: np.ndarray, obs_ok: np.ndarray, datum_cov: np.ndarray, gate: float = 4.3,
-               calibrating: bool = False, progress: Callable[[int, int, str], None] | None = None
+               calibrating: bool = False, threads: int = 1, progress: Callable[[int, int, str], None] | None = None
                ) -> tuple[dict[str, Pose], np.ndarray, dict[str, np.ndarray], FusionStats]:
     """HAT's step (3b) with ``BundleOptions.rig``: the heads of each exposure fused on the rig
     (:func:`.rigfusion.fuse_on_rig`) from the combined ``poses`` and tie points ``xyz (n, 3)``, with the tie
@@ -707,7 +707,8 @@ def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, Sub
     rejected left out), the control points and measurements they kept, the cameras of the runs holding most of
     their images (:func:`camera_runs`) and the runs' a posteriori tie sigma; ``gate``: the normalised residual above
     which a measurement is left out (``BundleOptions.blunder_threshold``). The rig: the block's, or with
-    ``calibrating`` (the runs calibrated the mountings) the one the runs' orientations give (:func:`runs_rig`).
+    ``calibrating`` (the runs calibrated the mountings) the one the runs' orientations give (:func:`runs_rig`);
+    ``threads`` share the measurements.
 
     The fused images' standard deviations ``(6,)`` are conditional, a lower bound: their body's ties with the points
     free, the other exposures held, and its one prior, with the datum's variance ``datum_cov (3, 3)`` (where known)
@@ -763,7 +764,7 @@ def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, Sub
         np.concatenate([index[ties.obs_image[use]], [o[1] for o in g_obs]]).astype(np.int64),
         np.vstack([ties.obs_uv[use], np.array([o[2] for o in g_obs], np.float64).reshape(-1, 2)]), ref, rel_r,
         rel_b, e_run, info, obs_weight=np.concatenate([np.ones(int(use.sum())), [o[3] for o in g_obs]]),
-        point_prior_xyz=prior_xyz, point_prior_info=prior_info, gate=gate, progress=progress)
+        point_prior_xyz=prior_xyz, point_prior_info=prior_info, gate=gate, threads=threads, progress=progress)
     xyz = xyz_all[:n_t]
     var = sigma0_px(runs) ** 2 * np.diagonal(cof, axis1=1, axis2=2)
     if np.all(np.isfinite(datum_cov)):

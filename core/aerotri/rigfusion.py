@@ -31,6 +31,7 @@ the rig taken as exact.
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -139,7 +140,8 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
                 ref: np.ndarray, rel_r: np.ndarray, rel_b: np.ndarray, prior_residual: np.ndarray,
                 prior_info: np.ndarray, obs_weight: np.ndarray | None = None,
                 point_prior_xyz: np.ndarray | None = None, point_prior_info: np.ndarray | None = None,
-                gate: float = 4.3, max_iterations: int = 3, progress: Callable[[int, int, str], None] | None = None
+                gate: float = 4.3, max_iterations: int = 3, threads: int = 1,
+                progress: Callable[[int, int, str], None] | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, FusionStats]:
     """The exposures' heads fused on the rig (the module docstring).
 
@@ -188,9 +190,17 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     p_info = np.zeros((len(xyz), 3, 3)) if point_prior_info is None else np.nan_to_num(point_prior_info)
     p_xyz = np.zeros((len(xyz), 3)) if point_prior_xyz is None else np.nan_to_num(point_prior_xyz)
     anchored = np.trace(p_info, axis1=1, axis2=2) > 0
+    m = len(op)
+    chunks = [slice(k, min(k + CHUNK, m)) for k in range(0, m, CHUNK)]
     # the measurements that do not fit the runs' solution, left out
-    sq = np.concatenate([np.sum(_residuals(cameras, image_camera, r0, c0, xyz, op[sl], oi[sl], uv[sl]) ** 2, 1)
-                         for sl in [slice(k, k + CHUNK) for k in range(0, len(op), CHUNK)]]) * weight
+    sq = np.zeros(m)
+
+    def gate_part(sl: slice) -> tuple:
+        sq[sl] = np.sum(_residuals(cameras, image_camera, r0, c0, xyz, op[sl], oi[sl], uv[sl]) ** 2, 1)
+        return ()
+
+    _chunk_sums(gate_part, chunks, threads)
+    sq *= weight
     fin = np.isfinite(sq)
     scale2 = float(np.median(sq[fin])) / (2.0 * np.log(2.0)) if fin.any() else 1.0
     off = ~fin | (sq > gate**2 * scale2)
@@ -199,8 +209,6 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     cof = np.full((n, 6, 6), np.nan)
     rms_before = float("nan")
     last, it = float("nan"), 0
-    m = len(op)
-    chunks = [slice(k, min(k + CHUNK, m)) for k in range(0, m, CHUNK)]
     # the image Jacobians of the current linearisation (rotation, centre: the centre's are the point's negative),
     # written chunk by chunk (temporaries of a chunk's size only: those of millions of measurements cost more in
     # fresh pages than in arithmetic)
@@ -210,15 +218,16 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     for it in range(1, max_iterations + 1):
         if progress is not None:
             progress(it - 1, max_iterations, f"rig fusion: step {it}")
-        n_img, g_img = np.zeros((n, 6, 6)), np.zeros((n, 6))
-        n_pt = np.zeros((len(xyz), 3, 3))
-        for sl in chunks:
+
+        def linearise_part(sl: slice) -> tuple:
             v[sl], good, jp, jr = _linearised(cameras, image_camera, r, c, xyz, op[sl], oi[sl], uv[sl], fx, fy)
             w[sl] = good * weight[sl]
             rows[sl] = precision.image_rows(jp, jr)
-            n_img += precision.sum_outer(rows[sl], w[sl], oi[sl], n)
-            g_img += _row_sums(rows[sl], v[sl] * w[sl, None], oi[sl], n)
-            n_pt += precision.sum_outer(jp, w[sl], op[sl], len(xyz))
+            return (precision.sum_outer(rows[sl], w[sl], oi[sl], n),
+                    _row_sums(rows[sl], v[sl] * w[sl, None], oi[sl], n),
+                    precision.sum_outer(jp, w[sl], op[sl], len(xyz)))
+
+        n_img, g_img, n_pt = _chunk_sums(linearise_part, chunks, threads)
         if it == 1:
             rms_before = float(np.sqrt(np.sum(v[w > 0] ** 2) / max(2 * np.sum(w > 0), 1)))
         a = _body_map(c, ref)
@@ -235,13 +244,16 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
                                               step_body[bodies]), initial=0.0)))
         # the points on the same linearisation, with the heads' steps applied
         step_img = np.where(fused[:, None], np.einsum("kij,kj->ki", a, step_body[ref]), 0.0)
-        g_pt = np.einsum("kij,kj->ki", p_info, p_xyz - np.nan_to_num(xyz))
-        for sl in chunks:
+
+        def point_part(sl: slice, step_img: np.ndarray = step_img) -> tuple:
             dimg = np.take(step_img, oi[sl], 0)
             rows_sl, v_sl = rows[sl], v[sl]
             for i in range(6):
                 v_sl -= rows_sl[:, :, i] * dimg[:, i, None]
-            g_pt -= _row_sums(rows_sl[:, :, 3:], v_sl * w[sl, None], op[sl], len(xyz))
+            return (_row_sums(rows_sl[:, :, 3:], v_sl * w[sl, None], op[sl], len(xyz)),)
+
+        g_pt = (np.einsum("kij,kj->ki", p_info, p_xyz - np.nan_to_num(xyz))
+                - _chunk_sums(point_part, chunks, threads)[0])
         q_pt = precision.safe_inverse(n_pt + p_info)
         step_pt = np.einsum("kij,kj->ki", q_pt, g_pt)
         move = ((rays >= 2) | (anchored & (rays >= 1))) & np.all(np.isfinite(step_pt), 1)
@@ -255,16 +267,17 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
             break
     # the residuals at the end; the bodies' normal blocks with the points free, for their precision, on the last
     # linearisation (the last steps change the Jacobians by far less than a percent)
-    total, count = 0.0, 0
-    n_red = info[:, :, None] * np.eye(6)
-    for sl in chunks:
+
+    def final_part(sl: slice) -> tuple:
         v_end = _residuals(cameras, image_camera, r, c, xyz, op[sl], oi[sl], uv[sl])
         ok = np.all(np.isfinite(v_end), 1) & (w[sl] > 0)
-        total, count = total + float(np.sum(v_end[ok] ** 2)), count + 2 * int(ok.sum())
-        n_red += precision.reduced_image_normals(-rows[sl][:, :, 3:], rows[sl][:, :, :3], w[sl], q_pt, op[sl],
-                                                 oi[sl], n)
+        return (float(np.sum(v_end[ok] ** 2)), 2 * int(ok.sum()),
+                precision.reduced_image_normals(-rows[sl][:, :, 3:], rows[sl][:, :, :3], w[sl], q_pt, op[sl], oi[sl],
+                                                n))
+
+    total, count, n_red = _chunk_sums(final_part, chunks, threads)
+    n_red = n_red + info[:, :, None] * np.eye(6)
     rms_after = float(np.sqrt(total / max(count, 1)))
-    del rows, v
     a = _body_map(c, ref)
     n_body = _sum_by(np.einsum("kji,kjl,klm->kim", a, n_red, a)[fused], ref[fused], n)
     q_body = np.full((n, 6, 6), np.nan)
@@ -289,6 +302,27 @@ def _pose_change(r0: np.ndarray, c0: np.ndarray, r: np.ndarray, c: np.ndarray) -
     w = np.stack([d[:, 2, 1] - d[:, 1, 2], d[:, 0, 2] - d[:, 2, 0], d[:, 1, 0] - d[:, 0, 1]], 1)
     scale = np.where(a < 1e-12, 0.5, a / (2.0 * np.sin(np.maximum(a, 1e-12))))
     return np.concatenate([w * scale[:, None], c - c0], 1)
+
+
+def _chunk_sums(fn: Callable[[slice], tuple], chunks: list[slice], threads: int) -> list:
+    """The sums over ``chunks`` of the tuples ``fn(chunk)`` returns (arrays or numbers, summed element by element),
+    the chunks shared among ``threads`` threads (numpy's arithmetic releases the interpreter; ``fn`` writes only
+    its own chunk of shared arrays)."""
+    def run(part: list[slice]) -> list | None:
+        total = None
+        for sl in part:
+            out = fn(sl)
+            total = list(out) if total is None else [t + o for t, o in zip(total, out)]
+        return total
+
+    groups = [chunks[i::threads] for i in range(max(1, min(threads, len(chunks))))]
+    if len(groups) == 1:
+        parts = [run(groups[0])]
+    else:
+        with ThreadPoolExecutor(len(groups)) as pool:
+            parts = list(pool.map(run, groups))
+    parts = [p for p in parts if p is not None]
+    return [sum(vals[1:], vals[0]) for vals in zip(*parts)] if parts else []
 
 
 def _residuals(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
