@@ -1028,7 +1028,7 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
                      f"{rf['last_step']:.2f} of its standard deviation). The heads moved by {rf['moved_deg']:.4f} deg "
                      f"and {rf['moved_m']:.3f} m RMS from their runs' orientations; the tie residuals went from "
                      f"{rf['rms_px_before']:.3f} to {rf['rms_px_after']:.3f} px RMS ({rf['left_out']} measurements "
-                     "that did not fit the start left out). The fused images' standard "
+                     "that did not fit the runs' solution left out). The fused images' standard "
                      "deviations are conditional (the other exposures held): a lower bound. The runs' statistics below "
                      "are those of the runs.</p>")
     if report.get("oblique_without_nadir"):

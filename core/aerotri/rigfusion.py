@@ -18,7 +18,7 @@ the runs' solution:
    step applied (the residuals less ``J_pose dpose``).
 4. Repeat from 2 while an exposure still moves by a noticeable part of its standard deviation, up to a few times.
 
-The steps use the tie measurements the runs accepted (less those that do not fit the start), each exposure's one
+The steps use the tie measurements the runs accepted (less those that do not fit their solution), each exposure's one
 GNSS/IMU measurement (the runs' prior residuals) and the control points the runs kept (measurements and
 coordinates); without the control points the steps drifted along the weak modes of a small block. The result is
 not IAT on the rig: alternating poses and points settles the local modes at once (each body's heads agreeing with
@@ -55,7 +55,7 @@ class FusionStats:
     """What :func:`fuse_on_rig` did.
 
     exposures : bodies of two or more heads fused; images : the heads in them
-    iterations : pose and point steps taken; left_out : measurements that did not fit the start, left out
+    iterations : pose and point steps taken; left_out : measurements that did not fit the runs' solution, left out
     rms_px_before, rms_px_after : RMS image residual of the accepted tie measurements (pixels per coordinate) at the
         start and at the end
     moved_deg, moved_m : RMS change of the fused heads' attitude (degrees) and centres (metres) from the runs'
@@ -156,7 +156,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     (:func:`.bundle.shared_prior_fraction`). ``obs_weight (m,)``: the measurements' weights relative to a tie
     measurement (control points' measurements with their own sigma; default 1); ``point_prior_xyz (p, 3)``,
     ``point_prior_info (p, 3, 3)``: ground observations of points in the same units (control points' coordinates;
-    NaN rows and zero blocks for none), which enter the point step. A measurement whose residual at the start
+    NaN rows and zero blocks for none), which enter the point step. A measurement whose residual at the runs' poses
     exceeds ``gate`` robust standard deviations (chi-square with 2 degrees of freedom, its scale from the median) is
     left out: the runs test each track's rays within their view, and a track matched wrongly across views can
     keep rays that fit their runs' points but not each other (on the rendered demo 0.16 % of the accepted
