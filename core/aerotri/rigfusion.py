@@ -56,8 +56,8 @@ class FusionStats:
 
     exposures : bodies of two or more heads fused; images : the heads in them
     iterations : pose and point steps taken; left_out : measurements that did not fit the runs' solution, left out
-    rms_px_before, rms_px_after : RMS image residual of the accepted tie measurements (pixels per coordinate) at the
-        start and at the end
+    rms_px_before, rms_px_after : RMS image residual of the measurements used (pixels per coordinate) at the start
+        (the heads placed on the rig, before the first step) and at the end
     moved_deg, moved_m : RMS change of the fused heads' attitude (degrees) and centres (metres) from the runs'
     last_step : the largest exposure step of the last iteration, in units of its standard deviation
     """
