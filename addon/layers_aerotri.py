@@ -218,9 +218,11 @@ def report_summary(path: Path) -> dict:
     and how far a GNSS position and an IMU attitude error its test can miss moves an image at most
     (``prior_effect``: ``(metres, degrees)``, either None where no such prior was tested), and the oblique images
     HAT could not start from the nadir run's corrections (``oblique_without_nadir``: no nadir image in their
-    exposure; 0 in reports written before it existed), and of a self-calibration the camera whose image corner it
-    moves the most (``self_calibration``: ``(cameras, camera, px, std px or None, significant, tested)``, the
-    last two counting the corrections with a standard deviation; None without one), and the tie measurements' sigma
+    exposure; 0 in reports written before it existed), and HAT's fusion of each exposure's heads on the rig
+    (``rig_fusion``: ``(exposures, degrees, metres)``, the heads' RMS moves from their runs; None without one), and
+    of a self-calibration the camera whose image corner it moves the most (``self_calibration``: ``(cameras, camera,
+    px, std px or None, significant, tested)``, the last two counting the corrections with a standard deviation;
+    None without one), and the tie measurements' sigma
     when the adjustment estimated one other than the given (``tie_sigma``: ``(given px, estimated px)`` of its first
     run, None otherwise and in reports written before it existed), and the block's datum shift (``datum``: ``(shift
     (3,) m, its standard deviations (3,) m or None)``, None without one and in reports written before it existed).
@@ -264,6 +266,8 @@ def report_summary(path: Path) -> dict:
                 "prior_effect": (effect["position_m"], effect["attitude_deg"])
                 if effect["position_m"] is not None or effect["attitude_deg"] is not None else None,
                 "oblique_without_nadir": int(doc.get("oblique_without_nadir") or 0),
+                "rig_fusion": (int(doc["rig_fusion"]["exposures"]), float(doc["rig_fusion"]["moved_deg"]),
+                               float(doc["rig_fusion"]["moved_m"])) if doc.get("rig_fusion") else None,
                 "tie_sigma": estimated_tie_sigma(doc),
                 "datum": ([float(v) for v in doc["datum"]["shift_m"]],
                           None if doc["datum"]["std_m"] is None else [float(v) for v in doc["datum"]["std_m"]])

@@ -274,6 +274,9 @@ def draw_triangulation(layout, context) -> None:
     if s["oblique_without_nadir"]:
         col.label(text=f"{s['oblique_without_nadir']} oblique images without a nadir image in their exposure: "
                        "import the exposures", icon="ERROR")
+    if s["rig_fusion"]:
+        n, deg, m = s["rig_fusion"]
+        col.label(text=f"Heads of {n} exposures fused on the rig (moved {deg:.4f} deg, {m:.3f} m RMS)")
     if s["mounting"]:
         n, cam, angle = s["mounting"]
         col.label(text=f"Mounting calibrated for {n} cameras, largest boresight {angle:.4f} deg ({cam})")

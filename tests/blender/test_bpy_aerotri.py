@@ -61,6 +61,8 @@ def ws(tmp_path, utm_block):
                                    "L03": {"mean_m": [0.0, 0.0, -0.2], "w": [0.0, 0.3, 8.0], "flagged": True}},
               "weakest_control": {"name": "G2", "run": "nadir", "axis": "Z", "mdb_m": 0.1364},
               "oblique_without_nadir": 40,
+              "rig_fusion": {"exposures": 25, "images": 125, "iterations": 3, "left_out": 12, "rms_px_before": 0.17,
+                             "rms_px_after": 0.1, "moved_deg": 0.0102, "moved_m": 0.0539, "last_step": 2.5},
               "datum": {"shift_m": [-0.0612, 0.0398, -0.1003], "std_m": [0.003, 0.003, 0.0046]},
               "self_calibration": {
                   "nadir": {"corner_shift_px": 1.234, "corner_shift_std_px": 0.05,
@@ -212,6 +214,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Datum shift: -0.061 +- 0.003, 0.040 +- 0.003, -0.100 +- 0.005 m" in labels
     assert "Rejected observations: 1.25 %" in labels
     assert "40 oblique images without a nadir image in their exposure: import the exposures" in labels
+    assert "Heads of 25 exposures fused on the rig (moved 0.0102 deg, 0.054 m RMS)" in labels
     assert "Mounting calibrated for 2 cameras, largest boresight 0.0500 deg (left)" in labels
     assert "Self-calibrated 2 cameras: a corner of left moves 6.79 +- 0.21 px; 3 of 4 corrections significant" in labels
     assert "Largest systematic image residual: 0.084 px (left)" in labels
