@@ -8,6 +8,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..model import CameraModel, ImageBlock, Pose, TiePoints
+from ..model.block import Rig, RigHead
 from .bundle import BundleProblem, BundleResult
 from .precision import safe_inverse, sum_outer
 from .strips import Strips
@@ -214,25 +215,31 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
     return SubProblem(problem=prob, track_index=tracks, obs_index=obs_index)
 
 
-def _add_rig_pairs(block: ImageBlock, image_ids: list[str], prob: BundleProblem) -> None:
-    """Pairs (reference head, other head) of each exposure among ``image_ids`` with their calibrated relative
-    pose from the rig: ``i_from_j = (S_i S_j^T, S_i (l_j - l_i))`` (S sensor_from_rig, l lever arm)."""
-    heads = {}
-    for rig in block.rigs.values():
-        for h in rig.heads:
-            heads[h.name] = (rig.name, rig.heads[0].name, h)
+def exposure_heads(block: ImageBlock, image_ids: list[str]
+                   ) -> tuple[dict[str, tuple[Rig, RigHead]], list[dict[str, int]]]:
+    """The block's rig heads by name, each with its rig, and per exposure the indices (into ``image_ids``) of its
+    images by head name (images without an exposure or a rig head left out)."""
+    heads = {h.name: (rig, h) for rig in block.rigs.values() for h in rig.heads}
     by_exp: dict[str, dict[str, int]] = {}
     for k, iid in enumerate(image_ids):
         img = block.images[iid]
         if img.exposure is not None and img.head in heads:
             by_exp.setdefault(img.exposure, {})[img.head] = k
+    return heads, list(by_exp.values())
+
+
+def _add_rig_pairs(block: ImageBlock, image_ids: list[str], prob: BundleProblem) -> None:
+    """Pairs (reference head, other head) of each exposure among ``image_ids`` with their calibrated relative
+    pose from the rig: ``i_from_j = (S_i S_j^T, S_i (l_j - l_i))`` (S sensor_from_rig, l lever arm)."""
+    heads, exposures = exposure_heads(block, image_ids)
     pairs, rots, trans = [], [], []
-    for members in by_exp.values():
+    for members in exposures:
         for name, j in members.items():
-            rig_name, ref_name, hj = heads[name]
+            rig, hj = heads[name]
+            ref_name = rig.heads[0].name
             if name == ref_name or ref_name not in members:
                 continue
-            rot, offset = hj.relative_to(heads[ref_name][2])
+            rot, offset = hj.relative_to(heads[ref_name][1])
             pairs.append((members[ref_name], j))
             rots.append(rot.T)
             trans.append(offset)

@@ -40,7 +40,8 @@ from ..geometry.rotations import rotation_angle, rotvec_to_matrix
 from ..model.block import ImageBlock
 from ..model.camera import CameraModel
 from . import precision
-from .bundle import image_focals, pixels_from_camera
+from .bundle import image_focals, pixels_from_camera, project_obs, shared_prior_fraction
+from .problem import exposure_heads
 
 CHUNK = 200_000
 """Tie measurements linearised at a time (a few tens of megabytes of temporaries)."""
@@ -86,13 +87,8 @@ def rig_relations(block: ImageBlock, image_ids: list[str]) -> tuple[np.ndarray, 
     ref = np.arange(n, dtype=np.int64)
     rel_r = np.tile(np.eye(3), (n, 1, 1))
     rel_b = np.zeros((n, 3))
-    heads = {h.name: (rig, h) for rig in block.rigs.values() for h in rig.heads}
-    by_exposure: dict[str, dict[str, int]] = {}
-    for k, iid in enumerate(image_ids):
-        img = block.images[iid]
-        if img.exposure is not None and img.head in heads:
-            by_exposure.setdefault(img.exposure, {})[img.head] = k
-    for members in by_exposure.values():
+    heads, exposures = exposure_heads(block, image_ids)
+    for members in exposures:
         if len(members) < 2:
             continue
         rig = heads[next(iter(members))][0]
@@ -177,9 +173,8 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     info_run = np.nan_to_num(np.asarray(prior_info, np.float64))
     e_run = np.nan_to_num(np.asarray(prior_residual, np.float64))
     # the exposure's one measurement: each part shared by the heads of the body that have it
-    has = info_run > 0
-    heads_with = _sum_by(has[fused].astype(np.float64), ref[fused], n)[ref]
-    info = np.where(fused[:, None] & has, info_run / np.maximum(heads_with, 1.0), info_run)
+    share = shared_prior_fraction(ref, np.stack([info_run[:, 0] > 0, info_run[:, 3] > 0], 1))
+    info = info_run * np.repeat(share, 3, axis=1)
     r, c = place_heads(r0, c0, ref, rel_r, rel_b)
     r[~fused], c[~fused] = r0[~fused], c0[~fused]
     xyz = np.array(xyz, np.float64)
@@ -196,7 +191,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     sq = np.zeros(m)
 
     def gate_part(sl: slice) -> tuple:
-        sq[sl] = np.sum(_residuals(cameras, image_camera, r0, c0, xyz, op[sl], oi[sl], uv[sl]) ** 2, 1)
+        sq[sl] = np.sum((uv[sl] - project_obs(cameras, image_camera, r0, c0, xyz, op[sl], oi[sl])) ** 2, 1)
         return ()
 
     _chunk_sums(gate_part, chunks, threads)
@@ -269,7 +264,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     # linearisation (the last steps change the Jacobians by far less than a percent)
 
     def final_part(sl: slice) -> tuple:
-        v_end = _residuals(cameras, image_camera, r, c, xyz, op[sl], oi[sl], uv[sl])
+        v_end = uv[sl] - project_obs(cameras, image_camera, r, c, xyz, op[sl], oi[sl])
         ok = np.all(np.isfinite(v_end), 1) & (w[sl] > 0)
         return (float(np.sum(v_end[ok] ** 2)), 2 * int(ok.sum()),
                 precision.reduced_image_normals(-rows[sl][:, :, 3:], rows[sl][:, :, :3], w[sl], q_pt, op[sl], oi[sl],
@@ -323,14 +318,6 @@ def _chunk_sums(fn: Callable[[slice], tuple], chunks: list[slice], threads: int)
             parts = list(pool.map(run, groups))
     parts = [p for p in parts if p is not None]
     return [sum(vals[1:], vals[0]) for vals in zip(*parts)] if parts else []
-
-
-def _residuals(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
-               xyz: np.ndarray, op: np.ndarray, oi: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """The residuals ``(m, 2)`` (observed - computed; NaN behind a camera) of the measurements ``op``, ``oi``,
-    ``uv``."""
-    xc = (np.take(r, oi, 0) @ (np.take(xyz, op, 0) - np.take(c, oi, 0))[:, :, None])[:, :, 0]
-    return uv - pixels_from_camera(cameras, image_camera, xc, oi)
 
 
 def _linearised(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
