@@ -667,8 +667,8 @@ def precision_runs(block, true_poses: dict, conditional: dict, run: dict[str, Ca
             std = np.array([at.image_std[i] for i in ids])
             seconds = sum(r.result.timing.get("covariance_s", 0.0) for r in at.runs)
             kinds = sorted({r.result.image_std_kind for r in at.runs})
-            if "rig_fusion" in at.extra:  # the fused heads' standard deviations are conditional
-                kinds = sorted({*kinds, "conditional (fused)"})
+            if "rig_fusion" in at.extra:  # the fused heads' standard deviations: own blocks and smooth modes
+                kinds = sorted({*kinds, "two-level (fused)"})
             out["runs"].append({
                 "method": method, "kinds": kinds,
                 "median_std": np.concatenate([np.degrees(np.median(std[:, :3], 0)), np.median(std[:, 3:], 0)]).tolist(),

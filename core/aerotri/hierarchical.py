@@ -656,8 +656,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         used = np.zeros(ties.n_obs, bool)
         for run in runs:
             used[run.obs_index[run.result.obs_used]] = True
-        poses, xyz, fused_std, stats = fuse_heads(block, ties, run_subs, poses, xyz, used, datum_cov,
-                                                  opt.blunder_threshold, opt.mounting, opt.threads, progress)
+        poses, xyz, fused_std, stats = fuse_heads(block, ties, run_subs, poses, xyz, used, opt.blunder_threshold,
+                                                  opt.mounting, opt.threads, progress)
         std.update(fused_std)
         fusion = {"rig_fusion": stats.as_dict(), "rig_fusion_wall_s": time.perf_counter() - t_f}
     # tracks tested over all their rays with the final orientations and intersected from the rays kept, in one
@@ -698,7 +698,7 @@ def runs_rig(block: ImageBlock, poses: dict[str, Pose]) -> ImageBlock:
 
 
 def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, SubProblem]], poses: dict[str, Pose],
-               xyz: np.ndarray, obs_ok: np.ndarray, datum_cov: np.ndarray, gate: float = 4.3,
+               xyz: np.ndarray, obs_ok: np.ndarray, gate: float = 4.3,
                calibrating: bool = False, threads: int = 1, progress: Callable[[int, int, str], None] | None = None
                ) -> tuple[dict[str, Pose], np.ndarray, dict[str, np.ndarray], FusionStats]:
     """HAT's step (3b) with ``BundleOptions.rig``: the heads of each exposure fused on the rig
@@ -710,10 +710,8 @@ def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, Sub
     ``calibrating`` (the runs calibrated the mountings) the one the runs' orientations give (:func:`runs_rig`);
     ``threads`` share the measurements.
 
-    The fused images' standard deviations ``(6,)`` are conditional, a lower bound: their body's ties with the points
-    free, the other exposures held, and its one prior, with the datum's variance ``datum_cov (3, 3)`` (where known)
-    added to the centres'. On the 400-image test block the fused orientations' errors were 1.3-1.6 times them in
-    attitude and 1.0-1.25 times in the centres, as HAT's conditional ones are for its runs (1.0-1.5).
+    The fused images' standard deviations ``(6,)`` are two-level (:mod:`.rigfusion`): their body's own normal block
+    and the block's smooth modes, its translation among them (the nadir run's datum variance is not added again).
 
     Returns the poses, the tie points, those standard deviations and the statistics."""
     ids = [i for i in ties.image_ids if i in poses]
@@ -767,8 +765,6 @@ def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, Sub
         point_prior_xyz=prior_xyz, point_prior_info=prior_info, gate=gate, threads=threads, progress=progress)
     xyz = xyz_all[:n_t]
     var = sigma0_px(runs) ** 2 * np.diagonal(cof, axis1=1, axis2=2)
-    if np.all(np.isfinite(datum_cov)):
-        var[:, 3:] += np.diag(datum_cov)
     fused_std = {ids[k]: np.sqrt(var[k]) for k in np.flatnonzero(np.isfinite(var[:, 0]))}
     out = dict(poses)
     out.update({iid: Pose(r[k], c[k]) for k, iid in enumerate(ids)})

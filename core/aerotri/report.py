@@ -1024,13 +1024,14 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
         rf = report["rig_fusion"]
         parts.append(f"<p>Rig fusion: the heads of {rf['exposures']} exposures ({rf['images']} images), adjusted apart "
                      f"in their view runs, were fused into one body each on the calibrated rig ({rf['iterations']} "
-                     f"steps of the poses and the tie points; the last moved an exposure by at most "
+                     f"steps of the poses and the tie points, from the second on with a coarse step that settles the "
+                     f"block's smooth modes; the last moved an exposure by at most "
                      f"{rf['last_step']:.2f} of its standard deviation). The heads moved by {rf['moved_deg']:.4f} deg "
                      f"and {rf['moved_m']:.3f} m RMS from their runs' orientations; the tie residuals went from "
                      f"{rf['rms_px_before']:.3f} to {rf['rms_px_after']:.3f} px RMS ({rf['left_out']} measurements "
-                     "that did not fit the runs' solution left out). The fused images' standard "
-                     "deviations are conditional (the other exposures held): a lower bound. The runs' statistics below "
-                     "are those of the runs.</p>")
+                     "that did not fit the runs' solution left out). The fused images' standard deviations hold "
+                     "their body's own block and the block's smooth modes, its translation among them, with the rig "
+                     "taken as exact. The runs' statistics below are those of the runs.</p>")
     if report.get("oblique_without_nadir"):
         parts.append(f"<p>{report['oblique_without_nadir']} oblique images have no nadir image in their exposure: "
                      "their runs started from the navigation data, not from the nadir run's corrections, and needed "
