@@ -307,8 +307,9 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     # the residuals at the end; the bodies' normal blocks with the points free, for their precision, on the last
     # linearisation (the last steps change the Jacobians by far less than a percent)
 
-    n_held = n_body
-    lever = c - c[ref]
+    # (the coarse system's points' part of the last linearisation: that of its coarse step, else computed here)
+    n_held, h_pt = n_body, coarse_sums[0] if coarse else None
+    final_coarse = basis is not None and h_pt is None
 
     def final_part(sl: slice) -> tuple:
         v_end = uv[sl] - project_obs(cameras, image_camera, r, c, xyz, op[sl], oi[sl])
@@ -316,12 +317,14 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
         out = (float(np.sum(v_end[ok] ** 2)), 2 * int(ok.sum()),
                precision.reduced_image_normals(-rows[sl][:, :, 3:], rows[sl][:, :, :3], w[sl], q_pt, op[sl], oi[sl],
                                                n))
-        if basis is None:
+        if not final_coarse:
             return out
         return (*out, _coarse_point_part(rows[sl], w[sl], v[sl], lever, basis, oi[sl], op[sl], p_info, p_xyz, xyz,
                                          move)[0])
 
-    total, count, n_red, *h_pt = _chunk_sums(final_part, chunks, threads)
+    total, count, n_red, *h_final = _chunk_sums(final_part, chunks, threads)
+    if final_coarse:
+        h_pt = h_final[0]
     n_red = n_red + info[:, :, None] * np.eye(6)
     rms_after = float(np.sqrt(total / max(count, 1)))
     a = _body_map(c, ref)
@@ -330,7 +333,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     q_body[bodies] = precision.safe_inverse(n_body[bodies])
     if basis is not None:
         # the smooth modes' variance, which the bodies' own blocks (the other exposures held) leave out
-        q_body[bodies] += _coarse_cofactors(n_held, n_body, basis, bodies, h_pt[0])
+        q_body[bodies] += _coarse_cofactors(n_held, n_body, basis, bodies, h_pt)
     cof[fused] = np.einsum("kij,kjl,kml->kim", a[fused], q_body[ref[fused]], a[fused])
     change = _pose_change(r0[fused], c0[fused], r[fused], c[fused])
     stats = FusionStats(exposures=len(bodies), images=int(fused.sum()), iterations=it, left_out=int(off.sum()),

@@ -301,4 +301,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="19", adjusted_block=False, inputs=(MANUAL_FILE,))
+              version="20", adjusted_block=False, inputs=(MANUAL_FILE,))
