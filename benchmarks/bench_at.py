@@ -749,8 +749,8 @@ def describe_runs(args) -> str:
             "connection points) and then least-squares rounds with data snooping (a Cauchy round only when the "
             "screening's sigma0 is above 2); combination by error propagation, the datum shift refined "
             "from all control measurements (the nadir run saw only the nadir ones)"
-            + ("; then each exposure's heads fused into one body on the rig (poses and tie points alternated)."
-               if args.rig else ".")
+            + ("; then each exposure's heads fused into one body on the rig (poses and tie points alternated, with "
+               "coarse steps along the block's smooth modes)." if args.rig else ".")
             + ("" if args.skip_stock else
                "\nStock comparison: our engine (the IAT adjustment) and pycolmap's bundle_adjustment (one Cauchy "
                f"solve, no priors, its default gauge, tolerances and solver) on the {args.stock_images} images of the "
