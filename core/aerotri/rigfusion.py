@@ -29,9 +29,9 @@ GNSS/IMU measurement (the runs' prior residuals) and the control points the runs
 coordinates); without the control points the steps drifted along the weak modes of a small block.
 
 The exposures' cofactors are two-level as well: each body's normal block with the points free
-(:func:`.precision.reduced_image_normals` summed over its heads, the other exposures held: a lower bound) plus the
-smooth modes' cofactors from the coarse system (:func:`_coarse_cofactors`), which hold what the bodies share,
-the block's translation among them; the rig is taken as exact.
+(:func:`.precision.reduced_image_normals` summed over its heads, the other exposures held: a lower bound) plus what
+the coarse system gives the smooth modes beyond those blocks (:func:`_coarse_cofactors`): what the bodies share,
+the block's translation among them. The rig is taken as exact.
 
 Measured on three simulated 1,000-image blocks (seeds 1-3, CBA): attitude RMS 0.00083-0.00107 deg against
 0.00112-0.00151 deg without the coarse step and 0.0009 deg for IAT on the rig; attitude errors 0.8-1.05 times these
@@ -268,7 +268,6 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
             # the coarse step: the smooth field of body steps with the points free; then the bodies' gradients with
             # the points where that step puts them
             step_body = _coarse_step(n_body, g_body, basis, bodies, *coarse_sums)
-
             step_img = np.einsum("kij,kj->ki", a, step_body[ref])
 
             def coarse_part(sl: slice, step_img: np.ndarray = step_img) -> tuple:
@@ -305,9 +304,8 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
         if last < SETTLED:
             break
     # the residuals at the end; the bodies' normal blocks with the points free, for their precision, on the last
-    # linearisation (the last steps change the Jacobians by far less than a percent)
-
-    # (the coarse system's points' part of the last linearisation: that of its coarse step, else computed here)
+    # linearisation (the last steps change the Jacobians by far less than a percent), and the coarse system's
+    # points' part of that linearisation (its coarse step's, else computed here)
     n_held, h_pt = n_body, coarse_sums[0] if coarse else None
     final_coarse = basis is not None and h_pt is None
 
@@ -332,7 +330,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     q_body = np.full((n, 6, 6), np.nan)
     q_body[bodies] = precision.safe_inverse(n_body[bodies])
     if basis is not None:
-        # the smooth modes' variance, which the bodies' own blocks (the other exposures held) leave out
+        # the smooth modes' variance that the bodies' own blocks (the other exposures held) leave out
         q_body[bodies] += _coarse_cofactors(n_held, n_body, basis, bodies, h_pt)
     cof[fused] = np.einsum("kij,kjl,kml->kim", a[fused], q_body[ref[fused]], a[fused])
     change = _pose_change(r0[fused], c0[fused], r[fused], c[fused])
