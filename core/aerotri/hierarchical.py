@@ -718,6 +718,7 @@ def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, Sub
     index = np.full(len(ties.image_ids), -1, np.int64)
     index[[k for k, i in enumerate(ties.image_ids) if i in poses]] = np.arange(len(ids))
     runs = [run for run, _ in run_subs]
+    run_of = {iid: run.name for run in runs for iid in run.poses}
     best = camera_runs(block, runs)
     cam_ids = sorted({block.images[i].camera_id for i in ids})
     cameras = [best[cid][0].result.cameras[best[cid][1]] if cid in best else block.cameras[cid] for cid in cam_ids]
@@ -762,7 +763,8 @@ def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, Sub
         np.concatenate([index[ties.obs_image[use]], [o[1] for o in g_obs]]).astype(np.int64),
         np.vstack([ties.obs_uv[use], np.array([o[2] for o in g_obs], np.float64).reshape(-1, 2)]), ref, rel_r,
         rel_b, e_run, info, obs_weight=np.concatenate([np.ones(int(use.sum())), [o[3] for o in g_obs]]),
-        point_prior_xyz=prior_xyz, point_prior_info=prior_info, gate=gate, threads=threads, progress=progress)
+        point_prior_xyz=prior_xyz, point_prior_info=prior_info, gate=gate, threads=threads,
+        image_group=np.array([run_of.get(i, "") for i in ids]), progress=progress)
     xyz = xyz_all[:n_t]
     var = sigma0_px(runs) ** 2 * np.diagonal(cof, axis1=1, axis2=2)
     fused_std = {ids[k]: np.sqrt(var[k]) for k in np.flatnonzero(np.isfinite(var[:, 0]))}

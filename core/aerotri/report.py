@@ -1029,9 +1029,12 @@ def html_report(report: dict, layers: dict[str, Raster], residuals_px: np.ndarra
                      f"{rf['last_step']:.2f} of its standard deviation). The heads moved by {rf['moved_deg']:.4f} deg "
                      f"and {rf['moved_m']:.3f} m RMS from their runs' orientations; the tie residuals went from "
                      f"{rf['rms_px_before']:.3f} to {rf['rms_px_after']:.3f} px RMS ({rf['left_out']} measurements "
-                     "that did not fit the runs' solution left out). The fused images' standard deviations hold "
+                     "that did not fit the runs' solution left out)"
+                     + ("; per run: " + ", ".join(f"{k} {v:.3f}" for k, v in rf["rms_px_by_group"].items())
+                        if rf.get("rms_px_by_group") else "")
+                     + ". The fused images' standard deviations hold "
                      "their body's own block and the block's smooth modes, its translation among them, with the rig "
-                     "taken as exact. The runs' statistics below are those of the runs.</p>")
+                     "taken as exact. The runs' statistics below are those of the runs, before the fusion.</p>")
     if report.get("oblique_without_nadir"):
         parts.append(f"<p>{report['oblique_without_nadir']} oblique images have no nadir image in their exposure: "
                      "their runs started from the navigation data, not from the nadir run's corrections, and needed "

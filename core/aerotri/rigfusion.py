@@ -42,7 +42,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -76,6 +76,7 @@ class FusionStats:
         (the heads placed on the rig, before the first step) and at the end
     moved_deg, moved_m : RMS change of the fused heads' attitude (degrees) and centres (metres) from the runs'
     last_step : the largest exposure step of the last iteration, in units of its standard deviation
+    rms_px_by_group : ``rms_px_after`` per group of images (``image_group`` of :func:`fuse_on_rig`: label -> RMS)
     """
 
     exposures: int
@@ -87,6 +88,7 @@ class FusionStats:
     moved_deg: float
     moved_m: float
     last_step: float
+    rms_px_by_group: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -152,7 +154,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
                 prior_info: np.ndarray, obs_weight: np.ndarray | None = None,
                 point_prior_xyz: np.ndarray | None = None, point_prior_info: np.ndarray | None = None,
                 gate: float = 4.3, max_iterations: int = 3, coarse_degree: int | None = 3, threads: int = 1,
-                progress: Callable[[int, int, str], None] | None = None
+                image_group: np.ndarray | None = None, progress: Callable[[int, int, str], None] | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, FusionStats]:
     """The exposures' heads fused on the rig (the module docstring).
 
@@ -174,7 +176,8 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     measurements were 5 px or more off the combined points, and they bent the fusion).
 
     ``coarse_degree``: the degree of the coarse step's polynomials (None: no coarse step, and cofactors of the
-    bodies' own blocks only).
+    bodies' own blocks only). ``image_group (n,)``: a label per image (its run, say), for the residuals per group in
+    the statistics.
 
     Returns the poses ``r``, ``c``, the points ``xyz`` (those with fewer than two usable rays keep theirs), each
     fused image's pose cofactor ``(n, 6, 6)`` (two-level, see the module docstring; rotation about the world axes
@@ -308,11 +311,15 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     # points' part of that linearisation (its coarse step's, else computed here)
     n_held, h_pt = n_body, coarse_sums[0] if coarse else None
     final_coarse = basis is not None and h_pt is None
+    labels, group = np.unique(np.asarray(image_group if image_group is not None else np.full(n, ""), str),
+                              return_inverse=True)
 
     def final_part(sl: slice) -> tuple:
         v_end = uv[sl] - project_obs(cameras, image_camera, r, c, xyz, op[sl], oi[sl])
         ok = np.all(np.isfinite(v_end), 1) & (w[sl] > 0)
-        out = (float(np.sum(v_end[ok] ** 2)), 2 * int(ok.sum()),
+        g = group[oi[sl][ok]]
+        out = (np.bincount(g, weights=np.sum(v_end[ok] ** 2, 1), minlength=len(labels)),
+               2 * np.bincount(g, minlength=len(labels)),
                precision.reduced_image_normals(-rows[sl][:, :, 3:], rows[sl][:, :, :3], w[sl], q_pt, op[sl], oi[sl],
                                                n))
         if not final_coarse:
@@ -320,7 +327,8 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
         return (*out, _coarse_point_part(rows[sl], w[sl], v[sl], lever, basis, oi[sl], op[sl], p_info, p_xyz, xyz,
                                          move)[0])
 
-    total, count, n_red, *h_final = _chunk_sums(final_part, chunks, threads)
+    sq_group, n_group, n_red, *h_final = _chunk_sums(final_part, chunks, threads)
+    total, count = float(sq_group.sum()), int(n_group.sum())
     if final_coarse:
         h_pt = h_final[0]
     n_red = n_red + info[:, :, None] * np.eye(6)
@@ -340,7 +348,9 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
                         moved_deg=float(np.degrees(np.sqrt(np.mean(np.sum(change[:, :3] ** 2, 1))))) if fused.any()
                         else 0.0,
                         moved_m=float(np.sqrt(np.mean(np.sum(change[:, 3:] ** 2, 1)))) if fused.any() else 0.0,
-                        last_step=last)
+                        last_step=last,
+                        rms_px_by_group={str(lab): float(np.sqrt(sq / cnt)) for lab, sq, cnt in
+                                         zip(labels, sq_group, n_group) if cnt > 0} if image_group is not None else {})
     return r, c, xyz, cof, stats
 
 

@@ -80,6 +80,11 @@ def test_hat_on_the_rig_fuses_the_heads_and_orients_them_better(sim, xyz0, optio
     n_exp = len({im.exposure for im in sim.block.images.values()})
     assert stats["exposures"] == n_exp and stats["images"] == 5 * n_exp
     assert stats["rms_px_after"] < stats["rms_px_before"]
+    # the residuals after the fusion per run: every view's near the simulated noise, their mean square the whole's
+    by_run = stats["rms_px_by_group"]
+    assert set(by_run) == {"nadir", "north", "east", "south", "west"}
+    assert all(0.8 * options.sigma_px < v < 1.2 * options.sigma_px for v in by_run.values())
+    assert min(by_run.values()) <= stats["rms_px_after"] <= max(by_run.values())
     ids = list(fused.poses)
 
     def errors(at):
