@@ -33,9 +33,10 @@ The exposures' cofactors are two-level as well: each body's normal block with th
 the coarse system gives the smooth modes beyond those blocks (:func:`_coarse_cofactors`): what the bodies share,
 the block's translation among them. The rig is taken as exact.
 
-Measured on three simulated 1,000-image blocks (seeds 1-3, CBA): attitude RMS 0.00083-0.00107 deg against
-0.00112-0.00151 deg without the coarse step and 0.0009 deg for IAT on the rig; attitude errors 0.8-1.05 times these
-standard deviations (1.4-3.8 times the bodies' own blocks').
+Measured on four simulated 1,000-image blocks (``benchmarks/bench_at.py --images 1000 --rig --seed 1..4``, CBA):
+attitude RMS 0.0008-0.0011 deg, as IAT on the rig (0.00112-0.00151 deg without the coarse step on seeds 1-3);
+attitude errors 0.62-1.81 times these standard deviations per block and axis, 1.00 / 1.03 / 1.20 RMS over the
+blocks (up to 3.8 times the bodies' own blocks').
 """
 
 from __future__ import annotations
