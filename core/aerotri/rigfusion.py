@@ -239,6 +239,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     # the smooth fields of body steps over the block that the coarse step solves for (see _coarse_basis)
     basis = _coarse_basis(c[ref], fused, coarse_degree)
     move = (rays >= 2) | (anchored & (rays >= 1))
+    point_sums: dict[int, tuple] = {}  # per chunk (its start) the points' sums of the linearisation's coarse step
     for it in range(1, max_iterations + 1):
         if progress is not None:
             progress(it - 1, max_iterations, f"rig fusion: step {it}")
@@ -254,8 +255,8 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
                    precision.sum_outer(jp, w[sl], op[sl], len(xyz)))
             if not coarse:
                 return out
-            return (*out, *_coarse_point_part(rows[sl], w[sl], v[sl], lever, basis, oi[sl], op[sl], p_info, p_xyz,
-                                              xyz, move))
+            point_sums[sl.start] = _point_sums(jp, w[sl], v[sl], op[sl], p_info, p_xyz, xyz)
+            return (*out, *_coarse_point_part(rows[sl], w[sl], lever, basis, oi[sl], move, point_sums[sl.start]))
 
         n_img, g_img, n_pt, *coarse_sums = _chunk_sums(linearise_part, chunks, threads)
         if it == 1:
@@ -275,8 +276,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
             step_img = np.einsum("kij,kj->ki", a, step_body[ref])
 
             def coarse_part(sl: slice, step_img: np.ndarray = step_img) -> tuple:
-                return (_coarse_response(rows[sl], w[sl], v[sl], step_img, oi[sl], op[sl], p_info, p_xyz, xyz, move,
-                                         n),)
+                return (_coarse_response(rows[sl], w[sl], step_img, oi[sl], move, n, point_sums[sl.start]),)
 
             g_body -= np.einsum("kij,kj->ki", n_body, step_body)
             g_body -= _sum_by(np.einsum("kji,kj->ki", a, _chunk_sums(coarse_part, chunks, threads)[0])[fused],
@@ -325,8 +325,8 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
                                                n))
         if not final_coarse:
             return out
-        return (*out, _coarse_point_part(rows[sl], w[sl], v[sl], lever, basis, oi[sl], op[sl], p_info, p_xyz, xyz,
-                                         move)[0])
+        sums = _point_sums(-rows[sl][:, :, 3:], w[sl], v[sl], op[sl], p_info, p_xyz, xyz)
+        return (*out, _coarse_point_part(rows[sl], w[sl], lever, basis, oi[sl], move, sums)[0])
 
     sq_group, n_group, n_red, *h_final = _chunk_sums(final_part, chunks, threads)
     total, count = float(sq_group.sum()), int(n_group.sum())
@@ -444,21 +444,23 @@ def _point_sums(jp: np.ndarray, w: np.ndarray, v: np.ndarray, op: np.ndarray, p_
     return at, u, precision.safe_inverse(n_p), g_p
 
 
-def _coarse_point_part(rows: np.ndarray, w: np.ndarray, v: np.ndarray, lever: np.ndarray, basis: np.ndarray,
-                       oi: np.ndarray, op: np.ndarray, p_info: np.ndarray, p_xyz: np.ndarray, xyz: np.ndarray,
-                       move: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _coarse_point_part(rows: np.ndarray, w: np.ndarray, lever: np.ndarray, basis: np.ndarray, oi: np.ndarray,
+                       move: np.ndarray, sums: tuple) -> tuple[np.ndarray, np.ndarray]:
     """What the points of ``move`` (p,) take from the coarse system (:func:`_coarse_step`), from the measurements of
     whole points sorted by point: ``sum G Q G^T`` ``(6 b, 6 b)`` and ``sum G Q g`` ``(6 b,)``, with ``Q`` and ``g``
-    a point's cofactor and gradient (:func:`_point_sums`) and ``G (6 b, 3)`` its coupling with the coarse unknowns
+    a point's cofactor and gradient (``sums``, :func:`_point_sums` of these measurements) and ``G (6 b, 3)`` its
+    coupling with the coarse unknowns
     (flattened function by function), ``sum (rows A B)^T w J`` over its rays: ``rows (m, 2, 6)`` the image rows
     (:func:`.precision.image_rows`), ``A`` the body map (:func:`_body_map`) of the heads' ``lever (n, 3)`` (centre
     less the reference head's), ``B = basis[k] (x) I6`` and ``J = -rows[:, :, 3:]`` the point Jacobian."""
     jp = -rows[:, :, 3:]
-    at, u, q, g = _point_sums(jp, w, v, op, p_info, p_xyz, xyz)
+    at, u, q, g = sums
     # rows A: the rotation's columns also move the centre about the reference head (jc [a]x = jc x a, per row)
     rb = np.empty((len(oi), 2, 6))
     rb[:, :, 3:] = rows[:, :, 3:]
-    rb[:, :, :3] = rows[:, :, :3] + np.cross(rows[:, :, 3:], np.take(lever, oi, 0)[:, None, :])
+    la = np.take(lever, oi, 0)
+    for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):
+        rb[:, :, k] = rows[:, :, k] + rows[:, :, 3 + i] * la[:, None, j] - rows[:, :, 3 + j] * la[:, None, i]
     mt = (np.swapaxes(jp * w[:, None, None], 1, 2) @ rb).reshape(len(oi), 18)  # J^T w rows A, (m, 3 x 6)
     b_obs = np.take(basis, oi, 0)
     starts = np.searchsorted(at, np.arange(len(u)))
@@ -472,14 +474,14 @@ def _coarse_point_part(rows: np.ndarray, w: np.ndarray, v: np.ndarray, lever: np
     return qgt.reshape(-1, nc).T @ gt.reshape(-1, nc), np.einsum("pdc,pd->c", qgt, g)
 
 
-def _coarse_response(rows: np.ndarray, w: np.ndarray, v: np.ndarray, step_img: np.ndarray, oi: np.ndarray,
-                     op: np.ndarray, p_info: np.ndarray, p_xyz: np.ndarray, xyz: np.ndarray, move: np.ndarray,
-                     n: int) -> np.ndarray:
+def _coarse_response(rows: np.ndarray, w: np.ndarray, step_img: np.ndarray, oi: np.ndarray, move: np.ndarray,
+                     n: int, sums: tuple) -> np.ndarray:
     """``(n, 6)``: per image ``sum rows^T w J dx`` over its measurements (of whole points sorted by point), with
     ``dx`` the step of the points of ``move`` when the images step by ``step_img (n, 6)``:
-    ``dx = Q (g - sum J^T w rows step)`` (:func:`_point_sums`; zero for the other points)."""
+    ``dx = Q (g - sum J^T w rows step)`` (``sums``, :func:`_point_sums` of these measurements; zero for the other
+    points)."""
     jp = -rows[:, :, 3:]
-    at, u, q, g = _point_sums(jp, w, v, op, p_info, p_xyz, xyz)
+    at, u, q, g = sums
     rs = np.einsum("mrj,mj->mr", rows, np.take(step_img, oi, 0))
     wts = _segment_sums(np.einsum("mri,mr->mi", jp, rs * w[:, None]), np.searchsorted(at, np.arange(len(u))))
     dx = np.nan_to_num(np.einsum("pde,pe->pd", q, g - wts)) * move[u][:, None]
