@@ -59,8 +59,9 @@ CHUNK = 200_000
 """Tie measurements linearised at a time (a few tens of megabytes of temporaries)."""
 
 COARSE_FROM = 2
-"""The first step that takes a coarse step (the first settles each body against its rays: a coarse step from the
-heads just placed on the rig moved the block's smooth modes the wrong way, and the later steps barely undo that)."""
+"""The first step that takes a coarse step. The first settles each body against its rays; a coarse step from the
+heads just placed on the rig as well did slightly worse on a 1,000-image block (attitude 0.00109 against 0.00107
+deg RMS, the last step 0.63 against 0.24 of a standard deviation) for one more pass over the measurements."""
 
 SETTLED = 0.05
 """An exposure has settled when its last step is less than this share of its standard deviation (the step's
