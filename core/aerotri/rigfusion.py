@@ -244,10 +244,10 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     for it in range(1, max_iterations + 1):
         if progress is not None:
             progress(it - 1, max_iterations, f"rig fusion: step {it}")
-        a, lever = _body_map(c, ref), c - c[ref]
+        a = _body_map(c, ref)
         coarse = basis is not None and it >= COARSE_FROM
 
-        def linearise_part(sl: slice, coarse: bool = coarse, lever: np.ndarray = lever) -> tuple:
+        def linearise_part(sl: slice, coarse: bool = coarse, a: np.ndarray = a) -> tuple:
             v[sl], good, jp, jr = _linearised(cameras, image_camera, r, c, xyz, op[sl], oi[sl], uv[sl], fx, fy)
             w[sl] = good * weight[sl]
             rows[sl] = precision.image_rows(jp, jr)
@@ -257,7 +257,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
             if not coarse:
                 return out
             point_sums[sl.start] = _point_sums(jp, w[sl], v[sl], op[sl], p_info, p_xyz, xyz)
-            return (*out, *_coarse_point_part(rows[sl], w[sl], lever, basis, oi[sl], move, point_sums[sl.start]))
+            return (*out, *_coarse_point_part(rows[sl], w[sl], a, basis, oi[sl], move, point_sums[sl.start]))
 
         n_img, g_img, n_pt, *coarse_sums = _chunk_sums(linearise_part, chunks, threads)
         if it == 1:
@@ -327,7 +327,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
         if not final_coarse:
             return out
         sums = _point_sums(-rows[sl][:, :, 3:], w[sl], v[sl], op[sl], p_info, p_xyz, xyz)
-        return (*out, _coarse_point_part(rows[sl], w[sl], lever, basis, oi[sl], move, sums)[0])
+        return (*out, _coarse_point_part(rows[sl], w[sl], a, basis, oi[sl], move, sums)[0])
 
     sq_group, n_group, n_red, *h_final = _chunk_sums(final_part, chunks, threads)
     total, count = float(sq_group.sum()), int(n_group.sum())
@@ -445,23 +445,22 @@ def _point_sums(jp: np.ndarray, w: np.ndarray, v: np.ndarray, op: np.ndarray, p_
     return at, u, precision.safe_inverse(n_p), g_p
 
 
-def _coarse_point_part(rows: np.ndarray, w: np.ndarray, lever: np.ndarray, basis: np.ndarray, oi: np.ndarray,
+def _coarse_point_part(rows: np.ndarray, w: np.ndarray, a: np.ndarray, basis: np.ndarray, oi: np.ndarray,
                        move: np.ndarray, sums: tuple) -> tuple[np.ndarray, np.ndarray]:
     """What the points of ``move`` (p,) take from the coarse system (:func:`_coarse_step`), from the measurements of
     whole points sorted by point: ``sum G Q G^T`` ``(6 b, 6 b)`` and ``sum G Q g`` ``(6 b,)``, with ``Q`` and ``g``
     a point's cofactor and gradient (``sums``, :func:`_point_sums` of these measurements) and ``G (6 b, 3)`` its
     coupling with the coarse unknowns
     (flattened function by function), ``sum (rows A B)^T w J`` over its rays: ``rows (m, 2, 6)`` the image rows
-    (:func:`.precision.image_rows`), ``A`` the body map (:func:`_body_map`) of the heads' ``lever (n, 3)`` (centre
-    less the reference head's), ``B = basis[k] (x) I6`` and ``J = -rows[:, :, 3:]`` the point Jacobian."""
+    (:func:`.precision.image_rows`), ``A`` the body map ``a (n, 6, 6)`` (:func:`_body_map`), ``B = basis[k] (x) I6``
+    and ``J = -rows[:, :, 3:]`` the point Jacobian."""
     jp = -rows[:, :, 3:]
     at, u, q, g = sums
-    # rows A: the rotation's columns also move the centre about the reference head (jc [a]x = jc x a, per row)
+    # rows A: A is the identity but for the block that moves the centre by the rotation (a full (m, 6, 6) product
+    # took three times as long)
     rb = np.empty((len(oi), 2, 6))
     rb[:, :, 3:] = rows[:, :, 3:]
-    la = np.take(lever, oi, 0)
-    for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):
-        rb[:, :, k] = rows[:, :, k] + rows[:, :, 3 + i] * la[:, None, j] - rows[:, :, 3 + j] * la[:, None, i]
+    rb[:, :, :3] = rows[:, :, :3] + rows[:, :, 3:] @ np.take(a[:, 3:, :3], oi, 0)
     mt = (np.swapaxes(jp * w[:, None, None], 1, 2) @ rb).reshape(len(oi), 18)  # J^T w rows A, (m, 3 x 6)
     b_obs = np.take(basis, oi, 0)
     starts = np.searchsorted(at, np.arange(len(u)))
@@ -496,12 +495,19 @@ def _coarse_step(n_body: np.ndarray, g_body: np.ndarray, basis: np.ndarray, bodi
     ``g_body (n, 6)`` (points held), less what the points take (:func:`_coarse_point_part`: ``h_pt``, ``r_pt``)."""
     b = basis[bodies]
     nb = b.shape[1]
-    h = np.einsum("kj,kl,kab->jalb", b, b, n_body[bodies]).reshape(6 * nb, 6 * nb) - h_pt
+    h = _coarse_normals(n_body, b, bodies) - h_pt
     rhs = np.einsum("kj,ka->ja", b, g_body[bodies]).reshape(6 * nb) - r_pt
     z = _scaled_pinv(h) @ rhs
     step = np.zeros((len(n_body), 6))
     step[bodies] = b @ z.reshape(nb, 6)
     return step
+
+
+def _coarse_normals(n_body: np.ndarray, b: np.ndarray, bodies: np.ndarray) -> np.ndarray:
+    """``(6 f, 6 f)``: the bodies' normal blocks ``n_body (n, 6, 6)`` (rows ``bodies``) on the ``f`` smooth fields
+    ``b (k, f)`` (:func:`_coarse_basis` at the bodies), ``sum (b_k b_k^T) (x) N_k``, function by function."""
+    nc = 6 * b.shape[1]
+    return np.einsum("kj,kl,kab->jalb", b, b, n_body[bodies]).reshape(nc, nc)
 
 
 def _coarse_cofactors(n_held: np.ndarray, n_own: np.ndarray, basis: np.ndarray, bodies: np.ndarray,
@@ -512,9 +518,7 @@ def _coarse_cofactors(n_held: np.ndarray, n_own: np.ndarray, basis: np.ndarray, 
     blocks alone (the smooth modes' share that those already hold), its negative directions dropped."""
     b = basis[bodies]
     nb = b.shape[1]
-    s_c = np.einsum("kj,kl,kab->jalb", b, b, n_held[bodies]).reshape(6 * nb, 6 * nb) - h_pt
-    d_c = np.einsum("kj,kl,kab->jalb", b, b, n_own[bodies]).reshape(6 * nb, 6 * nb)
-    extra = _scaled_pinv(s_c) - _scaled_pinv(d_c)
+    extra = _scaled_pinv(_coarse_normals(n_held, b, bodies) - h_pt) - _scaled_pinv(_coarse_normals(n_own, b, bodies))
     val, vec = np.linalg.eigh((extra + extra.T) / 2.0)
     cov = ((vec * np.maximum(val, 0.0)) @ vec.T).reshape(nb, 6, nb, 6)
     return np.einsum("kj,kl,jalb->kab", b, b, cov)
