@@ -23,7 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.aerotri.report import estimated_tie_sigma, largest_corner_shift, largest_systematic
+from ..core.aerotri.report import (
+    estimated_prior_sigma,
+    estimated_tie_sigma,
+    largest_corner_shift,
+    largest_systematic,
+)
 from ..core.errors import InputError
 from ..core.io.geotiff import read_geotiff
 from ..core.io.validate import read_json
@@ -224,7 +229,8 @@ def report_summary(path: Path) -> dict:
     px, std px or None, significant, tested)``, the last two counting the corrections with a standard deviation;
     None without one), and the tie measurements' sigma
     when the adjustment estimated one other than the given (``tie_sigma``: ``(given px, estimated px)`` of its first
-    run, None otherwise and in reports written before it existed), and the block's datum shift (``datum``: ``(shift
+    run, None otherwise and in reports written before it existed), the factors it scaled the GNSS/IMU prior sigmas by
+    (``prior_sigma``: words -> factor, {} when it kept them), and the block's datum shift (``datum``: ``(shift
     (3,) m, its standard deviations (3,) m or None)``, None without one and in reports written before it existed).
     Raises :class:`InputError` naming the file."""
     doc = read_json(path, "no triangulation report (run the 'aerotri' stage)")
@@ -269,6 +275,7 @@ def report_summary(path: Path) -> dict:
                 "rig_fusion": (int(doc["rig_fusion"]["exposures"]), float(doc["rig_fusion"]["moved_deg"]),
                                float(doc["rig_fusion"]["moved_m"])) if doc.get("rig_fusion") else None,
                 "tie_sigma": estimated_tie_sigma(doc),
+                "prior_sigma": estimated_prior_sigma(doc),
                 "datum": ([float(v) for v in doc["datum"]["shift_m"]],
                           None if doc["datum"]["std_m"] is None else [float(v) for v in doc["datum"]["std_m"]])
                 if doc.get("datum") else None,

@@ -10,6 +10,7 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
     python benchmarks/bench_at.py --connections cba --gnss-strips 0.3   # Table 11: GNSS offsets per strip
     python benchmarks/bench_at.py --connections cba --camera-errors   # Table 12: self-calibration
     python benchmarks/bench_at.py --connections cba --tie-sigma 3   # Table 13: tie sigma given 3 times too large
+    python benchmarks/bench_at.py --connections cba --prior-sigma 0.25   # Table 15: GNSS/IMU sigmas 4 times too small
     python benchmarks/bench_at.py --images 3000 --connections cba --skip-stock --precision   # Table 14: precision
     python benchmarks/bench_at.py --images 3000 --connections cba --skip-stock --precision --rig   # on the rig
     make bench-at ARGS="--images 3000"
@@ -242,6 +243,10 @@ def main(argv=None) -> int:
     ap.add_argument("--tie-sigma", dest="tie_sigma", type=float, default=0.0,
                     help="also adjust with the tie measurements' a priori sigma given this many times the simulated "
                          "noise, with and without its estimation from the residuals, beside the right one (Table 13)")
+    ap.add_argument("--prior-sigma", dest="prior_sigma", type=float, default=0.0,
+                    help="also adjust with every image's GNSS/IMU sigmas given this many times those of the simulated "
+                         "errors, with and without their estimation from the residuals, beside the right ones "
+                         "(Table 15)")
     ap.add_argument("--precision", action="store_true",
                     help="also adjust with the orientations' marginal standard deviations (IAT and HAT-CBA; the "
                          "timed runs report the conditional ones) and compare both with the true errors (Table 14)")
@@ -394,6 +399,11 @@ def main(argv=None) -> int:
                 block, ties, xyz0, sim.true_poses, opt, args.tie_sigma, lambda b, o: hierarchical(
                     b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
                     oblique_tie_grid=args.oblique_tie_grid, oblique_ties_per_cell=args.oblique_ties_per_cell))
+        if args.prior_sigma > 0:
+            out["prior_sigma"] = prior_sigma_runs(
+                block, ties, xyz0, sim.true_poses, opt, args.prior_sigma, lambda b, o: hierarchical(
+                    b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
+                    oblique_tie_grid=args.oblique_tie_grid, oblique_ties_per_cell=args.oblique_ties_per_cell))
         if args.precision:
             out["precision"] = precision_runs(block, sim.true_poses, {"IAT": iat, "HAT cba": hats["cba"]}, {
                 "IAT": lambda o: integrated(block, ties, o, xyz0=xyz0),
@@ -421,6 +431,8 @@ def main(argv=None) -> int:
         print_tie_sigma(out["tie_sigma"], sim.gsd)
     if "precision" in out:
         print_precision(out["precision"])
+    if "prior_sigma" in out:
+        print_prior_sigma(out["prior_sigma"], sim.gsd)
     targets(out)
     path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -641,6 +653,40 @@ def tie_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, fact
                "check_xy_m": xy, "check_z_m": z,
                "centre_error_over_std": np.sqrt(np.mean((err / std) ** 2, 0)).tolist(), "wall_s": wall}
         print(f"tie sigma: {method} given {o.sigma_px:.3f} px, estimate {estimate}: check XY {xy:.4f} Z {z:.4f} m, "
+              f"{wall:.1f} s")
+        out["runs"].append(row)
+    return out
+
+
+def prior_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, factor: float,
+                     run_hat: Callable[[object, BundleOptions], object]) -> dict:
+    """The GNSS/IMU sigmas (Table 15): IAT and HAT-CBA with every image's position and attitude sigmas as simulated,
+    and ``factor`` times them with and without their estimation (``BundleOptions.prior_sigma_estimate``). Per run the
+    scales each of its adjustments ended with (attitude, position), the check point RMS, the attitude and centre RMS
+    against the truth and the centres' errors in their reported standard deviations (RMS; 1: told right)."""
+    given = copy.deepcopy(block)
+    for img in given.images.values():
+        img.sigma_position = None if img.sigma_position is None else img.sigma_position * factor
+        img.sigma_attitude = None if img.sigma_attitude is None else img.sigma_attitude * factor
+    out = {"factor": factor, "runs": []}
+    for method, f, estimate in (("IAT", 1.0, True), ("IAT", factor, True), ("IAT", factor, False),
+                                ("HAT cba", 1.0, True), ("HAT cba", factor, True), ("HAT cba", factor, False)):
+        b = block if f == 1.0 else given
+        o = replace(opt, prior_sigma_estimate=estimate)
+        t = time.perf_counter()
+        at = integrated(b, ties, o, xyz0=xyz0) if method == "IAT" else run_hat(b, o)
+        wall = time.perf_counter() - t
+        xy, z = rms_xy_z(check_point_errors(b, at.poses)[1])
+        ids = list(at.poses)
+        err = np.array([at.poses[i].C - true_poses[i].C for i in ids])
+        std = np.array([at.image_std[i][3:] for i in ids])
+        ang = np.array([np.linalg.norm(matrix_to_rotvec(true_poses[i].R.T @ at.poses[i].R)) for i in ids])
+        row = {"method": method, "given": f, "estimate": estimate,
+               "scale": {r.name: r.result.prior_sigma_scale.tolist() for r in at.runs},
+               "check_xy_m": xy, "check_z_m": z, "angle_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
+               "centre_rms_m": np.sqrt(np.mean(err**2, 0)).tolist(),
+               "centre_error_over_std": np.sqrt(np.mean((err / std) ** 2, 0)).tolist(), "wall_s": wall}
+        print(f"prior sigmas: {method} given {f:g} times, estimate {estimate}: check XY {xy:.4f} Z {z:.4f} m, "
               f"{wall:.1f} s")
         out["runs"].append(row)
     return out
@@ -923,6 +969,20 @@ def print_tie_sigma(ts: dict, gsd: float) -> None:
         print(f"{r['method']:8s} given {r['given_px']:6.3f}  {'estimated' if r['estimate'] else 'fixed    '}  "
               f"a posteriori {r['sigma0_px']:.3f}  XY {_f(r['check_xy_m'], 1 / gsd)} Z {_f(r['check_z_m'], 1 / gsd)}  "
               f"error/std {_v(r['centre_error_over_std'], 2)}  {r['wall_s']:6.1f} s  ended with: {ended}")
+
+
+def print_prior_sigma(ps: dict, gsd: float) -> None:
+    print(f"\nTable 15. GNSS/IMU sigmas: given as simulated or {ps['factor']:g} times them, estimated from the "
+          "residuals (scaled by their variance components) or not; check point RMS [GSD], attitude RMS [deg] and "
+          "centre RMS X Y Z [m] against the truth, centre errors in their reported standard deviations (RMS X Y Z; 1: "
+          "the precision is told right), wall time, the scales of the attitude and position sigmas each adjustment "
+          "ended with")
+    for r in ps["runs"]:
+        ended = " ".join(f"{k} {v[0]:.2f}/{v[1]:.2f}" for k, v in r["scale"].items())
+        print(f"{r['method']:8s} given x{r['given']:<5g} {'estimated' if r['estimate'] else 'kept     '}  "
+              f"XY {_f(r['check_xy_m'], 1 / gsd)} Z {_f(r['check_z_m'], 1 / gsd)}  angle {r['angle_rms_deg']:.4f}  "
+              f"centre {_v(r['centre_rms_m'], 4)}  error/std {_v(r['centre_error_over_std'], 2)}  "
+              f"{r['wall_s']:6.1f} s  ended with: {ended}")
 
 
 def print_precision(pr: dict) -> None:

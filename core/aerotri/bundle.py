@@ -224,13 +224,27 @@ class BundleOptions:
     tie_sigma_estimate : the tie measurements' a priori sigma is estimated from their own residuals (their variance
         component, :func:`variance_components`): when it differs from ``sigma_px`` by more than
         ``tie_sigma_tolerance`` (relative), the adjustment is solved again with the estimate, from its solution (its
-        orientations, points and cameras; blunders screened there anew), at most ``tie_sigma_passes`` times. The
+        orientations, points and cameras; blunders screened there anew), at most ``variance_passes`` times. The
         sigma0 of an adjustment scales the whole covariance, but the priors and the control keep the weights of their
         own sigmas: a tie sigma 3.8 times too large (0.5 px given, 0.13 px matched on the rendered demo) weighs the
         GNSS positions 14 times too much against the ties, and the standard deviations of what they determine come
         out 3.8 times too small. On the demo, self-calibration then moved the exact cameras' focal lengths by -1.9 to
         -2.5 px at t = -3.1 to -3.5, pulled by the random GNSS errors (with the true navigation data: t 0.2-0.3);
         with the tie sigma estimated, -0.2 to -0.75 px at |t| <= 0.5
+    prior_sigma_estimate : the GNSS positions' and the IMU attitudes' a priori sigmas are scaled by their variance
+        components as well (:func:`prior_sigma_factors`): a group whose factor differs from 1 by more than
+        ``prior_sigma_tolerance`` (relative) and by more than 3 of the estimate's standard deviations is weighted
+        anew in the same passes, once the ties' variance factor is within ``tie_sigma_tolerance`` (the ties' sigma
+        is settled first; held wrong, the priors are not scaled: their residuals follow the ties' weight). The
+        components of a misweighted solution are biased towards 1 (a prior weighted too much leaves less of its
+        error in its residuals, and its redundancy numbers, with the other images held, come out a little large),
+        so the passes approach the right sigmas from that side. On 500 simulated images whose GNSS/IMU errors were
+        4 times the sigmas they came with, the attitude errors were 0.0111 deg RMS and the centres' errors 2.4-3.7
+        times their standard deviations; with the sigmas given right 0.0062 deg and 1.4-2.2 (see the bench's
+        Table 15)
+    prior_sigma_scale : (attitude, position) factors applied to every image's prior sigmas
+        (``BundleProblem.prior_sigma_att``, ``prior_sigma_pos``): the passes of ``prior_sigma_estimate`` set them,
+        and HAT hands the nadir run's to the other runs (one GNSS/IMU system)
     """
 
     sigma_px: float = 0.5
@@ -272,7 +286,10 @@ class BundleOptions:
     gnss_drift_sigma: float = 1.0
     tie_sigma_estimate: bool = True
     tie_sigma_tolerance: float = 0.1
-    tie_sigma_passes: int = 2
+    variance_passes: int = 2
+    prior_sigma_estimate: bool = True
+    prior_sigma_tolerance: float = 0.1
+    prior_sigma_scale: tuple[float, float] = (1.0, 1.0)
 
 
 GNSS_STRIP_MODES = ("off", "shift", "drift")
@@ -440,6 +457,8 @@ class BundleResult:
     sigma_px : the tie measurements' a priori sigma of this solution (pixels): ``sigma_px_given``
         (``BundleOptions.sigma_px``) or, with ``BundleOptions.tie_sigma_estimate``, its estimate
     variance_components : :data:`VARIANCE_GROUPS` -> :class:`VarianceComponent` of this solution
+    prior_sigma_scale : (2,) the factors of the attitude and position prior sigmas of this solution
+        (``BundleOptions.prior_sigma_scale``, or with ``BundleOptions.prior_sigma_estimate`` their estimate)
     iterations, rounds, time_s : solver work; timing : seconds spent building the problems (``build_s``),
         in Ceres (``solve_s``, of which ``preprocess_s`` in its preprocessor (ordering, structure; a cost per
         solve whatever the iterations), ``jacobian_s`` evaluating and ``linear_s`` solving) and on residuals,
@@ -493,6 +512,7 @@ class BundleResult:
     sigma_px: float = float("nan")
     sigma_px_given: float = float("nan")
     variance_components: dict[str, VarianceComponent] = field(default_factory=dict)
+    prior_sigma_scale: np.ndarray = field(default_factory=lambda: np.ones(2))
 
 
 def _quat_xyzw(r: np.ndarray) -> np.ndarray:
@@ -1362,9 +1382,21 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     (see :class:`BundleOptions`); the result's ``sigma_px`` is the sigma of its solution."""
     res = _adjust_pass(prob, opt, progress, on_robust)
     given = opt.sigma_px
-    for _ in range(opt.tie_sigma_passes if opt.tie_sigma_estimate else 0):
-        f = res.variance_components["ties"].factor
-        if not np.isfinite(f) or abs(f - 1.0) <= opt.tie_sigma_tolerance:
+    heads = measurement_heads(prob, opt)
+    for _ in range(opt.variance_passes if opt.tie_sigma_estimate or opt.prior_sigma_estimate else 0):
+        f_obs = res.variance_components["ties"].factor
+        ties_off = bool(np.isfinite(f_obs) and abs(f_obs - 1.0) > opt.tie_sigma_tolerance)
+        f_ties = f_obs if ties_off and opt.tie_sigma_estimate else 1.0
+        # the priors' components are taken once the ties' sigma is right: the ties hold most of the redundancy, and
+        # with their sigma wrong the priors' residuals follow it (the ties given 1 px for 0.3, the IMU attitudes'
+        # factor came out 0.70 on the simulated 400-image block of the tests, against 0.95 with the ties given 0.3):
+        # scaled to it, the priors would be weighted wrongly against the ties by more
+        f_prior = prior_sigma_factors(res.variance_components, opt.prior_sigma_tolerance, heads) \
+            if opt.prior_sigma_estimate and not ties_off else np.ones(2)
+        if ties_off and opt.prior_sigma_estimate and not opt.tie_sigma_estimate:
+            res.log.append(f"GNSS/IMU prior sigmas not estimated: the tie measurements' variance factor is {f_obs:.3f} "
+                           "and their sigma is held (BundleOptions.tie_sigma_estimate)")
+        if f_ties == 1.0 and np.all(f_prior == 1.0):
             break
         # from this solution (GNSS frame, as the problem's start values) and its cameras (self-calibrated ones: the
         # screening holds them)
@@ -1372,15 +1404,22 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         start = replace(prob, r_cam_from_world=res.r_cam_from_world, c_world=res.c_world - shift,
                         xyz=np.where(np.isfinite(res.xyz[:, :1]), res.xyz - shift, prob.xyz), cameras=res.cameras)
         log, iterations, time_s, timing = res.log, res.iterations, res.time_s, res.timing
-        log.append(f"tie measurements: variance factor {f:.3f}, their sigma re-estimated {res.sigma_px:.3f} -> "
-                   f"{res.sigma_px * f:.3f} px; adjusted again from this solution, its blunders screened anew")
+        if f_ties != 1.0:
+            log.append(f"tie measurements: variance factor {f_ties:.3f}, their sigma re-estimated {res.sigma_px:.3f} "
+                       f"-> {res.sigma_px * f_ties:.3f} px")
+        scale = tuple(float(v) for v in res.prior_sigma_scale * f_prior)
+        for part, f, new in zip(PRIOR_PART_LABELS, f_prior, scale):
+            if f != 1.0:
+                log.append(f"{part} priors: variance factor {f:.3f}, their sigmas scaled by {new:.3f} in all")
+        log.append("adjusted again from this solution, its blunders screened anew")
         # the solution is the closest start there is: blunders screened there (BundleOptions.screen_start), no robust
         # round (from a converged solution of the rendered demo's oblique runs, with a quarter of their measurements
         # wrong matches, the Cauchy round ran out of iterations far off and rejected correct control and priors)
-        opt = replace(opt, sigma_px=res.sigma_px * f, screen_start=True, screen_resect=False)
+        opt = replace(opt, sigma_px=res.sigma_px * f_ties, prior_sigma_scale=scale, screen_start=True,
+                      screen_resect=False)
         del res  # (the previous solution's covariances go before the next pass: peak memory)
         res = _adjust_pass(start, opt, None if progress is None else (
-            lambda d, t, m, s=opt.sigma_px: progress(d, t, f"with the tie sigma estimated ({s:.3f} px): {m}")), None)
+            lambda d, t, m, s=opt.sigma_px: progress(d, t, f"with the sigmas estimated (ties {s:.3f} px): {m}")), None)
         res.log[:0] = log
         res.iterations += iterations
         res.time_s += time_s
@@ -1392,9 +1431,37 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     return res
 
 
+def prior_sigma_factors(components: dict[str, VarianceComponent], tolerance: float, heads: float = 1.0
+                        ) -> np.ndarray:
+    """The factors ``(2,)`` by which the attitude (IMU) and position (GNSS) prior sigmas are to be scaled (see
+    ``BundleOptions.prior_sigma_estimate``): a group's variance factor where it differs from 1 by more than
+    ``tolerance`` (relative) and by more than 3 of its standard deviations, else 1. ``heads``: the images that share
+    one GNSS/IMU measurement, each with its prior counted in full (:func:`measurement_heads`): their errors are one,
+    so the estimate's standard deviation is ``sqrt(heads)`` times the component's."""
+    out = np.ones(2)
+    for k, key in enumerate(("imu", "gnss")):
+        comp = components.get(key)
+        if comp is None or comp.redundancy <= 0:
+            continue
+        f = comp.factor
+        if np.isfinite(f) and f > 0 and abs(f - 1.0) > max(tolerance, 3.0 * comp.factor_std * np.sqrt(heads)):
+            out[k] = f
+    return out
+
+
+def measurement_heads(prob: BundleProblem, opt: BundleOptions) -> float:
+    """The mean number of images of ``prob`` whose priors come from one GNSS/IMU measurement and count in full: the
+    heads per exposure without rig constraints (each head's prior is the exposure's measurement taken again), 1 with
+    them (the heads share it, :func:`shared_prior_fraction`) or without exposures."""
+    exposure = prob.image_exposure[prob.image_exposure >= 0] if len(prob.image_exposure) else prob.image_exposure
+    if not len(exposure) or (opt.rig and len(prob.rig_pairs)):
+        return 1.0
+    return len(exposure) / len(np.unique(exposure))
+
+
 def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[int, int, str], None] | None,
                  on_robust: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None) -> BundleResult:
-    """One adjustment with ``opt.sigma_px`` (see :func:`adjust`)."""
+    """One adjustment with ``opt.sigma_px`` and ``opt.prior_sigma_scale`` (see :func:`adjust`)."""
     import pyceres
 
     t0 = time.perf_counter()
@@ -1403,6 +1470,10 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
             raise ComputationError(f"unknown self-calibration group '{g}' (use {', '.join(CALIBRATION_GROUPS)})")
     if opt.gnss_strips not in GNSS_STRIP_MODES:
         raise ComputationError(f"unknown GNSS strip model '{opt.gnss_strips}' (use {', '.join(GNSS_STRIP_MODES)})")
+    scale_att, scale_pos = opt.prior_sigma_scale
+    if (scale_att, scale_pos) != (1.0, 1.0):
+        prob = replace(prob, prior_sigma_att=prob.prior_sigma_att * scale_att,
+                       prior_sigma_pos=prob.prior_sigma_pos * scale_pos)
     has_prior = np.all(np.isfinite(prob.prior_c), axis=1)
     ref = np.round(prob.prior_c[has_prior].mean(0) if has_prior.any() else prob.c_world.mean(0), 0)
     r = np.array(prob.r_cam_from_world, dtype=np.float64)
@@ -1700,7 +1771,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
         obs_redundancy=red, obs_mdb=np.where(active, delta_obs * opt.sigma_px * sigma0 / np.sqrt(red), np.nan),
         gcp_redundancy=gcp_red, gcp_mdb=gcp_mdb, gcp_datum_effect=gcp_mdb * gcp_infl,
         prior_mdb=prior_mdb, prior_effect=prior_mdb * prior_share, sigma_px=opt.sigma_px,
-        variance_components=components)
+        variance_components=components, prior_sigma_scale=np.array(opt.prior_sigma_scale, np.float64))
 
 
 def _strip_std(prob: BundleProblem, opt: BundleOptions, strips: np.ndarray, in_use: np.ndarray,

@@ -24,7 +24,7 @@ def cmd_aerotri(args: argparse.Namespace) -> int:
         value = getattr(args, key)
         if value is not None:
             opts[key] = value
-    for key in ("rig", "mounting", "control_tests", "prior_tests"):
+    for key in ("rig", "mounting", "control_tests", "prior_tests", "prior_sigma_estimate"):
         if getattr(args, key) is not None:
             opts[key] = getattr(args, key)
     if args.self_calibration is not None:
@@ -52,6 +52,9 @@ def add_commands(sub) -> None:
                    help="test the control points' measurements and coordinates for blunders (on by default)")
     s.add_argument("--prior-tests", dest="prior_tests", action=argparse.BooleanOptionalAction,
                    help="test each image's GNSS position and IMU attitude prior for blunders (on by default)")
+    s.add_argument("--prior-sigma-estimate", dest="prior_sigma_estimate", action=argparse.BooleanOptionalAction,
+                   help="scale the GNSS and IMU sigmas by their variance components and adjust again when they are "
+                        "far from 1 (on by default)")
     s.add_argument("--gnss-strips", dest="gnss_strips", choices=GNSS_STRIP_MODES,
                    help="estimate a GNSS offset (shift) or an offset and a drift (drift) per flight strip")
     s.add_argument("--executor", choices=("inline", "processes", "dask"), default="inline")

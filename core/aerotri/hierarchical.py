@@ -23,7 +23,9 @@
   orientations (:func:`weak_tracks`). With rig constraints (``BundleOptions.rig``), between (3) and (4) the heads of
   each exposure, adjusted apart in their runs, are fused into one body on the calibrated rig (:mod:`.rigfusion`).
   GNSS offsets per strip (``BundleOptions.gnss_strips``) are estimated in the nadir run, like the datum shift, and
-  held for the other heads of the same exposures (one antenna) in the oblique runs.
+  held for the other heads of the same exposures (one antenna) in the oblique runs. So are the tie sigma and the
+  scales of the GNSS/IMU prior sigmas the nadir run estimated (``BundleOptions.tie_sigma_estimate``,
+  ``prior_sigma_estimate``): the oblique runs start from them (one GNSS/IMU system) and estimate them further.
   With self-calibration (``BundleOptions.self_calibration``) a calibration sub-block comes first: the images of the
   exposures nearest the block's centre, all views, adjusted together (as IAT) with the cameras' parameters free;
   the hierarchical runs then hold the cameras it calibrated. Calibrated in the runs themselves, a nadir run hardly
@@ -495,8 +497,10 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
                        (lambda d, t, m: progress(0, 2, f"self-calibration on the {len(ids)} central images: {m}")))
         calibration = _to_run("calibration", sub_c, res_c, time.perf_counter() - t_c)
         block = replace(block, cameras={**block.cameras, **{cam.id: cam for cam in res_c.cameras}})
-        # the runs start from the tie sigma the sub-block estimated (BundleOptions.tie_sigma_estimate)
-        opt = replace(opt, self_calibration=(), sigma_px=res_c.sigma_px)
+        # the runs start from the tie sigma and the prior sigmas' scales the sub-block estimated
+        # (BundleOptions.tie_sigma_estimate, prior_sigma_estimate)
+        opt = replace(opt, self_calibration=(), sigma_px=res_c.sigma_px,
+                      prior_sigma_scale=tuple(res_c.prior_sigma_scale.tolist()))
     views = block.images_by_view()
     nadir_ids = views.get("nadir", [])
     if not nadir_ids:
@@ -578,7 +582,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
         opt_v = replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True,
-                        gnss_strips="off", threads=threads, sigma_px=res_n.sigma_px)
+                        gnss_strips="off", threads=threads, sigma_px=res_n.sigma_px,
+                        prior_sigma_scale=tuple(res_n.prior_sigma_scale.tolist()))
         initial, x_v = start_poses, np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
         # (the early start's sigma0 is in units of the given tie sigma, the gate in those of the nadir run's)
         if pre is not None and pre[5] * opt.sigma_px / res_n.sigma_px <= opt.screen_max_sigma0:
@@ -737,7 +742,8 @@ def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, Sub
             if k is None or iid not in run.poses:
                 continue
             e_run[k] = np.concatenate([res.prior_residual_att[j], res.prior_residual_pos[j]])
-            sig = np.concatenate([prob.prior_sigma_att[j], prob.prior_sigma_pos[j]])
+            sig = np.repeat(res.prior_sigma_scale, 3) * np.concatenate([prob.prior_sigma_att[j],
+                                                                        prob.prior_sigma_pos[j]])
             keep = np.repeat(~res.prior_rejected[j], 3) & np.isfinite(sig) & np.isfinite(e_run[k])
             info[k] = np.where(keep, (res.sigma_px / np.where(keep, sig, 1.0)) ** 2, 0.0)
     use = obs_ok & (index[ties.obs_image] >= 0)

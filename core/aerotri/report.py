@@ -160,6 +160,7 @@ def run_statistics(run: Run) -> dict:
         "observations": int(len(run.obs_index)), "rejected": int(run.obs_rejected.sum()),
         "blunder_percent": float(100.0 * run.obs_rejected.mean()) if len(run.obs_rejected) else 0.0,
         "sigma0_a_priori_px": res.sigma_px, "sigma_px_given": res.sigma_px_given, "sigma0": res.sigma0,
+        "prior_sigma_scale": res.prior_sigma_scale.tolist(),
         "sigma0_px": res.sigma0 * res.sigma_px, "variance_components": variance_table(res),
         "redundancy": res.redundancy, "iterations": res.iterations, "rounds": res.rounds,
         "rms_image_px": [float(np.sqrt(np.mean(v[:, 0] ** 2))), float(np.sqrt(np.mean(v[:, 1] ** 2)))]
@@ -185,7 +186,8 @@ def run_statistics(run: Run) -> dict:
 def variance_table(res: BundleResult) -> list[dict]:
     """The run's variance components (``BundleResult.variance_components``) of the groups that took part: group,
     words, observations, redundancy, factor (how many times its a priori sigmas its errors are) with its standard
-    deviation; for the tie measurements also the a priori sigma of the solution and the one their residuals give."""
+    deviation; for the tie measurements also the a priori sigma of the solution and the one their residuals give, for
+    the GNSS positions and IMU attitudes the factor their given sigmas were scaled by (``sigma_scale``)."""
     rows = []
     for key, comp in res.variance_components.items():
         if comp.count == 0 or comp.redundancy <= 0:
@@ -194,6 +196,8 @@ def variance_table(res: BundleResult) -> list[dict]:
                "factor": comp.factor, "factor_std": comp.factor_std}
         if key == "ties":
             row |= {"sigma_px": res.sigma_px, "estimated_sigma_px": comp.factor * res.sigma_px}
+        elif key in ("imu", "gnss"):
+            row["sigma_scale"] = float(res.prior_sigma_scale[0 if key == "imu" else 1])
         rows.append(row)
     return rows
 
@@ -321,6 +325,14 @@ def estimated_tie_sigma(report: dict) -> tuple[float, float] | None:
     first = first_run(report)
     given, used = first.get("sigma_px_given"), first.get("sigma0_a_priori_px")
     return (float(given), float(used)) if given is not None and used is not None and given != used else None
+
+
+def estimated_prior_sigma(report: dict) -> dict[str, float]:
+    """Of a report (as in report.json), the factors its :func:`first_run` scaled the GNSS/IMU prior sigmas by
+    (``BundleOptions.prior_sigma_estimate``): the group's name in words -> factor, for those it scaled ({} when it
+    kept them, and for reports written before the estimate existed)."""
+    scale = first_run(report).get("prior_sigma_scale") or [1.0, 1.0]
+    return {label: float(f) for label, f in zip(PRIOR_PART_LABELS, scale) if f != 1.0}
 
 
 MISWEIGHTED_FACTOR = 2.0
@@ -887,7 +899,8 @@ def _variance_html(runs: list[dict]) -> list[str]:
     rows = "".join(f"<tr><td>{html.escape(r['name'])}</td><td>{html.escape(v['label'])}</td><td>{v['count']}</td>"
                    f"<td>{format_value(v['redundancy'])}</td><td>{format_value(v['factor'])} &plusmn; "
                    f"{format_value(v['factor_std'])}</td><td>{format_value(v.get('sigma_px'))}</td>"
-                   f"<td>{format_value(v.get('estimated_sigma_px'))}</td></tr>"
+                   f"<td>{format_value(v.get('estimated_sigma_px'))}</td>"
+                   f"<td>{format_value(v.get('sigma_scale'))}</td></tr>"
                    for r in runs for v in r.get("variance_components") or [])
     if not rows:
         return []
@@ -895,7 +908,10 @@ def _variance_html(runs: list[dict]) -> list[str]:
             "residuals show its errors to be (the weighted squares of its residuals over its share of the "
             "redundancy), with the estimate's standard deviation: 1 means weighted as it should be. The tie "
             "measurements' sigma is estimated and the adjustment solved again with it when they differ by more "
-            "than aerotri.tie_sigma_tolerance (sigma_px_given in the runs table is the one configured). A group far "
+            "than aerotri.tie_sigma_tolerance (sigma_px_given in the runs table is the one configured); so are "
+            "the GNSS positions' and IMU attitudes' sigmas, scaled by their factors when these differ from 1 by "
+            "more than aerotri.prior_sigma_tolerance and by more than 3 of their standard deviations (the scale "
+            "applied in all is in the last column; a scaled group's factor is then near 1). A group still far "
             "from 1 is weighted wrongly against the others, and the standard deviations and tests of what it "
             "determines are off by about that factor: scale its sigmas (GNSS and IMU: the images' sigma_position, "
             "sigma_attitude or aerotri.default_sigma_*; control points: the sigmas of their coordinates and of "
@@ -903,7 +919,7 @@ def _variance_html(runs: list[dict]) -> list[str]:
             "numbers are those of the blunder tests (the priors' with the other images held, the control points' "
             "with the images held).</p><table><tr><th>run</th><th>group</th><th>observations</th>"
             "<th>redundancy</th><th>factor</th><th>a priori sigma [px]</th>"
-            f"<th>estimated sigma [px]</th></tr>{rows}</table>"]
+            f"<th>estimated sigma [px]</th><th>sigma scale</th></tr>{rows}</table>"]
 
 
 def _reliability_html(runs: list[dict]) -> list[str]:

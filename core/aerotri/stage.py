@@ -28,6 +28,7 @@ from .hierarchical import CONNECTIONS, ATResult, camera_runs, hierarchical, inte
 from .report import (
     accepted_residuals,
     block_report,
+    estimated_prior_sigma,
     estimated_tie_sigma,
     first_run,
     html_report,
@@ -62,6 +63,10 @@ class AerotriConfig(CheckedOptions):
         variance component) and adjust again with it when it differs from ``sigma_px`` by more than this share
         (:attr:`.bundle.BundleOptions.tie_sigma_estimate`): a wrong one weighs the priors and the control wrongly
         against the ties and makes the standard deviations and tests of what they determine wrong
+    prior_sigma_estimate, prior_sigma_tolerance : scale the GNSS positions' and the IMU attitudes' sigmas by their
+        variance components when these differ from 1 by more than this share (and significantly) and adjust again
+        (:attr:`.bundle.BundleOptions.prior_sigma_estimate`): sigmas given too small pull the orientations towards
+        the navigation errors and make their standard deviations too small
     self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
     datum_shift : estimate a 3D shift between the GNSS frame and the control frame
     rig, rig_sigma_deg, rig_sigma_m : constrain the heads of each exposure to the rig's boresight and lever arms;
@@ -119,6 +124,8 @@ class AerotriConfig(CheckedOptions):
     sigma_px: float = 0.5
     tie_sigma_estimate: bool = True
     tie_sigma_tolerance: float = 0.1
+    prior_sigma_estimate: bool = True
+    prior_sigma_tolerance: float = 0.1
     self_calibration: tuple[str, ...] = ()
     datum_shift: bool = True
     rig: bool = False
@@ -150,6 +157,7 @@ class AerotriConfig(CheckedOptions):
     RULES: ClassVar[dict[str, Rule]] = {
         "mode": MODES, "connection": CONNECTIONS, "cell_size": POSITIVE, "oblique_ties_per_cell": NON_NEGATIVE,
         "oblique_tie_grid": AT_LEAST_ONE, "sigma_px": POSITIVE, "tie_sigma_tolerance": POSITIVE,
+        "prior_sigma_tolerance": POSITIVE,
         "self_calibration": tuple(CALIBRATION_GROUPS),
         "rig_sigma_deg": POSITIVE, "rig_sigma_m": POSITIVE, "mounting_sigma_deg": POSITIVE,
         "mounting_sigma_m": POSITIVE, "blunder_threshold": POSITIVE, "max_rejection_rounds": NON_NEGATIVE,
@@ -174,7 +182,9 @@ class AerotriConfig(CheckedOptions):
                              calibration_max_images=self.calibration_std_max_images, control_tests=self.control_tests,
                              prior_tests=self.prior_tests, gnss_strips=self.gnss_strips,
                              gnss_shift_sigma=self.gnss_shift_sigma, gnss_drift_sigma=self.gnss_drift_sigma,
-                             tie_sigma_estimate=self.tie_sigma_estimate, tie_sigma_tolerance=self.tie_sigma_tolerance)
+                             tie_sigma_estimate=self.tie_sigma_estimate, tie_sigma_tolerance=self.tie_sigma_tolerance,
+                             prior_sigma_estimate=self.prior_sigma_estimate,
+                             prior_sigma_tolerance=self.prior_sigma_tolerance)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
@@ -248,6 +258,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     calib = report["self_calibration"]
     moved = largest_corner_shift(calib)
     estimated = estimated_tie_sigma(report)
+    scaled = estimated_prior_sigma(report)
     first = first_run(report)
     off = misweighted_groups(first)
     return StageResult(
@@ -267,6 +278,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
                 + (f", tie measurements' sigma estimated at {estimated[1]:.3f} px ({estimated[0]:g} px given) and "
                    "adjusted again with it" if estimated is not None else "")
+                + (", the " + " and ".join(f"{k} sigmas scaled by {f:.2f}" for k, f in scaled.items())
+                   + " (their variance components) and adjusted again" if scaled else "")
                 + (", the residuals of the " + " and ".join(f"{k} are {f:.2f} times" for k, f in off.items())
                    + " their a priori sigmas (set realistic ones: see the variance components in report.html)"
                    if off else "")
@@ -301,4 +314,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="20", adjusted_block=False, inputs=(MANUAL_FILE,))
+              version="21", adjusted_block=False, inputs=(MANUAL_FILE,))
