@@ -631,65 +631,61 @@ def camera_error_runs(block, ties, xyz0, opt: BundleOptions, run_hat: Callable[[
     return out
 
 
-def tie_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, factor: float,
-                   run_hat: Callable[[object, BundleOptions], object]) -> dict:
-    """The tie sigma (Table 13): IAT and HAT-CBA given the simulated noise as the tie measurements' a priori sigma,
-    and given ``factor`` times it with and without its estimation (``BundleOptions.tie_sigma_estimate``). Per run
-    the sigma each of its adjustments ended with, the a posteriori sigma (px), the check point RMS and the image
-    centres' errors against the truth in their reported standard deviations (RMS; 1: the precision is told right)."""
-    out = {"factor": factor, "noise_px": opt.sigma_px, "runs": []}
+def _weighting_runs(label: str, cases: Callable[[float, bool], tuple[object, BundleOptions]], factor: float,
+                    true_poses: dict, run_iat: Callable[[object, BundleOptions], object],
+                    run_hat: Callable[[object, BundleOptions], object],
+                    extra: Callable[[object, BundleOptions, float], dict]) -> list[dict]:
+    """IAT and HAT-CBA with a group of observations weighted as simulated, and ``factor`` times off with and without
+    its estimation: ``cases(f, estimate)`` gives a run's block and options, ``extra(at, options, f)`` its table's own
+    fields. Per run its check point RMS, attitude and centre RMS against the truth, the centres' errors in their
+    reported standard deviations (RMS X Y Z; 1: the precision is told right) and wall time."""
+    rows = []
     for method, f, estimate in (("IAT", 1.0, True), ("IAT", factor, True), ("IAT", factor, False),
                                 ("HAT cba", 1.0, True), ("HAT cba", factor, True), ("HAT cba", factor, False)):
-        o = replace(opt, sigma_px=opt.sigma_px * f, tie_sigma_estimate=estimate)
+        block, o = cases(f, estimate)
         t = time.perf_counter()
-        at = integrated(block, ties, o, xyz0=xyz0) if method == "IAT" else run_hat(block, o)
+        at = (run_iat if method == "IAT" else run_hat)(block, o)
         wall = time.perf_counter() - t
         xy, z = rms_xy_z(check_point_errors(block, at.poses)[1])
         ids = list(at.poses)
         err = np.array([at.poses[i].C - true_poses[i].C for i in ids])
         std = np.array([at.image_std[i][3:] for i in ids])
-        row = {"method": method, "given_px": o.sigma_px, "estimate": estimate,
-               "sigma_px": {r.name: r.result.sigma_px for r in at.runs}, "sigma0_px": at.sigma0_px(),
-               "check_xy_m": xy, "check_z_m": z,
-               "centre_error_over_std": np.sqrt(np.mean((err / std) ** 2, 0)).tolist(), "wall_s": wall}
-        print(f"tie sigma: {method} given {o.sigma_px:.3f} px, estimate {estimate}: check XY {xy:.4f} Z {z:.4f} m, "
-              f"{wall:.1f} s")
-        out["runs"].append(row)
-    return out
+        ang = np.array([np.linalg.norm(matrix_to_rotvec(true_poses[i].R.T @ at.poses[i].R)) for i in ids])
+        rows.append({"method": method, "given": f, "estimate": estimate, "check_xy_m": xy, "check_z_m": z,
+                     "angle_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
+                     "centre_rms_m": np.sqrt(np.mean(err**2, 0)).tolist(),
+                     "centre_error_over_std": np.sqrt(np.mean((err / std) ** 2, 0)).tolist(), "wall_s": wall,
+                     **extra(at, o, f)})
+        print(f"{label}: {method} given {f:g} times, estimate {estimate}: check XY {xy:.4f} Z {z:.4f} m, {wall:.1f} s")
+    return rows
+
+
+def tie_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, factor: float,
+                   run_hat: Callable[[object, BundleOptions], object]) -> dict:
+    """The tie sigma (Table 13): IAT and HAT-CBA given the simulated noise as the tie measurements' a priori sigma,
+    and given ``factor`` times it with and without its estimation (``BundleOptions.tie_sigma_estimate``), as in
+    :func:`_weighting_runs`; per run also the sigma each of its adjustments ended with and the a posteriori sigma
+    (px)."""
+    return {"factor": factor, "noise_px": opt.sigma_px, "runs": _weighting_runs(
+        "tie sigma", lambda f, estimate: (block, replace(opt, sigma_px=opt.sigma_px * f, tie_sigma_estimate=estimate)),
+        factor, true_poses, lambda b, o: integrated(b, ties, o, xyz0=xyz0), run_hat,
+        lambda at, o, f: {"given_px": o.sigma_px, "sigma_px": {r.name: r.result.sigma_px for r in at.runs},
+                          "sigma0_px": at.sigma0_px()})}
 
 
 def prior_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, factor: float,
                      run_hat: Callable[[object, BundleOptions], object]) -> dict:
     """The GNSS/IMU sigmas (Table 15): IAT and HAT-CBA with every image's position and attitude sigmas as simulated,
-    and ``factor`` times them with and without their estimation (``BundleOptions.prior_sigma_estimate``). Per run the
-    scales each of its adjustments ended with (attitude, position), the check point RMS, the attitude and centre RMS
-    against the truth and the centres' errors in their reported standard deviations (RMS; 1: told right)."""
+    and ``factor`` times them with and without their estimation (``BundleOptions.prior_sigma_estimate``), as in
+    :func:`_weighting_runs`; per run also the scales each of its adjustments ended with (attitude, position)."""
     given = copy.deepcopy(block)
     for img in given.images.values():
         img.sigma_position = None if img.sigma_position is None else img.sigma_position * factor
         img.sigma_attitude = None if img.sigma_attitude is None else img.sigma_attitude * factor
-    out = {"factor": factor, "runs": []}
-    for method, f, estimate in (("IAT", 1.0, True), ("IAT", factor, True), ("IAT", factor, False),
-                                ("HAT cba", 1.0, True), ("HAT cba", factor, True), ("HAT cba", factor, False)):
-        b = block if f == 1.0 else given
-        o = replace(opt, prior_sigma_estimate=estimate)
-        t = time.perf_counter()
-        at = integrated(b, ties, o, xyz0=xyz0) if method == "IAT" else run_hat(b, o)
-        wall = time.perf_counter() - t
-        xy, z = rms_xy_z(check_point_errors(b, at.poses)[1])
-        ids = list(at.poses)
-        err = np.array([at.poses[i].C - true_poses[i].C for i in ids])
-        std = np.array([at.image_std[i][3:] for i in ids])
-        ang = np.array([np.linalg.norm(matrix_to_rotvec(true_poses[i].R.T @ at.poses[i].R)) for i in ids])
-        row = {"method": method, "given": f, "estimate": estimate,
-               "scale": {r.name: r.result.prior_sigma_scale.tolist() for r in at.runs},
-               "check_xy_m": xy, "check_z_m": z, "angle_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
-               "centre_rms_m": np.sqrt(np.mean(err**2, 0)).tolist(),
-               "centre_error_over_std": np.sqrt(np.mean((err / std) ** 2, 0)).tolist(), "wall_s": wall}
-        print(f"prior sigmas: {method} given {f:g} times, estimate {estimate}: check XY {xy:.4f} Z {z:.4f} m, "
-              f"{wall:.1f} s")
-        out["runs"].append(row)
-    return out
+    return {"factor": factor, "runs": _weighting_runs(
+        "prior sigmas", lambda f, estimate: (block if f == 1.0 else given, replace(opt, prior_sigma_estimate=estimate)),
+        factor, true_poses, lambda b, o: integrated(b, ties, o, xyz0=xyz0), run_hat,
+        lambda at, o, f: {"scale": {r.name: r.result.prior_sigma_scale.tolist() for r in at.runs}})}
 
 
 def precision_runs(block, true_poses: dict, conditional: dict, run: dict[str, Callable[[BundleOptions], object]],
@@ -965,10 +961,15 @@ def print_tie_sigma(ts: dict, gsd: float) -> None:
           "point RMS [GSD], image centre errors against the truth in their reported standard deviations (RMS X Y Z; "
           "1: the precision is told right), wall time")
     for r in ts["runs"]:
-        ended = " ".join(f"{k} {v:.3f}" for k, v in r["sigma_px"].items())
-        print(f"{r['method']:8s} given {r['given_px']:6.3f}  {'estimated' if r['estimate'] else 'fixed    '}  "
-              f"a posteriori {r['sigma0_px']:.3f}  XY {_f(r['check_xy_m'], 1 / gsd)} Z {_f(r['check_z_m'], 1 / gsd)}  "
-              f"error/std {_v(r['centre_error_over_std'], 2)}  {r['wall_s']:6.1f} s  ended with: {ended}")
+        _print_weighting_row(r, gsd, f"given {r['given_px']:6.3f}", f"a posteriori {r['sigma0_px']:.3f}  ", "",
+                             " ".join(f"{k} {v:.3f}" for k, v in r["sigma_px"].items()))
+
+
+def _print_weighting_row(r: dict, gsd: float, given: str, before: str, after: str, ended: str) -> None:
+    """One row of :func:`_weighting_runs` (Tables 13 and 15) with its table's own fields around the common ones."""
+    print(f"{r['method']:8s} {given}  {'estimated' if r['estimate'] else 'kept     '}  {before}"
+          f"XY {_f(r['check_xy_m'], 1 / gsd)} Z {_f(r['check_z_m'], 1 / gsd)}  {after}"
+          f"error/std {_v(r['centre_error_over_std'], 2)}  {r['wall_s']:6.1f} s  ended with: {ended}")
 
 
 def print_prior_sigma(ps: dict, gsd: float) -> None:
@@ -978,11 +979,9 @@ def print_prior_sigma(ps: dict, gsd: float) -> None:
           "the precision is told right), wall time, the scales of the attitude and position sigmas each adjustment "
           "ended with")
     for r in ps["runs"]:
-        ended = " ".join(f"{k} {v[0]:.2f}/{v[1]:.2f}" for k, v in r["scale"].items())
-        print(f"{r['method']:8s} given x{r['given']:<5g} {'estimated' if r['estimate'] else 'kept     '}  "
-              f"XY {_f(r['check_xy_m'], 1 / gsd)} Z {_f(r['check_z_m'], 1 / gsd)}  angle {r['angle_rms_deg']:.4f}  "
-              f"centre {_v(r['centre_rms_m'], 4)}  error/std {_v(r['centre_error_over_std'], 2)}  "
-              f"{r['wall_s']:6.1f} s  ended with: {ended}")
+        _print_weighting_row(r, gsd, f"given x{r['given']:<5g}", "",
+                             f"angle {r['angle_rms_deg']:.4f}  centre {_v(r['centre_rms_m'], 4)}  ",
+                             " ".join(f"{k} {v[0]:.2f}/{v[1]:.2f}" for k, v in r["scale"].items()))
 
 
 def print_precision(pr: dict) -> None:

@@ -238,10 +238,10 @@ class BundleOptions:
         is settled first; held wrong, the priors are not scaled: their residuals follow the ties' weight). The
         components of a misweighted solution are biased towards 1 (a prior weighted too much leaves less of its
         error in its residuals, and its redundancy numbers, with the other images held, come out a little large),
-        so the passes approach the right sigmas from that side. On 500 simulated images whose GNSS/IMU errors were
-        4 times the sigmas they came with, the attitude errors were 0.0111 deg RMS and the centres' errors 2.4-3.7
-        times their standard deviations; with the sigmas given right 0.0062 deg and 1.4-2.2 (see the bench's
-        Table 15)
+        so the passes approach the right sigmas from that side. On 500 simulated images with the sigmas given 4 times
+        too small, IAT scaled them by 3.55 (IMU) and 3.90 (GNSS): attitude errors 0.0040 deg RMS, the centres'
+        errors 1.2-1.9 times their standard deviations, as with the right sigmas (0.0039, 1.1-1.9), against 0.0061
+        and 2.7-3.9 with them kept (the bench's Table 15, ``--prior-sigma 0.25``)
     prior_sigma_scale : (attitude, position) factors applied to every image's prior sigmas
         (``BundleProblem.prior_sigma_att``, ``prior_sigma_pos``): the passes of ``prior_sigma_estimate`` set them,
         and HAT hands the nadir run's to the other runs (one GNSS/IMU system)
