@@ -976,12 +976,13 @@ def print_prior_sigma(ps: dict, gsd: float) -> None:
     print(f"\nTable 15. GNSS/IMU sigmas: given as simulated or {ps['factor']:g} times them, estimated from the "
           "residuals (scaled by their variance components) or not; check point RMS [GSD], attitude RMS [deg] and "
           "centre RMS X Y Z [m] against the truth, centre errors in their reported standard deviations (RMS X Y Z; 1: "
-          "the precision is told right), wall time, the scales of the attitude and position sigmas each adjustment "
-          "ended with")
+          "the precision is told right), wall time, the scales of the attitude (about X/Y/Z) and position (X/Y/Z) "
+          "sigmas each adjustment ended with")
     for r in ps["runs"]:
         _print_weighting_row(r, gsd, f"given x{r['given']:<5g}", "",
                              f"angle {r['angle_rms_deg']:.4f}  centre {_v(r['centre_rms_m'], 4)}  ",
-                             " ".join(f"{k} {v[0]:.2f}/{v[1]:.2f}" for k, v in r["scale"].items()))
+                             " ".join(f"{k} {'/'.join(f'{x:.2f}' for x in v[:3])} {'/'.join(f'{x:.2f}' for x in v[3:])}"
+                                      for k, v in r["scale"].items()))
 
 
 def print_precision(pr: dict) -> None:

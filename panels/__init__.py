@@ -19,6 +19,7 @@ import bpy
 
 from ..addon import cameras, georef, jobs, layers_aerotri, layers_match, layers_windows
 from ..addon.properties import option_fields
+from ..core.aerotri.report import format_scale
 from ..core.errors import CityError
 from ..core.matching.manual import MANUAL_FILE, measurement_state, points_in_image
 from ..core.model.exposures import MISSING_EXPOSURES
@@ -265,7 +266,7 @@ def draw_triangulation(layout, context) -> None:
         given, used = s["tie_sigma"]
         col.label(text=f"Tie sigma estimated: {used:.3f} px ({given:g} px given)")
     for part, f in s["prior_sigma"].items():
-        col.label(text=f"{part} sigmas scaled by {f:.2f} (variance component)")
+        col.label(text=f"{part} sigmas scaled by {format_scale(f)} (variance components)")
     col.label(text=f"Check points ({s['check_n']}): RMS XY {_metres(s['check_rms_xy_m'])}, "
                    f"Z {_metres(s['check_rms_z_m'])}")
     if s["datum"]:

@@ -231,20 +231,25 @@ class BundleOptions:
         out 3.8 times too small. On the demo, self-calibration then moved the exact cameras' focal lengths by -1.9 to
         -2.5 px at t = -3.1 to -3.5, pulled by the random GNSS errors (with the true navigation data: t 0.2-0.3);
         with the tie sigma estimated, -0.2 to -0.75 px at |t| <= 0.5
-    prior_sigma_estimate : the GNSS positions' and the IMU attitudes' a priori sigmas are scaled by their variance
-        components as well (:func:`prior_sigma_factors`): a group whose factor differs from 1 by more than
+    prior_sigma_estimate : the GNSS positions' and the IMU attitudes' a priori sigmas are scaled up by their variance
+        components as well (:func:`prior_sigma_factors`): a group whose factor exceeds 1 by more than
         ``prior_sigma_tolerance`` (relative) and by more than 3 of the estimate's standard deviations is weighted
         anew in the same passes, once the ties' variance factor is within ``tie_sigma_tolerance`` (the ties' sigma
-        is settled first; held wrong, the priors are not scaled: their residuals follow the ties' weight). The
-        components of a misweighted solution are biased towards 1 (a prior weighted too much leaves less of its
-        error in its residuals, and its redundancy numbers, with the other images held, come out a little large),
-        so the passes approach the right sigmas from that side. On 500 simulated images with the sigmas given 4 times
-        too small, IAT scaled them by 3.55 (IMU) and 3.90 (GNSS): attitude errors 0.0040 deg RMS, the centres'
-        errors 1.2-1.9 times their standard deviations, as with the right sigmas (0.0039, 1.1-1.9), against 0.0061
-        and 2.7-3.9 with them kept (the bench's Table 15, ``--prior-sigma 0.25``)
-    prior_sigma_scale : (attitude, position) factors applied to every image's prior sigmas
-        (``BundleProblem.prior_sigma_att``, ``prior_sigma_pos``): the passes of ``prior_sigma_estimate`` set them,
-        and HAT hands the nadir run's to the other runs (one GNSS/IMU system)
+        is settled first; held wrong, the priors are not scaled: their residuals follow the ties' weight). Sigmas
+        given too small make the priors pull the block towards the navigation errors and their standard deviations
+        too small. Given too large, they only waste some of the priors' information, and they are kept: a component
+        below 1 is not a safe estimate to tighten them by (in a solution whose mounting calibration and datum shift
+        take up part of the priors' errors it comes out low; on the rendered demo, whose sigmas are the largest axis's
+        for all three, GNSS 0.67 and IMU 0.76, and its orientations scaled by them came out worse against the truth,
+        0.0037 against 0.0030 deg RMS, per axis 0.0044). The components of a misweighted solution are biased towards
+        1 (a prior weighted too much leaves less of its error in its residuals), so the passes approach the right
+        sigmas from below. On 500 simulated images with the sigmas given 4 times too small, IAT scaled them by 3.55
+        (IMU) and 3.90 (GNSS): attitude errors 0.0040 deg RMS, the centres' errors 1.2-1.9 times their standard
+        deviations, as with the right sigmas (0.0039, 1.1-1.9), against 0.0061 and 2.7-3.9 with them kept (the
+        bench's Table 15, ``--prior-sigma 0.25``)
+    prior_sigma_scale : (6,) factors applied to every image's prior sigmas (``BundleProblem.prior_sigma_att`` about
+        world X Y Z, then ``prior_sigma_pos`` along X Y Z): the passes of ``prior_sigma_estimate`` set them, and HAT
+        hands the nadir run's to the other runs (one GNSS/IMU system)
     """
 
     sigma_px: float = 0.5
@@ -289,7 +294,7 @@ class BundleOptions:
     variance_passes: int = 2
     prior_sigma_estimate: bool = True
     prior_sigma_tolerance: float = 0.1
-    prior_sigma_scale: tuple[float, float] = (1.0, 1.0)
+    prior_sigma_scale: tuple[float, ...] = (1.0,) * 6
 
 
 GNSS_STRIP_MODES = ("off", "shift", "drift")
@@ -457,8 +462,9 @@ class BundleResult:
     sigma_px : the tie measurements' a priori sigma of this solution (pixels): ``sigma_px_given``
         (``BundleOptions.sigma_px``) or, with ``BundleOptions.tie_sigma_estimate``, its estimate
     variance_components : :data:`VARIANCE_GROUPS` -> :class:`VarianceComponent` of this solution
-    prior_sigma_scale : (2,) the factors of the attitude and position prior sigmas of this solution
-        (``BundleOptions.prior_sigma_scale``, or with ``BundleOptions.prior_sigma_estimate`` their estimate)
+    prior_sigma_scale : (6,) the factors of the attitude (about world X Y Z) and position (X Y Z) prior sigmas of
+        this solution (``BundleOptions.prior_sigma_scale``, or with ``BundleOptions.prior_sigma_estimate`` their
+        estimate)
     iterations, rounds, time_s : solver work; timing : seconds spent building the problems (``build_s``),
         in Ceres (``solve_s``, of which ``preprocess_s`` in its preprocessor (ordering, structure; a cost per
         solve whatever the iterations), ``jacobian_s`` evaluating and ``linear_s`` solving) and on residuals,
@@ -512,7 +518,7 @@ class BundleResult:
     sigma_px: float = float("nan")
     sigma_px_given: float = float("nan")
     variance_components: dict[str, VarianceComponent] = field(default_factory=dict)
-    prior_sigma_scale: np.ndarray = field(default_factory=lambda: np.ones(2))
+    prior_sigma_scale: np.ndarray = field(default_factory=lambda: np.ones(6))
 
 
 def _quat_xyzw(r: np.ndarray) -> np.ndarray:
@@ -1382,7 +1388,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     (see :class:`BundleOptions`); the result's ``sigma_px`` is the sigma of its solution."""
     res = _adjust_pass(prob, opt, progress, on_robust)
     given = opt.sigma_px
-    heads = measurement_heads(prob, opt)
+    heads = measurement_heads(prob)
     for _ in range(opt.variance_passes if opt.tie_sigma_estimate or opt.prior_sigma_estimate else 0):
         f_obs = res.variance_components["ties"].factor
         ties_off = bool(np.isfinite(f_obs) and abs(f_obs - 1.0) > opt.tie_sigma_tolerance)
@@ -1392,7 +1398,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         # factor came out 0.70 on the simulated 400-image block of the tests, against 0.95 with the ties given 0.3):
         # scaled to it, the priors would be weighted wrongly against the ties by more
         f_prior = prior_sigma_factors(res.variance_components, opt.prior_sigma_tolerance, heads) \
-            if opt.prior_sigma_estimate and not ties_off else np.ones(2)
+            if opt.prior_sigma_estimate and not ties_off else np.ones(6)
         if ties_off and opt.prior_sigma_estimate and not opt.tie_sigma_estimate:
             res.log.append(f"GNSS/IMU prior sigmas not estimated: the tie measurements' variance factor is {f_obs:.3f} "
                            "and their sigma is held (BundleOptions.tie_sigma_estimate)")
@@ -1408,9 +1414,10 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
             log.append(f"tie measurements: variance factor {f_ties:.3f}, their sigma re-estimated {res.sigma_px:.3f} "
                        f"-> {res.sigma_px * f_ties:.3f} px")
         scale = tuple(float(v) for v in res.prior_sigma_scale * f_prior)
-        for part, f, new in zip(PRIOR_PART_LABELS, f_prior, scale):
-            if f != 1.0:
-                log.append(f"{part} priors: variance factor {f:.3f}, their sigmas scaled by {new:.3f} in all")
+        for k, part in enumerate(PRIOR_PART_LABELS):
+            if f_prior[3 * k] != 1.0:
+                log.append(f"{part} priors: variance factor {f_prior[3 * k]:.3f}, their sigmas scaled by "
+                           f"{scale[3 * k]:.3f} in all")
         log.append("adjusted again from this solution, its blunders screened anew")
         # the solution is the closest start there is: blunders screened there (BundleOptions.screen_start), no robust
         # round (from a converged solution of the rendered demo's oblique runs, with a quarter of their measurements
@@ -1433,30 +1440,29 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
 
 def prior_sigma_factors(components: dict[str, VarianceComponent], tolerance: float, heads: float = 1.0
                         ) -> np.ndarray:
-    """The factors ``(2,)`` by which the attitude (IMU) and position (GNSS) prior sigmas are to be scaled (see
-    ``BundleOptions.prior_sigma_estimate``): a group's variance factor where it differs from 1 by more than
-    ``tolerance`` (relative) and by more than 3 of its standard deviations, else 1. ``heads``: the images that share
-    one GNSS/IMU measurement, each with its prior counted in full (:func:`measurement_heads`): their errors are one,
-    so the estimate's standard deviation is ``sqrt(heads)`` times the component's."""
-    out = np.ones(2)
+    """The factors ``(6,)`` by which the attitude (IMU, about world X Y Z) and position (GNSS, X Y Z) prior sigmas are
+    to be scaled (see ``BundleOptions.prior_sigma_estimate``): a group's variance factor on its three axes where it
+    exceeds 1 by more than ``tolerance`` (relative) and by more than 3 of its standard deviations, else 1.
+    ``heads``: the images that share one GNSS/IMU measurement (:func:`measurement_heads`): their errors are one, so
+    the estimate's standard deviation is ``sqrt(heads)`` times the component's."""
+    out = np.ones(6)
     for k, key in enumerate(("imu", "gnss")):
         comp = components.get(key)
         if comp is None or comp.redundancy <= 0:
             continue
         f = comp.factor
-        if np.isfinite(f) and f > 0 and abs(f - 1.0) > max(tolerance, 3.0 * comp.factor_std * np.sqrt(heads)):
-            out[k] = f
+        if np.isfinite(f) and f - 1.0 > max(tolerance, 3.0 * comp.factor_std * np.sqrt(heads)):
+            out[3 * k:3 * k + 3] = f
     return out
 
 
-def measurement_heads(prob: BundleProblem, opt: BundleOptions) -> float:
-    """The mean number of images of ``prob`` whose priors come from one GNSS/IMU measurement and count in full: the
-    heads per exposure without rig constraints (each head's prior is the exposure's measurement taken again), 1 with
-    them (the heads share it, :func:`shared_prior_fraction`) or without exposures."""
+def measurement_heads(prob: BundleProblem) -> float:
+    """The mean number of images of ``prob`` whose priors come from one GNSS/IMU measurement: the heads per exposure
+    (1 without exposures). The variance components count each head's prior, with or without rig constraints (on the
+    400-image test block the GNSS component's redundancy was 1,180 without and 1,200 with them, for 240 independent
+    errors), so the heads scale the components' standard deviations."""
     exposure = prob.image_exposure[prob.image_exposure >= 0] if len(prob.image_exposure) else prob.image_exposure
-    if not len(exposure) or (opt.rig and len(prob.rig_pairs)):
-        return 1.0
-    return len(exposure) / len(np.unique(exposure))
+    return len(exposure) / len(np.unique(exposure)) if len(exposure) else 1.0
 
 
 def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[int, int, str], None] | None,
@@ -1470,10 +1476,10 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
             raise ComputationError(f"unknown self-calibration group '{g}' (use {', '.join(CALIBRATION_GROUPS)})")
     if opt.gnss_strips not in GNSS_STRIP_MODES:
         raise ComputationError(f"unknown GNSS strip model '{opt.gnss_strips}' (use {', '.join(GNSS_STRIP_MODES)})")
-    scale_att, scale_pos = opt.prior_sigma_scale
-    if (scale_att, scale_pos) != (1.0, 1.0):
-        prob = replace(prob, prior_sigma_att=prob.prior_sigma_att * scale_att,
-                       prior_sigma_pos=prob.prior_sigma_pos * scale_pos)
+    sigma_scale = np.asarray(opt.prior_sigma_scale, np.float64)
+    if np.any(sigma_scale != 1.0):
+        prob = replace(prob, prior_sigma_att=prob.prior_sigma_att * sigma_scale[:3],
+                       prior_sigma_pos=prob.prior_sigma_pos * sigma_scale[3:])
     has_prior = np.all(np.isfinite(prob.prior_c), axis=1)
     ref = np.round(prob.prior_c[has_prior].mean(0) if has_prior.any() else prob.c_world.mean(0), 0)
     r = np.array(prob.r_cam_from_world, dtype=np.float64)
@@ -1771,7 +1777,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
         obs_redundancy=red, obs_mdb=np.where(active, delta_obs * opt.sigma_px * sigma0 / np.sqrt(red), np.nan),
         gcp_redundancy=gcp_red, gcp_mdb=gcp_mdb, gcp_datum_effect=gcp_mdb * gcp_infl,
         prior_mdb=prior_mdb, prior_effect=prior_mdb * prior_share, sigma_px=opt.sigma_px,
-        variance_components=components, prior_sigma_scale=np.array(opt.prior_sigma_scale, np.float64))
+        variance_components=components, prior_sigma_scale=sigma_scale)
 
 
 def _strip_std(prob: BundleProblem, opt: BundleOptions, strips: np.ndarray, in_use: np.ndarray,

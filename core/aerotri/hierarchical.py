@@ -742,8 +742,7 @@ def fuse_heads(block: ImageBlock, ties: TiePoints, run_subs: list[tuple[Run, Sub
             if k is None or iid not in run.poses:
                 continue
             e_run[k] = np.concatenate([res.prior_residual_att[j], res.prior_residual_pos[j]])
-            sig = np.repeat(res.prior_sigma_scale, 3) * np.concatenate([prob.prior_sigma_att[j],
-                                                                        prob.prior_sigma_pos[j]])
+            sig = res.prior_sigma_scale * np.concatenate([prob.prior_sigma_att[j], prob.prior_sigma_pos[j]])
             keep = np.repeat(~res.prior_rejected[j], 3) & np.isfinite(sig) & np.isfinite(e_run[k])
             info[k] = np.where(keep, (res.sigma_px / np.where(keep, sig, 1.0)) ** 2, 0.0)
     use = obs_ok & (index[ties.obs_image] >= 0)

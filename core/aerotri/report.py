@@ -187,7 +187,8 @@ def variance_table(res: BundleResult) -> list[dict]:
     """The run's variance components (``BundleResult.variance_components``) of the groups that took part: group,
     words, observations, redundancy, factor (how many times its a priori sigmas its errors are) with its standard
     deviation; for the tie measurements also the a priori sigma of the solution and the one their residuals give, for
-    the GNSS positions and IMU attitudes the factor their given sigmas were scaled by (``sigma_scale``)."""
+    the GNSS positions and IMU attitudes the factors their given sigmas were scaled by along world X Y Z
+    (``sigma_scale``)."""
     rows = []
     for key, comp in res.variance_components.items():
         if comp.count == 0 or comp.redundancy <= 0:
@@ -197,7 +198,7 @@ def variance_table(res: BundleResult) -> list[dict]:
         if key == "ties":
             row |= {"sigma_px": res.sigma_px, "estimated_sigma_px": comp.factor * res.sigma_px}
         elif key in ("imu", "gnss"):
-            row["sigma_scale"] = float(res.prior_sigma_scale[0 if key == "imu" else 1])
+            row["sigma_scale"] = (res.prior_sigma_scale[:3] if key == "imu" else res.prior_sigma_scale[3:]).tolist()
         rows.append(row)
     return rows
 
@@ -327,12 +328,18 @@ def estimated_tie_sigma(report: dict) -> tuple[float, float] | None:
     return (float(given), float(used)) if given is not None and used is not None and given != used else None
 
 
-def estimated_prior_sigma(report: dict) -> dict[str, float]:
+def estimated_prior_sigma(report: dict) -> dict[str, list[float]]:
     """Of a report (as in report.json), the factors its :func:`first_run` scaled the GNSS/IMU prior sigmas by
-    (``BundleOptions.prior_sigma_estimate``): the group's name in words -> factor, for those it scaled ({} when it
-    kept them, and for reports written before the estimate existed)."""
-    scale = first_run(report).get("prior_sigma_scale") or [1.0, 1.0]
-    return {label: float(f) for label, f in zip(PRIOR_PART_LABELS, scale) if f != 1.0}
+    (``BundleOptions.prior_sigma_estimate``): the group's name in words -> its factors along world X Y Z, for the
+    groups it scaled ({} when it kept them, and for reports written before the estimate existed)."""
+    scale = [float(f) for f in first_run(report).get("prior_sigma_scale") or [1.0] * 6]
+    return {label: scale[3 * k:3 * k + 3] for k, label in enumerate(PRIOR_PART_LABELS)
+            if any(f != 1.0 for f in scale[3 * k:3 * k + 3])}
+
+
+def format_scale(factors: list[float]) -> str:
+    """A group's sigma scales along X Y Z (:func:`estimated_prior_sigma`) in words: one number when they are equal."""
+    return f"{factors[0]:.2f}" if len(set(factors)) == 1 else "/".join(f"{f:.2f}" for f in factors) + " (X/Y/Z)"
 
 
 MISWEIGHTED_FACTOR = 2.0
@@ -900,7 +907,8 @@ def _variance_html(runs: list[dict]) -> list[str]:
                    f"<td>{format_value(v['redundancy'])}</td><td>{format_value(v['factor'])} &plusmn; "
                    f"{format_value(v['factor_std'])}</td><td>{format_value(v.get('sigma_px'))}</td>"
                    f"<td>{format_value(v.get('estimated_sigma_px'))}</td>"
-                   f"<td>{format_value(v.get('sigma_scale'))}</td></tr>"
+                   f"<td>{' / '.join(format_value(f) for f in v['sigma_scale']) if 'sigma_scale' in v else ''}</td>"
+                   "</tr>"
                    for r in runs for v in r.get("variance_components") or [])
     if not rows:
         return []
@@ -909,9 +917,10 @@ def _variance_html(runs: list[dict]) -> list[str]:
             "redundancy), with the estimate's standard deviation: 1 means weighted as it should be. The tie "
             "measurements' sigma is estimated and the adjustment solved again with it when they differ by more "
             "than aerotri.tie_sigma_tolerance (sigma_px_given in the runs table is the one configured); so are "
-            "the GNSS positions' and IMU attitudes' sigmas, scaled by their factors when these differ from 1 by "
-            "more than aerotri.prior_sigma_tolerance and by more than 3 of their standard deviations (the scale "
-            "applied in all is in the last column; a scaled group's factor is then near 1). A group still far "
+            "the GNSS positions' and IMU attitudes' sigmas, scaled per world axis by the axis's factor when it "
+            "differs from 1 by more than aerotri.prior_sigma_tolerance and by more than 3 of its standard deviations "
+            "(the scales applied in all, X / Y / Z, are in the last column; a scaled group's factor is then near 1). "
+            "A group still far "
             "from 1 is weighted wrongly against the others, and the standard deviations and tests of what it "
             "determines are off by about that factor: scale its sigmas (GNSS and IMU: the images' sigma_position, "
             "sigma_attitude or aerotri.default_sigma_*; control points: the sigmas of their coordinates and of "
@@ -919,7 +928,7 @@ def _variance_html(runs: list[dict]) -> list[str]:
             "numbers are those of the blunder tests (the priors' with the other images held, the control points' "
             "with the images held).</p><table><tr><th>run</th><th>group</th><th>observations</th>"
             "<th>redundancy</th><th>factor</th><th>a priori sigma [px]</th>"
-            f"<th>estimated sigma [px]</th><th>sigma scale</th></tr>{rows}</table>"]
+            f"<th>estimated sigma [px]</th><th>sigma scale X / Y / Z</th></tr>{rows}</table>"]
 
 
 def _reliability_html(runs: list[dict]) -> list[str]:

@@ -31,6 +31,7 @@ from .report import (
     estimated_prior_sigma,
     estimated_tie_sigma,
     first_run,
+    format_scale,
     html_report,
     largest_corner_shift,
     largest_systematic,
@@ -278,8 +279,8 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
                 + (f", tie measurements' sigma estimated at {estimated[1]:.3f} px ({estimated[0]:g} px given) and "
                    "adjusted again with it" if estimated is not None else "")
-                + (", the " + " and ".join(f"{k} sigmas scaled by {f:.2f}" for k, f in scaled.items())
-                   + " (their variance components) and adjusted again" if scaled else "")
+                + (", the " + " and ".join(f"{k} sigmas scaled by {format_scale(f)}" for k, f in scaled.items())
+                   + " by their variance components and adjusted again" if scaled else "")
                 + (", the residuals of the " + " and ".join(f"{k} are {f:.2f} times" for k, f in off.items())
                    + " their a priori sigmas (set realistic ones: see the variance components in report.html)"
                    if off else "")

@@ -83,9 +83,9 @@ def test_hat_scales_the_prior_sigmas_in_the_nadir_run_and_hands_them_on(sim, xyz
 
     hat = hierarchical(block, sim.ties, options, xyz0=xyz0)
     nadir = hat.runs[0].result.prior_sigma_scale
-    assert np.all(nadir > 2.0) and 3.5 < nadir[1] < 5.0
+    assert np.all(nadir > 2.0) and np.all((3.5 < nadir[3:]) & (nadir[3:] < 5.0))
     for run in hat.runs[1:]:
-        assert np.all(run.result.prior_sigma_scale >= nadir) and run.result.prior_sigma_scale[1] == nadir[1]
+        assert np.all(run.result.prior_sigma_scale >= nadir)
     kept = hierarchical(block, sim.ties, replace(options, prior_sigma_estimate=False), xyz0=xyz0)
     e_hat, e_kept = error_over_std(hat), error_over_std(kept)
     assert np.all(e_hat < 1.9) and np.all(e_kept > 2.5)
