@@ -119,10 +119,10 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                               "again with it when it differs from the given one"},
         "tie_sigma_tolerance": {"description": "Relative difference between the estimated and the given tie sigma "
                                                "that makes the adjustment run again"},
-        "prior_sigma_estimate": {"description": "Scale the GNSS and IMU sigmas by their variance components and "
-                                                "adjust again when they are far from 1"},
-        "prior_sigma_tolerance": {"description": "Relative difference of a GNSS or IMU variance factor from 1 that "
-                                                 "makes the adjustment run again"},
+        "prior_sigma_estimate": {"description": "Scale the GNSS and IMU sigmas up by their variance components and "
+                                                "adjust again when the errors exceed them"},
+        "prior_sigma_tolerance": {"description": "Share by which a GNSS or IMU variance factor must exceed 1 to make "
+                                                 "the adjustment run again"},
         "calibration_images": {"description": "HAT with self-calibration: images nearest the block's centre (all "
                                               "views) that calibrate the cameras before the runs (0: each run)"},
         "calibration_std_max_images": {"description": "With self- or mounting calibration, runs of up to this many "

@@ -53,8 +53,8 @@ def add_commands(sub) -> None:
     s.add_argument("--prior-tests", dest="prior_tests", action=argparse.BooleanOptionalAction,
                    help="test each image's GNSS position and IMU attitude prior for blunders (on by default)")
     s.add_argument("--prior-sigma-estimate", dest="prior_sigma_estimate", action=argparse.BooleanOptionalAction,
-                   help="scale the GNSS and IMU sigmas by their variance components and adjust again when they are "
-                        "far from 1 (on by default)")
+                   help="scale the GNSS and IMU sigmas up by their variance components and adjust again when the "
+                        "errors exceed them (on by default)")
     s.add_argument("--gnss-strips", dest="gnss_strips", choices=GNSS_STRIP_MODES,
                    help="estimate a GNSS offset (shift) or an offset and a drift (drift) per flight strip")
     s.add_argument("--executor", choices=("inline", "processes", "dask"), default="inline")

@@ -64,8 +64,8 @@ class AerotriConfig(CheckedOptions):
         variance component) and adjust again with it when it differs from ``sigma_px`` by more than this share
         (:attr:`.bundle.BundleOptions.tie_sigma_estimate`): a wrong one weighs the priors and the control wrongly
         against the ties and makes the standard deviations and tests of what they determine wrong
-    prior_sigma_estimate, prior_sigma_tolerance : scale the GNSS positions' and the IMU attitudes' sigmas by their
-        variance components when these differ from 1 by more than this share (and significantly) and adjust again
+    prior_sigma_estimate, prior_sigma_tolerance : scale the GNSS positions' and the IMU attitudes' sigmas up by their
+        variance components when these exceed 1 by more than this share (and significantly) and adjust again
         (:attr:`.bundle.BundleOptions.prior_sigma_estimate`): sigmas given too small pull the orientations towards
         the navigation errors and make their standard deviations too small
     self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
@@ -315,4 +315,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="21", adjusted_block=False, inputs=(MANUAL_FILE,))
+              version="22", adjusted_block=False, inputs=(MANUAL_FILE,))
