@@ -52,7 +52,7 @@ from oblique_city.core.aerotri.hierarchical import (  # noqa: E402
     nadir_propagation,
 )
 from oblique_city.core.aerotri.problem import build_problem  # noqa: E402
-from oblique_city.core.aerotri.report import block_datum, mounting, self_calibration  # noqa: E402
+from oblique_city.core.aerotri.report import block_datum, format_scale, mounting, self_calibration  # noqa: E402
 from oblique_city.core.aerotri.stage import calibrated_cameras  # noqa: E402
 from oblique_city.core.aerotri.strips import flight_strips  # noqa: E402
 from oblique_city.core.evaluate.aerotri import (  # noqa: E402
@@ -976,12 +976,12 @@ def print_prior_sigma(ps: dict, gsd: float) -> None:
     print(f"\nTable 15. GNSS/IMU sigmas: given as simulated or {ps['factor']:g} times them, estimated from the "
           "residuals (scaled by their variance components) or not; check point RMS [GSD], attitude RMS [deg] and "
           "centre RMS X Y Z [m] against the truth, centre errors in their reported standard deviations (RMS X Y Z; 1: "
-          "the precision is told right), wall time, the scales of the attitude (about X/Y/Z) and position (X/Y/Z) "
-          "sigmas each adjustment ended with")
+          "the precision is told right), wall time, the scales of the attitude and position sigmas each adjustment "
+          "ended with")
     for r in ps["runs"]:
         _print_weighting_row(r, gsd, f"given x{r['given']:<5g}", "",
                              f"angle {r['angle_rms_deg']:.4f}  centre {_v(r['centre_rms_m'], 4)}  ",
-                             " ".join(f"{k} {'/'.join(f'{x:.2f}' for x in v[:3])} {'/'.join(f'{x:.2f}' for x in v[3:])}"
+                             " ".join(f"{k} {format_scale(v[:3])}/{format_scale(v[3:])}"
                                       for k, v in r["scale"].items()))
 
 
