@@ -5,7 +5,8 @@ Every Building carries the attributes of :func:`..buildings.attributes.building_
 heights, areas, volume, roof type) beside ``measuredHeight``.
 
 Vertices are quantised integers with ``transform`` (scale 1 mm, translate = the minimum corner), each listed once
-(the LoD 1.2 block shares the LoD2 model's ground corners). The official validator, cjval (a Rust program, ``cargo
+(the LoD 1.2 block shares the LoD2 model's ground corners); a surface the quantisation leaves with fewer than three
+distinct vertices is left out. The official validator, cjval (a Rust program, ``cargo
 install cjval --features build-binary``), accepts what we write; the test suite does not build it, so
 :func:`check_cityjson` checks the structure the specification prescribes for what we write: top-level members,
 object types, geometry types and LoDs, the nesting depth of ``boundaries``, vertex indices in range, closed rings of
@@ -87,7 +88,9 @@ def cityjson_document(buildings, crs: str, scale: float = 0.001, textures=None,
                   "semantics": {"surfaces": [{"type": SEMANTIC_TYPES[k]} for k in kinds],
                                 "values": [[kinds.index(k) for k in blk_kinds]]}}]
         for in_solid in (True, False):
-            surfaces = [s for s in b.surfaces if s.in_solid == in_solid]
+            # a surface whose ring quantisation leaves fewer than three distinct vertices (a sliver under the 1 mm
+            # scale) is no polygon: left out
+            surfaces = [s for s in b.surfaces if s.in_solid == in_solid and len({idx[i] for i in s.ring}) >= 3]
             if not surfaces:
                 continue
             kinds = sorted({s.kind for s in surfaces}, key=list(SEMANTIC_TYPES).index)

@@ -113,6 +113,27 @@ def test_cityjson_structure(models, tmp_path):
     assert any("out of range" in e for e in check_cityjson(doc))
 
 
+def test_cityjson_leaves_out_a_surface_the_quantisation_collapses(models):
+    """An overhang fascia 0.2 mm wide (as the rendered demo's buildings stage once made one, on an eave segment whose
+    two ends nearly met) has two distinct vertices at the 1 mm scale: it is left out, its semantics and texture
+    values with it, and the document stays well formed."""
+    from dataclasses import replace
+
+    from oblique_city.core.buildings.model import Surface
+
+    b = models[0]
+    corner = b.vertices[b.surfaces[0].ring[0]]
+    sliver = np.array([corner, corner + [0.0, 0.0002, 0.0001], corner + [0.0, 0.0002, -0.2], corner + [0, 0, -0.2]])
+    n = len(b.vertices)
+    bad = replace(b, vertices=np.vstack([b.vertices, sliver]),
+                  surfaces=[*b.surfaces, Surface("sliver", "overhang_fascia", tuple(range(n, n + 4)), in_solid=False)])
+    doc = cityjson_document([bad], "EPSG:25832")
+    assert check_cityjson(json.loads(json.dumps(doc))) == []
+    loose = [g for g in doc["CityObjects"][b.id]["geometry"] if g["type"] == "MultiSurface"][0]
+    kept = [s for s in b.surfaces if not s.in_solid]
+    assert len(loose["boundaries"]) == len(loose["semantics"]["values"]) == len(kept)
+
+
 def test_export_command(models, tmp_path):
     from oblique_city.core.cli import main
     from oblique_city.core.pipeline import Workspace
