@@ -231,8 +231,8 @@ def report_summary(path: Path) -> dict:
     when the adjustment estimated one other than the given (``tie_sigma``: ``(given px, estimated px)`` of its first
     run, None otherwise and in reports written before it existed), the factors it scaled the GNSS/IMU prior sigmas by
     (``prior_sigma``: words -> factors along X Y Z, {} when it kept them), and the block's datum shift (``datum``:
-    ``(shift
-    (3,) m, its standard deviations (3,) m or None)``, None without one and in reports written before it existed).
+    ``(shift (3,) m, its standard deviations (3,) m or None)``, None without one and in reports written before it
+    existed).
     Raises :class:`InputError` naming the file."""
     doc = read_json(path, "no triangulation report (run the 'aerotri' stage)")
     try:

@@ -632,11 +632,10 @@ def camera_error_runs(block, ties, xyz0, opt: BundleOptions, run_hat: Callable[[
 
 
 def _weighting_runs(label: str, cases: Callable[[float, bool], tuple[object, BundleOptions]], factor: float,
-                    true_poses: dict, run_iat: Callable[[object, BundleOptions], object],
-                    run_hat: Callable[[object, BundleOptions], object],
-                    extra: Callable[[object, BundleOptions, float], dict]) -> list[dict]:
+                    ties, xyz0, true_poses: dict, run_hat: Callable[[object, BundleOptions], object],
+                    extra: Callable[[object, BundleOptions], dict]) -> list[dict]:
     """IAT and HAT-CBA with a group of observations weighted as simulated, and ``factor`` times off with and without
-    its estimation: ``cases(f, estimate)`` gives a run's block and options, ``extra(at, options, f)`` its table's own
+    its estimation: ``cases(f, estimate)`` gives a run's block and options, ``extra(at, options)`` its table's own
     fields. Per run its check point RMS, attitude and centre RMS against the truth, the centres' errors in their
     reported standard deviations (RMS X Y Z; 1: the precision is told right) and wall time."""
     rows = []
@@ -644,7 +643,7 @@ def _weighting_runs(label: str, cases: Callable[[float, bool], tuple[object, Bun
                                 ("HAT cba", 1.0, True), ("HAT cba", factor, True), ("HAT cba", factor, False)):
         block, o = cases(f, estimate)
         t = time.perf_counter()
-        at = (run_iat if method == "IAT" else run_hat)(block, o)
+        at = integrated(block, ties, o, xyz0=xyz0) if method == "IAT" else run_hat(block, o)
         wall = time.perf_counter() - t
         xy, z = rms_xy_z(check_point_errors(block, at.poses)[1])
         ids = list(at.poses)
@@ -655,7 +654,7 @@ def _weighting_runs(label: str, cases: Callable[[float, bool], tuple[object, Bun
                      "angle_rms_deg": float(np.degrees(np.sqrt(np.mean(ang**2)))),
                      "centre_rms_m": np.sqrt(np.mean(err**2, 0)).tolist(),
                      "centre_error_over_std": np.sqrt(np.mean((err / std) ** 2, 0)).tolist(), "wall_s": wall,
-                     **extra(at, o, f)})
+                     **extra(at, o)})
         print(f"{label}: {method} given {f:g} times, estimate {estimate}: check XY {xy:.4f} Z {z:.4f} m, {wall:.1f} s")
     return rows
 
@@ -668,9 +667,9 @@ def tie_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, fact
     (px)."""
     return {"factor": factor, "noise_px": opt.sigma_px, "runs": _weighting_runs(
         "tie sigma", lambda f, estimate: (block, replace(opt, sigma_px=opt.sigma_px * f, tie_sigma_estimate=estimate)),
-        factor, true_poses, lambda b, o: integrated(b, ties, o, xyz0=xyz0), run_hat,
-        lambda at, o, f: {"given_px": o.sigma_px, "sigma_px": {r.name: r.result.sigma_px for r in at.runs},
-                          "sigma0_px": at.sigma0_px()})}
+        factor, ties, xyz0, true_poses, run_hat,
+        lambda at, o: {"given_px": o.sigma_px, "sigma_px": {r.name: r.result.sigma_px for r in at.runs},
+                       "sigma0_px": at.sigma0_px()})}
 
 
 def prior_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, factor: float,
@@ -684,8 +683,8 @@ def prior_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, fa
         img.sigma_attitude = None if img.sigma_attitude is None else img.sigma_attitude * factor
     return {"factor": factor, "runs": _weighting_runs(
         "prior sigmas", lambda f, estimate: (block if f == 1.0 else given, replace(opt, prior_sigma_estimate=estimate)),
-        factor, true_poses, lambda b, o: integrated(b, ties, o, xyz0=xyz0), run_hat,
-        lambda at, o, f: {"scale": {r.name: r.result.prior_sigma_scale.tolist() for r in at.runs}})}
+        factor, ties, xyz0, true_poses, run_hat,
+        lambda at, o: {"scale": {r.name: r.result.prior_sigma_scale.tolist() for r in at.runs}})}
 
 
 def precision_runs(block, true_poses: dict, conditional: dict, run: dict[str, Callable[[BundleOptions], object]],

@@ -6,8 +6,8 @@ heights, areas, volume, roof type) beside ``measuredHeight``.
 
 Vertices are quantised integers with ``transform`` (scale 1 mm, translate = the minimum corner), each listed once
 (the LoD 1.2 block shares the LoD2 model's ground corners); a surface the quantisation leaves with fewer than three
-distinct vertices is left out. The official validator, cjval (a Rust program, ``cargo
-install cjval --features build-binary``), accepts what we write; the test suite does not build it, so
+distinct vertices is left out. The official validator, cjval (a Rust program, ``cargo install cjval --features
+build-binary``), accepts what we write; the test suite does not build it, so
 :func:`check_cityjson` checks the structure the specification prescribes for what we write: top-level members,
 object types, geometry types and LoDs, the nesting depth of ``boundaries``, vertex indices in range, closed rings of
 at least three distinct vertices, and ``semantics.values`` mirroring the boundaries; with textures,
