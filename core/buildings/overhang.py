@@ -20,6 +20,9 @@ from scipy import ndimage
 from ..model.raster import Raster
 from .geometry import plane_line
 
+MIN_EDGE = 1e-3
+"""Metres: eave points closer than this are one point (CityJSON stores vertices to the millimetre)."""
+
 
 @dataclass(frozen=True)
 class OverhangConfig:
@@ -169,6 +172,12 @@ def _offset_corners(polygon: np.ndarray, widths: np.ndarray) -> np.ndarray:
     return out
 
 
+def _ring(*idx: int) -> list[int]:
+    """A ring's vertex indices without a repeat of the one before (a quadrilateral whose two corners are one vertex
+    -> its triangle)."""
+    return [v for k, v in enumerate(idx) if v != idx[k - 1]]
+
+
 def _orient(V: list[np.ndarray], ring: list[int], want: np.ndarray) -> list[int]:
     """The ring, reversed if its normal points away from ``want``."""
     P = np.asarray([V[i] for i in ring])
@@ -255,11 +264,18 @@ def overhang_surfaces(vertices: np.ndarray, faces: list[tuple[str, list[int]]], 
                     qs.append(q)
                 pa, pb = vertices[a], vertices[b]
                 qa, qb = qs
+                # the eave points of a short wall segment between converging edges can meet: its fascia would have
+                # no width (a 0.2 mm one on the rendered demo, which CityJSON's 1 mm vertices cannot hold), and the
+                # overhang over it is a triangle
+                meet = np.linalg.norm(qa - qb) < MIN_EDGE
+                if meet and np.linalg.norm(pa - pb) < MIN_EDGE:
+                    continue
                 down = np.array([0.0, 0.0, thickness])
-                ia, ib, iqa, iqb = a, b, add(qa), add(qb)
-                ua, ub, uqa, uqb = add(pa - down), add(pb - down), add(qa - down), add(qb - down)
-                n3 = np.append(nrm, 0.0)
-                new.append(("overhang_roof", _orient(V, [ia, ib, iqb, iqa], np.array([0.0, 0.0, 1.0]))))
-                new.append(("overhang_fascia", _orient(V, [iqa, iqb, uqb, uqa], n3)))
-                new.append(("overhang_underside", _orient(V, [ua, ub, uqb, uqa], np.array([0.0, 0.0, -1.0]))))
+                ia, ib, iqa = a, b, add(qa)
+                ua, ub, uqa = add(pa - down), add(pb - down), add(qa - down)
+                iqb, uqb = (iqa, uqa) if meet else (add(qb), add(qb - down))
+                new.append(("overhang_roof", _orient(V, _ring(ia, ib, iqb, iqa), np.array([0.0, 0.0, 1.0]))))
+                if not meet:
+                    new.append(("overhang_fascia", _orient(V, [iqa, iqb, uqb, uqa], np.append(nrm, 0.0))))
+                new.append(("overhang_underside", _orient(V, _ring(ua, ub, uqb, uqa), np.array([0.0, 0.0, -1.0]))))
     return np.asarray(V), new

@@ -720,3 +720,27 @@ def test_piece_across_a_step_between_parallel_walls_is_dropped_and_the_step_stay
     d = np.linalg.norm(truth[:, None] - poly[None], axis=2)
     assert len(poly) == 6
     assert d.min(1).max() < 0.4  # the step's corners at x = 10, square (the piece made them 1 m apart)
+
+
+@pytest.mark.parametrize("eave_mm, fascia", [(0.2, False), (5.0, True)])
+def test_overhang_over_a_short_edge_whose_eave_points_meet_has_no_fascia(eave_mm, fascia):
+    # a flat-roofed L, its inner corner cut by a short edge at 45 degrees: offset 0.2 m outward, the cut's eave
+    # line is 2 * 0.2 * tan(22.5 deg) shorter than the cut, here 0.2 mm (the rendered demo's B0013 had such a
+    # fascia, which CityJSON's 1 mm vertices cannot hold) or 5 mm long
+    w = 0.2
+    c = (2 * w * np.tan(np.radians(22.5)) + eave_mm / 1000) / np.sqrt(2.0)
+    polygon = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 4.0], [5.0 + c, 4.0], [5.0, 4.0 + c], [5.0, 8.0], [0.0, 8.0]])
+    n = len(polygon)
+    V = np.vstack([np.column_stack([polygon, np.zeros(n)]), np.column_stack([polygon, np.full(n, 3.0)])])
+    faces = [("wall", [i, (i + 1) % n, (i + 1) % n + n, i + n]) for i in range(n)] + [("roof", list(range(n, 2 * n)))]
+    verts, new = overhang_surfaces(V, faces, polygon, np.full(n, w), {3: [3]}, {n: np.array([0.0, 0.0, 1.0, -3.0])},
+                                   0.2)
+    kinds = dict(new)
+    assert ("overhang_fascia" in kinds) == fascia
+    assert len(kinds["overhang_roof"]) == (4 if fascia else 3)  # else a triangle
+    for _, ring in new:
+        P = verts[ring]
+        assert np.linalg.norm(P - np.roll(P, 1, axis=0), axis=1).min() > 1e-3
+    # the overhang reaches the eave 0.2 m out from the cut's middle
+    eave = verts[[v for v in kinds["overhang_roof"] if v >= len(V)]]
+    assert np.abs(np.linalg.norm(eave[:, :2] - [5.0 + c / 2, 4.0 + c / 2], axis=1) - w).max() < 3e-3
