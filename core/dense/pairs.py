@@ -39,6 +39,7 @@ class PairTask:
     coarse_above : a prior disparity interval wider than this (pixels) is first narrowed on a reduced pair
     max_size_factor : rectified images are clipped to this multiple of the original size
     threads : OpenCV threads of the worker (0 = OpenCV's default; 1 when pairs run in parallel processes)
+    bits_master, bits_slave : the cameras' significant bits (:func:`..io.photos.camera_bits`)
     polar_below_deg : pairs whose baseline is closer than this to the mean viewing direction (the along-track
         pairs of forward and backward oblique heads) are rectified in log-polar form (:mod:`.polar`), which keeps
         their facades; others planar (:mod:`.rectify`); 0 rectifies every pair planar
@@ -61,6 +62,8 @@ class PairTask:
     max_size_factor: float = 1.5
     threads: int = 0
     polar_below_deg: float = 60.0
+    bits_master: int | None = None
+    bits_slave: int | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,7 +127,8 @@ def match_pair(task: PairTask) -> PairDepth:
     if task.threads > 0:
         cv2.setNumThreads(task.threads)
     t0 = time.perf_counter()
-    img_m, img_s = read_photo(task.path_master, True), read_photo(task.path_slave, True)
+    img_m = read_photo(task.path_master, True, task.master, task.bits_master)
+    img_s = read_photo(task.path_slave, True, task.slave, task.bits_slave)
     for img, cam, path in ((img_m, task.cam_master, task.path_master), (img_s, task.cam_slave, task.path_slave)):
         if img.shape[1] != cam.width or img.shape[0] != cam.height:
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]}, camera says {cam.width}x{cam.height}",

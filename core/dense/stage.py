@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import ComputationError, ConfigError
 from ..geometry.views import VIEWS
-from ..io.photos import read_photo
+from ..io.photos import camera_bits, read_photo
 from ..io.pointcloud import PointCloud, display_subset, write_las, write_ply
 from ..io.validate import resolve_image
 from ..model.block import ImageBlock
@@ -159,7 +159,8 @@ def height_prior(ws, block: ImageBlock, cfg: DenseConfig) -> tuple[float, float,
 class FuseTask:
     """One master's fusion (:func:`fuse_master`): its camera, orientation, image file and grid step, its view and
     index (stored with its points), the depth maps ``(k, h, w)`` and ``f B`` ``(k,)`` of its ``k`` pairs, the
-    slaves' orientations, optionally the approximate orientations of master and slaves (their quality map)."""
+    slaves' orientations, optionally the approximate orientations of master and slaves (their quality map), its
+    camera's significant bits (:func:`..io.photos.camera_bits`)."""
 
     camera: CameraModel
     pose: Pose
@@ -172,6 +173,7 @@ class FuseTask:
     slave_poses: tuple[Pose, ...]
     approx: tuple[Pose, tuple[Pose, ...]] | None
     fusion: FusionConfig
+    min_bits: int | None = None
 
 
 def fuse_master(task: FuseTask) -> dict[str, np.ndarray]:
@@ -183,7 +185,8 @@ def fuse_master(task: FuseTask) -> dict[str, np.ndarray]:
     fused = erode_far_edges(fused, task.step, fcfg)
     valid_before = np.isfinite(fused)
     depth = smooth_depth(fused, fcfg)
-    pts = master_points(task.camera, task.pose, depth, task.step, read_photo(task.image_path, True), fcfg)
+    photo = read_photo(task.image_path, True, None, task.min_bits)
+    pts = master_points(task.camera, task.pose, depth, task.step, photo, fcfg)
     slave_depths = [np.where(a, d, np.nan)[valid_before] for d, a in zip(task.depths, agree)]
     evaluations = [(task.pose, list(task.slave_poses))]
     if task.approx is not None:
@@ -212,6 +215,7 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
     executor = ctx.get_executor()
     threads = 1 if getattr(executor, "mode", "inline") != "inline" else 0  # one OpenCV thread per process
     tasks = []
+    bits = camera_bits(block)
     for sel in selection:
         m = block.images[sel.master]
         for sid in sel.slaves:
@@ -219,7 +223,8 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
             tasks.append(PairTask(m.id, s.id, block.camera_of(m), m.pose, block.camera_of(s), s.pose,
                                   str(resolve_image(block, m.file)), str(resolve_image(block, s.file)),
                                   z_min, z_max, master_step(cfg, sel.view), cfg.scale, sgm, threads=threads,
-                                  polar_below_deg=cfg.polar_below_deg))
+                                  polar_below_deg=cfg.polar_below_deg, bits_master=bits.get(m.camera_id),
+                                  bits_slave=bits.get(s.camera_id)))
     total = len(tasks) + len(selection)
     results = executor.map(match_pair, tasks,
                                      on_done=lambda d, t: ctx.progress(d, total, f"matched {d}/{t} pairs"))
@@ -242,7 +247,7 @@ def run(ws, cfg: DenseConfig, ctx) -> StageResult:
             block.camera_of(img), img.pose, str(resolve_image(block, img.file)), master_step(cfg, sel.view),
             VIEWS.index(sel.view), mi, np.stack([r.depth for r in res]), np.array([r.focal_baseline for r in res]),
             tuple(s.pose for s in slaves),
-            (img.pose_approx, tuple(s.pose_approx for s in slaves)) if approx else None, fcfg))
+            (img.pose_approx, tuple(s.pose_approx for s in slaves)) if approx else None, fcfg, bits.get(img.camera_id)))
     done_pairs = len(tasks)
     fused = executor.map(fuse_master, fuse_tasks, on_done=lambda d, t: ctx.progress(
         done_pairs + d, total, f"fused {d}/{t} masters"))
@@ -290,4 +295,4 @@ def _write(ws, block, cfg, selection, results, masters, arr, removed, adjusted) 
 
 STAGE = Stage(name="dense", run=run, config=DenseConfig, requires=("block",),
               description="dense matching: image selection, SGM, multi-slave fusion, filtered point cloud",
-              version="6")
+              version="7")

@@ -21,7 +21,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import InputError, WorkspaceError
-from ..io.photos import read_photo
+from ..io.photos import camera_bits, read_photo
 from ..io.validate import resolve_image
 from ..model import CameraModel, ImageBlock, Pose
 from ..pipeline.atomic import atomic_path, write_json
@@ -144,21 +144,31 @@ def _image_path(block, iid: str) -> str:
 
 def read_block_grey(block, iid: str) -> np.ndarray:
     """Image ``iid`` of ``block`` as grey values ``(h, w)`` from its file; :class:`InputError` naming it otherwise."""
-    return read_photo(_image_path(block, iid), False, iid)
+    cam = block.images[iid].camera_id
+    return read_photo(_image_path(block, iid), False, iid, camera_bits(block, {cam}).get(cam))
 
 
-def _read_image_of(paths: dict[str, str], iid: str) -> np.ndarray:
-    """The grey image ``iid`` from its file in ``paths`` (picklable with :func:`functools.partial`: LSM units)."""
-    return read_photo(paths[iid], False, iid)
+def _photos(block, ids) -> dict[str, tuple[str, int | None]]:
+    """Image id -> its file and its camera's significant bits (:func:`.io.photos.camera_bits`), for ``ids``."""
+    bits = camera_bits(block, {block.images[i].camera_id for i in ids})
+    return {iid: (_image_path(block, iid), bits.get(block.images[iid].camera_id)) for iid in ids}
 
 
-def _cached(path: Path, iid: str, max_features: int) -> bool:
-    """Whether ``path`` holds this image's features at this feature count and version."""
+def _read_image_of(photos: dict[str, tuple[str, int | None]], iid: str) -> np.ndarray:
+    """The grey image ``iid`` from its file in ``photos`` (:func:`_photos`; picklable with
+    :func:`functools.partial`: LSM units)."""
+    path, bits = photos[iid]
+    return read_photo(path, False, iid, bits)
+
+
+def _cached(path: Path, iid: str, max_features: int, min_bits: int | None) -> bool:
+    """Whether ``path`` holds this image's features at this feature count, version and camera depth."""
     if not path.exists():
         return False
     with np.load(path) as z:
+        bits = int(z["min_bits"]) if "min_bits" in z.files else -1
         return (str(z["image"]) == iid and int(z["max_features"]) == max_features
-                and "version" in z.files and int(z["version"]) == FEATURES_VERSION)
+                and "version" in z.files and int(z["version"]) == FEATURES_VERSION and bits == (min_bits or -1))
 
 
 @dataclass(frozen=True)
@@ -171,6 +181,7 @@ class FeatureTask:
     out: str
     max_features: int
     threads: int = 0
+    min_bits: int | None = None
 
 
 @contextmanager
@@ -190,9 +201,10 @@ def _opencv_threads(n: int) -> Iterator[None]:
 def extract_features(task: FeatureTask) -> None:
     """Executor unit of the ``match`` stage: SIFT of one image, written to its feature cache file."""
     with _opencv_threads(task.threads):
-        u, d = sift_features(read_photo(task.path, False, task.image_id), task.max_features)
+        u, d = sift_features(read_photo(task.path, False, task.image_id, task.min_bits), task.max_features)
     with atomic_path(Path(task.out), suffix=".npz") as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, uv=u, des=d, image=task.image_id, max_features=task.max_features, version=FEATURES_VERSION)
+        np.savez(fh, uv=u, des=d, image=task.image_id, max_features=task.max_features, version=FEATURES_VERSION,
+                 min_bits=task.min_bits or -1)
 
 
 PAIRS_PER_UNIT = 12
@@ -300,8 +312,10 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     executor = ctx.get_executor()
     threads = 1 if getattr(executor, "mode", "inline") != "inline" else 0  # one OpenCV thread per process
     files = [str(feat_dir / f"{k:06d}.npz") for k in range(len(ids))]
-    todo = [FeatureTask(iid, _image_path(block, iid), files[k], cfg.max_features, threads)
-            for k, iid in enumerate(ids) if not _cached(Path(files[k]), iid, cfg.max_features)]
+    bits = camera_bits(block, {block.images[iid].camera_id for iid in ids})
+    cam_bits = [bits.get(block.images[iid].camera_id) for iid in ids]
+    todo = [FeatureTask(iid, _image_path(block, iid), files[k], cfg.max_features, threads, cam_bits[k])
+            for k, iid in enumerate(ids) if not _cached(Path(files[k]), iid, cfg.max_features, cam_bits[k])]
     total = 2 * len(ids)
     ctx.progress(len(ids) - len(todo), total, f"features: {len(todo)} images to extract")
     executor.map(extract_features, todo,
@@ -328,8 +342,7 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     if cfg.lsm_refine and ties.n_obs:
         from .lsm import refine_ties
 
-        paths = {iid: _image_path(block, iid) for iid in ids}
-        ties, st = refine_ties(ties, block, partial(_read_image_of, paths), progress=ctx.progress,
+        ties, st = refine_ties(ties, block, partial(_read_image_of, _photos(block, ids)), progress=ctx.progress,
                                executor=executor)
         lsm_metrics = {"lsm_" + k: v for k, v in st.as_dict().items()}
     ties.save(str(out / "ties.npz"))
@@ -353,8 +366,8 @@ def _measure_targets(ws, block, cfg: MatchConfig, ctx) -> dict:
     figures (:func:`.targets.target_summary`) as metrics, none when nothing was to be measured."""
     shape = target_shape(cfg)
     measuring = cfg.targets != "none"
-    paths = {iid: _image_path(block, iid) for iid, img in block.images.items() if measuring and img.file is not None}
-    record = measure_targets(block, partial(_read_image_of, paths), cfg.targets, shape, cfg.target_search_px,
+    photos = _photos(block, [iid for iid, img in block.images.items() if measuring and img.file is not None])
+    record = measure_targets(block, partial(_read_image_of, photos), cfg.targets, shape, cfg.target_search_px,
                              cfg.target_min_score, progress=ctx.progress,
                              executor=ctx.get_executor() if measuring else None)
     write_json(ws.path(TARGETS_FILE), record)
@@ -413,5 +426,5 @@ def pair_counts(ties, image_ids: list[str], edges: np.ndarray) -> np.ndarray:
 STAGE = Stage(name="match", run=run, config=MatchConfig, requires=("block",),
               description="connectivity graph, SIFT, guided matching along graph edges, tracks, LSM refinement, "
                           "signalised targets",
-              version="6",
+              version="7",
               adjusted_block=False)

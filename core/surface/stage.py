@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import WorkspaceError
 from ..geometry.views import VIEWS
 from ..io.geotiff import write_geotiff, write_png
-from ..io.photos import read_photo
+from ..io.photos import camera_bits, read_photo
 from ..io.pointcloud import PointCloud, display_subset, write_las
 from ..io.validate import resolve_image
 from ..pipeline.stage import (
@@ -149,9 +149,12 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
     ndsm = grid.raster((dsm.data - dtm.data).astype(np.float32), crs)
     ctx.progress(2, steps, "true orthophoto")
     by_view = block.images_by_view()
+    ortho_ids = [i for v in cfg.ortho_views for i in by_view.get(v, [])]
+    bits = camera_bits(block, {block.images[i].camera_id for i in ortho_ids})
     sources = [OrthoSource(i, block.camera_of(i), block.images[i].pose,
-                           read_photo(resolve_image(block, block.images[i].file), True))
-               for v in cfg.ortho_views for i in by_view.get(v, [])]
+                           read_photo(resolve_image(block, block.images[i].file), True, i,
+                                      bits.get(block.images[i].camera_id)))
+               for i in ortho_ids]
     ortho, label = true_ortho(dsm, sources, OrthoConfig(),
                               progress=lambda d, t, m: ctx.progress(2 + d / t, steps, m)) if sources else (None, None)
     ctx.progress(4, steps, "masks and quality maps")
@@ -218,4 +221,4 @@ def run(ws, cfg: SurfaceConfig, ctx) -> StageResult:
 
 STAGE = Stage(name="surface", run=run, config=SurfaceConfig, requires=("dense",),
               description="DSM, DTM by robust morphology, nDSM, masks, classified points, true orthophoto, "
-                          "quality maps", version="12")
+                          "quality maps", version="13")

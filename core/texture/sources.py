@@ -18,32 +18,35 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.projection import project
-from ..io.photos import read_photo
+from ..io.photos import camera_bits, read_photo
 from ..model.camera import CameraModel
 from ..model.pose import Pose
 
 
 @dataclass(frozen=True, eq=False)
 class ImageSource:
-    """One oriented image that can texture surfaces: id, camera, (adjusted) pose and file path."""
+    """One oriented image that can texture surfaces: id, camera, (adjusted) pose, file path and its camera's
+    significant bits (:func:`..io.photos.camera_bits`)."""
 
     id: str
     camera: CameraModel
     pose: Pose
     path: str
+    min_bits: int | None = None
 
 
 def block_sources(block) -> list[ImageSource]:
     """The oriented images of an :class:`~..model.block.ImageBlock` with a file (relative paths resolved
     against ``block.image_root``)."""
     out = []
+    bits = camera_bits(block, {img.camera_id for img in block.images.values() if img.pose is not None})
     for img in block.images.values():
         if img.pose is None or img.file is None:
             continue
         p = Path(img.file)
         if not p.is_absolute() and block.image_root:
             p = Path(block.image_root) / p
-        out.append(ImageSource(img.id, block.cameras[img.camera_id], img.pose, str(p)))
+        out.append(ImageSource(img.id, block.cameras[img.camera_id], img.pose, str(p), bits.get(img.camera_id)))
     return out
 
 
@@ -63,7 +66,7 @@ class ImageCache:
             self._cache.move_to_end(key)
             return self._cache[key]
         if level == 0:
-            img = read_photo(src.path, True, src.id)
+            img = read_photo(src.path, True, src.id, src.min_bits)
             if img.shape[:2] != (src.camera.height, src.camera.width):
                 raise InputError(f"image '{src.id}' is {img.shape[1]}x{img.shape[0]} px, its camera says "
                                  f"{src.camera.width}x{src.camera.height}", path=src.path, field="file")

@@ -205,4 +205,4 @@ def run(ws, cfg: TextureConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="texture", run=run, config=TextureConfig, requires=("buildings",),
-              description="perspective-correct multi-source texture atlases of the buildings", version="3")
+              description="perspective-correct multi-source texture atlases of the buildings", version="4")

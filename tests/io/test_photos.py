@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 from oblique_city.core.errors import InputError
-from oblique_city.core.io.photos import declared_bits, read_photo
+from oblique_city.core.io.photos import camera_bits, declared_bits, read_photo
 from oblique_city.core.matching.features import sift_features
+from oblique_city.core.model import CameraModel, Image, ImageBlock, Pose
+from oblique_city.core.texture.sources import block_sources
 
 
 def _scene(rng) -> np.ndarray:
@@ -96,6 +98,32 @@ def test_a_dark_photograph_keeps_the_bits_its_file_declares(tmp_path: Path):
     # without a declaration: the 10 bits that hold 900
     assert cv2.imwrite(str(tmp_path / "plain.tif"), grey) and declared_bits(str(tmp_path / "plain.tif")) is None
     assert read_photo(tmp_path / "plain.tif", False).max() == 224
+
+
+def test_a_dark_photograph_takes_the_depth_of_its_cameras_photographs(tmp_path: Path):
+    """Files that declare nothing: the dark exposure of a 12-bit camera (brightest value 900) is read with the 12 bits
+    the camera's other photographs need (as dark as they are), not as a 10-bit image four times as bright; an 8-bit
+    camera beside it has no depth to give, and a photograph brighter than its camera's sample keeps its own."""
+    rng = np.random.default_rng(6)
+    block = ImageBlock(crs="EPSG:25832", image_root=str(tmp_path))
+    for cam in ("deep", "plain"):
+        block.add_camera(CameraModel(cam, 80, 60, 100.0, 100.0, 39.5, 29.5))
+    for k in range(12):
+        grey = rng.integers(0, 4001 if k != 5 else 901, (60, 80)).astype(np.uint16)
+        grey[0, 0] = 4000 if k != 5 else 900
+        assert cv2.imwrite(str(tmp_path / f"d{k}.tif"), grey)
+        block.add_image(Image(f"d{k}", "deep", f"d{k}.tif", pose_adjusted=Pose(np.eye(3), (0.0, 0.0, 100.0))))
+    cv2.imwrite(str(tmp_path / "p0.png"), np.full((60, 80), 100, np.uint8))
+    block.add_image(Image("p0", "plain", "p0.png", pose_adjusted=Pose(np.eye(3), (0.0, 0.0, 100.0))))
+    bits = camera_bits(block, sample=4)  # d0, d3, d7, d11: the dark d5 not among them
+    assert bits == {"deep": 12, "plain": None}
+    dark = tmp_path / "d5.tif"
+    assert read_photo(dark, False).max() == 224  # alone: the 10 bits that hold 900
+    assert read_photo(dark, False, "d5", bits["deep"]).max() == 56  # 900 * 255 / 4095
+    assert read_photo(tmp_path / "d0.tif", False, "d0", 10).max() == 249  # brighter than the sample: its 12 bits
+    # the stages' image sources carry the camera's depth
+    by_id = {s.id: s for s in block_sources(block)}
+    assert by_id["d5"].min_bits == 12 and by_id["p0"].min_bits is None
 
 
 def test_unreadable_photograph_is_refused_naming_the_file(tmp_path: Path):
