@@ -148,9 +148,9 @@ def read_block_grey(block, iid: str) -> np.ndarray:
     return read_photo(_image_path(block, iid), False, iid, camera_bits(block, {cam}).get(cam))
 
 
-def _photos(block, ids) -> dict[str, tuple[str, int | None]]:
-    """Image id -> its file and its camera's significant bits (:func:`.io.photos.camera_bits`), for ``ids``."""
-    bits = camera_bits(block, {block.images[i].camera_id for i in ids})
+def _photos(block, ids, bits: dict[str, int | None]) -> dict[str, tuple[str, int | None]]:
+    """Image id -> its file and its camera's significant bits (``bits``: :func:`.io.photos.camera_bits`), for
+    ``ids``."""
     return {iid: (_image_path(block, iid), bits.get(block.images[iid].camera_id)) for iid in ids}
 
 
@@ -304,7 +304,8 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
                                             z_ref=z0, max_neighbours=cfg.max_neighbours))
     ids = graph.image_ids
     out = ws.stage_dir("matching")
-    target_metrics = _measure_targets(ws, block, cfg, ctx)
+    bits = camera_bits(block)
+    target_metrics = _measure_targets(ws, block, cfg, ctx, bits)
     if cfg.tie_source == "file":
         return _graph_from_ties(ws, block, graph, cfg, ctx, target_metrics)
     feat_dir = out / "features"
@@ -312,7 +313,6 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     executor = ctx.get_executor()
     threads = 1 if getattr(executor, "mode", "inline") != "inline" else 0  # one OpenCV thread per process
     files = [str(feat_dir / f"{k:06d}.npz") for k in range(len(ids))]
-    bits = camera_bits(block, {block.images[iid].camera_id for iid in ids})
     cam_bits = [bits.get(block.images[iid].camera_id) for iid in ids]
     todo = [FeatureTask(iid, _image_path(block, iid), files[k], cfg.max_features, threads, cam_bits[k])
             for k, iid in enumerate(ids) if not _cached(Path(files[k]), iid, cfg.max_features, cam_bits[k])]
@@ -342,7 +342,7 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
     if cfg.lsm_refine and ties.n_obs:
         from .lsm import refine_ties
 
-        ties, st = refine_ties(ties, block, partial(_read_image_of, _photos(block, ids)), progress=ctx.progress,
+        ties, st = refine_ties(ties, block, partial(_read_image_of, _photos(block, ids, bits)), progress=ctx.progress,
                                executor=executor)
         lsm_metrics = {"lsm_" + k: v for k, v in st.as_dict().items()}
     ties.save(str(out / "ties.npz"))
@@ -361,12 +361,12 @@ def run(ws, cfg: MatchConfig, ctx) -> StageResult:
                 f"{ties.n_obs} observations" + _targets_message(target_metrics))
 
 
-def _measure_targets(ws, block, cfg: MatchConfig, ctx) -> dict:
+def _measure_targets(ws, block, cfg: MatchConfig, ctx, bits: dict[str, int | None]) -> dict:
     """Measure the signalised ground points (option ``targets``), write :data:`.targets.TARGETS_FILE`, return its
     figures (:func:`.targets.target_summary`) as metrics, none when nothing was to be measured."""
     shape = target_shape(cfg)
     measuring = cfg.targets != "none"
-    photos = _photos(block, [iid for iid, img in block.images.items() if measuring and img.file is not None])
+    photos = _photos(block, [iid for iid, img in block.images.items() if measuring and img.file is not None], bits)
     record = measure_targets(block, partial(_read_image_of, photos), cfg.targets, shape, cfg.target_search_px,
                              cfg.target_min_score, progress=ctx.progress,
                              executor=ctx.get_executor() if measuring else None)
