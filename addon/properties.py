@@ -121,6 +121,9 @@ OPTION_HINTS: dict[str, dict[str, dict[str, Any]]] = {
                                                "that makes the adjustment run again"},
         "prior_sigma_estimate": {"description": "Scale the GNSS and IMU sigmas up by their variance components and "
                                                 "adjust again when the errors exceed them"},
+        "control_sigma_estimate": {"description": "Scale the control points' image measurement sigmas by their "
+                                                  "variance component and adjust again when their residuals differ "
+                                                  "from them"},
         "prior_sigma_tolerance": {"description": "Share by which a GNSS or IMU variance factor must exceed 1 to make "
                                                  "the adjustment run again"},
         "calibration_images": {"description": "HAT with self-calibration: images nearest the block's centre (all "

@@ -238,10 +238,13 @@ class BundleOptions:
         is settled first; held wrong, the priors are not scaled: their residuals follow the ties' weight). Sigmas
         given too small make the priors pull the block towards the navigation errors and their standard deviations
         too small. Given too large, they only waste some of the priors' information, and they are kept: a component
-        below 1 is not a safe estimate to tighten them by (in a solution whose mounting calibration and datum shift
-        take up part of the priors' errors it comes out low; on the rendered demo, whose sigmas are the largest axis's
-        for all three, GNSS 0.67 and IMU 0.76, and its orientations scaled by them came out worse against the truth,
-        0.0037 against 0.0030 deg RMS, per axis 0.0044). The components of a misweighted solution are biased towards
+        below 1 did not make a safe factor to tighten them by. On the rendered demo, whose sigmas are the largest
+        axis's for all three (its simulated errors are 0.62 of them in X and Y), GNSS 0.67 and IMU 0.76, and its
+        orientations scaled by them came out worse against the truth, 0.0037 against 0.0030 deg RMS, per axis
+        (0.48-0.66 in X and Y) 0.0044. It is not the redundancy numbers' approximation (taken with the marginal
+        covariances of all images, the mountings and the datum, the components came out 0.68 and 0.77): with 25
+        exposures the estimates scatter, and a weight too large costs more than one too small. The components of a
+        misweighted solution are biased towards
         1 (a prior weighted too much leaves less of its error in its residuals), so the passes approach the right
         sigmas from below. On 500 simulated images with the sigmas given 4 times too small, IAT scaled them by 3.55
         (IMU) and 3.90 (GNSS): attitude errors 0.0040 deg RMS, the centres' errors 1.2-1.9 times their standard
@@ -250,6 +253,16 @@ class BundleOptions:
     prior_sigma_scale : (6,) factors applied to every image's prior sigmas (``BundleProblem.prior_sigma_att`` about
         world X Y Z, then ``prior_sigma_pos`` along X Y Z): the passes of ``prior_sigma_estimate`` set them, and HAT
         hands the nadir run's to the other runs (one GNSS/IMU system)
+    control_sigma_estimate : the control points' image measurements' sigmas (``BundleProblem.gcp_sigma_px``) are
+        scaled by their variance component, either way, in the same passes as the ties' sigma, when it differs from
+        1 by more than ``tie_sigma_tolerance`` and by more than 3 of its standard deviations: they are image
+        measurements too, of targets (a template fit, or by hand), whose precision the importer seldom gives. On
+        the rendered demo the targets were given 0.5 px (component 0.12, from 216 of redundancy), and two passes
+        scaled them by 0.088: the orientations came out 0.0025 against 0.0030 deg RMS from the truth, the centres
+        8.2 / 7.0 / 7.6 against 9.3 / 8.8 / 9.8 mm, the check points 0.011 against 0.012 m in XY (HAT on its rig:
+        0.0052 against 0.0059 deg, check points 0.013 against 0.016 m)
+    control_sigma_scale : the factor applied to those sigmas: the passes of ``control_sigma_estimate`` set it, and
+        HAT hands the nadir run's to the other runs
     """
 
     sigma_px: float = 0.5
@@ -295,6 +308,8 @@ class BundleOptions:
     prior_sigma_estimate: bool = True
     prior_sigma_tolerance: float = 0.1
     prior_sigma_scale: tuple[float, ...] = (1.0,) * 6
+    control_sigma_estimate: bool = True
+    control_sigma_scale: float = 1.0
 
 
 GNSS_STRIP_MODES = ("off", "shift", "drift")
@@ -464,7 +479,7 @@ class BundleResult:
     variance_components : :data:`VARIANCE_GROUPS` -> :class:`VarianceComponent` of this solution
     prior_sigma_scale : (6,) the factors of the attitude (about world X Y Z) and position (X Y Z) prior sigmas of
         this solution (``BundleOptions.prior_sigma_scale``, or with ``BundleOptions.prior_sigma_estimate`` their
-        estimate)
+        estimate); control_sigma_scale : that of the control points' image measurement sigmas (likewise)
     iterations, rounds, time_s : solver work; timing : seconds spent building the problems (``build_s``),
         in Ceres (``solve_s``, of which ``preprocess_s`` in its preprocessor (ordering, structure; a cost per
         solve whatever the iterations), ``jacobian_s`` evaluating and ``linear_s`` solving) and on residuals,
@@ -519,6 +534,7 @@ class BundleResult:
     sigma_px_given: float = float("nan")
     variance_components: dict[str, VarianceComponent] = field(default_factory=dict)
     prior_sigma_scale: np.ndarray = field(default_factory=lambda: np.ones(6))
+    control_sigma_scale: float = 1.0
 
 
 def _quat_xyzw(r: np.ndarray) -> np.ndarray:
@@ -1389,10 +1405,13 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     res = _adjust_pass(prob, opt, progress, on_robust)
     given = opt.sigma_px
     heads = measurement_heads(prob)
-    for _ in range(opt.variance_passes if opt.tie_sigma_estimate or opt.prior_sigma_estimate else 0):
+    estimates = opt.tie_sigma_estimate or opt.prior_sigma_estimate or opt.control_sigma_estimate
+    for _ in range(opt.variance_passes if estimates else 0):
         f_obs = res.variance_components["ties"].factor
         ties_off = bool(np.isfinite(f_obs) and abs(f_obs - 1.0) > opt.tie_sigma_tolerance)
         f_ties = f_obs if ties_off and opt.tie_sigma_estimate else 1.0
+        f_control = control_sigma_factor(res.variance_components, opt.tie_sigma_tolerance) \
+            if opt.control_sigma_estimate else 1.0
         # the priors' components are taken once the ties' sigma is right: the ties hold most of the redundancy, and
         # with their sigma wrong the priors' residuals follow it (the ties given 1 px for 0.3, the IMU attitudes'
         # factor came out 0.70 on the simulated 400-image block of the tests, against 0.95 with the ties given 0.3):
@@ -1402,7 +1421,7 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         if ties_off and opt.prior_sigma_estimate and not opt.tie_sigma_estimate:
             res.log.append(f"GNSS/IMU prior sigmas not estimated: the tie measurements' variance factor is {f_obs:.3f} "
                            "and their sigma is held (BundleOptions.tie_sigma_estimate)")
-        if f_ties == 1.0 and np.all(f_prior == 1.0):
+        if f_ties == 1.0 and f_control == 1.0 and np.all(f_prior == 1.0):
             break
         # from this solution (GNSS frame, as the problem's start values) and its cameras (self-calibrated ones: the
         # screening holds them)
@@ -1413,6 +1432,9 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         if f_ties != 1.0:
             log.append(f"tie measurements: variance factor {f_ties:.3f}, their sigma re-estimated {res.sigma_px:.3f} "
                        f"-> {res.sigma_px * f_ties:.3f} px")
+        if f_control != 1.0:
+            log.append(f"control point measurements: variance factor {f_control:.3f}, their sigmas scaled by "
+                       f"{res.control_sigma_scale * f_control:.3f} in all")
         scale = tuple(float(v) for v in res.prior_sigma_scale * f_prior)
         for k, part in enumerate(PRIOR_PART_LABELS):
             if f_prior[3 * k] != 1.0:
@@ -1422,8 +1444,8 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         # the solution is the closest start there is: blunders screened there (BundleOptions.screen_start), no robust
         # round (from a converged solution of the rendered demo's oblique runs, with a quarter of their measurements
         # wrong matches, the Cauchy round ran out of iterations far off and rejected correct control and priors)
-        opt = replace(opt, sigma_px=res.sigma_px * f_ties, prior_sigma_scale=scale, screen_start=True,
-                      screen_resect=False)
+        opt = replace(opt, sigma_px=res.sigma_px * f_ties, prior_sigma_scale=scale,
+                      control_sigma_scale=res.control_sigma_scale * f_control, screen_start=True, screen_resect=False)
         del res  # (the previous solution's covariances go before the next pass: peak memory)
         res = _adjust_pass(start, opt, None if progress is None else (
             lambda d, t, m, s=opt.sigma_px: progress(d, t, f"with the sigmas estimated (ties {s:.3f} px): {m}")), None)
@@ -1456,6 +1478,17 @@ def prior_sigma_factors(components: dict[str, VarianceComponent], tolerance: flo
     return out
 
 
+def control_sigma_factor(components: dict[str, VarianceComponent], tolerance: float) -> float:
+    """The factor by which the control points' image measurement sigmas are to be scaled (see
+    ``BundleOptions.control_sigma_estimate``): their variance factor where it differs from 1 by more than
+    ``tolerance`` (relative) and by more than 3 of its standard deviations, else 1."""
+    comp = components.get("control_measurements")
+    if comp is None or comp.redundancy <= 0:
+        return 1.0
+    f = comp.factor
+    return f if np.isfinite(f) and abs(f - 1.0) > max(tolerance, 3.0 * comp.factor_std) else 1.0
+
+
 def measurement_heads(prob: BundleProblem) -> float:
     """The mean number of images of ``prob`` whose priors come from one GNSS/IMU measurement: the heads per exposure
     (1 without exposures). The variance components count each head's prior, with or without rig constraints (on the
@@ -1467,7 +1500,8 @@ def measurement_heads(prob: BundleProblem) -> float:
 
 def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[int, int, str], None] | None,
                  on_robust: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None) -> BundleResult:
-    """One adjustment with ``opt.sigma_px`` and ``opt.prior_sigma_scale`` (see :func:`adjust`)."""
+    """One adjustment with ``opt.sigma_px``, ``opt.prior_sigma_scale`` and ``opt.control_sigma_scale`` (see
+    :func:`adjust`)."""
     import pyceres
 
     t0 = time.perf_counter()
@@ -1480,6 +1514,8 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
     if np.any(sigma_scale != 1.0):
         prob = replace(prob, prior_sigma_att=prob.prior_sigma_att * sigma_scale[:3],
                        prior_sigma_pos=prob.prior_sigma_pos * sigma_scale[3:])
+    if opt.control_sigma_scale != 1.0:
+        prob = replace(prob, gcp_sigma_px=prob.gcp_sigma_px * opt.control_sigma_scale)
     has_prior = np.all(np.isfinite(prob.prior_c), axis=1)
     ref = np.round(prob.prior_c[has_prior].mean(0) if has_prior.any() else prob.c_world.mean(0), 0)
     r = np.array(prob.r_cam_from_world, dtype=np.float64)
@@ -1777,7 +1813,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
         obs_redundancy=red, obs_mdb=np.where(active, delta_obs * opt.sigma_px * sigma0 / np.sqrt(red), np.nan),
         gcp_redundancy=gcp_red, gcp_mdb=gcp_mdb, gcp_datum_effect=gcp_mdb * gcp_infl,
         prior_mdb=prior_mdb, prior_effect=prior_mdb * prior_share, sigma_px=opt.sigma_px,
-        variance_components=components, prior_sigma_scale=sigma_scale)
+        variance_components=components, prior_sigma_scale=sigma_scale, control_sigma_scale=opt.control_sigma_scale)
 
 
 def _strip_std(prob: BundleProblem, opt: BundleOptions, strips: np.ndarray, in_use: np.ndarray,

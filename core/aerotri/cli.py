@@ -24,7 +24,7 @@ def cmd_aerotri(args: argparse.Namespace) -> int:
         value = getattr(args, key)
         if value is not None:
             opts[key] = value
-    for key in ("rig", "mounting", "control_tests", "prior_tests", "prior_sigma_estimate"):
+    for key in ("rig", "mounting", "control_tests", "prior_tests", "prior_sigma_estimate", "control_sigma_estimate"):
         if getattr(args, key) is not None:
             opts[key] = getattr(args, key)
     if args.self_calibration is not None:
@@ -55,6 +55,9 @@ def add_commands(sub) -> None:
     s.add_argument("--prior-sigma-estimate", dest="prior_sigma_estimate", action=argparse.BooleanOptionalAction,
                    help="scale the GNSS and IMU sigmas up by their variance components and adjust again when the "
                         "errors exceed them (on by default)")
+    s.add_argument("--control-sigma-estimate", dest="control_sigma_estimate", action=argparse.BooleanOptionalAction,
+                   help="scale the control points' image measurement sigmas by their variance component and adjust "
+                        "again when their residuals differ from them (on by default)")
     s.add_argument("--gnss-strips", dest="gnss_strips", choices=GNSS_STRIP_MODES,
                    help="estimate a GNSS offset (shift) or an offset and a drift (drift) per flight strip")
     s.add_argument("--executor", choices=("inline", "processes", "dask"), default="inline")

@@ -24,8 +24,9 @@
   each exposure, adjusted apart in their runs, are fused into one body on the calibrated rig (:mod:`.rigfusion`).
   GNSS offsets per strip (``BundleOptions.gnss_strips``) are estimated in the nadir run, like the datum shift, and
   held for the other heads of the same exposures (one antenna) in the oblique runs. So are the tie sigma and the
-  scales of the GNSS/IMU prior sigmas the nadir run estimated (``BundleOptions.tie_sigma_estimate``,
-  ``prior_sigma_estimate``): the oblique runs start from them (one GNSS/IMU system) and estimate them further.
+  scales of the GNSS/IMU prior sigmas and of the control measurements' sigmas the nadir run estimated
+  (``BundleOptions.tie_sigma_estimate``, ``prior_sigma_estimate``, ``control_sigma_estimate``): the oblique runs
+  start from them (one GNSS/IMU system, one way of measuring the targets) and estimate them further.
   With self-calibration (``BundleOptions.self_calibration``) a calibration sub-block comes first: the images of the
   exposures nearest the block's centre, all views, adjusted together (as IAT) with the cameras' parameters free;
   the hierarchical runs then hold the cameras it calibrated. Calibrated in the runs themselves, a nadir run hardly
@@ -497,10 +498,11 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
                        (lambda d, t, m: progress(0, 2, f"self-calibration on the {len(ids)} central images: {m}")))
         calibration = _to_run("calibration", sub_c, res_c, time.perf_counter() - t_c)
         block = replace(block, cameras={**block.cameras, **{cam.id: cam for cam in res_c.cameras}})
-        # the runs start from the tie sigma and the prior sigmas' scales the sub-block estimated
-        # (BundleOptions.tie_sigma_estimate, prior_sigma_estimate)
+        # the runs start from the tie sigma and the prior and control sigmas' scales the sub-block estimated
+        # (BundleOptions.tie_sigma_estimate, prior_sigma_estimate, control_sigma_estimate)
         opt = replace(opt, self_calibration=(), sigma_px=res_c.sigma_px,
-                      prior_sigma_scale=tuple(res_c.prior_sigma_scale.tolist()))
+                      prior_sigma_scale=tuple(res_c.prior_sigma_scale.tolist()),
+                      control_sigma_scale=res_c.control_sigma_scale)
     views = block.images_by_view()
     nadir_ids = views.get("nadir", [])
     if not nadir_ids:
@@ -583,7 +585,8 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
         opt_v = replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True,
                         gnss_strips="off", threads=threads, sigma_px=res_n.sigma_px,
-                        prior_sigma_scale=tuple(res_n.prior_sigma_scale.tolist()))
+                        prior_sigma_scale=tuple(res_n.prior_sigma_scale.tolist()),
+                        control_sigma_scale=res_n.control_sigma_scale)
         initial, x_v = start_poses, np.where(np.isfinite(xyz_nadir[:, :1]), xyz_nadir, xyz_pre)
         # (the early start's sigma0 is in units of the given tie sigma, the gate in those of the nadir run's)
         if pre is not None and pre[5] * opt.sigma_px / res_n.sigma_px <= opt.screen_max_sigma0:

@@ -160,7 +160,7 @@ def run_statistics(run: Run) -> dict:
         "observations": int(len(run.obs_index)), "rejected": int(run.obs_rejected.sum()),
         "blunder_percent": float(100.0 * run.obs_rejected.mean()) if len(run.obs_rejected) else 0.0,
         "sigma0_a_priori_px": res.sigma_px, "sigma_px_given": res.sigma_px_given, "sigma0": res.sigma0,
-        "prior_sigma_scale": res.prior_sigma_scale.tolist(),
+        "prior_sigma_scale": res.prior_sigma_scale.tolist(), "control_sigma_scale": res.control_sigma_scale,
         "sigma0_px": res.sigma0 * res.sigma_px, "variance_components": variance_table(res),
         "redundancy": res.redundancy, "iterations": res.iterations, "rounds": res.rounds,
         "rms_image_px": [float(np.sqrt(np.mean(v[:, 0] ** 2))), float(np.sqrt(np.mean(v[:, 1] ** 2)))]
@@ -187,8 +187,8 @@ def variance_table(res: BundleResult) -> list[dict]:
     """The run's variance components (``BundleResult.variance_components``) of the groups that took part: group,
     words, observations, redundancy, factor (how many times its a priori sigmas its errors are) with its standard
     deviation; for the tie measurements also the a priori sigma of the solution and the one their residuals give, for
-    the GNSS positions and IMU attitudes the factors their given sigmas were scaled by along world X Y Z
-    (``sigma_scale``)."""
+    the GNSS positions and IMU attitudes the factors their given sigmas were scaled by along world X Y Z, for the
+    control point measurements the factor of theirs (``sigma_scale``)."""
     rows = []
     for key, comp in res.variance_components.items():
         if comp.count == 0 or comp.redundancy <= 0:
@@ -199,6 +199,8 @@ def variance_table(res: BundleResult) -> list[dict]:
             row |= {"sigma_px": res.sigma_px, "estimated_sigma_px": comp.factor * res.sigma_px}
         elif key in ("imu", "gnss"):
             row["sigma_scale"] = (res.prior_sigma_scale[:3] if key == "imu" else res.prior_sigma_scale[3:]).tolist()
+        elif key == "control_measurements":
+            row["sigma_scale"] = [res.control_sigma_scale]
         rows.append(row)
     return rows
 

@@ -68,6 +68,9 @@ class AerotriConfig(CheckedOptions):
         variance components when these exceed 1 by more than this share (and significantly) and adjust again
         (:attr:`.bundle.BundleOptions.prior_sigma_estimate`): sigmas given too small pull the orientations towards
         the navigation errors and make their standard deviations too small
+    control_sigma_estimate : scale the control points' image measurement sigmas by their variance component, either
+        way, when it differs from 1 by more than ``tie_sigma_tolerance`` (and significantly) and adjust again
+        (:attr:`.bundle.BundleOptions.control_sigma_estimate`)
     self_calibration : any of ``focal``, ``principal_point``, ``radial``, ``tangential``
     datum_shift : estimate a 3D shift between the GNSS frame and the control frame
     rig, rig_sigma_deg, rig_sigma_m : constrain the heads of each exposure to the rig's boresight and lever arms;
@@ -127,6 +130,7 @@ class AerotriConfig(CheckedOptions):
     tie_sigma_tolerance: float = 0.1
     prior_sigma_estimate: bool = True
     prior_sigma_tolerance: float = 0.1
+    control_sigma_estimate: bool = True
     self_calibration: tuple[str, ...] = ()
     datum_shift: bool = True
     rig: bool = False
@@ -185,7 +189,8 @@ class AerotriConfig(CheckedOptions):
                              gnss_shift_sigma=self.gnss_shift_sigma, gnss_drift_sigma=self.gnss_drift_sigma,
                              tie_sigma_estimate=self.tie_sigma_estimate, tie_sigma_tolerance=self.tie_sigma_tolerance,
                              prior_sigma_estimate=self.prior_sigma_estimate,
-                             prior_sigma_tolerance=self.prior_sigma_tolerance)
+                             prior_sigma_tolerance=self.prior_sigma_tolerance,
+                             control_sigma_estimate=self.control_sigma_estimate)
 
 
 def calibrated_cameras(block: ImageBlock, at: ATResult) -> dict[str, CameraModel]:
@@ -262,6 +267,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     scaled = estimated_prior_sigma(report)
     first = first_run(report)
     off = misweighted_groups(first)
+    control_scale = float(first.get("control_sigma_scale") or 1.0)
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
@@ -274,13 +280,15 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "gnss_strips_suspected": len(suspect), "control_mdb_max_m": weak["mdb_m"] if weak else None,
                  "oblique_without_nadir": unpaired, "self_calibrated_cameras": len(calib),
                  "calibration_corner_shift_max_px": calib[moved]["corner_shift_px"] if moved else None,
-                 "tie_sigma_px": first["sigma0_a_priori_px"]},
+                 "tie_sigma_px": first["sigma0_a_priori_px"], "control_sigma_scale": control_scale},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
                 + (f", tie measurements' sigma estimated at {estimated[1]:.3f} px ({estimated[0]:g} px given) and "
                    "adjusted again with it" if estimated is not None else "")
                 + (", the " + " and ".join(f"{k} sigmas scaled by {format_scale(f)}" for k, f in scaled.items())
                    + " by their variance components and adjusted again" if scaled else "")
+                + (f", the control point measurements' sigmas scaled by {control_scale:.2f} by their variance "
+                   "component" if control_scale != 1.0 else "")
                 + (", the residuals of the " + " and ".join(f"{k} are {f:.2f} times" for k, f in off.items())
                    + " their a priori sigmas (set realistic ones: see the variance components in report.html)"
                    if off else "")
@@ -315,4 +323,4 @@ def _multi_ray(ties: TiePoints, min_rays: int) -> TiePoints:
 
 STAGE = Stage(name="aerotri", run=run, config=AerotriConfig, requires=("block", "match"),
               description="aerial triangulation: integrated or hierarchical bundle adjustment with CBA",
-              version="22", adjusted_block=False, inputs=(MANUAL_FILE,))
+              version="23", adjusted_block=False, inputs=(MANUAL_FILE,))

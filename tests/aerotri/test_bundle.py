@@ -1112,3 +1112,29 @@ def test_prior_tests_per_exposure_recover_the_tie_only_pose_of_the_rig():
     planted[7, 3:] += [0.3, -0.2, 0.35]
     bad, w, _, _, _ = tested(planted)
     assert set(zip(*np.nonzero(bad))) == {(7, 1)}
+
+
+def test_control_measurement_sigmas_estimated_from_their_residuals(sim, xyz0, iat):
+    """The control points' image measurements given 4 times their simulated noise: their variance component scales
+    their sigmas (to 0.26 of the given ones, the right one being 0.25) and the block is adjusted again: their
+    component then comes out near 1, and the datum shift within 0.2 mm of the one with the right sigmas. Given
+    right (the fixture's block), they are not scaled; with the estimate off, kept."""
+    import copy
+
+    from oblique_city.core.aerotri.hierarchical import integrated
+
+    assert iat.runs[0].result.control_sigma_scale == 1.0
+    block = copy.deepcopy(sim.block)
+    for gp in block.ground_points.values():
+        gp.sigma_px = 4 * 0.3
+    est = integrated(block, sim.ties, BundleOptions(sigma_px=0.3), xyz0=xyz0).runs[0].result
+    assert 0.2 < est.control_sigma_scale < 0.32
+    comp = est.variance_components["control_measurements"]
+    assert abs(comp.factor - 1.0) < max(0.1, 3 * comp.factor_std)
+    assert any("control point measurements: variance factor" in line for line in est.log)
+    ref = iat.runs[0].result
+    assert np.all(np.abs(est.datum_shift - ref.datum_shift) < 0.002)  # 0.2 mm here; the control sigmas are 2 cm
+    kept = integrated(block, sim.ties, BundleOptions(sigma_px=0.3, control_sigma_estimate=False),
+                      xyz0=xyz0).runs[0].result
+    assert kept.control_sigma_scale == 1.0
+    assert kept.variance_components["control_measurements"].factor < 0.35
