@@ -11,6 +11,7 @@ propagated to the obliques, and direct georeferencing, on a block of the observa
     python benchmarks/bench_at.py --connections cba --camera-errors   # Table 12: self-calibration
     python benchmarks/bench_at.py --connections cba --tie-sigma 3   # Table 13: tie sigma given 3 times too large
     python benchmarks/bench_at.py --connections cba --prior-sigma 0.25   # Table 15: GNSS/IMU sigmas 4 times too small
+    python benchmarks/bench_at.py --connections cba --control-sigma 8   # Table 16: control measurement sigmas 8 times
     python benchmarks/bench_at.py --images 3000 --connections cba --skip-stock --precision   # Table 14: precision
     python benchmarks/bench_at.py --images 3000 --connections cba --skip-stock --precision --rig   # on the rig
     make bench-at ARGS="--images 3000"
@@ -247,6 +248,10 @@ def main(argv=None) -> int:
                     help="also adjust with every image's GNSS/IMU sigmas given this many times those of the simulated "
                          "errors, with and without their estimation from the residuals, beside the right ones "
                          "(Table 15)")
+    ap.add_argument("--control-sigma", dest="control_sigma", type=float, default=0.0,
+                    help="also adjust with the control points' image measurement sigmas given this many times the "
+                         "simulated noise, with and without their estimation from the residuals, beside the right "
+                         "ones (Table 16)")
     ap.add_argument("--precision", action="store_true",
                     help="also adjust with the orientations' marginal standard deviations (IAT and HAT-CBA; the "
                          "timed runs report the conditional ones) and compare both with the true errors (Table 14)")
@@ -394,16 +399,19 @@ def main(argv=None) -> int:
                     b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
                     oblique_tie_grid=args.oblique_tie_grid, oblique_ties_per_cell=args.oblique_ties_per_cell,
                     calibration_images=n))
+        def run_hat_cba(b, o):
+            return hierarchical(b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
+                                oblique_tie_grid=args.oblique_tie_grid,
+                                oblique_ties_per_cell=args.oblique_ties_per_cell)
+
         if args.tie_sigma > 0:
-            out["tie_sigma"] = tie_sigma_runs(
-                block, ties, xyz0, sim.true_poses, opt, args.tie_sigma, lambda b, o: hierarchical(
-                    b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
-                    oblique_tie_grid=args.oblique_tie_grid, oblique_ties_per_cell=args.oblique_ties_per_cell))
+            out["tie_sigma"] = tie_sigma_runs(block, ties, xyz0, sim.true_poses, opt, args.tie_sigma, run_hat_cba)
         if args.prior_sigma > 0:
-            out["prior_sigma"] = prior_sigma_runs(
-                block, ties, xyz0, sim.true_poses, opt, args.prior_sigma, lambda b, o: hierarchical(
-                    b, ties, o, connection="cba", cell=args.cell, executor=ex, xyz0=xyz0,
-                    oblique_tie_grid=args.oblique_tie_grid, oblique_ties_per_cell=args.oblique_ties_per_cell))
+            out["prior_sigma"] = prior_sigma_runs(block, ties, xyz0, sim.true_poses, opt, args.prior_sigma,
+                                                  run_hat_cba)
+        if args.control_sigma > 0:
+            out["control_sigma"] = control_sigma_runs(block, ties, xyz0, sim.true_poses, opt, args.control_sigma,
+                                                      run_hat_cba)
         if args.precision:
             out["precision"] = precision_runs(block, sim.true_poses, {"IAT": iat, "HAT cba": hats["cba"]}, {
                 "IAT": lambda o: integrated(block, ties, o, xyz0=xyz0),
@@ -433,6 +441,8 @@ def main(argv=None) -> int:
         print_precision(out["precision"])
     if "prior_sigma" in out:
         print_prior_sigma(out["prior_sigma"], sim.gsd)
+    if "control_sigma" in out:
+        print_control_sigma(out["control_sigma"], sim.gsd)
     targets(out)
     path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -685,6 +695,21 @@ def prior_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, fa
         "prior sigmas", lambda f, estimate: (block if f == 1.0 else given, replace(opt, prior_sigma_estimate=estimate)),
         factor, ties, xyz0, true_poses, run_hat,
         lambda at, o: {"scale": {r.name: r.result.prior_sigma_scale.tolist() for r in at.runs}})}
+
+
+def control_sigma_runs(block, ties, xyz0, true_poses: dict, opt: BundleOptions, factor: float,
+                       run_hat: Callable[[object, BundleOptions], object]) -> dict:
+    """The control points' image measurement sigmas (Table 16): IAT and HAT-CBA with them as simulated, and ``factor``
+    times them with and without their estimation (``BundleOptions.control_sigma_estimate``), as in
+    :func:`_weighting_runs`; per run also the scale each of its adjustments ended with."""
+    given = copy.deepcopy(block)
+    for gp in given.ground_points.values():
+        gp.sigma_px *= factor
+    return {"factor": factor, "runs": _weighting_runs(
+        "control sigmas", lambda f, estimate: (block if f == 1.0 else given,
+                                               replace(opt, control_sigma_estimate=estimate)),
+        factor, ties, xyz0, true_poses, run_hat,
+        lambda at, o: {"scale": {r.name: r.result.control_sigma_scale for r in at.runs}})}
 
 
 def precision_runs(block, true_poses: dict, conditional: dict, run: dict[str, Callable[[BundleOptions], object]],
@@ -965,23 +990,37 @@ def print_tie_sigma(ts: dict, gsd: float) -> None:
 
 
 def _print_weighting_row(r: dict, gsd: float, given: str, before: str, after: str, ended: str) -> None:
-    """One row of :func:`_weighting_runs` (Tables 13 and 15) with its table's own fields around the common ones."""
+    """One row of :func:`_weighting_runs` (Tables 13, 15 and 16) with its table's own fields around the common ones."""
     print(f"{r['method']:8s} {given}  {'estimated' if r['estimate'] else 'kept     '}  {before}"
           f"XY {_f(r['check_xy_m'], 1 / gsd)} Z {_f(r['check_z_m'], 1 / gsd)}  {after}"
           f"error/std {_v(r['centre_error_over_std'], 2)}  {r['wall_s']:6.1f} s  ended with: {ended}")
 
 
-def print_prior_sigma(ps: dict, gsd: float) -> None:
-    print(f"\nTable 15. GNSS/IMU sigmas: given as simulated or {ps['factor']:g} times them, estimated from the "
-          "residuals (scaled by their variance components) or not; check point RMS [GSD], attitude RMS [deg] and "
-          "centre RMS X Y Z [m] against the truth, centre errors in their reported standard deviations (RMS X Y Z; 1: "
-          "the precision is told right), wall time, the scales of the attitude and position sigmas each adjustment "
-          "ended with")
-    for r in ps["runs"]:
+def _print_scaled_table(header: str, runs: list[dict], gsd: float, scale: Callable[[object], str]) -> None:
+    """A table of :func:`_weighting_runs` whose runs scale sigmas (Tables 15 and 16): ``header``, then per run its
+    check points, attitude and centre errors, and the scale each adjustment ended with (``scale(value)``)."""
+    print(header)
+    for r in runs:
         _print_weighting_row(r, gsd, f"given x{r['given']:<5g}", "",
                              f"angle {r['angle_rms_deg']:.4f}  centre {_v(r['centre_rms_m'], 4)}  ",
-                             " ".join(f"{k} {format_scale(v[:3])}/{format_scale(v[3:])}"
-                                      for k, v in r["scale"].items()))
+                             " ".join(f"{k} {scale(v)}" for k, v in r["scale"].items()))
+
+
+def print_prior_sigma(ps: dict, gsd: float) -> None:
+    _print_scaled_table(
+        f"\nTable 15. GNSS/IMU sigmas: given as simulated or {ps['factor']:g} times them, estimated from the "
+        "residuals (scaled by their variance components) or not; check point RMS [GSD], attitude RMS [deg] and "
+        "centre RMS X Y Z [m] against the truth, centre errors in their reported standard deviations (RMS X Y Z; 1: "
+        "the precision is told right), wall time, the scales of the attitude and position sigmas each adjustment "
+        "ended with", ps["runs"], gsd, lambda v: f"{format_scale(v[:3])}/{format_scale(v[3:])}")
+
+
+def print_control_sigma(cs: dict, gsd: float) -> None:
+    _print_scaled_table(
+        f"\nTable 16. Control point measurement sigmas: given as simulated or {cs['factor']:g} times them, estimated "
+        "from the residuals (scaled by their variance component) or not; check point RMS [GSD], attitude RMS [deg] "
+        "and centre RMS X Y Z [m] against the truth, centre errors in their reported standard deviations (RMS X Y "
+        "Z), wall time, the scale each adjustment ended with", cs["runs"], gsd, lambda v: f"{v:.3f}")
 
 
 def print_precision(pr: dict) -> None:
