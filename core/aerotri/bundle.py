@@ -244,12 +244,11 @@ class BundleOptions:
         (0.48-0.66 in X and Y) 0.0044. It is not the redundancy numbers' approximation (taken with the marginal
         covariances of all images, the mountings and the datum, the components came out 0.68 and 0.77): with 25
         exposures the estimates scatter, and a weight too large costs more than one too small. The components of a
-        misweighted solution are biased towards
-        1 (a prior weighted too much leaves less of its error in its residuals), so the passes approach the right
-        sigmas from below. On 500 simulated images with the sigmas given 4 times too small, IAT scaled them by 3.55
-        (IMU) and 3.90 (GNSS): attitude errors 0.0040 deg RMS, the centres' errors 1.2-1.9 times their standard
-        deviations, as with the right sigmas (0.0039, 1.1-1.9), against 0.0061 and 2.7-3.9 with them kept (the
-        bench's Table 15, ``--prior-sigma 0.25``)
+        misweighted solution are biased towards 1 (a prior weighted too much leaves less of its error in its
+        residuals), so the passes approach the right sigmas from below. On 500 simulated images with the sigmas
+        given 4 times too small, IAT scaled them by 3.55 (IMU) and 3.90 (GNSS): attitude errors 0.0040 deg RMS, the
+        centres' errors 1.2-1.9 times their standard deviations, as with the right sigmas (0.0039, 1.1-1.9), against
+        0.0061 and 2.7-3.9 with them kept (the bench's Table 15, ``--prior-sigma 0.25``)
     prior_sigma_scale : (6,) factors applied to every image's prior sigmas (``BundleProblem.prior_sigma_att`` about
         world X Y Z, then ``prior_sigma_pos`` along X Y Z): the passes of ``prior_sigma_estimate`` set them, and HAT
         hands the nadir run's to the other runs (one GNSS/IMU system)
@@ -260,7 +259,7 @@ class BundleOptions:
         the rendered demo the targets were given 0.5 px (component 0.12, from 216 of redundancy), and two passes
         scaled them by 0.088: the orientations came out 0.0025 against 0.0030 deg RMS from the truth, the centres
         8.2 / 7.0 / 7.6 against 9.3 / 8.8 / 9.8 mm, the check points 0.011 against 0.012 m in XY (HAT on its rig:
-        0.0052 against 0.0059 deg, check points 0.013 against 0.016 m)
+        0.0052 against 0.0058 deg, check points 0.013 against 0.016 m)
     control_sigma_scale : the factor applied to those sigmas: the passes of ``control_sigma_estimate`` set it, and
         HAT hands the nadir run's to the other runs
     """
