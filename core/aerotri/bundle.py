@@ -1459,33 +1459,34 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
     return res
 
 
+def significant_factor(comp: VarianceComponent | None, tolerance: float, heads: float = 1.0,
+                       up_only: bool = False) -> float:
+    """``comp``'s variance factor where it differs from 1 by more than ``tolerance`` (relative) and by more than 3 of
+    its standard deviations (``sqrt(heads)`` times the component's: ``heads`` observations with one error, see
+    :func:`measurement_heads`), above 1 only with ``up_only``; else 1 (and without a component)."""
+    if comp is None or comp.redundancy <= 0:
+        return 1.0
+    f = comp.factor
+    off = f - 1.0 if up_only else abs(f - 1.0)
+    return f if np.isfinite(f) and off > max(tolerance, 3.0 * comp.factor_std * np.sqrt(heads)) else 1.0
+
+
 def prior_sigma_factors(components: dict[str, VarianceComponent], tolerance: float, heads: float = 1.0
                         ) -> np.ndarray:
     """The factors ``(6,)`` by which the attitude (IMU, about world X Y Z) and position (GNSS, X Y Z) prior sigmas are
     to be scaled (see ``BundleOptions.prior_sigma_estimate``): a group's variance factor on its three axes where it
-    exceeds 1 by more than ``tolerance`` (relative) and by more than 3 of its standard deviations, else 1.
-    ``heads``: the images that share one GNSS/IMU measurement (:func:`measurement_heads`): their errors are one, so
-    the estimate's standard deviation is ``sqrt(heads)`` times the component's."""
-    out = np.ones(6)
-    for k, key in enumerate(("imu", "gnss")):
-        comp = components.get(key)
-        if comp is None or comp.redundancy <= 0:
-            continue
-        f = comp.factor
-        if np.isfinite(f) and f - 1.0 > max(tolerance, 3.0 * comp.factor_std * np.sqrt(heads)):
-            out[3 * k:3 * k + 3] = f
-    return out
+    exceeds 1 significantly (:func:`significant_factor`), else 1. ``heads``: the images that share one GNSS/IMU
+    measurement (:func:`measurement_heads`): their errors are one, so the estimate's standard deviation is
+    ``sqrt(heads)`` times the component's."""
+    return np.repeat([significant_factor(components.get(key), tolerance, heads, up_only=True)
+                      for key in ("imu", "gnss")], 3)
 
 
 def control_sigma_factor(components: dict[str, VarianceComponent], tolerance: float) -> float:
     """The factor by which the control points' image measurement sigmas are to be scaled (see
-    ``BundleOptions.control_sigma_estimate``): their variance factor where it differs from 1 by more than
-    ``tolerance`` (relative) and by more than 3 of its standard deviations, else 1."""
-    comp = components.get("control_measurements")
-    if comp is None or comp.redundancy <= 0:
-        return 1.0
-    f = comp.factor
-    return f if np.isfinite(f) and abs(f - 1.0) > max(tolerance, 3.0 * comp.factor_std) else 1.0
+    ``BundleOptions.control_sigma_estimate``): their variance factor where it differs from 1 significantly, either
+    way (:func:`significant_factor`), else 1."""
+    return significant_factor(components.get("control_measurements"), tolerance)
 
 
 def measurement_heads(prob: BundleProblem) -> float:
