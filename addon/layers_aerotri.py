@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.aerotri.report import (
+    estimated_control_sigma,
     estimated_prior_sigma,
     estimated_tie_sigma,
     largest_corner_shift,
@@ -230,7 +231,8 @@ def report_summary(path: Path) -> dict:
     None without one), and the tie measurements' sigma
     when the adjustment estimated one other than the given (``tie_sigma``: ``(given px, estimated px)`` of its first
     run, None otherwise and in reports written before it existed), the factors it scaled the GNSS/IMU prior sigmas by
-    (``prior_sigma``: words -> factors along X Y Z, {} when it kept them), and the block's datum shift (``datum``:
+    (``prior_sigma``: words -> factors along X Y Z, {} when it kept them), the factor it scaled the control points'
+    image measurement sigmas by (``control_sigma``, None when it kept them), and the block's datum shift (``datum``:
     ``(shift (3,) m, its standard deviations (3,) m or None)``, None without one and in reports written before it
     existed).
     Raises :class:`InputError` naming the file."""
@@ -277,6 +279,7 @@ def report_summary(path: Path) -> dict:
                                float(doc["rig_fusion"]["moved_m"])) if doc.get("rig_fusion") else None,
                 "tie_sigma": estimated_tie_sigma(doc),
                 "prior_sigma": estimated_prior_sigma(doc),
+                "control_sigma": estimated_control_sigma(doc),
                 "datum": ([float(v) for v in doc["datum"]["shift_m"]],
                           None if doc["datum"]["std_m"] is None else [float(v) for v in doc["datum"]["std_m"]])
                 if doc.get("datum") else None,

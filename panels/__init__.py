@@ -267,6 +267,8 @@ def draw_triangulation(layout, context) -> None:
         col.label(text=f"Tie sigma estimated: {used:.3f} px ({given:g} px given)")
     for part, f in s["prior_sigma"].items():
         col.label(text=f"{part} sigmas scaled by {format_scale(f)} (variance components)")
+    if s["control_sigma"]:
+        col.label(text=f"Control point measurement sigmas scaled by {s['control_sigma']:.2f} (variance component)")
     col.label(text=f"Check points ({s['check_n']}): RMS XY {_metres(s['check_rms_xy_m'])}, "
                    f"Z {_metres(s['check_rms_z_m'])}")
     if s["datum"]:

@@ -339,6 +339,14 @@ def estimated_prior_sigma(report: dict) -> dict[str, list[float]]:
             if any(f != 1.0 for f in scale[3 * k:3 * k + 3])}
 
 
+def estimated_control_sigma(report: dict) -> float | None:
+    """Of a report (as in report.json), the factor its :func:`first_run` scaled the control points' image measurement
+    sigmas by (``BundleOptions.control_sigma_estimate``); None when it kept them, and for reports written before the
+    estimate existed."""
+    scale = float(first_run(report).get("control_sigma_scale") or 1.0)
+    return scale if scale != 1.0 else None
+
+
 def format_scale(factors: list[float]) -> str:
     """A group's sigma scales along X Y Z (:func:`estimated_prior_sigma`) in words: one number when they are equal."""
     return f"{factors[0]:.2f}" if len(set(factors)) == 1 else "/".join(f"{f:.2f}" for f in factors) + " (X/Y/Z)"

@@ -28,6 +28,7 @@ from .hierarchical import CONNECTIONS, ATResult, camera_runs, hierarchical, inte
 from .report import (
     accepted_residuals,
     block_report,
+    estimated_control_sigma,
     estimated_prior_sigma,
     estimated_tie_sigma,
     first_run,
@@ -267,7 +268,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
     scaled = estimated_prior_sigma(report)
     first = first_run(report)
     off = misweighted_groups(first)
-    control_scale = float(first.get("control_sigma_scale") or 1.0)
+    control_scale = estimated_control_sigma(report)
     return StageResult(
         outputs=("aerotri/block.json", "aerotri/ties.npz", "aerotri/report.json", "aerotri/report.html",
                  *(f"aerotri/layers/{f}" for f in files)),
@@ -280,7 +281,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                  "gnss_strips_suspected": len(suspect), "control_mdb_max_m": weak["mdb_m"] if weak else None,
                  "oblique_without_nadir": unpaired, "self_calibrated_cameras": len(calib),
                  "calibration_corner_shift_max_px": calib[moved]["corner_shift_px"] if moved else None,
-                 "tie_sigma_px": first["sigma0_a_priori_px"], "control_sigma_scale": control_scale},
+                 "tie_sigma_px": first["sigma0_a_priori_px"], "control_sigma_scale": control_scale or 1.0},
         message=f"{cfg.mode} AT: {report['images']} images, sigma0 {report['sigma0_px']:.3f} px, "
                 f"check RMS XY {check['rms_xy_m']:.3f} m Z {check['rms_z_m']:.3f} m"
                 + (f", tie measurements' sigma estimated at {estimated[1]:.3f} px ({estimated[0]:g} px given) and "
@@ -288,7 +289,7 @@ def run(ws, cfg: AerotriConfig, ctx) -> StageResult:
                 + (", the " + " and ".join(f"{k} sigmas scaled by {format_scale(f)}" for k, f in scaled.items())
                    + " by their variance components and adjusted again" if scaled else "")
                 + (f", the control point measurements' sigmas scaled by {control_scale:.2f} by their variance "
-                   "component" if control_scale != 1.0 else "")
+                   "component" if control_scale is not None else "")
                 + (", the residuals of the " + " and ".join(f"{k} are {f:.2f} times" for k, f in off.items())
                    + " their a priori sigmas (set realistic ones: see the variance components in report.html)"
                    if off else "")

@@ -50,6 +50,7 @@ def ws(tmp_path, utm_block):
                                 {"name": "C3"}],
               "runs": [{"name": "nadir", "priors_rejected": [["n1", "position"], ["n2", "attitude"]],
                         "sigma_px_given": 0.5, "sigma0_a_priori_px": 0.3,
+                        "control_sigma_scale": 0.088,
                         "reliability": {"priors": {"position_m": {"effect_max": [0.01, 0.02, 0.1273]},
                                                    "attitude_deg": {"effect_max": [0.002, 0.0201, 0.001]}}}},
                        {"name": "north", "priors_rejected": [["o1", "position"]],
@@ -210,6 +211,7 @@ def test_triangulation_panel_and_open_report(addon, ws, monkeypatch):
     assert "Mode: hierarchical (5), 12 images" in labels
     assert "Sigma0: 0.987 (0.296 px)" in labels
     assert "Tie sigma estimated: 0.300 px (0.5 px given)" in labels
+    assert "Control point measurement sigmas scaled by 0.09 (variance component)" in labels
     assert "Check points (4): RMS XY 0.031 m, Z 0.046 m" in labels
     assert "Datum shift: -0.061 +- 0.003, 0.040 +- 0.003, -0.100 +- 0.005 m" in labels
     assert "Rejected observations: 1.25 %" in labels
