@@ -12,8 +12,9 @@ Pipeline per building (:func:`.reconstruct.reconstruct_building`):
 5. :mod:`.dormers`: blocks of points above a sloped roof plane, modelled as gabled or shed dormers (2D path).
    :mod:`.hull`: the closed body from the plane arrangement (2D path: contour walls + roof planes + ground + the
    dormers' planes, occupancy from the label grid joined with the dormers'); :mod:`.volumetric`: the fallback's
-   planes when the check fails (region growing over voxels with their 3x3x3 blocks' planes, faces rising from the
-   outline's edges by a vote), occupancy from the top surface snapped to those planes.
+   planes when the check fails, or when the 2D model misses its roof points and the fallback fits them clearly
+   better (``ReconstructionConfig.misfit_2d``): region growing over voxels with their 3x3x3 blocks' planes, faces
+   rising from the outline's edges by a vote, occupancy from the top surface snapped to those planes.
 6. :mod:`.overhang`: eave offsets on the DSM (zero crossing of the second directional derivative, placed by a
    two-line step fit, less the DSM's half-cell outward shift), overhang slabs.
 7. :mod:`.model`: the building model and ``buildings/buildings.json``; :mod:`.stage`: the ``buildings`` stage.
