@@ -774,9 +774,11 @@ def timing_pairs(repeat: int, first: tuple[float, float, float, float], run_iat:
     pair of the main pass (IAT first); each further pair alternates which of the two runs first, so that a drift
     of the machine's speed weighs on both. Each HAT gets a new executor from ``new_executor`` (its worker
     processes start and import the solver inside the timed run, as in the main pass). Returns per pair the four
-    figures, the order and the two ratios."""
+    figures, the order, the two ratios and, from the second pair on, HAT's phases and runs (wall seconds, rounds and
+    iterations of each run: what makes one pair slower than another)."""
     pairs = []
     for i in range(repeat):
+        hat_runs = {}
         if i == 0:
             iw, ic, hw, hc = first
         else:
@@ -786,17 +788,25 @@ def timing_pairs(repeat: int, first: tuple[float, float, float, float], run_iat:
                 try:
                     with CpuTime() as cpu:
                         t = time.perf_counter()
-                        run_hat(ex) if name == "hat" else run_iat()
+                        res = run_hat(ex) if name == "hat" else run_iat()
                         wall = time.perf_counter() - t
                 finally:
                     if ex is not None:
                         ex.close()
                 timed[name] = (wall, cpu.seconds)
+                if name == "hat":
+                    hat_runs = {"nadir_phase_s": res.extra["nadir_wall_s"],
+                                "oblique_phase_s": res.extra["oblique_wall_s"],
+                                "runs": {r.name: {"wall_s": r.wall_s, "rounds": r.result.rounds,
+                                                  "iterations": r.result.iterations} for r in res.runs}}
             (iw, ic), (hw, hc) = timed["iat"], timed["hat"]
         pairs.append({"order": "hat first" if i % 2 else "iat first", "iat_wall_s": iw, "iat_cpu_s": ic,
-                      "hat_wall_s": hw, "hat_cpu_s": hc, "wall_ratio": iw / hw, "cpu_ratio": ic / hc})
+                      "hat_wall_s": hw, "hat_cpu_s": hc, "wall_ratio": iw / hw, "cpu_ratio": ic / hc, **hat_runs})
         print(f"timing pair {i + 1}/{repeat} ({pairs[-1]['order']}): IAT {iw:.1f} s, HAT-CBA {hw:.1f} s, "
-              f"{iw / hw:.2f}x (CPU {ic / hc:.2f}x)")
+              f"{iw / hw:.2f}x (CPU {ic / hc:.2f}x)"
+              + (f"; HAT nadir {hat_runs['nadir_phase_s']:.1f} s, obliques {hat_runs['oblique_phase_s']:.1f} s ("
+                 + ", ".join(f"{n} {r['wall_s']:.1f} s {r['rounds']}/{r['iterations']}"
+                             for n, r in hat_runs["runs"].items()) + ", rounds/iterations)" if hat_runs else ""))
     return pairs
 
 
