@@ -36,6 +36,7 @@ if str(ROOT.parent) not in sys.path:
     sys.path.insert(0, str(ROOT.parent))
 
 from oblique_city.core.geometry.projection import project  # noqa: E402
+from oblique_city.core.io.photos import camera_bits  # noqa: E402
 from oblique_city.core.matching.manual import SNAP_MIN_SCORE, SNAP_SEARCH_PX  # noqa: E402
 from oblique_city.core.matching.stage import read_block_grey  # noqa: E402
 from oblique_city.core.matching.targets import TargetShape, measure_target, measure_targets  # noqa: E402
@@ -93,9 +94,10 @@ def main(argv: list[str] | None = None) -> int:
                 for iid in sorted(gp.observations)]
     simulator = [float(np.hypot(*(block.ground_points[n].observations[i] - true_uv(n, i)))) for n, i in in_sight]
 
+    bits = camera_bits(block)  # the cameras' depths, sampled once for every image read below
     t0 = time.perf_counter()
     with Executor("processes", workers=args.workers) as ex:
-        record = measure_targets(block, partial(read_block_grey, block), "all", shape, executor=ex)
+        record = measure_targets(block, partial(read_block_grey, block, bits=bits), "all", shape, executor=ex)
     auto_s = time.perf_counter() - t0
     auto, extra, sight = [], [], set(in_sight)
     for name, p in record["points"].items():
@@ -117,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
             for name, iid in cases:
                 img = block.images[iid]
                 if iid not in greys:
-                    greys[iid] = read_block_grey(block, iid)
+                    greys[iid] = read_block_grey(block, iid, bits)
                 a = rng.uniform(0, 2 * np.pi)
                 click = true_uv(name, iid) + r * np.array([np.cos(a), np.sin(a)])
                 m = measure_target(greys[iid], block.camera_of(img), img.pose_approx, block.ground_points[name].xyz,

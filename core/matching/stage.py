@@ -142,10 +142,13 @@ def _image_path(block, iid: str) -> str:
     return str(resolve_image(block, img.file))
 
 
-def read_block_grey(block, iid: str) -> np.ndarray:
-    """Image ``iid`` of ``block`` as grey values ``(h, w)`` from its file; :class:`InputError` naming it otherwise."""
+def read_block_grey(block, iid: str, bits: dict[str, int | None] | None = None) -> np.ndarray:
+    """Image ``iid`` of ``block`` as grey values ``(h, w)`` from its file; :class:`InputError` naming it otherwise.
+    ``bits``: the block's :func:`.io.photos.camera_bits`, sampled once by a caller that reads many images (else
+    sampled here for this image's camera)."""
     cam = block.images[iid].camera_id
-    return read_photo(_image_path(block, iid), False, iid, camera_bits(block, {cam}).get(cam))
+    bits = camera_bits(block, {cam}) if bits is None else bits
+    return read_photo(_image_path(block, iid), False, iid, bits.get(cam))
 
 
 def _photos(block, ids, bits: dict[str, int | None]) -> dict[str, tuple[str, int | None]]:
