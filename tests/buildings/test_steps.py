@@ -10,6 +10,7 @@ from oblique_city.core.buildings.contour import (
     Fragment,
     close_contour,
     extract_contour,
+    ring_outside,
     walls_under_roof_outline,
 )
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
@@ -716,7 +717,7 @@ def test_piece_across_a_step_between_parallel_walls_is_dropped_and_the_step_stay
     cols, rows = np.meshgrid(np.arange(48), np.arange(30))
     centres = origin + (np.column_stack([cols.ravel(), rows.ravel()]) + 0.5) * cell
     mask = points_in_polygon(centres, truth).reshape(rows.shape)
-    poly = close_contour(frags, mask, origin, cell, ContourConfig())
+    poly, _ = close_contour(frags, mask, origin, cell, ContourConfig())
     d = np.linalg.norm(truth[:, None] - poly[None], axis=2)
     assert len(poly) == 6
     assert d.min(1).max() < 0.4  # the step's corners at x = 10, square (the piece made them 1 m apart)
@@ -744,3 +745,18 @@ def test_overhang_over_a_short_edge_whose_eave_points_meet_has_no_fascia(eave_mm
     # the overhang reaches the eave 0.2 m out from the cut's middle
     eave = verts[[v for v in kinds["overhang_roof"] if v >= len(V)]]
     assert np.abs(np.linalg.norm(eave[:, :2] - [5.0 + c / 2, 4.0 + c / 2], axis=1) - w).max() < 3e-3
+
+
+def test_a_ring_straying_from_the_occupancy_is_measured():
+    # a 20 x 10 m occupancy; the ring along its edge stays on it, one whose corner reaches 3 m beyond it does not
+    cell, origin = 0.5, np.array([-2.0, -2.0])
+    truth = np.array([[0, 0], [20, 0], [20, 10], [0, 10]], float)
+    cols, rows = np.meshgrid(np.arange(48), np.arange(30))
+    centres = origin + (np.column_stack([cols.ravel(), rows.ravel()]) + 0.5) * cell
+    mask = points_in_polygon(centres, truth).reshape(rows.shape)
+    diagonal = cell * np.sqrt(2)  # the measure goes between cell centres
+    assert ring_outside(truth, mask, origin, cell) <= diagonal
+    stray = truth.copy()
+    stray[2] += (3.0, 0.0)
+    assert 3.0 <= ring_outside(stray, mask, origin, cell) <= 3.0 + diagonal
+    assert ring_outside(truth + 40.0, mask, origin, cell) == float("inf")  # off the grid
