@@ -300,6 +300,9 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
     ring = [(frags[k], b0, b1) for k, b0, b1 in seq]
     if len(ring) > 3:
         ring = [r for i, r in enumerate(ring) if i not in set(_step_pieces([f for f, _, _ in ring], cos_par))]
+    if len(ring) > 3:
+        ring = [r for i, r in enumerate(ring) if i not in set(_fillet_pieces([f for f, _, _ in ring], mask, origin,
+                                                                              cell))]
     if len(ring) < 3:
         raise ValueError("fewer than three wall fragments around the building")
 
@@ -346,6 +349,36 @@ def _step_pieces(ring: list[Fragment], cos_par: float, short: float = 2.5, squar
     for i in range(k):
         f, s, g = ring[i - 1], ring[i], ring[(i + 1) % k]
         if s.t1 - s.t0 < short and abs(f.d @ g.d) > cos_par and cos_sq < abs(s.d @ f.d) <= cos_par:
+            out.append(i)
+    return out
+
+
+def _fillet_pieces(ring: list[Fragment], mask: np.ndarray, origin: np.ndarray, cell: float, short: float = 4.0,
+                   square_deg: float = 70.0, skew_deg: float = 25.0, probe: float = 1.5) -> list[int]:
+    """Positions in the cyclic sequence ``ring`` of short fragments (under ``short`` m) running about 45 degrees
+    (within ``skew_deg``) across an inner corner of two square neighbours (within ``square_deg``): the dense
+    cloud rounds a concave corner off (matching smooths it), and a wall line fitted to the rounded points cuts
+    across the open ground before the corner. The corner is inner when the mask is occupied ``probe`` m beyond the
+    neighbours' intersection, away from the piece (past an outer corner lies open ground, and a piece across it is
+    a chamfer, which stays). A ring of seed 5's dense cloud (accepted in a trial with the sloping ground taken off
+    the occupancy) had a 2.8 m piece at a U's inner corner and passed 1.3 m from it; without the piece, 0.22 m."""
+    out = []
+    k = len(ring)
+    cos_sq = np.cos(np.radians(square_deg))
+    cos_lo, cos_hi = np.cos(np.radians(45 + skew_deg)), np.cos(np.radians(45 - skew_deg))
+    for i in range(k):
+        f, s, g = ring[i - 1], ring[i], ring[(i + 1) % k]
+        if s.t1 - s.t0 >= short or abs(f.d @ g.d) > cos_sq:
+            continue
+        if not (cos_lo < abs(s.d @ f.d) < cos_hi and cos_lo < abs(s.d @ g.d) < cos_hi):
+            continue
+        c = _intersect(f, g)
+        if c is None:
+            continue
+        u = c - (s.p + 0.5 * (s.t0 + s.t1) * s.d)
+        if np.linalg.norm(u) < 1e-6:
+            continue
+        if _occupied(mask, origin, cell, c + probe * u / np.linalg.norm(u))[0]:
             out.append(i)
     return out
 

@@ -760,3 +760,33 @@ def test_a_ring_straying_from_the_occupancy_is_measured():
     stray[2] += (3.0, 0.0)
     assert 3.0 <= ring_outside(stray, mask, origin, cell) <= 3.0 + diagonal
     assert ring_outside(truth + 40.0, mask, origin, cell) == float("inf")  # off the grid
+
+
+def _frag(a, b, support=100) -> Fragment:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return Fragment(a, (b - a) / np.linalg.norm(b - a), 0.0, float(np.linalg.norm(b - a)), support)
+
+
+def _grid_mask(truth: np.ndarray, cell: float, origin: np.ndarray, cols: int, rows: int) -> np.ndarray:
+    c, r = np.meshgrid(np.arange(cols), np.arange(rows))
+    return points_in_polygon(origin + (np.column_stack([c.ravel(), r.ravel()]) + 0.5) * cell, truth).reshape(r.shape)
+
+
+def test_a_piece_rounding_an_inner_corner_off_is_dropped_and_a_chamfer_stays():
+    cell, origin = 0.5, np.array([-2.0, -2.0])
+    # an L whose inner corner (8, 8) the dense cloud rounded off: a 2.5 m piece at 45 degrees across it, over the
+    # open ground beyond the corner; left in, the ring has 7 corners and passes 1.3 m from the true one
+    truth = np.array([[0, 0], [20, 0], [20, 8], [8, 8], [8, 16], [0, 16]], float)
+    frags = [_frag((0.3, 0), (19.7, 0)), _frag((20, 0.3), (20, 7.7)), _frag((19.7, 8), (9.8, 8)),
+             _frag((9.75, 8.05), (8.05, 9.75)), _frag((8, 9.8), (8, 15.7)), _frag((7.7, 16), (0.3, 16)),
+             _frag((0, 15.7), (0, 0.3))]
+    poly, _ = close_contour(frags, _grid_mask(truth, cell, origin, 48, 40), origin, cell, ContourConfig())
+    assert len(poly) == 6
+    assert np.linalg.norm(poly - [8.0, 8.0], axis=1).min() < 0.1
+    # a corner cut off at 45 degrees (open ground beyond the corner): a chamfer, kept
+    truth = np.array([[0, 0], [20, 0], [20, 8], [18, 10], [0, 10]], float)
+    frags = [_frag((0.3, 0), (19.7, 0)), _frag((20, 0.3), (20, 7.8)), _frag((19.9, 8.1), (18.1, 9.9)),
+             _frag((17.8, 10), (0.3, 10)), _frag((0, 9.7), (0, 0.3))]
+    poly, _ = close_contour(frags, _grid_mask(truth, cell, origin, 48, 30), origin, cell, ContourConfig())
+    assert len(poly) == 5
+    assert np.linalg.norm(truth[:, None] - poly[None], axis=2).min(1).max() < 0.1
