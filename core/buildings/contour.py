@@ -71,8 +71,9 @@ class Fragment:
 class Contour:
     """polygon : (m, 2) counter-clockwise wall outline; fragments : the wall lines used; facade_cells : (k, 2)
     int grid indices (col, row); origin : grid origin (2,); cell : grid size; source : facades or the roof
-    outline fallback (with the reason); walls_inferred : edges placed by the building's median overhang because
-    no facade point shows their wall (an assumption, not a measurement)."""
+    outline fallback (with the reason); walls_inferred : edges placed where no facade point shows their wall, by
+    the building's median overhang (roof outline) or by the eaves' reach beyond the walls seen (facade ring): an
+    assumption, not a measurement."""
 
     polygon: np.ndarray
     fragments: tuple[Fragment, ...]
@@ -436,7 +437,7 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
     k = len(bxy)
     gap = bxy[(f_last + 1 + np.arange((g_first - f_last - 1) % k)) % k]
     if offset > reach and len(gap) >= 2:
-        # across the fragments' mean direction, pointing out of the building at f's end
+        # across the fragments' mean direction, pointing past f's end
         out = f.d + (g.d if g.d @ f.d > 0 else -g.d)
         out /= np.linalg.norm(out)
         out = out if (end_f - f.p) @ out >= 0.5 * (f.t0 + f.t1) * float(f.d @ out) else -out
