@@ -701,23 +701,25 @@ def test_step_placed_where_the_eaves_step_when_the_facade_beside_it_is_hidden():
     assert d.max() < 0.25  # the steps' corners included
 
 
-def test_piece_across_a_step_between_parallel_walls_is_dropped_and_the_step_stays_square():
-    def frag(a, b, support=100):
-        a, b = np.asarray(a, float), np.asarray(b, float)
-        d = (b - a) / np.linalg.norm(b - a)
-        return Fragment(a, d, 0.0, float(np.linalg.norm(b - a)), support)
+def _frag(a, b, support=100) -> Fragment:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return Fragment(a, (b - a) / np.linalg.norm(b - a), 0.0, float(np.linalg.norm(b - a)), support)
 
+
+def _grid_mask(truth: np.ndarray, cell: float, origin: np.ndarray, cols: int, rows: int) -> np.ndarray:
+    c, r = np.meshgrid(np.arange(cols), np.arange(rows))
+    return points_in_polygon(origin + (np.column_stack([c.ravel(), r.ravel()]) + 0.5) * cell, truth).reshape(r.shape)
+
+
+def test_piece_across_a_step_between_parallel_walls_is_dropped_and_the_step_stays_square():
     # a 20 x 10 m block whose north wall steps out by 1 m at x = 10; the fragments of its walls stop short of
     # the step, where a 1.2 m piece fitted to the step's corner points runs across it at 40 degrees
     truth = np.array([[0, 0], [20, 0], [20, 11], [10, 11], [10, 10], [0, 10]], float)
-    frags = [frag((0.3, 0), (19.7, 0)), frag((20, 0.3), (20, 10.7)), frag((19.7, 11), (11.2, 11)),
-             frag((10.9, 10.8), (9.98, 10.03)), frag((9.5, 10), (0.3, 10)), frag((0, 9.7), (0, 0.3))]
+    frags = [_frag((0.3, 0), (19.7, 0)), _frag((20, 0.3), (20, 10.7)), _frag((19.7, 11), (11.2, 11)),
+             _frag((10.9, 10.8), (9.98, 10.03)), _frag((9.5, 10), (0.3, 10)), _frag((0, 9.7), (0, 0.3))]
     cell = 0.5
     origin = np.array([-2.0, -2.0])
-    cols, rows = np.meshgrid(np.arange(48), np.arange(30))
-    centres = origin + (np.column_stack([cols.ravel(), rows.ravel()]) + 0.5) * cell
-    mask = points_in_polygon(centres, truth).reshape(rows.shape)
-    poly, _ = close_contour(frags, mask, origin, cell, ContourConfig())
+    poly, _ = close_contour(frags, _grid_mask(truth, cell, origin, 48, 30), origin, cell, ContourConfig())
     d = np.linalg.norm(truth[:, None] - poly[None], axis=2)
     assert len(poly) == 6
     assert d.min(1).max() < 0.4  # the step's corners at x = 10, square (the piece made them 1 m apart)
@@ -751,25 +753,13 @@ def test_a_ring_straying_from_the_occupancy_is_measured():
     # a 20 x 10 m occupancy; the ring along its edge stays on it, one whose corner reaches 3 m beyond it does not
     cell, origin = 0.5, np.array([-2.0, -2.0])
     truth = np.array([[0, 0], [20, 0], [20, 10], [0, 10]], float)
-    cols, rows = np.meshgrid(np.arange(48), np.arange(30))
-    centres = origin + (np.column_stack([cols.ravel(), rows.ravel()]) + 0.5) * cell
-    mask = points_in_polygon(centres, truth).reshape(rows.shape)
+    mask = _grid_mask(truth, cell, origin, 48, 30)
     diagonal = cell * np.sqrt(2)  # the measure goes between cell centres
     assert ring_outside(truth, mask, origin, cell) <= diagonal
     stray = truth.copy()
     stray[2] += (3.0, 0.0)
     assert 3.0 <= ring_outside(stray, mask, origin, cell) <= 3.0 + diagonal
     assert ring_outside(truth + 40.0, mask, origin, cell) == float("inf")  # off the grid
-
-
-def _frag(a, b, support=100) -> Fragment:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    return Fragment(a, (b - a) / np.linalg.norm(b - a), 0.0, float(np.linalg.norm(b - a)), support)
-
-
-def _grid_mask(truth: np.ndarray, cell: float, origin: np.ndarray, cols: int, rows: int) -> np.ndarray:
-    c, r = np.meshgrid(np.arange(cols), np.arange(rows))
-    return points_in_polygon(origin + (np.column_stack([c.ravel(), r.ravel()]) + 0.5) * cell, truth).reshape(r.shape)
 
 
 def test_a_piece_rounding_an_inner_corner_off_is_dropped_and_a_chamfer_stays():
