@@ -63,7 +63,7 @@ def run_case(name: str, xyz: np.ndarray, dsm, dtm, truths: list[BuildingTruth], 
     scores, failures, matched = [], [], set()
     for d in dets:
         bid = f"B{d.label:04d}"
-        _, md, err = reconstruct_unit((bid, xyz[d.indices], d.ground_z, dsm, ReconstructionConfig()))
+        _, md, err = reconstruct_unit((bid, xyz[d.indices], d.ground_z, dsm, ReconstructionConfig(), dtm))
         if md is None:
             c = xyz[d.indices, :2].mean(0)
             failures.append({"id": bid, "at": c.round(1).tolist(), "reason": f"reconstruction failed: {err}"})

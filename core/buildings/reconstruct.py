@@ -181,7 +181,8 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
 
 
 def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, bid: str,
-                         cfg: ReconstructionConfig = ReconstructionConfig()) -> BuildingModel:
+                         cfg: ReconstructionConfig = ReconstructionConfig(),
+                         dtm: Raster | None = None) -> BuildingModel:
     """Reconstruct one building.
 
     Parameters
@@ -190,6 +191,9 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     ground_z : terrain height at the building (from the DTM)
     dsm : ortho DSM for the overhangs (None: no overhangs)
     bid : building id
+    dtm : terrain model; the occupancy the contour closes along (:func:`.contour.building_mask`) is then taken
+        above the terrain under each point, not above ``ground_z`` (None: above ``ground_z``): ground sloping up
+        from the building otherwise enters it
 
     Raises
     ------
@@ -199,15 +203,17 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     info: dict = {"n_points": int(len(xyz))}
     offset = np.array([float(np.mean(xyz[:, 0])), float(np.mean(xyz[:, 1])), 0.0])
     xl = np.asarray(xyz, dtype=np.float64) - offset
+    ground = None if dtm is None else np.where(np.isfinite(g := dtm.sample(xyz[:, :2])), g, ground_z)
     if cfg.denoise:
         nf = voxel_noise_filter(xl, cfg.voxel or None)
         xl = xl[nf.keep]
+        ground = None if ground is None else ground[nf.keep]
         voxel, noise = nf.voxel, nf.sigma
         info.update(noise_removed=int((~nf.keep).sum()), voxel=voxel, noise=noise)
     else:
         voxel, noise = (cfg.voxel or 0.6), 0.05
     try:
-        contour = extract_contour(xl, ground_z, cfg.contour)
+        contour = extract_contour(xl, ground_z, cfg.contour, ground)
     except ValueError as e:
         raise ValueError(f"contour: {e}") from None
     polygon = contour.polygon

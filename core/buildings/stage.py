@@ -69,10 +69,10 @@ def _window(r: Raster, xy: np.ndarray, margin: float) -> Raster:
 
 
 def reconstruct_unit(unit: tuple) -> tuple[str, dict | None, str]:
-    """Executor unit: ``(id, xyz, ground_z, dsm window, config)`` -> (id, model dict or None, error)."""
-    bid, xyz, ground_z, dsm, cfg = unit
+    """Executor unit: ``(id, xyz, ground_z, dsm window, config, dtm window)`` -> (id, model dict or None, error)."""
+    bid, xyz, ground_z, dsm, cfg, dtm = unit
     try:
-        return bid, reconstruct_building(xyz, ground_z, dsm, bid, cfg).to_dict(), ""
+        return bid, reconstruct_building(xyz, ground_z, dsm, bid, cfg, dtm).to_dict(), ""
     except ValueError as e:  # a step could not do its job on this building: the message says which
         return bid, None, str(e)
     except (ArithmeticError, IndexError, np.linalg.LinAlgError) as e:
@@ -111,8 +111,8 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
     rcfg = ReconstructionConfig(voxel=cfg.voxel, force_path=cfg.force_path, max_roof_fit=cfg.max_roof_fit,
                                 overhang=OverhangConfig(max_width=cfg.max_overhang, thickness=cfg.overhang_thickness),
                                 dormers=DormerConfig(enabled=cfg.dormers, min_rise=cfg.dormer_min_rise))
-    units = [(f"B{d.label:04d}", xyz[d.indices], d.ground_z, _window(dsm, xyz[d.indices, :2], 5.0), rcfg)
-             for d in dets if len(d.indices) >= 50]
+    units = [(f"B{d.label:04d}", xyz[d.indices], d.ground_z, _window(dsm, xyz[d.indices, :2], 5.0), rcfg,
+              _window(dtm, xyz[d.indices, :2], 5.0)) for d in dets if len(d.indices) >= 50]
     skipped = [{"id": f"B{d.label:04d}", "reason": f"only {len(d.indices)} points"} for d in dets
                if len(d.indices) < 50]
     results = ctx.get_executor().map(reconstruct_unit, units,
@@ -142,4 +142,4 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="buildings", run=run, config=BuildingsConfig, requires=("surface",),
-              description="LOD2 buildings with discontinuities, roof overhangs and dormers", version="22")
+              description="LOD2 buildings with discontinuities, roof overhangs and dormers", version="23")

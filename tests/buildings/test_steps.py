@@ -8,6 +8,7 @@ import pytest
 from oblique_city.core.buildings.contour import (
     ContourConfig,
     Fragment,
+    building_mask,
     close_contour,
     extract_contour,
     ring_outside,
@@ -762,7 +763,7 @@ def test_a_ring_straying_from_the_occupancy_is_measured():
     assert ring_outside(truth + 40.0, mask, origin, cell) == float("inf")  # off the grid
 
 
-def test_a_piece_rounding_an_inner_corner_off_is_dropped_and_a_chamfer_stays():
+def test_a_piece_rounding_an_inner_corner_off_is_dropped():
     cell, origin = 0.5, np.array([-2.0, -2.0])
     # an L whose inner corner (8, 8) the dense cloud rounded off: a 2.5 m piece at 45 degrees across it, over the
     # open ground beyond the corner; left in, the ring has 7 corners and passes 1.3 m from the true one
@@ -773,10 +774,38 @@ def test_a_piece_rounding_an_inner_corner_off_is_dropped_and_a_chamfer_stays():
     poly, _ = close_contour(frags, _grid_mask(truth, cell, origin, 48, 40), origin, cell, ContourConfig())
     assert len(poly) == 6
     assert np.linalg.norm(poly - [8.0, 8.0], axis=1).min() < 0.1
-    # a corner cut off at 45 degrees (open ground beyond the corner): a chamfer, kept
-    truth = np.array([[0, 0], [20, 0], [20, 8], [18, 10], [0, 10]], float)
-    frags = [_frag((0.3, 0), (19.7, 0)), _frag((20, 0.3), (20, 7.8)), _frag((19.9, 8.1), (18.1, 9.9)),
-             _frag((17.8, 10), (0.3, 10)), _frag((0, 9.7), (0, 0.3))]
+
+
+@pytest.mark.parametrize("chamfer", [True, False])
+def test_a_piece_across_an_outer_corner_stays_a_chamfer_only_when_it_cuts_deep(chamfer):
+    # open ground beyond the corner (20, 10) of a 20 x 10 m block, a piece at 45 degrees across it: cutting 1.41 m
+    # deep it is a chamfer and stays; cutting 0.39 m it is the dense cloud rounding the corner off (the rendered
+    # demo had one of 0.51 m, seed 5 one of 0.27 m) and goes, else the true corner lies 0.39 m from the ring
+    cell, origin = 0.5, np.array([-2.0, -2.0])
+    if chamfer:
+        truth = np.array([[0, 0], [20, 0], [20, 8], [18, 10], [0, 10]], float)
+        piece, ends = _frag((19.9, 8.1), (18.1, 9.9)), (7.8, 17.8)
+    else:
+        truth = np.array([[0, 0], [20, 0], [20, 10], [0, 10]], float)
+        piece, ends = _frag((20.45, 9.0), (19.0, 10.45)), (8.6, 18.6)
+    frags = [_frag((0.3, 0), (19.7, 0)), _frag((20, 0.3), (20, ends[0])), piece, _frag((ends[1], 10), (0.3, 10)),
+             _frag((0, 9.7), (0, 0.3))]
     poly, _ = close_contour(frags, _grid_mask(truth, cell, origin, 48, 30), origin, cell, ContourConfig())
-    assert len(poly) == 5
+    assert len(poly) == len(truth)
     assert np.linalg.norm(truth[:, None] - poly[None], axis=2).min(1).max() < 0.1
+
+
+def test_the_occupancy_leaves_ground_sloping_up_from_the_building_out():
+    # a flat-roofed 10 x 8 m block on ground rising 0.3 m per metre eastwards from its middle, 1.5 m above the
+    # building's ground height at its east wall: above that height the slope beyond the wall joins the occupancy,
+    # above the terrain under each point it does not
+    cell, origin = 0.5, np.array([-6.0, -6.0])
+    g = np.arange(-5.0, 25.0, 0.25)
+    x, y = (a.ravel() for a in np.meshgrid(g, np.arange(-5.0, 13.0, 0.25)))
+    inside = (x >= 0) & (x <= 10) & (y >= 0) & (y <= 8)
+    terrain = np.clip(0.3 * (x - 5.0), 0.0, None)
+    xyz = np.column_stack([x, y, np.where(inside, 6.0, terrain)])
+    cols = np.flatnonzero(building_mask(xyz, 0.0, origin, cell).any(0))
+    assert origin[0] + (cols.max() + 1) * cell > 20.0  # the slope taken in, 10 m and more beyond the wall
+    cols = np.flatnonzero(building_mask(xyz, 0.0, origin, cell, ground=terrain).any(0))
+    assert origin[0] + cols.min() * cell == pytest.approx(0.0) and origin[0] + (cols.max() + 1) * cell <= 10.5
