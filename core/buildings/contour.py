@@ -422,34 +422,32 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
     boundary ``bxy (n, 2)`` (``out_sign`` +1 when it runs counter-clockwise), where ``f``'s boundary run ends at
     index ``f_last`` and ``g``'s starts at ``g_first``.
 
-    The ends joined are those where the boundary leaves ``f`` and reaches ``g`` (for opposite walls the ends
-    nearest to the other fragment are no guide: both are about as far). A step between offset walls (at most
-    ``reach`` apart) gets its short connecting wall where the eaves step (:func:`_step_change` on the roof
-    points ``top (k, 2)``), kept within the gap between these ends (an upper part's eave reaching past its wall
-    over the lower roof shifts the eaves' step), else halfway between the ends: the lower part's facade is often
-    hidden next to the step, and the fragments stopped 1.5-4 m short of it on simulated split gables (where the
-    facade points change from one wall to the other placed it worse still). Farther apart, a wall no
-    fragment shows lies between them: the boundary points of the gap (farther than ``reach`` from both fragments)
-    trace it. It is placed square to the fragments' mean direction (a regression line through the boundary
-    cells' staircase tilted a 6 degree wall the wrong way), at the gap points' median position along that
-    direction, half a cell out (boundary cells' centres lie inside the mask's edge), then moved in onto the
-    facade points below it (:func:`wall_depth`) when ``points`` (the building's ``xyz (n, 3)``, the ground height)
-    show them: the mask reaches as far as the dense cloud's outermost points. When they show none, it is placed
-    ``roof_reach`` inside the eave over the gap (the roof points' 98th percentile outwards), ``roof_reach`` being
-    how far the roof points reach beyond the two walls beside it (:func:`_roof_reach`), both measured on the roof
-    points alike; without them it is moved in by ``spread``, how far the mask reaches beyond the walls the
-    fragments show (:func:`_mask_spread`: the eaves; left on the mask's edge, such a wall of the gabled test house
-    stood 0.63-0.91 m out, on the eave line). The mask's reach is the building's, a cell coarse and widened by its
-    closing, where the gable end of a wing can overhang less than the main eaves: on seed 5's dense cloud the wings
-    of u_mixed (0.2 m overhangs, 0.5 m on the main block) had their end walls 0.34-0.47 m inside, 0.17-0.23 m by
-    the roof points beside them. Without
-    gap points, the connecting wall is halfway between the ends. Where the mask reaches more than ``eave_gap`` m
-    beyond the roof points ``top`` over the gap, the ground before the wall stands above the building's ground
-    height and took cells in: the edge is taken at the roof points' end instead (seed 6's dense cloud, a wall behind
-    a street 0.9-1.1 m higher: 0.9 m out, now 0.3 m; the gabled test house with the ground before an unseen wall
-    raised 1.1 m over 3 m: 2.4 m out, now 0.1-0.2 m, by the roof outline the ring then gives way to). Returns the
-    corner on ``f``'s line and the one on ``g``'s, and whether the wall between them was placed where no facade
-    point shows it."""
+    The ends joined are those where the boundary leaves ``f`` and reaches ``g`` (for opposite walls the ends nearest
+    to the other fragment are no guide: both are about as far). A step between offset walls (at most ``reach``
+    apart) gets its short connecting wall where the eaves step (:func:`_step_change` on the roof points
+    ``top (k, 2)``), kept within the gap between these ends (an upper part's eave reaching past its wall over the
+    lower roof shifts the eaves' step), else halfway between the ends: the lower part's facade is often hidden next
+    to the step, and the fragments stopped 1.5-4 m short of it on simulated split gables (where the facade points
+    change from one wall to the other placed it worse still). Farther apart, a wall no fragment shows lies between
+    them: the boundary points of the gap (farther than ``reach`` from both fragments) trace it. It is placed square
+    to the fragments' mean direction (a regression line through the boundary cells' staircase tilted a 6 degree wall
+    the wrong way), at the gap points' median position along that direction, half a cell out (boundary cells'
+    centres lie inside the mask's edge), then moved in onto the facade points below it (:func:`wall_depth`) when
+    ``points`` (the building's ``xyz (n, 3)``, the ground height) show them: the mask reaches as far as the dense
+    cloud's outermost points. When they show none, it is placed ``roof_reach`` inside the eave over the gap (the
+    roof points' 98th percentile outwards), ``roof_reach`` being how far the roof points reach beyond the two walls
+    beside it (:func:`_roof_reach`), both measured on the roof points alike; without them it is moved in by
+    ``spread``, how far the mask reaches beyond the walls the fragments show (:func:`_mask_spread`: the eaves; left
+    on the mask's edge, such a wall of the gabled test house stood 0.63-0.91 m out, on the eave line). The mask's
+    reach is the building's, a cell coarse and widened by its closing, where the gable end of a wing can overhang
+    less than the main eaves: on seed 5's dense cloud the wings of u_mixed (0.2 m overhangs, 0.5 m on the main
+    block) had their end walls 0.34-0.47 m inside, 0.17-0.23 m by the roof points beside them. Without gap points,
+    the connecting wall is halfway between the ends. Where the mask reaches more than ``eave_gap`` m beyond the roof
+    points ``top`` over the gap, the ground before the wall stands above the building's ground height and took cells
+    in: the edge is taken at the roof points' end instead (seed 6's dense cloud, a wall behind a street 0.9-1.1 m
+    higher: 0.9 m out, now 0.3 m; the gabled test house with the ground before an unseen wall raised 1.1 m over 3 m:
+    2.4 m out, now 0.1-0.2 m, by the roof outline the ring then gives way to). Returns the corner on ``f``'s line
+    and the one on ``g``'s, and whether the wall between them was placed where no facade point shows it."""
     end_f, start_g = _ring_end(f, bxy[f_last]), _ring_end(g, bxy[g_first])
     mid = (end_f + start_g) / 2
     offset = abs(float((g.p - f.p) @ np.array([-f.d[1], f.d[0]])))
@@ -493,12 +491,10 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
         unseen = False
         if points is not None:
             depth = wall_depth(*ends(c), side * out, *points)
-            # no facade point shows the wall: the mask reaches beyond it as far as beyond the walls seen
+            # no facade point shows the wall: the roof reaches beyond it as far as beyond the walls beside it
             unseen = bool(np.isnan(depth))
             if unseen and eave is not None and roof_reach is not None and np.isfinite(roof_reach):
-                # the eave over the gap less the roof points' reach beyond the walls beside it, both measured on the
-                # roof points alike
-                c = eave - side * roof_reach
+                c = eave - side * roof_reach  # both measured on the roof points alike
             else:
                 c -= side * (spread if unseen else depth if 0.0 < depth < 2.0 else 0.0)
         return ends(c), unseen
