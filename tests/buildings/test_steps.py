@@ -712,12 +712,15 @@ def _grid_mask(truth: np.ndarray, cell: float, origin: np.ndarray, cols: int, ro
     return points_in_polygon(origin + (np.column_stack([c.ravel(), r.ravel()]) + 0.5) * cell, truth).reshape(r.shape)
 
 
-def test_piece_across_a_step_between_parallel_walls_is_dropped_and_the_step_stays_square():
+@pytest.mark.parametrize("piece, ends", [(((10.9, 10.8), (9.98, 10.03)), (11.2, 9.5)),
+                                         (((11.6, 11.0), (9.1, 10.0)), (11.9, 8.8))])
+def test_piece_across_a_step_between_parallel_walls_is_dropped_and_the_step_stays_square(piece, ends):
     # a 20 x 10 m block whose north wall steps out by 1 m at x = 10; the fragments of its walls stop short of
-    # the step, where a 1.2 m piece fitted to the step's corner points runs across it at 40 degrees
+    # the step, where a piece fitted to the step's corner points runs across it: 1.2 m at 40 degrees, or 2.7 m at
+    # 22 degrees (seed 6's dense cloud had one of 2.64 m across a 1 m step of stepped_flat: 0.6 m from the corner)
     truth = np.array([[0, 0], [20, 0], [20, 11], [10, 11], [10, 10], [0, 10]], float)
-    frags = [_frag((0.3, 0), (19.7, 0)), _frag((20, 0.3), (20, 10.7)), _frag((19.7, 11), (11.2, 11)),
-             _frag((10.9, 10.8), (9.98, 10.03)), _frag((9.5, 10), (0.3, 10)), _frag((0, 9.7), (0, 0.3))]
+    frags = [_frag((0.3, 0), (19.7, 0)), _frag((20, 0.3), (20, 10.7)), _frag((19.7, 11), (ends[0], 11)),
+             _frag(*piece), _frag((ends[1], 10), (0.3, 10)), _frag((0, 9.7), (0, 0.3))]
     cell = 0.5
     origin = np.array([-2.0, -2.0])
     poly, _ = close_contour(frags, _grid_mask(truth, cell, origin, 48, 30), origin, cell, ContourConfig())
