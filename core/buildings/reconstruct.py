@@ -191,9 +191,9 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     ground_z : terrain height at the building (from the DTM)
     dsm : ortho DSM for the overhangs (None: no overhangs)
     bid : building id
-    dtm : terrain model; the occupancy the contour closes along (:func:`.contour.building_mask`) is then taken
-        above the terrain under each point, not above ``ground_z`` (None: above ``ground_z``): ground sloping up
-        from the building otherwise enters it
+    dtm : terrain model; the occupancy the contour closes along (:func:`.contour.building_mask`) and the facade
+        points that place its walls (:func:`.contour.wall_depth`) are then taken over the terrain under each point,
+        not over ``ground_z`` (None: over ``ground_z``): ground sloping up from the building otherwise enters them
 
     Raises
     ------
