@@ -406,6 +406,40 @@ def test_a_wall_is_placed_below_its_level_eave_where_the_ground_rises_along_it(r
     assert abs(d - depth) < 0.05
 
 
+def _three_steps() -> SyntheticBuilding:
+    """Three flat parts, each 1 m narrower and 4 m lower than the one before, with 0.3 m eaves (a stepped_flat)."""
+    parts = (Part(0, 0, 10.5, 12, 15, 15, "flat", 0.3), Part(10, 1, 20, 11, 11, 11, "flat", 0.3),
+             Part(19.5, 2, 29, 10, 7, 7, "flat", 0.3))
+    return SyntheticBuilding("stepped", parts,
+                             ((0, 0), (10.5, 0), (10.5, 1), (20, 1), (20, 2), (29, 2), (29, 10), (20, 10), (20, 11),
+                              (10.5, 11), (10.5, 12), (0, 12)), (0.3,) * 12, origin=(300.0, 100.0), angle_deg=-8.0)
+
+
+@pytest.mark.parametrize("seed", [7, 8])
+def test_the_wall_at_a_step_between_offset_walls_stands_on_its_own_facade_points(seed):
+    # the short walls at the steps were placed where the eaves step, which the outer part's eave moves past its end
+    # wall (0.08-0.21 m off here; 0.2-0.4 m on stepped_flat of the benchmark cities); on their own facade points, 0.01 m
+    b = _three_steps()
+    m = reconstruct_building(b.sample(25.0, 0.04, np.random.default_rng(seed)), 0.0, None, "B0001")
+    assert m.info["contour_source"] == "facades"
+    assert _outline_error(np.asarray(m.footprint), b.footprint) < 0.05
+
+
+def test_the_upper_roof_overhangs_the_lower_one_where_a_step_wall_continues_an_outline_wall():
+    # the steps' walls inside the outline lie on the planes of the outline's short walls, continued; the upper roof's
+    # 0.3 m overhang over the lower one was not built there (its edge stood on the wall), and is now
+    from oblique_city.core.buildings.attributes import model_top_height
+
+    b = _three_steps()
+    rng = np.random.default_rng(7)
+    dsm, dtm = b.dsm(0.15, 0.02, rng)
+    m = reconstruct_building(b.sample(25.0, 0.04, rng), 0.0, dsm, "B0001", dtm=dtm)
+    v = np.linspace(3.0, 9.0, 7)
+    for u, upper in ((10.65, 15.0), (20.15, 11.0)):  # 0.15 m beyond each step's wall, under the upper eave
+        z = model_top_height(m, b.to_world(np.column_stack([np.full_like(v, u), v])))
+        assert np.all(np.abs(z - upper) < 0.2)
+
+
 @pytest.mark.parametrize("overhang", [1.2, 1.5])
 def test_wide_eaves_keep_the_facade_ring(overhang):
     # an alpine house whose eaves reach beyond the coverage test's fixed margin (1.2 m; the occupancy spreads a
