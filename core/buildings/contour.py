@@ -380,7 +380,10 @@ def _fillet_pieces(ring: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
     too). A ring of seed 5's dense cloud (accepted in a trial with the sloping ground taken off the occupancy) had a
     2.8 m piece at a U's inner corner and passed 1.3 m from it; without the piece, 0.22 m. At outer corners the
     rendered demo's hip_dormers had a 1.3 m piece cutting 0.51 m off (the true corner 0.49 m from the ring) and seed
-    5's t_mixed one cutting 0.27 m (0.27 m): at 0.16 m GSD such cuts are the dense cloud's, not the building's."""
+    5's t_mixed one cutting 0.27 m (0.27 m): at 0.16 m GSD such cuts are the dense cloud's, not the building's. A
+    piece whose line meets a neighbour's line beyond the corner does not cut it but crosses it, and goes as well
+    (seed 6's u_mixed, own dense cloud: a 1.3 m piece at the main block's outer corner, about square to where a
+    chamfer would run, made a spike 0.93 m out)."""
     out = []
     k = len(ring)
     cos_sq = np.cos(np.radians(square_deg))
@@ -398,7 +401,10 @@ def _fillet_pieces(ring: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
         if np.linalg.norm(u) < 1e-6:
             continue
         cut = abs(float((c - s.p) @ np.array([-s.d[1], s.d[0]])))  # from the corner to the piece's line
-        if cut < min_cut or _occupied(mask, origin, cell, c + probe * u / np.linalg.norm(u))[0]:
+        # a chamfer meets each neighbour's line on that neighbour's side of the corner
+        beyond = any(q is not None and (q - c) @ (n.p + 0.5 * (n.t0 + n.t1) * n.d - c) < 0
+                     for n in (f, g) for q in [_intersect(s, n)])
+        if beyond or cut < min_cut or _occupied(mask, origin, cell, c + probe * u / np.linalg.norm(u))[0]:
             out.append(i)
     return out
 
