@@ -456,10 +456,10 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
     walls 0.34-0.47 m inside, 0.17-0.23 m by the roof points beside them. Without gap points, the connecting wall is
     halfway between the ends. Where the mask reaches more than ``eave_gap`` m beyond the roof points ``top`` over the
     gap, the ground before the wall stands above the building's ground height and took cells in: the edge is taken at
-    the roof points' end instead (seed 6's dense cloud, a wall behind a street 0.9-1.1 m higher: 0.9 m out, now 0.3
-    m; the gabled test house with the ground before an unseen wall raised 1.1 m over 3 m: 2.4 m out, now 0.1-0.2 m,
-    by the roof outline the ring then gives way to). Returns the corner on ``f``'s line and the one on ``g``'s, and
-    whether the wall between them was placed where no facade point shows it."""
+    the roof points' end instead (seed 6's dense cloud, a wall behind a street 0.9-1.1 m higher: 0.9 m out, now
+    0.3 m; the gabled test house with the ground before an unseen wall raised 1.1 m over 3 m: 2.4 m out, now
+    0.1-0.2 m, by the roof outline the ring then gives way to). Returns the corner on ``f``'s line and the one on
+    ``g``'s, and whether the wall between them was placed where no facade point shows it."""
     end_f, start_g = _ring_end(f, bxy[f_last]), _ring_end(g, bxy[g_first])
     mid = (end_f + start_g) / 2
     offset = abs(float((g.p - f.p) @ np.array([-f.d[1], f.d[0]])))
@@ -527,14 +527,14 @@ def _jog_wall(p: np.ndarray, d: np.ndarray, lp: float, q: np.ndarray, xyz: np.nd
 
     Its points lie between the two lines (``margin`` m off each), within ``window`` m of the gap between the
     fragments' ends, more than 1 m above the ground. There the connecting wall is the vertical one: the slices
-    ``t_bin`` m thick across the lines whose points span the most ``z_bin``-high levels (at least ``min_extent``
-    m, half the most any slice spans); the eaves beside it (the inner part's eave overhanging into the strip, the
-    outer part's reaching past its end wall) span one or two levels. At least ``min_points`` points must stand
-    there, their interquartile range along ``d`` within ``max_spread`` m (a wall, not a scatter: where a split
-    gable's halves are 0.5 m apart and the lower one's eaves cover the strip, 17-45 points spread over 0.8-2.3 m,
-    on its dense clouds up to 228; on stepped_flat's 1 m steps 140-380 points within 0.1 m on sampled truth,
-    0.2-0.6 m on dense clouds). Returns the median position along ``d`` of their points (the sampled truth's 1 m
-    steps to 0.02 m), from ``p``."""
+    ``t_bin`` m thick across the lines whose points span the most ``z_bin``-high levels (at least ``min_extent`` m,
+    half the most any slice spans); the eaves beside it (the inner part's eave overhanging into the strip, the outer
+    part's reaching past its end wall) span one or two levels. At least ``min_points`` points must stand there, their
+    interquartile range along ``d`` within ``max_spread`` m (a wall, not a scatter: where a split gable's halves are
+    0.5 m apart and the lower one's eaves cover the strip, 17-45 points spread over 0.8-2.3 m, on its dense clouds up
+    to 228; on stepped_flat's 1 m steps 140-380 points within 0.1 m on sampled truth, 0.2-0.6 m on dense clouds but
+    for one step of 1.4 m, which keeps the eaves' step). Returns the median position along ``d`` of their points (the
+    sampled truth's 1 m steps to 0.02 m), from ``p``."""
     nrm = out_sign * np.array([d[1], -d[0]])
     oq = float((q - p) @ nrm)
     if abs(oq) < 2 * margin + t_bin:
