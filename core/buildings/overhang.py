@@ -148,6 +148,15 @@ def overhang_widths(polygon: np.ndarray, dsm: Raster, cfg: OverhangConfig = Over
     return np.where(np.isnan(w), np.nan, np.where(w < cfg.min_width, 0.0, np.minimum(w, cfg.max_width)))
 
 
+def within_edge(xy: np.ndarray, p0: np.ndarray, p1: np.ndarray, tol: float = 1e-3) -> bool:
+    """Whether the points ``xy (n, 2)`` of a wall face on the plane of the outline edge ``p0``-``p1`` (2,) lie
+    between the edge's ends (within ``tol`` m): a face on the plane beyond them stands inside the outline."""
+    d = p1 - p0
+    length = float(np.linalg.norm(d))
+    t = (xy - p0) @ d / length
+    return bool(t.min() >= -tol and t.max() <= length + tol)
+
+
 def _offset_corners(polygon: np.ndarray, widths: np.ndarray) -> np.ndarray:
     """Mitred corners of the outline offset outward by a width per edge (m, 2). A two-corner ``polygon`` is an open
     run (a wall inside the outline): both ends move straight out by the first edge's width."""
@@ -227,8 +236,7 @@ def overhang_surfaces(vertices: np.ndarray, faces: list[tuple[str, list[int]]], 
         length = float(np.linalg.norm(p1 - p0))
         for wf in wall_of_edge.get(i, []):
             ring = faces[wf][1]
-            t_ring = (vertices[ring, :2] - p0) @ d
-            if t_ring.min() < -1e-3 or t_ring.max() > length + 1e-3:
+            if not within_edge(vertices[ring, :2], p0, p1):
                 continue  # on the edge's plane beyond its ends: a wall inside the outline (above a lower roof)
             for a, b in zip(ring, ring[1:] + ring[:1]):
                 rf = edge_owner.get((b, a))

@@ -23,7 +23,7 @@ from .dormers import Dormer, DormerConfig, find_dormers
 from .geometry import points_in_polygon, top_of_rings
 from .hull import Hull, build_hull, dedupe_planes
 from .model import BuildingModel, Surface, ring_normal
-from .overhang import OverhangConfig, overhang_surfaces, overhang_widths
+from .overhang import OverhangConfig, overhang_surfaces, overhang_widths, within_edge
 from .roof import RoofConfig, _wall_plane, check_topology, plane_z, roof_labels, topology
 from .volumetric import (
     VolumetricConfig,
@@ -375,12 +375,8 @@ def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], polygon:
         if kind != "wall":
             continue
         P = hull.vertices[ring]
-        if pid < m:  # on an outline edge's plane: inside where it reaches beyond the edge's ends
-            a, e = polygon[pid], polygon[(pid + 1) % m] - polygon[pid]
-            length = float(np.linalg.norm(e))
-            t = (P[:, :2] - a) @ e / length
-            if t.min() >= -1e-3 and t.max() <= length + 1e-3:
-                continue
+        if pid < m and within_edge(P[:, :2], polygon[pid], polygon[(pid + 1) % m]):
+            continue  # on an outline edge (beyond its ends, on its plane, it is inside)
         n = ring_normal(P)
         if abs(n[2]) > 1e-6 or any(np.abs(P @ e[:3] + e[3]).max() < 1e-6 for e in excluded):
             continue
