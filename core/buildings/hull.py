@@ -112,20 +112,28 @@ def _box(lo: np.ndarray, hi: np.ndarray) -> Cell:
     return [(fid, P[r]) for fid, r in rings]
 
 
-def dedupe_planes(planes: np.ndarray, angle_deg: float = 1.0, offset: float = 0.02) -> np.ndarray:
-    """Drop planes (k, 4) that repeat an earlier one (either orientation)."""
+def unique_planes(planes: np.ndarray, angle_deg: float = 1.0, offset: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """The planes of ``planes (n, 4)`` that do not repeat an earlier one (either orientation, within ``angle_deg``
+    and ``offset`` m) -> ``(k, 4)``, and for each given plane the index ``(n,) int`` of the kept one it repeats (its
+    own where it is kept)."""
     out: list[np.ndarray] = []
+    index = np.zeros(len(planes), np.int64)
     cos_t = np.cos(np.radians(angle_deg))
-    for p in planes:
-        dup = False
-        for q in out:
+    for i, p in enumerate(planes):
+        for j, q in enumerate(out):
             c = p[:3] @ q[:3]
             if abs(c) > cos_t and abs(p[3] - np.sign(c) * q[3]) < offset:
-                dup = True
+                index[i] = j
                 break
-        if not dup:
+        else:
+            index[i] = len(out)
             out.append(p)
-    return np.asarray(out).reshape(-1, 4)
+    return np.asarray(out).reshape(-1, 4), index
+
+
+def dedupe_planes(planes: np.ndarray, angle_deg: float = 1.0, offset: float = 0.02) -> np.ndarray:
+    """Drop planes (k, 4) that repeat an earlier one (either orientation): :func:`unique_planes`' planes."""
+    return unique_planes(planes, angle_deg, offset)[0]
 
 
 def _volume_samples(cells: list[Cell]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

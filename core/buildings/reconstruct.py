@@ -21,7 +21,7 @@ from .contour import ContourConfig, extract_contour
 from .denoise import voxel_noise_filter
 from .dormers import Dormer, DormerConfig, find_dormers
 from .geometry import points_in_polygon, top_of_rings
-from .hull import Hull, build_hull, dedupe_planes
+from .hull import Hull, build_hull, dedupe_planes, unique_planes
 from .model import BuildingModel, Surface, ring_normal
 from .overhang import OverhangConfig, overhang_surfaces, overhang_widths, within_edge
 from .roof import RoofConfig, _wall_plane, check_topology, plane_z, roof_labels, topology
@@ -225,7 +225,11 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     info.update(roof_planes=len(roof.planes), topology_edges=len(roof.edges), topology_nodes=len(roof.nodes),
                 arrises=len(roof.arrises))
     m = len(polygon)
-    walls = np.asarray([_wall_plane(polygon[i], polygon[(i + 1) % m]) for i in range(m)])
+    # the hulls' wall planes, one per plane: edges on one plane share the first's (a step across a stepped building
+    # meets the outline on both sides); planes a few millimetres apart cut slivers, and the hull keeps one of
+    # them anyway, which shifted the face labels after it (a roof taken for a wall)
+    walls, edge_plane = unique_planes(np.asarray([_wall_plane(polygon[i], polygon[(i + 1) % m]) for i in range(m)]))
+    k_walls = len(walls)
     top, _ = top_points(xl, roof.origin, roof.cell, roof.labels.shape, ground_z)  # the roof points the fits use
     top = top[points_in_polygon(top[:, :2], polygon)]
     ztop = float(xl[:, 2].max())
@@ -245,7 +249,7 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
             path, reason = "volumetric", f"2D hull {why}"
     # a 2D model that agrees with its topology but misses its roof points: the volumetric one is tried as well, unless
     # the miss refuses the building (tree crowns: voxels follow any shape, planes do not)
-    fit_2d = _roof_fit(hull, len(polygon), top) if hull_2d_ok else float("inf")
+    fit_2d = _roof_fit(hull, k_walls, top) if hull_2d_ok else float("inf")
     misfit = (path == "2d" and hull_2d_ok and check.agree and cfg.force_path == "" and cfg.misfit_2d > 0
               and cfg.misfit_2d * noise < fit_2d <= (cfg.max_roof_fit or float("inf")))
     if cfg.force_path == "volumetric" or (not check.agree and cfg.force_path != "2d") or misfit:
@@ -270,7 +274,7 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
             # the topology check failed: the 2D hull is still taken when it fits the roof points better by more
             # than half the noise level (a patch of one roof face that the matching lowered by a step's height is
             # no discontinuity; at real steps the two fit alike, and the volumetric hull has the step walls)
-            fit_vol = _roof_fit(hull, m, top)
+            fit_vol = _roof_fit(hull, k_walls, top)
             info.update(roof_fit_2d=fit_2d, roof_fit_volumetric=fit_vol)
             if fit_2d < fit_vol - 0.5 * noise:
                 path, hull, steps = "2d", hull_2d, []
@@ -278,7 +282,7 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
                           f"{fit_vol:.3f} m mean deviation)")
         elif misfit:
             # the topology agreed: the volumetric hull must fit the roof points clearly better
-            fit_vol = _roof_fit(hull, m, top)
+            fit_vol = _roof_fit(hull, k_walls, top)
             info.update(roof_fit_2d=fit_2d, roof_fit_volumetric=fit_vol)
             if fit_vol < fit_2d - cfg.misfit_margin * noise:
                 reason = (f"the 2D model misses its roof points by {fit_2d:.3f} m ({fit_2d / noise:.1f} times their "
@@ -288,7 +292,7 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
         if path == "volumetric" and dormers:  # the 2D candidate's dormers are not part of this model
             dormers = []
             info["dormers"] = []
-    info["roof_fit"] = fit = _roof_fit(hull, m, top)
+    info["roof_fit"] = fit = _roof_fit(hull, k_walls, top)
     if cfg.max_roof_fit > 0 and fit > cfg.max_roof_fit:
         raise ValueError(f"the model misses its roof points by {fit:.2f} m on average (over {cfg.max_roof_fit} m): "
                          "not a building (vegetation or clutter)")
@@ -298,9 +302,7 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     face_plane: list[np.ndarray | None] = []
     for pid, ring in hull.faces:
         n = ring_normal(hull.vertices[ring])
-        if pid < 0:
-            kind = "wall"
-        elif pid < m:
+        if pid < k_walls:  # (negative: the search box's)
             kind = "wall"
         elif n[2] > 0.2:
             kind = "roof"
@@ -326,14 +328,14 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
         widths = overhang_widths(polygon + offset[:2], dsm, cfg.overhang)
         info["overhang_missing_edges"] = int(np.isnan(widths).sum())
         widths = np.nan_to_num(widths)
-    wall_of_edge = {i: [fi for fi, (pid, _) in enumerate(hull.faces) if pid == i] for i in range(m)}
+    wall_of_edge = {i: [fi for fi, (pid, _) in enumerate(hull.faces) if pid == edge_plane[i]] for i in range(m)}
     roof_of_face = {fi: pl for fi, pl in enumerate(face_plane) if pl is not None}
     verts, extra = overhang_surfaces(hull.vertices, faces, polygon, widths, wall_of_edge, roof_of_face,
                                      cfg.overhang.thickness)
     if dsm is not None:  # the upper roof over an interior wall overhangs the lower one as at the outline
         # not on the dormers' walls: the slope their DSM shows in front is the roof below them
         dormer_walls = [pl for d in dormers for pl in d.planes if abs(pl[2]) < 1e-9]
-        for seg, measured, group in _interior_wall_runs(hull, faces, polygon, steps + dormer_walls):
+        for seg, measured, group in _interior_wall_runs(hull, faces, polygon, edge_plane, steps + dormer_walls):
             w = overhang_widths(measured + offset[:2], dsm, cfg.overhang)[0]
             if np.isfinite(w) and w > 0:
                 verts, more = overhang_surfaces(verts, faces, seg, np.array([w, 0.0]), {0: group}, roof_of_face,
@@ -345,22 +347,23 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
     return model
 
 
-def _roof_fit(hull: Hull, n_outline: int, top: np.ndarray) -> float:
+def _roof_fit(hull: Hull, n_walls: int, top: np.ndarray) -> float:
     """Mean vertical deviation (m) of the roof points ``top (k, 3)`` from the hull's upward faces other than its
-    walls, each capped at 1 m (a point without a face over it counts 1 m)."""
-    rings = [ring for pid, ring in hull.faces if pid >= n_outline and ring_normal(hull.vertices[ring])[2] > 0.2]
+    walls (on its first ``n_walls`` planes), each capped at 1 m (a point without a face over it counts 1 m)."""
+    rings = [ring for pid, ring in hull.faces if pid >= n_walls and ring_normal(hull.vertices[ring])[2] > 0.2]
     dz = np.abs(top_of_rings(hull.vertices, rings, top[:, :2]) - top[:, 2])
     return float(np.mean(np.minimum(np.nan_to_num(dz, nan=1.0), 1.0))) if len(top) else float("inf")
 
 
-def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], polygon: np.ndarray,
+def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], polygon: np.ndarray, edge_plane: np.ndarray,
                         excluded: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, list[int]]]:
     """The walls inside the outline ``polygon (m, 2)`` that stand on facade points: the hull's vertical wall faces other
-    than those on the outline's edges and those on the ``excluded`` planes (step walls along the roof labels'
-    boundaries: at the roof's edge, overhang included; dormer walls), grouped by plane and by the side they face (the
-    lower roof's). Each group comes with its run as a segment ``(2, 2)`` whose right-hand side is that side (as an
-    outline edge's outward side, for :func:`.overhang.overhang_surfaces`), the part of the run where the wall reaches
-    the upper roof as a segment ``(2, 2)`` (where :func:`.overhang.overhang_widths` measures), and the face indices.
+    than those on the outline's edges (edge ``i`` on the hull's plane ``edge_plane[i]``) and those on the ``excluded``
+    planes (step walls along the roof labels' boundaries: at the roof's edge, overhang included; dormer walls), grouped
+    by plane and by the side they face (the lower roof's). Each group comes with its run as a segment ``(2, 2)`` whose
+    right-hand side is that side (as an outline edge's outward side, for :func:`.overhang.overhang_surfaces`), the
+    part of the run where the wall reaches the upper roof as a segment ``(2, 2)`` (where
+    :func:`.overhang.overhang_widths` measures), and the face indices.
 
     A face on an outline edge's plane that reaches beyond the edge's ends is inside there: the upper part's end wall
     over the lower roof, where a step between offset walls continues it (stepped_flat, l_flat_shed). The hull merges
@@ -375,7 +378,7 @@ def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], polygon:
         if kind != "wall":
             continue
         P = hull.vertices[ring]
-        if pid < m and within_edge(P[:, :2], polygon[pid], polygon[(pid + 1) % m]):
+        if any(within_edge(P[:, :2], polygon[i], polygon[(i + 1) % m]) for i in np.flatnonzero(edge_plane == pid)):
             continue  # on an outline edge (beyond its ends, on its plane, it is inside)
         n = ring_normal(P)
         if abs(n[2]) > 1e-6 or any(np.abs(P @ e[:3] + e[3]).max() < 1e-6 for e in excluded):

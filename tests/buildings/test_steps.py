@@ -16,7 +16,7 @@ from oblique_city.core.buildings.contour import (
 )
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
 from oblique_city.core.buildings.geometry import points_in_polygon
-from oblique_city.core.buildings.hull import build_hull
+from oblique_city.core.buildings.hull import build_hull, unique_planes
 from oblique_city.core.buildings.overhang import overhang_surfaces, overhang_widths
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
 from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
@@ -142,6 +142,16 @@ def test_hull_of_a_gabled_box_is_exact():
     ok, vol, why = solid_check(h.vertices, [r for _, r in h.faces])
     assert ok, why
     assert vol == pytest.approx(10 * 6 * 4 + 10 * 6 * 2 / 2, abs=1e-6)
+
+
+def test_unique_planes_maps_each_plane_to_the_one_it_repeats():
+    # a plane 0.01 m and 0.5 degrees from an earlier one, either way round, repeats it; 0.03 m away it does not
+    a = np.radians(0.5)
+    planes = np.array([[1, 0, 0, -2.0], [0, 1, 0, -1.0], [-np.cos(a), -np.sin(a), 0, 2.01], [1, 0, 0, -2.03],
+                       [0, 1, 0, -1.0]])
+    kept, index = unique_planes(planes)
+    assert index.tolist() == [0, 1, 0, 2, 1]
+    assert np.array_equal(kept, planes[[0, 1, 3]])
 
 
 def test_hull_roof_around_a_block_on_it_comes_in_two_pieces():
