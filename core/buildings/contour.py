@@ -6,7 +6,8 @@ cells still give a direction); cells merged over 8-neighbourhoods when their lin
 threshold; one regression line per group; short fragments squared to the building's dominant direction (or
 dropped when they cut a corner obliquely); the fragments ordered along the building's outer boundary and
 intersected into a closed contour (between parallel fragments, a short connecting wall where they are offset,
-or the wall no facade points showed where the boundary runs between opposite walls).
+or the wall no facade points showed where the boundary runs between opposite walls); the contour closed again
+with the dominant direction that the facade points along its edges give, long walls near it squared too.
 """
 
 from __future__ import annotations
@@ -27,8 +28,10 @@ class ContourConfig:
     share of filled z classes of a facade cell; line_tol : RANSAC inlier distance (m); angle_deg : merging threshold
     between neighbouring cell lines; min_fragment : shortest wall kept (m); roof-outline fallback: outline_tol :
     Douglas-Peucker tolerance (m); min_edge : shorter simplified edges are dropped (steps and cut corners are rebuilt
-    by the ring closure) (m); square_deg : snapping of directions to the dominant one or its perpendicular (deg, 0 =
-    off); merge_offset : consecutive parallel lines closer than this are one (m); a facade contour must have at least
+    by the ring closure) (m); square_deg : snapping of short walls' directions to the dominant one or its
+    perpendicular (deg, 0 = off); square_long_deg : the same for walls of any length (deg); facade_direction : close
+    the ring again on the direction of the facade points along its edges (see :func:`extract_contour`);
+    merge_offset : consecutive parallel lines closer than this are one (m); a facade contour must have at least
     ``min_coverage`` of the building's occupied cells inside it or within a margin of it, and stray no more than
     ``max_outside`` m from them (m, :func:`ring_outside`), else the roof outline is used. The margin is
     ``max_overhang`` (m), or the mask's own reach beyond the walls the fragments show (:func:`_mask_spread`: the
@@ -58,6 +61,8 @@ class ContourConfig:
     outline_tol: float = 0.35
     min_edge: float = 2.0
     square_deg: float = 10.0
+    square_long_deg: float = 3.0
+    facade_direction: bool = True
     merge_offset: float = 0.25
 
 
@@ -213,12 +218,21 @@ def wall_fragments(xyz: np.ndarray, ground_z: float, cfg: ContourConfig,
     return frags, cells, origin
 
 
+def dominant_direction(frags: list[Fragment]) -> float:
+    """The building's dominant wall direction (radians, modulo 90 degrees) from its fragments: the mean of their
+    directions weighted by support times length, which the long walls decide."""
+    ang = np.array([np.arctan2(f.d[1], f.d[0]) for f in frags])
+    w = np.array([f.support * (f.t1 - f.t0) for f in frags], dtype=np.float64)
+    return float(np.angle(np.sum(w * np.exp(4j * ang))) / 4)
+
+
 def square_fragments(frags: list[Fragment], tol_deg: float, max_length: float = 5.0,
-                     piece_length: float = 2.5) -> list[Fragment]:
+                     piece_length: float = 2.5, dominant: float | None = None,
+                     long_deg: float = 0.0) -> list[Fragment]:
     """The fragments squared to the building's dominant direction (``tol_deg`` 0: unchanged).
 
-    The dominant direction is the support-weighted mean of all fragments' directions modulo 90 degrees, which
-    the long walls decide. Fragments shorter than ``max_length`` m within ``tol_deg`` of it or its perpendicular
+    The dominant direction is ``dominant`` (radians) or :func:`dominant_direction`. Fragments shorter than
+    ``max_length`` m within ``tol_deg`` of it or its perpendicular, and fragments of any length within ``long_deg``,
     are turned about their middle onto it: a wall piece of 2-2.5 m fits its facade points with a direction 3-6
     degrees off (7 of 15 such pieces of a simulated stepped building; walls over 4 m: within 1.7 degrees), and
     two pieces of one straight wall then look offset by 0.5 m where they meet, a step that is not there.
@@ -228,15 +242,14 @@ def square_fragments(frags: list[Fragment], tol_deg: float, max_length: float = 
     error), left alone they make a step that is not there. Chamfers near 45 degrees stay."""
     if tol_deg <= 0 or not frags:
         return frags
-    ang = np.array([np.arctan2(f.d[1], f.d[0]) for f in frags])
-    w = np.array([f.support * (f.t1 - f.t0) for f in frags], dtype=np.float64)
-    dom = np.angle(np.sum(w * np.exp(4j * ang))) / 4
-    tol = np.radians(tol_deg)
+    dom = dominant_direction(frags) if dominant is None else dominant
+    tol, tol_long = np.radians(tol_deg), np.radians(long_deg)
     out = []
-    for f, a in zip(frags, ang):
+    for f in frags:
+        a = np.arctan2(f.d[1], f.d[0])
         snapped = dom + np.round((a - dom) / (np.pi / 2)) * np.pi / 2
         length = f.t1 - f.t0
-        if length < max_length and abs(a - snapped) < tol:
+        if abs(a - snapped) < (tol if length < max_length else tol_long):
             c = f.p + 0.5 * (f.t0 + f.t1) * f.d
             f = Fragment(c, np.array([np.cos(snapped), np.sin(snapped)]), -0.5 * length, 0.5 * length, f.support)
         elif length < piece_length and abs(a - snapped) < np.pi / 4 - tol:
@@ -943,6 +956,17 @@ def wall_depth(a: np.ndarray, b: np.ndarray, out: np.ndarray, xyz: np.ndarray, g
     window recesses lie behind it (on the own-AT demo, whose windows are recessed 0.12 m, the median put the
     walls 0.12 m inside, the upper quartile 0.00 m; median absolute error 0.13 -> 0.09 m over 33 observed
     walls)."""
+    wall = facade_band(a, b, out, xyz, ground_z, min_points, max_offset)
+    if wall is None:
+        return float("nan")
+    return -float(np.percentile((xyz[wall, :2] - a) @ out, 75))
+
+
+def facade_band(a: np.ndarray, b: np.ndarray, out: np.ndarray, xyz: np.ndarray, ground_z: float | np.ndarray,
+                min_points: int = 8, inside: float = 2.0, outside: float = 0.3) -> np.ndarray | None:
+    """The facade points ``(n,) bool`` of ``xyz (n, 3)`` below the edge ``a``-``b`` (2,) with the outward unit normal
+    ``out (2,)``, as :func:`wall_depth` takes them (from ``inside`` m inside the edge to ``outside`` m out), or None
+    when fewer than ``min_points`` show it or the roof at it."""
     z = xyz[:, 2]
     h = z - ground_z
     length = float(np.linalg.norm(b - a))
@@ -951,16 +975,66 @@ def wall_depth(a: np.ndarray, b: np.ndarray, out: np.ndarray, xyz: np.ndarray, g
     along = (t > 0.1 * length) & (t < 0.9 * length)
     roof = along & (off > -1.0) & (off < 0.3) & (h > 2.0)
     if roof.sum() < min_points:
-        return float("nan")
-    # the eave is a level line: its height, not its height over the terrain (see the docstring)
+        return None
+    # the eave is a level line: its height, not its height over the terrain (see wall_depth)
     eave = float(np.percentile(z[roof], 10))
     # on sloping terrain the ground in front of the wall stands above the building's ground height
     front = along & (off > 0.5) & (off < 3.0) & (z < eave - 1.0)
     base = max(float(np.percentile(h[front], 10)), 0.0) if front.sum() >= min_points else 0.0
-    wall = along & (off > -max_offset) & (off < 0.3) & (h > base + 1.0) & (z < eave - 0.5)
-    if wall.sum() < min_points:
-        return float("nan")
-    return -float(np.percentile(off[wall], 75))
+    wall = along & (off > -inside) & (off < outside) & (h > base + 1.0) & (z < eave - 0.5)
+    return wall if wall.sum() >= min_points else None
+
+
+def facade_direction(polygon: np.ndarray, xyz: np.ndarray, ground_z: float | np.ndarray, reference: float,
+                     tol_deg: float, min_edge: float = 3.0, min_points: int = 30, band: float = 0.5) -> float | None:
+    """The building's dominant wall direction (radians) from the facade points along the edges of its ring
+    ``polygon (m, 2)``, or None when fewer than two edges give one.
+
+    Per edge of at least ``min_edge`` m: its facade points (:func:`facade_band`, within ``band`` m of it), a line
+    fitted to them (refitted twice without those beyond 2.5 robust sigmas: windows, a chimney's corner). Edges
+    within ``tol_deg`` of ``reference`` (radians) or its perpendicular count: their inliers about their own mean,
+    each turned by the multiple of 90 degrees that brings it onto ``reference``, pooled into one scatter matrix
+    whose main axis is the direction. Each wall thus weighs with the sum of its points' squared distances along
+    it, as a line fit's precision does (about its number of points times its length squared). The fragments'
+    directions fit their cells' points only: in the dense clouds a wall's band is 0.3-0.5 m thick, and cut at the
+    grid's cells it tilts towards the grid (seed 5: the fragments of 9 walls of one building 0.5-1.9 degrees
+    towards the grid's axes, the points of the walls themselves fit within 0.2)."""
+    ccw = polygon_area(polygon) > 0
+    tol = np.radians(tol_deg)
+    scatter = np.zeros((2, 2))
+    used = 0
+    m = len(polygon)
+    for i in range(m):
+        a, b = polygon[i], polygon[(i + 1) % m]
+        length = float(np.linalg.norm(b - a))
+        if length < min_edge:
+            continue
+        d = (b - a) / length
+        out = np.array([d[1], -d[0]]) if ccw else np.array([-d[1], d[0]])
+        sel = facade_band(a, b, out, xyz, ground_z, min_points, band, band)
+        if sel is None:
+            continue
+        xy = xyz[sel, :2]
+        c, u = _tls_line(xy)
+        for _ in range(2):
+            r = np.abs((xy - c) @ np.array([-u[1], u[0]]))
+            good = r < max(2.5 * 1.4826 * np.median(r), 0.05)
+            if good.sum() < min_points:
+                break
+            xy = xy[good]
+            c, u = _tls_line(xy)
+        turn = np.round((np.arctan2(u[1], u[0]) - reference) / (np.pi / 2)) * np.pi / 2
+        if abs(np.arctan2(u[1], u[0]) - turn - reference) > tol:
+            continue
+        rot = np.array([[np.cos(turn), np.sin(turn)], [-np.sin(turn), np.cos(turn)]])  # by -turn
+        q = (xy - c) @ rot.T
+        scatter += q.T @ q
+        used += 1
+    if used < 2:
+        return None
+    _, v = np.linalg.eigh(scatter)
+    a = np.arctan2(v[1, 1], v[0, 1])
+    return float(reference + (a - reference + np.pi / 4) % (np.pi / 2) - np.pi / 4)
 
 
 def walls_under_roof_outline(ring: np.ndarray, xyz: np.ndarray, ground_z: float | np.ndarray, min_points: int = 8,
@@ -1046,14 +1120,24 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
     (:func:`walls_under_roof_outline`); ``Contour.source`` says which. ``ground (n,)``: the terrain height under each
     point, above which the occupancy, the walls' facade points and the roof points are taken (:func:`building_mask`,
     :func:`wall_depth`; None: above ``ground_z``).
+
+    A facade ring is closed twice: first with the fragments squared to their own dominant direction
+    (:func:`square_fragments`), then, when the facade points along its edges give one (:func:`facade_direction`),
+    with all fragments squared to that direction, those of any length within ``cfg.square_long_deg`` too; the
+    first ring stands when the second fails its tests. On the dense clouds of the demo and of simulated cities 5
+    and 6 (45 buildings) the dominant direction's RMS error went 0.27-0.65 -> 0.15-0.32 degrees, and their
+    corner medians 0.069-0.096 -> 0.060-0.076 m; on sampled truth both are within 0.05 degrees. Long walls keep
+    their own direction beyond ``square_long_deg``: on the dense clouds their fitted directions scatter by 1-2
+    degrees about the truth, while a real wall that far off square is rare (and stays off square beyond it).
     """
-    frags, cells, origin = wall_fragments(xyz, ground_z, cfg)
-    frags = square_fragments(frags, cfg.square_deg)
+    raw, cells, origin = wall_fragments(xyz, ground_z, cfg)
+    frags = square_fragments(raw, cfg.square_deg)
     source = "facades"
     inferred = 0
     mask = building_mask(xyz, ground_z, origin, cfg.cell, ground=ground)
     base = ground_z if ground is None else ground  # the walls' and the roof points' heights over it
-    try:
+
+    def ring(frags: list[Fragment]) -> tuple[np.ndarray, int]:
         if len(frags) < 3:
             raise ValueError(f"only {len(frags)} wall fragments found")
         poly, inferred = close_contour(frags, mask, origin, cfg.cell, cfg, points=(xyz, base))
@@ -1065,6 +1149,10 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
         outside = ring_outside(poly, mask, origin, cfg.cell)
         if outside > cfg.max_outside:
             raise ValueError(f"the closed contour runs {outside:.1f} m outside the building")
+        return poly, inferred
+
+    try:
+        poly, inferred = ring(frags)
     except ValueError as e:
         try:
             poly = roof_outline_polygon(xyz, ground_z, cfg, origin, ground)
@@ -1073,4 +1161,14 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
         poly, moved, inferred = walls_under_roof_outline(poly, xyz, base)
         source = (f"roof outline ({e} from the facades; {moved} of {len(poly)} edges moved onto facade points, "
                   f"{inferred} by the building's median overhang where no facade point shows the wall)")
+        return Contour(poly, tuple(frags), cells, origin, cfg.cell, source, inferred)
+    dom = (facade_direction(poly, xyz, base, dominant_direction(raw), cfg.square_deg)
+           if cfg.facade_direction and cfg.square_deg > 0 else None)
+    if dom is not None:
+        again = square_fragments(raw, cfg.square_deg, dominant=dom, long_deg=cfg.square_long_deg)
+        try:
+            poly, inferred = ring(again)
+            frags = again
+        except ValueError:
+            pass  # the first ring stands
     return Contour(poly, tuple(frags), cells, origin, cfg.cell, source, inferred)

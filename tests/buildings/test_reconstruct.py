@@ -227,18 +227,26 @@ def test_a_spurious_step_on_a_dormer_house_keeps_the_2d_model_and_its_dormers():
     the stage's points of B0001 at ae417dd, float32 about an offset). A 11.5 m^2 patch of its west slope, 0.34 m
     below it at the south gable end, is labelled apart and the topology check calls it a step. The 2D hull with
     the three dormers fits the roof points better than the volumetric hull by more than half the noise level and
-    is kept, with the reason said; forced volumetric, the model loses the dormers and fits worse."""
+    is kept, with the reason said; forced volumetric, the model loses the dormers and fits worse. The patch comes
+    with the outline of the fragments' own direction; squared to the facade points' direction (the default) the
+    topology agrees and the 2D model with its dormers is taken at once."""
     from pathlib import Path
+
+    from oblique_city.core.buildings.contour import ContourConfig
 
     d = np.load(Path(__file__).parents[1] / "data" / "gable_dormers_dense.npz")
     gz = float(d["ground_z"])
     xyz = np.column_stack([d["xyz"][:, :2] + d["offset"], d["xyz"][:, 2] + gz]).astype(np.float64)
-    m = reconstruct_building(xyz, gz, None, "B0001")
+    cfg = replace(ReconstructionConfig(), contour=replace(ContourConfig(), facade_direction=False))
+    m = reconstruct_building(xyz, gz, None, "B0001", cfg)
     assert "height discontinuity" in m.reason and "fits the roof points better" in m.reason
     assert m.path == "2d" and m.info["closed"] and m.info["dormers"] == ["gabled"] * 3
     assert m.info["roof_fit_2d"] < m.info["roof_fit_volumetric"] - 0.5 * m.info["noise"]
-    forced = reconstruct_building(xyz, gz, None, "B0002", replace(ReconstructionConfig(), force_path="volumetric"))
+    forced = reconstruct_building(xyz, gz, None, "B0002", replace(cfg, force_path="volumetric"))
     assert forced.path == "volumetric" and forced.info.get("dormers", []) == []
+    default = reconstruct_building(xyz, gz, None, "B0003")
+    assert default.reason == "topology and plane intersections agree"
+    assert default.path == "2d" and default.info["closed"] and default.info["dormers"] == ["gabled"] * 3
 
 
 def test_tree_crowns_are_refused_and_buildings_fit_their_roof_points(models):

@@ -342,6 +342,26 @@ def test_step_between_parallel_outline_lines_placed_where_the_points_change():
     assert abs(p[0] + lp - 10.0) <= 0.5 and abs(q[0] - (p[0] + lp)) < 1e-9 and abs(q[0] + lq - 20.0) < 1e-9
 
 
+def test_noisy_facades_square_the_ring_to_the_direction_of_their_points():
+    # facades as noisy as the dense clouds' (0.2 m, 8 points per square metre): each fragment fits the points of its
+    # grid cells, and the band cut at the cells tilts it towards the grid; the ring closed again on the direction of
+    # the facade points along its edges. Long edges' direction errors over 9 houses: mean 0.61 -> 0.18 degrees,
+    # worst 1.08 -> 0.38
+    errors = []
+    for seed in range(3):
+        for angle in (2.5, 5.3, 7.0):
+            b = SyntheticBuilding("gable", (Part(0, 0, 16, 11, 6, 10, "gable_u", 0.5),),
+                                  ((0, 0), (16, 0), (16, 11), (0, 11)), (0.5,) * 4, origin=(300.0, 100.0),
+                                  angle_deg=angle)
+            poly = extract_contour(b.sample(8.0, 0.2, np.random.default_rng(seed)) - [300.0, 100.0, 0.0], 0.0).polygon
+            d = np.roll(poly, -1, axis=0) - poly
+            long = np.linalg.norm(d, axis=1) > 5.0
+            ang = np.degrees(np.arctan2(d[long, 1], d[long, 0])) - angle
+            errors.append(np.mean(np.abs((ang + 45.0) % 90.0 - 45.0)))
+    assert np.mean(errors) < 0.3
+    assert np.max(errors) < 0.6
+
+
 def test_mask_coverage_flags_a_contour_that_leaves_part_of_an_l_outside():
     """An L-shaped occupancy mask: its own outline covers it all; a ring over one wing only (inner wall fragments
     joined into a wrong ring) leaves the other wing outside, beyond any overhang margin."""
