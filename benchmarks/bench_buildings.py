@@ -15,13 +15,14 @@ orientation (so the figures isolate dense matching and reconstruction from aeria
 on every ``--dense-step``-th pixel and the surface rasters at that step times the GSD.
 
 Per building and overall: outline corner deviation against the true footprint (median and mean, m and GSD), roof plane
-normal error, roof height RMSE (the model's top surface, roofs and their overhangs, against the true one on a 0.5 m
-grid 0.5 m inside the walls, m; 'off steps' leaves out the samples within 0.75 m of a step between roofs, where a step
-wall placed a decimetre off counts the step's height), overhang width error (m and DSM pixels), closed valid solid,
-path (2D or volumetric) and why, time per building, and the walls no facade point showed ('walls inf.': placed by the
-building's median measured overhang, an assumption), and the attributes of a 3D building registry: the 70th
-percentile roof height over the footprint ('h70 err', model minus truth, m: the LoD 1.2 block's height) and the
-volume ('vol err', relative). Buildings that failed or were not detected are listed with the
+normal error, wall direction error (the RMS over the outline's edges of at least 3 m, weighted by length, of the angle
+to the true edge nearest to each edge's middle, deg), roof height RMSE (the model's top surface, roofs and their
+overhangs, against the true one on a 0.5 m grid 0.5 m inside the walls, m; 'off steps' leaves out the samples within
+0.75 m of a step between roofs, where a step wall placed a decimetre off counts the step's height), overhang width error
+(m and DSM pixels), closed valid solid, path (2D or volumetric) and why, time per building, and the walls no facade
+point showed ('walls inf.': placed by the building's median measured overhang, an assumption), and the attributes of a
+3D building registry: the 70th percentile roof height over the footprint ('h70 err', model minus truth, m: the LoD 1.2
+block's height) and the volume ('vol err', relative). Buildings that failed or were not detected are listed with the
 reason. Tables are printed and written as JSON (``--out``, default ``build/bench_buildings.json``).
 """
 
@@ -93,7 +94,8 @@ def print_case(res: dict) -> None:
     gsd, px = s["gsd"], s["dsm_cell"]
     print(f"\n=== {res['case']} (GSD {gsd:.3f} m, DSM cell {px:.3f} m) ===")
     hdr = (f"{'building':20s} {'path':10s} {'closed':6s} {'corner med/mean m':>18s} {'(GSD)':>7s} "
-           f"{'normal med/max deg':>19s} {'roof RMSE m':>11s} {'off steps':>9s} {'overhang err m':>15s} {'(px)':>6s} "
+           f"{'normal med/max deg':>19s} {'wall deg':>8s} {'roof RMSE m':>11s} {'off steps':>9s} "
+           f"{'overhang err m':>15s} {'(px)':>6s} "
            f"{'h70 err m':>9s} {'vol err':>7s} {'time s':>7s} {'walls inf.':>10s}  reason")
     print(hdr)
     print("-" * len(hdr))
@@ -101,7 +103,9 @@ def print_case(res: dict) -> None:
         oh = b["overhang_median"]
         print(f"{b['name']:20s} {b['path']:10s} {'yes' if b['closed'] else 'NO':6s} "
               f"{b['corner_median']:8.2f}/{b['corner_mean']:<8.2f} {b['corner_median'] / gsd:7.1f} "
-              f"{b['normal_median_deg']:9.2f}/{b['normal_max_deg']:<8.2f} {b.get('roof_rmse', float('nan')):11.2f} "
+              f"{b['normal_median_deg']:9.2f}/{b['normal_max_deg']:<8.2f} "
+              f"{b.get('wall_direction_deg', float('nan')):8.2f} "
+              f"{b.get('roof_rmse', float('nan')):11.2f} "
               f"{b.get('roof_rmse_off_steps', float('nan')):9.2f} "
               f"{oh:15.2f} {oh / px:6.1f} "
               f"{b.get('roof_70p_error', float('nan')):9.2f} {100 * b.get('volume_error', float('nan')):6.1f}% "
@@ -114,7 +118,8 @@ def print_case(res: dict) -> None:
 
     print(f"overall: corner median {f(cm)} m = {f(cm, 1 / gsd)} GSD (target <= {TARGETS['corner_median_gsd']}), "
           f"corner mean {f(s['corner_mean_of_means'])} m; normal median {f(nm)} deg "
-          f"(target <= {TARGETS['normal_median_deg']}); roof height RMSE median {f(s.get('roof_rmse_median'))} m, "
+          f"(target <= {TARGETS['normal_median_deg']}); wall direction median {f(s.get('wall_direction_median_deg'))} "
+          f"deg; roof height RMSE median {f(s.get('roof_rmse_median'))} m, "
           f"mean {f(s.get('roof_rmse_mean'))} m ({f(s.get('roof_rmse_off_steps_mean'))} m off steps); "
           f"70th percentile roof height error median {f(s.get('roof_70p_abs_error_median'))} m, volume error "
           f"median {f(s.get('volume_abs_error_median'), 100)} %; "

@@ -156,6 +156,7 @@ class BuildingScore:
     roof_rmse_off_steps: float = float("nan")
     roof_70p_error: float = float("nan")
     volume_error: float = float("nan")
+    wall_direction_deg: float = float("nan")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -165,6 +166,26 @@ def corner_deviation(truth: list[np.ndarray], est: np.ndarray) -> np.ndarray:
     """Distance (m) of each true corner (all rings) to the nearest estimated corner (k, 2)."""
     gt = np.concatenate(truth)
     return np.linalg.norm(gt[:, None, :] - est[None, :, :], axis=2).min(1)
+
+
+def wall_direction_errors(truth: list[np.ndarray], est: np.ndarray, min_edge: float = 3.0
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Angle (deg) between each estimated outline edge of at least ``min_edge`` m (``est (m, 2)``, a ring) and the true
+    edge (of the rings ``truth``) nearest to its midpoint, and the edges' lengths (m): ``(k,)``, ``(k,)``."""
+    gt = [(r, np.roll(r, -1, axis=0)) for r in truth]
+    a0 = np.concatenate([a for a, _ in gt])
+    a1 = np.concatenate([b for _, b in gt])
+    td = a1 - a0
+    tl2 = np.maximum(np.sum(td**2, axis=1), 1e-12)
+    ed = np.roll(est, -1, axis=0) - est
+    length = np.linalg.norm(ed, axis=1)
+    keep = length >= min_edge
+    mid = est[keep] + 0.5 * ed[keep]
+    t = np.clip(np.einsum("kij,ij->ki", mid[:, None, :] - a0[None], td) / tl2, 0.0, 1.0)
+    dist = np.linalg.norm(mid[:, None, :] - (a0[None] + t[..., None] * td[None]), axis=2)
+    near = td[np.argmin(dist, axis=1)]
+    c = np.abs(np.sum(ed[keep] * near, axis=1)) / (length[keep] * np.sqrt(tl2[np.argmin(dist, axis=1)]))
+    return np.degrees(np.arccos(np.clip(c, 0.0, 1.0))), length[keep]
 
 
 def normal_errors(truth: BuildingTruth, model: BuildingModel) -> np.ndarray:
@@ -259,6 +280,7 @@ def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
         return float(np.sqrt(np.mean(a**2))) if len(a) else float("nan")
 
     attrs = building_attributes(model)
+    we, wl = wall_direction_errors(truth.footprint, model.footprint)
     return BuildingScore(truth.name, model.id, model.path, model.reason, bool(model.info.get("closed", False)),
                          float(model.info.get("seconds", np.nan)), med(c), float(np.mean(c)), float(np.max(c)),
                          int(sum(len(r) for r in truth.footprint)), int(len(model.footprint)), med(ne),
@@ -266,7 +288,8 @@ def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
                          [float(x) for x in oe], med(oe), int(model.info.get("walls_inferred", 0)),
                          rms(seen), float(len(seen) / len(he)) if len(he) else float("nan"), rms(off),
                          float(attrs["roof_height_70p"]) - truth.roof_70p,
-                         float(attrs["volume"]) / truth.volume - 1.0 if truth.volume > 0 else float("nan"))
+                         float(attrs["volume"]) / truth.volume - 1.0 if truth.volume > 0 else float("nan"),
+                         float(np.sqrt(np.sum(wl * we**2) / np.sum(wl))) if len(we) else float("nan"))
 
 
 def match_truth(model: BuildingModel, truths: list[BuildingTruth]) -> int | None:
@@ -295,6 +318,8 @@ def summary(scores: list[BuildingScore], n_truth: int) -> dict:
         "corner_median_of_medians": float(np.median(cm)) if len(cm) else None,
         "corner_mean_of_means": float(np.mean(pool("corner_mean"))) if len(cm) else None,
         "normal_median_deg": float(np.median(nm)) if len(nm) else None,
+        "wall_direction_median_deg": (float(np.median(pool("wall_direction_deg")))
+                                      if len(pool("wall_direction_deg")) else None),
         "roof_rmse_median": float(np.median(pool("roof_rmse"))) if len(pool("roof_rmse")) else None,
         "roof_rmse_mean": float(np.mean(pool("roof_rmse"))) if len(pool("roof_rmse")) else None,
         "roof_rmse_off_steps_mean": (float(np.mean(pool("roof_rmse_off_steps")))

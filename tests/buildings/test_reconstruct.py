@@ -62,6 +62,18 @@ def test_scores_against_truth(models, synthetic):
         assert s.roof_rmse < 0.05 and s.roof_coverage == 1.0  # the top surface to the 4 cm noise
 
 
+def test_wall_direction_error_of_a_turned_outline():
+    # an L turned by 1.5 degrees about its corner: each edge of at least 3 m is 1.5 degrees off its true edge; the
+    # 2 m ones are left out
+    from oblique_city.core.evaluate.buildings import wall_direction_errors
+
+    ring = np.array([[0, 0], [12, 0], [12, 2], [2, 2], [2, 10], [0, 10.0]])
+    a = np.radians(1.5)
+    turned = ring @ np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])
+    err, length = wall_direction_errors([ring], turned)
+    assert np.allclose(err, 1.5) and np.allclose(sorted(length), [8, 10, 10, 12])
+
+
 def test_roof_height_error_sees_a_raised_roof_and_a_missing_one(models, synthetic):
     truth = BuildingTruth.from_synthetic(synthetic["stepped_flat"][0])
     m = models["stepped_flat"]
