@@ -1125,15 +1125,15 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
     (:func:`square_fragments`), then, when the facade points along its edges give one (:func:`facade_direction`),
     with all fragments squared to that direction, those of any length within ``cfg.square_long_deg`` too; the
     first ring stands when the second fails its tests. On the dense clouds of the demo and of simulated cities 5
-    and 6 (45 buildings) the dominant direction's RMS error went 0.27-0.65 -> 0.15-0.32 degrees, and their
-    corner medians 0.069-0.096 -> 0.060-0.076 m; on sampled truth both are within 0.05 degrees. Long walls keep
-    their own direction beyond ``square_long_deg``: on the dense clouds their fitted directions scatter by 1-2
-    degrees about the truth, while a real wall that far off square is rare (and stays off square beyond it).
+    and 6 the walls' direction error (bench_buildings, median per city) went 0.38 -> 0.09-0.19 degrees and the
+    corner medians 0.069-0.096 -> 0.060-0.076 m; on the sampled truth of seven cities 0.06-0.10 -> 0.02-0.05
+    degrees. Long walls keep their own direction beyond ``square_long_deg``: on the dense clouds their fitted
+    directions scatter by 1-2 degrees about the truth, while a real wall that far off square is rare (and stays
+    off square beyond it).
     """
     raw, cells, origin = wall_fragments(xyz, ground_z, cfg)
     frags = square_fragments(raw, cfg.square_deg)
     source = "facades"
-    inferred = 0
     mask = building_mask(xyz, ground_z, origin, cfg.cell, ground=ground)
     base = ground_z if ground is None else ground  # the walls' and the roof points' heights over it
 
