@@ -1023,8 +1023,9 @@ def facade_direction(polygon: np.ndarray, xyz: np.ndarray, ground_z: float | np.
                 break
             xy = xy[good]
             c, u = _tls_line(xy)
-        turn = np.round((np.arctan2(u[1], u[0]) - reference) / (np.pi / 2)) * np.pi / 2
-        if abs(np.arctan2(u[1], u[0]) - turn - reference) > tol:
+        ang = np.arctan2(u[1], u[0])
+        turn = np.round((ang - reference) / (np.pi / 2)) * np.pi / 2
+        if abs(ang - turn - reference) > tol:
             continue
         rot = np.array([[np.cos(turn), np.sin(turn)], [-np.sin(turn), np.cos(turn)]])  # by -turn
         q = (xy - c) @ rot.T
@@ -1132,7 +1133,8 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
     off square beyond it).
     """
     raw, cells, origin = wall_fragments(xyz, ground_z, cfg)
-    frags = square_fragments(raw, cfg.square_deg)
+    reference = dominant_direction(raw)
+    frags = square_fragments(raw, cfg.square_deg, dominant=reference)
     source = "facades"
     mask = building_mask(xyz, ground_z, origin, cfg.cell, ground=ground)
     base = ground_z if ground is None else ground  # the walls' and the roof points' heights over it
@@ -1162,7 +1164,7 @@ def extract_contour(xyz: np.ndarray, ground_z: float, cfg: ContourConfig = Conto
         source = (f"roof outline ({e} from the facades; {moved} of {len(poly)} edges moved onto facade points, "
                   f"{inferred} by the building's median overhang where no facade point shows the wall)")
         return Contour(poly, tuple(frags), cells, origin, cfg.cell, source, inferred)
-    dom = (facade_direction(poly, xyz, base, dominant_direction(raw), cfg.square_deg)
+    dom = (facade_direction(poly, xyz, base, reference, cfg.square_deg)
            if cfg.facade_direction and cfg.square_deg > 0 else None)
     if dom is not None:
         again = square_fragments(raw, cfg.square_deg, dominant=dom, long_deg=cfg.square_long_deg)

@@ -172,19 +172,16 @@ def wall_direction_errors(truth: list[np.ndarray], est: np.ndarray, min_edge: fl
                           ) -> tuple[np.ndarray, np.ndarray]:
     """Angle (deg) between each estimated outline edge of at least ``min_edge`` m (``est (m, 2)``, a ring) and the true
     edge (of the rings ``truth``) nearest to its midpoint, and the edges' lengths (m): ``(k,)``, ``(k,)``."""
-    gt = [(r, np.roll(r, -1, axis=0)) for r in truth]
-    a0 = np.concatenate([a for a, _ in gt])
-    a1 = np.concatenate([b for _, b in gt])
-    td = a1 - a0
+    a0 = np.concatenate(truth)
+    td = np.concatenate([np.roll(r, -1, axis=0) - r for r in truth])
     tl2 = np.maximum(np.sum(td**2, axis=1), 1e-12)
     ed = np.roll(est, -1, axis=0) - est
     length = np.linalg.norm(ed, axis=1)
     keep = length >= min_edge
     mid = est[keep] + 0.5 * ed[keep]
     t = np.clip(np.einsum("kij,ij->ki", mid[:, None, :] - a0[None], td) / tl2, 0.0, 1.0)
-    dist = np.linalg.norm(mid[:, None, :] - (a0[None] + t[..., None] * td[None]), axis=2)
-    near = td[np.argmin(dist, axis=1)]
-    c = np.abs(np.sum(ed[keep] * near, axis=1)) / (length[keep] * np.sqrt(tl2[np.argmin(dist, axis=1)]))
+    near = np.argmin(np.linalg.norm(mid[:, None, :] - (a0[None] + t[..., None] * td[None]), axis=2), axis=1)
+    c = np.abs(np.sum(ed[keep] * td[near], axis=1)) / (length[keep] * np.sqrt(tl2[near]))
     return np.degrees(np.arccos(np.clip(c, 0.0, 1.0))), length[keep]
 
 
