@@ -32,7 +32,9 @@ class DormerConfig:
     blocks are roof steps); edge_margin : a blob keeps this far inside the outline (m); min_wall : the dormer's
     eaves stand at least this high above the slope at its front (m); max_rmse : largest RMS of the roof fit (m;
     dense matching rounds a dormer's ridge and edges); gable_gain : a single plane is taken instead of the gabled
-    roof only when its RMS is below this share of the gable's."""
+    roof only when its RMS is below this share of the gable's; min_shed_drop_deg : a single roof plane is at least
+    this much flatter than the slope it stands on (a layer parallel to the slope is a bump in the points, e.g. the
+    matching's smear beside a dormer, not a shed dormer: its back would run far up the slope, past the ridge)."""
 
     enabled: bool = True
     min_rise: float = 0.4
@@ -44,6 +46,7 @@ class DormerConfig:
     min_wall: float = 0.4
     max_rmse: float = 0.45
     gable_gain: float = 0.8
+    min_shed_drop_deg: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -151,19 +154,24 @@ def _roof_model(u: np.ndarray, v: np.ndarray, z: np.ndarray, rise: np.ndarray, u
                 tan_slope: float, cfg: DormerConfig) -> tuple[bool, np.ndarray, float] | str:
     """The roof over the points on top (above the slope, inside the sides, behind the front), gabled or one
     plane: ``(gabled, coefficients, RMS)``, or why neither fits. A gable's slopes are 10 to 65 deg; a single plane
-    slopes down to the front (or is flat), not sideways, and less than the roof it stands on (``tan_slope``)."""
+    slopes down to the front (or is flat), not sideways, and at least ``cfg.min_shed_drop_deg`` less than the roof
+    it stands on (``tan_slope``)."""
     top = (rise > cfg.fit_min_rise) & (v > v0 + 0.2) & (v < v1 - 0.2) & (u < u_f - 0.3)
     if top.sum() < 10:
         return f"{int(top.sum())} roof points"
     g, rms_g = _fit_roof(u[top], v[top], z[top], v0, v1, True)
     p, rms_p = _fit_roof(u[top], v[top], z[top], v0, v1, False)
     g_ok = np.tan(np.radians(10.0)) < g[1] < np.tan(np.radians(65.0))
-    p_ok = (abs(p[2]) < np.tan(np.radians(8.0)) and -tan_slope + 0.05 < p[1] < 0.05
-            and (rms_p < cfg.gable_gain * rms_g or not g_ok))
+    steepest = -np.tan(np.arctan(tan_slope) - np.radians(cfg.min_shed_drop_deg))  # dz/du of the steepest shed roof
+    p_shape = abs(p[2]) < np.tan(np.radians(8.0)) and p[1] < 0.05 and (rms_p < cfg.gable_gain * rms_g or not g_ok)
+    p_ok = p_shape and steepest < p[1]
     if g_ok and not p_ok and rms_g <= cfg.max_rmse:
         return True, g, rms_g
     if p_ok and rms_p <= cfg.max_rmse:
         return False, p, rms_p
+    if p_shape and rms_p <= cfg.max_rmse:
+        return (f"its roof plane runs within {cfg.min_shed_drop_deg:.0f} deg of the slope's pitch "
+                f"({np.degrees(np.arctan(-p[1])):.0f} against {np.degrees(np.arctan(tan_slope)):.0f} deg)")
     return f"roof fit RMS {min(rms_g, rms_p):.2f} m"
 
 
