@@ -305,11 +305,13 @@ def test_tilted_patch_absorbed_by_its_roof_face():
     assert out.labels[0, 0] != out.labels[0, 19]
 
 
-def test_a_slope_whose_plane_a_bump_lifted_is_merged_but_a_step_stays():
+def test_a_slope_whose_plane_a_bump_lifted_or_turned_is_merged_but_a_step_stays():
     """One 35-degree slope labelled in two parts (as region growing split the demo's gable_dormers): the smaller
     part's plane was fitted 0.5 m high, dragged up by a quarter of its points standing 1 m above the slope (a dormer
-    and the matching's smear). Its points' median lies on the larger part's plane, so the two are merged into one
-    plane through the slope; the planes alone (0.5 m apart, over ``step_tol``) kept them apart. Lifted by a real
+    and the matching's smear). Its points lie closer to the larger part's plane than to their own, so the two are
+    merged into one plane through the slope; the planes alone (0.5 m apart, over ``step_tol``) kept them apart.
+    The same when its plane was turned by 9 degrees (more than ``angle_deg``) around a chimney (the demo church's
+    north slope), the part two thirds the other's size (too large to be absorbed as a patch). Lifted by a real
     0.5 m step, all its points lie on its own plane and the two stay apart."""
     from oblique_city.core.buildings.roof import RoofConfig, RoofTopology, merge_coplanar
 
@@ -317,24 +319,29 @@ def test_a_slope_whose_plane_a_bump_lifted_is_merged_but_a_step_stays():
     t = np.tan(np.radians(35))
     face = np.array([0.0, -t, 1.0, 0.0]) / np.hypot(t, 1.0)        # z = t y
     lifted = np.array([0.0, -t, 1.0, -0.5]) / np.hypot(t, 1.0)     # z = t y + 0.5
+    k = np.tan(np.radians(9)) / np.hypot(t, 1.0)                   # turned 9 deg about the fall line at x = 8
+    turned = np.array([k, -t, 1.0, -8.0 * k]) / np.linalg.norm([k, -t, 1.0])
     rng = np.random.default_rng(3)
     xy = rng.uniform(0, 10, (8000, 2))
     east = xy[:, 0] >= 6.0
-    for step in (False, True):
+    for case, plane in (("bump", lifted), ("turn", turned), ("step", lifted)):
         labels = np.ones((rows, cols), np.int64)
         labels[:, 12:] = 2
         z = t * xy[:, 1] + rng.normal(0, 0.05, len(xy))
-        if step:
+        if case == "step":
             z[east] += 0.5
-        else:
+        elif case == "bump":
             z[east & (xy[:, 0] < 8.0) & (xy[:, 1] > 2.0) & (xy[:, 1] < 7.0)] += 1.0
-        out = merge_coplanar(RoofTopology(labels, np.zeros(2), c, {1: face, 2: lifted.copy()}),
+        else:
+            z[(np.abs(xy[:, 0] - 9.0) < 0.5) & (np.abs(xy[:, 1] - 5.0) < 0.5)] += 1.5
+        out = merge_coplanar(RoofTopology(labels, np.zeros(2), c, {1: face, 2: plane.copy()}),
                              np.column_stack([xy, z]), RoofConfig())
-        if step:
+        if case == "step":
             assert len(out.planes) == 2 and out.labels[0, 0] != out.labels[0, 19]
         else:
-            assert len(out.planes) == 1 and np.unique(out.labels).tolist() == [1]
+            assert len(out.planes) == 1 and np.unique(out.labels).tolist() == [1], case
             assert abs(out.planes[1][3]) < 0.05 * out.planes[1][2]  # the refitted plane passes through the slope
+            assert abs(out.planes[1][0]) < 0.01
 
 
 def test_wandering_ridge_boundary_moves_onto_the_plane_intersection():
