@@ -261,13 +261,13 @@ def test_a_layer_parallel_to_the_slope_is_no_shed_dormer():
 
 def test_the_demo_dormer_house_slope_lifted_by_a_dormer_stays_one_plane():
     """The demo's gable_dormers house from the project's own dense cloud with its DTM (``tests/data/
-    gable_dormers_dense_dtm.npz``: the stage's points of B0001 at a62a206, float32 about an offset, and the DTM
-    window under them). Region growing labels the west slope in two parts; the northern one, holding a dormer
-    and the matching's smear beside it, got a plane 0.38 m above the truth, and the topology check called the
-    0.49 m between the planes a step: the model went volumetric without its dormers, 0.38 m RMS off the true
-    roof. The northern part's points lie closer to the southern part's plane than to their own, so the slope is
-    one plane: the 2D model with the three dormers, within 0.2 m RMS of the truth's roof (the matching rounds the
-    dormers)."""
+    gable_dormers_dense_dtm.npz``: the points the buildings benchmark gave B0001 from the demo workspace's dense
+    cloud, float32 about an offset, and the DTM window under them). Region growing labels the west slope in two
+    parts; the northern one, holding a dormer and the matching's smear beside it, got a plane 0.38 m above the
+    truth, and the topology check called the 0.49 m between the planes a step: the model went volumetric without
+    its dormers, 0.38 m RMS off the true roof. The northern part's points lie closer to the southern part's plane
+    than to their own, so the slope is one plane: the 2D model with the three dormers, within 0.2 m RMS of the
+    truth's roof (the matching rounds the dormers)."""
     from pathlib import Path
 
     from oblique_city.core.model import Raster
