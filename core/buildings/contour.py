@@ -218,12 +218,16 @@ def wall_fragments(xyz: np.ndarray, ground_z: float, cfg: ContourConfig,
     return frags, cells, origin
 
 
+def _mean_direction_mod90(ang: np.ndarray, w: np.ndarray) -> float:
+    """Weighted mean (radians) of directions ``ang (n,)`` taken modulo 90 degrees, weights ``w (n,)``."""
+    return float(np.angle(np.sum(w * np.exp(4j * ang))) / 4)
+
+
 def dominant_direction(frags: list[Fragment]) -> float:
     """The building's dominant wall direction (radians, modulo 90 degrees) from its fragments: the mean of their
     directions weighted by support times length, which the long walls decide."""
     ang = np.array([np.arctan2(f.d[1], f.d[0]) for f in frags])
-    w = np.array([f.support * (f.t1 - f.t0) for f in frags], dtype=np.float64)
-    return float(np.angle(np.sum(w * np.exp(4j * ang))) / 4)
+    return _mean_direction_mod90(ang, np.array([f.support * (f.t1 - f.t0) for f in frags], dtype=np.float64))
 
 
 def square_fragments(frags: list[Fragment], tol_deg: float, max_length: float = 5.0,
@@ -873,9 +877,7 @@ def _square_lines(lines: list[tuple[np.ndarray, np.ndarray, float]], tol_deg: fl
     if tol_deg <= 0:
         return lines
     ang = np.array([np.arctan2(d[1], d[0]) for _, d, _ in lines])
-    w = np.array([length for _, _, length in lines])
-    z = np.sum(w * np.exp(4j * ang))  # directions modulo 90 degrees
-    dom = np.angle(z) / 4
+    dom = _mean_direction_mod90(ang, np.array([length for _, _, length in lines]))
     out = []
     for (p, d, length), a in zip(lines, ang):
         k = np.round((a - dom) / (np.pi / 2))

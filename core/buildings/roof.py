@@ -395,15 +395,6 @@ def merge_coplanar(roof: RoofTopology, xyz: np.ndarray, cfg: RoofConfig) -> Roof
     L = roof.labels
     cos_t = np.cos(np.radians(cfg.angle_deg))
     cos_absorb = np.cos(np.radians(cfg.absorb_angle_deg))
-    cell_of = np.floor((xyz[:, :2] - roof.origin) / roof.cell).astype(np.int64)
-    in_grid = ((cell_of[:, 0] >= 0) & (cell_of[:, 0] < L.shape[1]) & (cell_of[:, 1] >= 0)
-               & (cell_of[:, 1] < L.shape[0]))
-
-    def point_labels() -> np.ndarray:
-        lab = np.zeros(len(xyz), np.int64)
-        lab[in_grid] = L[cell_of[in_grid, 1], cell_of[in_grid, 0]]
-        return lab
-
     def explained(big: int, small: int, lab: np.ndarray) -> bool:
         ps, pb = roof.planes[small], roof.planes[big]
         pts = xyz[lab == small]
@@ -423,7 +414,7 @@ def merge_coplanar(roof: RoofTopology, xyz: np.ndarray, cfg: RoofConfig) -> Roof
             for b in labs:
                 if a < b and (a, b) not in pairs:
                     pairs[(a, b)] = 0
-        lab = point_labels()
+        lab = roof.label_at(xyz[:, :2])  # L is roof.labels, relabelled in place
         for (a, b), touch in sorted(pairs.items(), key=lambda kv: -kv[1]):
             pa, pb = roof.planes[a], roof.planes[b]
             if pa[:3] @ pb[:3] < cos_absorb:
@@ -452,7 +443,7 @@ def merge_coplanar(roof: RoofTopology, xyz: np.ndarray, cfg: RoofConfig) -> Roof
             break
         a, b = best
         L[L == b] = a
-        pts = xyz[point_labels() == a]
+        pts = xyz[roof.label_at(xyz[:, :2]) == a]
         pa = roof.planes[a]
         pts = pts[np.abs(pts @ pa[:3] + pa[3]) < cfg.step_tol]
         pl, _ = fit_plane(pts, robust=True)
