@@ -1,5 +1,6 @@
 """A closed polyhedral hull from a set of planes: the arrangement of the planes inside a box, cells kept by an
-occupancy test, the boundary between kept and dropped cells.
+occupancy test (and, where points on the surface are given, barely kept cells dropped when the points say the
+surface runs below them), the boundary between kept and dropped cells.
 
 Every plane splits every cell it crosses (a full arrangement), so two neighbouring cells share exactly the same
 facet and vertices are the intersections of plane triplets (k-nodes where more planes meet, consolidated by
@@ -13,7 +14,7 @@ found in the voxels with an occupancy from the points.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -32,6 +33,63 @@ class Hull:
     faces: list[tuple[int, list[int]]]
     n_cells: int
     n_inside: int
+
+
+@dataclass(frozen=True)
+class SurfaceSupport:
+    """The observed surface's points ``xyz (n, 3)`` as a second judge of the cells the occupancy keeps barely: a
+    kept cell whose occupancy is below ``max_occupancy`` is dropped when its faces shared with kept cells carry more
+    than ``ratio`` times the points per square metre (within ``tol`` of a face, over its polygon) that its other
+    faces carry. Points lie on the surface, so the surface runs through the faces that carry them."""
+
+    xyz: np.ndarray = field(repr=False)
+    tol: float = 0.3
+    ratio: float = 1.2
+    max_occupancy: float = 0.8
+
+
+def face_density(poly: np.ndarray, xyz: np.ndarray, tol: float) -> tuple[int, float]:
+    """The points of ``xyz (n, 3)`` within ``tol`` of the convex polygon ``poly (k, 3)`` (across its plane, inside
+    its outline) and the polygon's area (m^2)."""
+    newell = np.cross(poly, np.roll(poly, -1, axis=0)).sum(0)  # twice the area along the normal
+    area = 0.5 * float(np.linalg.norm(newell))
+    if area < EPS:
+        return 0, 0.0
+    n = newell / (2.0 * area)
+    q = xyz[np.abs((xyz - poly[0]) @ n) < tol]
+    edges = np.roll(poly, -1, axis=0) - poly
+    inside = np.ones(len(q), bool)
+    for a, e in zip(poly, edges):
+        inside &= np.cross(e, q - a) @ n >= -EPS
+    return int(inside.sum()), area
+
+
+def _drop_unsupported(cells: list[Cell], frac: np.ndarray, keep: np.ndarray, neighbour: list[list[int]],
+                      surface: SurfaceSupport) -> np.ndarray:
+    """``keep (c,)`` with the barely kept cells the surface points refuse dropped (:class:`SurfaceSupport`), the
+    least occupied first and again until none changes: a dropped cell turns its neighbours' shared faces into
+    boundary. ``neighbour[ci][j]``: the cell across face ``j`` of cell ``ci`` (-1: none)."""
+    keep = keep.copy()
+    xyz = surface.xyz
+    density: dict[int, list[tuple[int, float]]] = {}
+    for _ in range(len(cells)):
+        changed = False
+        for ci in sorted(np.flatnonzero(keep & (frac < surface.max_occupancy)), key=lambda c: frac[c]):
+            if ci not in density:
+                v = np.concatenate([f for _, f in cells[ci]])
+                near = xyz[np.all((xyz >= v.min(0) - surface.tol) & (xyz <= v.max(0) + surface.tol), axis=1)]
+                density[ci] = [face_density(f, near, surface.tol) for _, f in cells[ci]]
+            shared = np.array([nb >= 0 and keep[nb] for nb in neighbour[ci]])
+            if not shared.any() or shared.all():
+                continue
+            n, a = np.array(density[ci], dtype=np.float64).T
+            inner = n[shared].sum() / max(a[shared].sum(), EPS)
+            if inner > surface.ratio * n[~shared].sum() / max(a[~shared].sum(), EPS):
+                keep[ci] = False
+                changed = True
+        if not changed:
+            break
+    return keep
 
 
 def _clip(poly: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
@@ -163,13 +221,15 @@ def _volume_samples(cells: list[Cell]) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-               inside: Callable[[np.ndarray], np.ndarray], merge_tol: float = 1e-5) -> Hull:
+               inside: Callable[[np.ndarray], np.ndarray], merge_tol: float = 1e-5,
+               surface: SurfaceSupport | None = None) -> Hull:
     """The closed surface of the occupied cells of the arrangement of ``planes (k, 4)`` in the box [lo, hi].
 
     Parameters
     ----------
     inside : ``inside(xyz (n, 3)) -> (n,) bool`` occupancy of sample points; a cell is kept when most of its
         volume is inside (:func:`_volume_samples`)
+    surface : the observed surface's points, which may drop cells kept barely (:class:`SurfaceSupport`)
     """
     cells: list[Cell] = [_box(np.asarray(lo, float), np.asarray(hi, float))]
     for pid, pl in enumerate(planes):
@@ -200,12 +260,22 @@ def build_hull(planes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     vid = comp
     vertices = allv[first]
     rings, k = [], 0
+    facet_key = []  # the vertex set of each facet: the faces of two neighbouring cells on one plane share it
     for ci, fid, poly in facets:
         ring = [int(x) for x in vid[k:k + len(poly)]]
         k += len(poly)
         ring = [v for i, v in enumerate(ring) if v != ring[i - 1]]
+        facet_key.append(frozenset(ring))
         if len(set(ring)) >= 3:
             rings.append((ci, fid, ring))
+    if surface is not None:
+        across: dict[frozenset, list[int]] = {}
+        for (ci, _, _), key in zip(facets, facet_key):
+            across.setdefault(key, []).append(ci)
+        neighbour: list[list[int]] = [[] for _ in cells]
+        for (ci, _, _), key in zip(facets, facet_key):
+            neighbour[ci].append(next((c for c in across[key] if c != ci), -1) if len(key) >= 3 else -1)
+        keep = _drop_unsupported(cells, frac, keep, neighbour, surface)
     volume = np.zeros(len(cells))
     for ci, _, ring in rings:
         p = vertices[ring]

@@ -21,11 +21,12 @@ from .contour import ContourConfig, extract_contour
 from .denoise import voxel_noise_filter
 from .dormers import Dormer, DormerConfig, find_dormers
 from .geometry import points_in_polygon, top_of_rings
-from .hull import Hull, build_hull, dedupe_planes, unique_planes
+from .hull import Hull, SurfaceSupport, build_hull, dedupe_planes, unique_planes
 from .model import BuildingModel, Surface, ring_normal
 from .overhang import OverhangConfig, overhang_surfaces, overhang_widths, within_edge
 from .roof import RoofConfig, _wall_plane, check_topology, plane_z, roof_labels, topology
 from .volumetric import (
+    InteriorWall,
     VolumetricConfig,
     clip_spill_over_walls,
     eave_planes,
@@ -132,7 +133,7 @@ def _hull_2d(polygon, roof, ground_z, walls, lo, hi, dormers: list[Dormer] = ())
 
 
 def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, cfg,
-                     steps: list[np.ndarray] = (), inner: list[np.ndarray] = (),
+                     steps: list[np.ndarray] = (), inner: list[InteriorWall] = (),
                      wall_points: np.ndarray | None = None) -> tuple[Hull, int]:
     # the top grid from the roof points: an interior wall's points would raise the lower roof beside it
     roofish = xyz if wall_points is None else xyz[~wall_points]
@@ -163,7 +164,7 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
     # a wall on its own facade points inside the outline unless one stands within 0.1 m (the demo church's
     # tower wall stands 0.5 m beside the nave's end wall, 0.2 m from where the contour put that end wall); a step
     # wall of the labels where none stands within 1 m (the found ones are better placed)
-    for extra, apart in ((inner, 0.1), (steps, 1.0)):
+    for extra, apart in (([w.plane for w in inner], 0.1), (steps, 1.0)):
         verticals = [w for w in list(walls) + found if abs(w[2]) < 1e-9]
         found += [st for st in extra if not any(abs(st[:3] @ w[:3]) > cos_w
                                                 and abs(st[3] - np.sign(st[:3] @ w[:3]) * w[3]) < apart
@@ -177,7 +178,8 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
         ok = points_in_polygon(P[:, :2], polygon) & (P[:, 2] > ground_z) & (P[:, 2] < cap)
         return ok & (P[:, 2] < height_at(P[:, :2]))
 
-    return build_hull(planes, lo, hi, inside), len(found)
+    support = SurfaceSupport(xyz, cfg.support_tol, cfg.support_ratio, cfg.support_max_occupancy)
+    return build_hull(planes, lo, hi, inside, surface=support), len(found)
 
 
 def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, bid: str,

@@ -16,11 +16,12 @@ from oblique_city.core.buildings.contour import (
 )
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
 from oblique_city.core.buildings.geometry import points_in_polygon
-from oblique_city.core.buildings.hull import build_hull, unique_planes
+from oblique_city.core.buildings.hull import SurfaceSupport, build_hull, unique_planes
 from oblique_city.core.buildings.overhang import overhang_surfaces, overhang_widths
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
 from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
 from oblique_city.core.buildings.volumetric import (
+    InteriorWall,
     PlaneSegment,
     clip_spill_over_walls,
     eave_planes,
@@ -580,13 +581,32 @@ def test_an_upper_roof_spilled_over_an_interior_wall_is_clipped():
     x = origin[0] + (cx + 0.5) * cell
     H = np.where(x < 0, 22.0, 12.0 - 0.2 * x)
     H[(x > 0) & (x < 1.5)] = 22.0
-    wall = np.array([-1.0, 0.0, 0.0, 0.0])  # -x + 0 = 0: x = 0
+    wall = InteriorWall(np.array([-1.0, 0.0, 0.0, 0.0]), (-4.0, 4.0))  # -x + 0 = 0: x = 0, facade y -4..4
     out = clip_spill_over_walls(H, origin, cell, [wall])
     spill = (x > 0.5) & (x < 1.5)
     assert np.allclose(out[spill], 12.0 - 0.2 * (x[spill] + 2.0), atol=1e-9)  # the nave 2 m further out
     assert np.array_equal(out[~spill], H[~spill])
     assert np.array_equal(clip_spill_over_walls(np.where(x < 0, 12.5, 12.0), origin, cell, [wall]),
                           np.where(x < 0, 12.5, 12.0))  # a 0.5 m step: no upper roof
+
+
+def test_spill_clipping_compares_the_sides_along_the_wall_s_run_only():
+    """The same tower, 6 m wide (y -3..3), stands on a 20 m long line through the nave's end: beyond its corners
+    the line's west side is the ground. Over the whole line the west side's median is the ground's, lower than
+    the nave, and the spill stayed; along the wall's run the tower is the upper side and the spill goes."""
+    cell, origin = 0.25, np.array([-6.0, -10.0])
+    cy, cx = np.mgrid[0:80, 0:48]
+    x, y = origin[0] + (cx + 0.5) * cell, origin[1] + (cy + 0.5) * cell
+    tower = (x < 0) & (np.abs(y) < 3.0)
+    H = np.where(x < 0, np.where(tower, 22.0, 0.0), 12.0 - 0.2 * x)
+    spill = (x > 0.5) & (x < 1.5) & (np.abs(y) < 3.0)
+    H[(x > 0) & (x < 1.5) & (np.abs(y) < 3.0)] = 22.0
+    plane = np.array([-1.0, 0.0, 0.0, 0.0])
+    out = clip_spill_over_walls(H, origin, cell, [InteriorWall(plane, (-3.0, 3.0))])
+    assert np.allclose(out[spill], 12.0 - 0.2 * (x[spill] + 2.0), atol=1e-9)
+    assert np.array_equal(out[~spill], H[~spill])
+    whole_line = clip_spill_over_walls(H, origin, cell, [InteriorWall(plane, (-10.0, 10.0))])
+    assert np.all(whole_line[spill] == 22.0)  # the comparison over the whole line: the spill stays
 
 
 def test_facade_points_along_a_flat_roof_do_not_outvote_it():
@@ -619,14 +639,20 @@ def test_top_grid_snaps_to_the_roof_plane_it_holds_and_keeps_the_rest():
     plane = np.array([0.0, -t, 1.0, -110.0]) / np.hypot(t, 1.0)  # z = 110 + t y
     xy = rng.uniform(0, 10, (8000, 2))
     top = np.column_stack([xy, 110.0 + t * xy[:, 1] + rng.normal(0, 0.2, len(xy))])
-    H = np.full((20, 20), 200.0)
-    out = snap_heights(H, top, [plane], np.zeros(2), 0.5, 0.5)
     yc = (np.arange(20) + 0.5) * 0.5
-    assert np.allclose(out, (110.0 + t * yc)[:, None] * np.ones((1, 20)))
-    # a cell whose points lie 2 m off every plane keeps its height
-    top[(xy[:, 0] < 0.5) & (xy[:, 1] < 0.5), 2] += 2.0
+    on_plane = (110.0 + t * yc)[:, None] * np.ones((1, 20))
+    H = on_plane + 0.35
     out = snap_heights(H, top, [plane], np.zeros(2), 0.5, 0.5)
-    assert out[0, 0] == 200.0 and np.isclose(out[0, 1], 110.0 + t * 0.25)
+    assert np.allclose(out, on_plane)
+    # a cell whose points lie 2 m off every plane keeps its height
+    moved = top.copy()
+    moved[(xy[:, 0] < 0.5) & (xy[:, 1] < 0.5), 2] += 2.0
+    out = snap_heights(H, moved, [plane], np.zeros(2), 0.5, 0.5)
+    assert out[0, 0] == H[0, 0] and np.isclose(out[0, 1], on_plane[0, 1])
+    # a cell lowered 3 m below the plane its points lie on (a tower's spill clipped over the nave) stays lowered
+    H[5, 5] -= 3.0
+    out = snap_heights(H, top, [plane], np.zeros(2), 0.5, 0.5)
+    assert out[5, 5] == H[5, 5] and np.isclose(out[5, 6], on_plane[5, 6])
 
 
 def test_step_walls_follow_an_l_shaped_step_boundary():
@@ -674,7 +700,7 @@ def test_interior_wall_found_on_its_facade_points_and_kept_out_of_the_roof():
     assert facade[wall].mean() > 0.5 and facade[~wall].mean() < 0.01
     walls, on_wall = interior_walls(xyz, polygon, 0.0, 0.55, 40)
     assert len(walls) == 1
-    w = walls[0]
+    w = walls[0].plane
     assert w[2] == 0.0 and abs(w[0]) > np.cos(np.radians(2.0)) and abs(w[3] / w[0] + 5.0) < 0.1
     assert on_wall[wall].mean() > 0.8  # within 0.35 m of the line along the run: 0.15 m noise
     # besides the wall's points only roof points within its 0.35 m band: the upper roof's edge, the lower one's
@@ -753,6 +779,49 @@ def test_hull_cell_kept_by_the_share_of_its_volume_inside(occupied, kept):
     hull = build_hull(np.array([[0.0, 1.0 / s2, 1.0 / s2, -3.0 / s2]]), np.zeros(3), np.array([10.0, 4.0, 5.0]),
                       lambda P: (P[:, 1] < occupied) & (P[:, 1] + P[:, 2] < 3.0))
     assert (hull.n_inside == 1) == kept
+
+
+def _wedge_case(real: bool, noise: float = 0.04, seed: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """A 10 x 4 x 3 m box and a plane y + z = 5 that cuts a wedge from its roof (2 m thick at y = 0, none at
+    y = 2). Points at about 20 per m^2 on the flat roof and the walls, or (``real``) on the wedge's slope over
+    y < 2 and a front wall up to it. Returns the planes and the points."""
+    rng = np.random.default_rng(seed)
+    s2 = np.sqrt(2.0)
+    planes = np.array([[1, 0, 0, 0], [-1, 0, 0, 10], [0, 1, 0, 0], [0, -1, 0, 4], [0, 0, 1, 0], [0, 0, 1, -3],
+                       [0, 1 / s2, 1 / s2, -5 / s2]])
+    x, y = rng.uniform(0, 10, 800), rng.uniform(0, 4, 800)
+    roof = np.column_stack([x, y, 3.0 + real * np.maximum(2.0 - y, 0.0)])
+    front_top = 5.0 if real else 3.0
+    x, z = rng.uniform(0, 10, 1000), rng.uniform(0, front_top, 1000)
+    front = np.column_stack([x, np.zeros(1000), z])
+    back = np.column_stack([x, np.full(1000, 4.0), z * 3.0 / front_top])
+    y, z = rng.uniform(0, 4, 240), rng.uniform(0, 3, 240)
+    ends = [np.column_stack([np.full(240, x0), y, z]) for x0 in (0.0, 10.0)]
+    xyz = np.vstack([roof, front, back, *ends])
+    return planes, xyz + rng.normal(0, noise, xyz.shape)
+
+
+@pytest.mark.parametrize("real", [False, True])
+def test_a_cell_kept_barely_goes_when_the_points_say_the_surface_runs_below_it(real):
+    """The occupancy fills the wedge over y < 0.9 (70 % of its volume: a top grid raised beside a higher roof). The
+    points on the flat roof refuse it: the hull's top is the roof at 3 m. When the points lie on the slope instead
+    (a real wedge), it stays. Without the points the wedge is kept either way."""
+    from oblique_city.core.buildings.reconstruct import solid_check
+
+    planes, xyz = _wedge_case(real)
+
+    def inside(p):
+        x, y, z = p.T
+        box = (x > 0) & (x < 10) & (y > 0) & (y < 4) & (z > 0)
+        return box & ((z < 3.0) | ((y < 0.9) & (y + z < 5.0)))
+
+    lo, hi = np.array([-1, -1, -1.0]), np.array([11, 5, 7.0])
+    wedge = 10 * 2 * 2 / 2
+    for surface, volume in ((None, 120.0 + wedge), (SurfaceSupport(xyz), 120.0 + wedge * real)):
+        h = build_hull(planes, lo, hi, inside, surface=surface)
+        ok, vol, why = solid_check(h.vertices, [r for _, r in h.faces])
+        assert ok, why
+        assert vol == pytest.approx(volume, abs=1e-6)
 
 
 def test_step_placed_where_the_eaves_step_when_the_facade_beside_it_is_hidden():
