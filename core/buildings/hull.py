@@ -45,7 +45,7 @@ class SurfaceSupport:
     xyz: np.ndarray = field(repr=False)
     tol: float = 0.3
     ratio: float = 1.2
-    max_occupancy: float = 0.8
+    max_occupancy: float = 0.85
 
 
 def face_density(poly: np.ndarray, xyz: np.ndarray, tol: float) -> tuple[int, float]:

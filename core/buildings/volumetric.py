@@ -37,7 +37,7 @@ class VolumetricConfig:
     min_wall_points: int = 40
     support_tol: float = 0.3
     support_ratio: float = 1.2
-    support_max_occupancy: float = 0.8
+    support_max_occupancy: float = 0.85
 
 
 @dataclass(frozen=True)
