@@ -21,6 +21,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from .model import ring_area_vector
+
 EPS = 1e-7
 
 
@@ -43,19 +45,19 @@ class SurfaceSupport:
     faces carry. Points lie on the surface, so the surface runs through the faces that carry them."""
 
     xyz: np.ndarray = field(repr=False)
-    tol: float = 0.3
-    ratio: float = 1.2
-    max_occupancy: float = 0.85
+    tol: float
+    ratio: float
+    max_occupancy: float
 
 
 def face_density(poly: np.ndarray, xyz: np.ndarray, tol: float) -> tuple[int, float]:
     """The points of ``xyz (n, 3)`` within ``tol`` of the convex polygon ``poly (k, 3)`` (across its plane, inside
     its outline) and the polygon's area (m^2)."""
-    newell = np.cross(poly, np.roll(poly, -1, axis=0)).sum(0)  # twice the area along the normal
-    area = 0.5 * float(np.linalg.norm(newell))
+    av = ring_area_vector(poly)
+    area = float(np.linalg.norm(av))
     if area < EPS:
         return 0, 0.0
-    n = newell / (2.0 * area)
+    n = av / area
     q = xyz[np.abs((xyz - poly[0]) @ n) < tol]
     edges = np.roll(poly, -1, axis=0) - poly
     inside = np.ones(len(q), bool)

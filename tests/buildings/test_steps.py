@@ -23,6 +23,7 @@ from oblique_city.core.buildings.synthetic import Part, SyntheticBuilding
 from oblique_city.core.buildings.volumetric import (
     InteriorWall,
     PlaneSegment,
+    VolumetricConfig,
     clip_spill_over_walls,
     eave_planes,
     grid_normals,
@@ -817,7 +818,9 @@ def test_a_cell_kept_barely_goes_when_the_points_say_the_surface_runs_below_it(r
 
     lo, hi = np.array([-1, -1, -1.0]), np.array([11, 5, 7.0])
     wedge = 10 * 2 * 2 / 2
-    for surface, volume in ((None, 120.0 + wedge), (SurfaceSupport(xyz), 120.0 + wedge * real)):
+    cfg = VolumetricConfig()
+    support = SurfaceSupport(xyz, cfg.support_tol, cfg.support_ratio, cfg.support_max_occupancy)
+    for surface, volume in ((None, 120.0 + wedge), (support, 120.0 + wedge * real)):
         h = build_hull(planes, lo, hi, inside, surface=surface)
         ok, vol, why = solid_check(h.vertices, [r for _, r in h.faces])
         assert ok, why
