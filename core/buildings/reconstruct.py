@@ -29,6 +29,7 @@ from .volumetric import (
     InteriorWall,
     VolumetricConfig,
     clip_spill_over_walls,
+    eave_bevels,
     eave_planes,
     grid_cell,
     grid_normals,
@@ -145,6 +146,7 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
 
     tol = max(3.0 * noise, 0.05)
     segs = voxel_planes(xyz[xyz[:, 2] > ground_z + 0.5], voxel, noise, cfg)
+    segs = [s for s, bevel in zip(segs, eave_bevels(segs, cfg)) if not bevel]  # a rounded eave is no roof face
     # faces the growing missed, rising from the outline (a found face keeps its own, better supported plane)
     normals = grid_normals(H, roof.cell)[grid_cell(top[:, :2], roof.origin, roof.cell, H.shape)]
     segs += [e for e in eave_planes(top, polygon, voxel, tol, cfg, normals=normals)

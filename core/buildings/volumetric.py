@@ -14,7 +14,7 @@ walls between roofs of different heights).
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,7 +28,9 @@ class VolumetricConfig:
     """voxel : voxel edge (m, 0 = half the noise filter's voxel); angle_deg : coplanarity of neighbours;
     min_points : points of a voxel with a plane; min_area : smallest plane segment (m^2); min_wall_points : facade
     points of a wall inside the outline (:func:`interior_walls`); support_tol, support_ratio,
-    support_max_occupancy : how the points judge the hull's barely kept cells (:class:`.hull.SurfaceSupport`)."""
+    support_max_occupancy : how the points judge the hull's barely kept cells (:class:`.hull.SurfaceSupport`);
+    bevel_min_steeper_deg, bevel_max_width, bevel_min_overlap, bevel_min_ratio, bevel_direction_deg : what makes a
+    segment a rounded eave (:func:`eave_bevels`)."""
 
     voxel: float = 0.0
     angle_deg: float = 10.0
@@ -38,6 +40,11 @@ class VolumetricConfig:
     support_tol: float = 0.3
     support_ratio: float = 1.2
     support_max_occupancy: float = 0.85
+    bevel_min_steeper_deg: float = 8.0
+    bevel_max_width: float = 1.2
+    bevel_min_overlap: float = 0.3
+    bevel_min_ratio: float = 3.0
+    bevel_direction_deg: float = 20.0
 
 
 @dataclass(frozen=True)
@@ -57,12 +64,14 @@ def along_wall(plane: np.ndarray, xy: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class PlaneSegment:
     """plane : (4,) n.x + d = 0; n_points : support; area : approximate (m^2) from the voxel count; centre : (3,)
-    mean of its points."""
+    mean of its points; points : (n_points, 3) the points themselves, where the segment was found in points
+    (:func:`eave_bevels` needs them)."""
 
     plane: np.ndarray
     n_points: int
     area: float
     centre: np.ndarray
+    points: np.ndarray | None = field(default=None, compare=False, repr=False)
 
 
 def voxel_planes(xyz: np.ndarray, voxel: float, noise: float,
@@ -125,7 +134,7 @@ def voxel_planes(xyz: np.ndarray, voxel: float, noise: float,
         pl, _ = fit_plane(xyz[idx], robust=True)
         if pl[2] < -1e-9 or (abs(pl[2]) <= 1e-9 and pl[0] < 0):
             pl = -pl
-        out.append(PlaneSegment(pl, len(idx), area, xyz[idx].mean(0)))
+        out.append(PlaneSegment(pl, len(idx), area, xyz[idx].mean(0), xyz[idx]))
     return merge_plane_segments(out, cfg.angle_deg, tol_b * 2)
 
 
@@ -197,7 +206,7 @@ def eave_planes(top: np.ndarray, polygon: np.ndarray, voxel: float, tol: float,
         want = np.append(-np.sin(np.radians(slopes_deg[k])) * inward, cos[k])
         if pl[:3] @ want < np.cos(np.radians(cfg.angle_deg / 2)):
             continue
-        out.append(PlaneSegment(pl, len(inl), float(area), top[inl].mean(0)))
+        out.append(PlaneSegment(pl, len(inl), float(area), top[inl].mean(0), top[inl]))
     return out
 
 
@@ -283,10 +292,53 @@ def merge_plane_segments(segs: list[PlaneSegment], angle_deg: float, offset: flo
                 n = o.plane[:3] * o.n_points + np.sign(c) * s.plane[:3] * s.n_points
                 n = n / np.linalg.norm(n)
                 centre = (o.centre * o.n_points + s.centre * s.n_points) / w
-                out[i] = PlaneSegment(np.append(n, -n @ centre), w, o.area + s.area, centre)
+                points = (None if o.points is None or s.points is None
+                          else np.concatenate([o.points, s.points]))
+                out[i] = PlaneSegment(np.append(n, -n @ centre), w, o.area + s.area, centre, points)
                 break
         else:
             out.append(s)
+    return out
+
+
+def eave_bevels(segs: list[PlaneSegment], cfg: VolumetricConfig = VolumetricConfig()) -> np.ndarray:
+    """Which segments are a rounded eave, not a roof face -> (len(segs),) bool.
+
+    Dense matching and its smoothing round a convex eave off: between the facade and the roof the points run on a
+    steeper band, which the region growing finds as a plane of its own (on the demo church's north eave a 63 degree
+    band over the 50 degree slope, 1 m wide in plan). Its plane, carried on into the hull, raises the roof by up to
+    2 m over the slope behind it. Such a band, against a roof segment falling the same way (horizontal normals
+    within ``bevel_direction_deg``) with ``bevel_min_ratio`` times its points:
+
+    * is steeper by at least ``bevel_min_steeper_deg`` and narrower in plan than ``bevel_max_width``;
+    * overlaps the roof's lower end in plan: along the roof's fall it starts more than ``bevel_min_overlap`` inside
+      the roof's points (their 95th percentile) and ends beyond that;
+    * holds the roof's lowest points in its height range (5th to 95th percentiles).
+
+    A mansard's steep lower face meets the upper roof along a line, and its points start where the roof's end, so
+    it stays. Segments without points (``PlaneSegment.points`` None) are never taken for a bevel.
+    """
+    out = np.zeros(len(segs), bool)
+    sloped = []
+    for i, s in enumerate(segs):
+        n = s.plane[:3] / np.linalg.norm(s.plane[:3])
+        horizontal = float(np.linalg.norm(n[:2]))
+        if s.points is not None and 1e-6 < horizontal < 1.0 - 1e-6:
+            sloped.append((i, np.degrees(np.arcsin(horizontal)), n[:2] / horizontal))
+    cos_dir = np.cos(np.radians(cfg.bevel_direction_deg))
+    for i, slope, fall in sloped:
+        s = segs[i]
+        z5, z95 = np.percentile(s.points[:, 2], [5.0, 95.0])
+        for j, r_slope, r_fall in sloped:
+            r = segs[j]
+            if (j == i or r.n_points < cfg.bevel_min_ratio * s.n_points or slope < r_slope + cfg.bevel_min_steeper_deg
+                    or fall @ r_fall < cos_dir):
+                continue
+            u5, u95 = np.percentile(s.points[:, :2] @ r_fall, [5.0, 95.0])
+            inner = float(np.percentile(r.points[:, :2] @ r_fall, 95.0)) - cfg.bevel_min_overlap
+            if u95 - u5 < cfg.bevel_max_width and u5 < inner < u95 and z5 < np.percentile(r.points[:, 2], 5.0) < z95:
+                out[i] = True
+                break
     return out
 
 

@@ -15,7 +15,7 @@ from oblique_city.core.buildings.contour import (
     walls_under_roof_outline,
 )
 from oblique_city.core.buildings.denoise import guess_voxel_size, voxel_noise_filter
-from oblique_city.core.buildings.geometry import points_in_polygon
+from oblique_city.core.buildings.geometry import fit_plane, points_in_polygon
 from oblique_city.core.buildings.hull import SurfaceSupport, build_hull, unique_planes
 from oblique_city.core.buildings.overhang import overhang_surfaces, overhang_widths
 from oblique_city.core.buildings.roof import check_topology, roof_labels, topology
@@ -25,6 +25,7 @@ from oblique_city.core.buildings.volumetric import (
     PlaneSegment,
     VolumetricConfig,
     clip_spill_over_walls,
+    eave_bevels,
     eave_planes,
     grid_normals,
     height_grid,
@@ -519,6 +520,34 @@ def test_plane_segments_far_from_the_origin_merge_by_their_centres():
     assert abs(merged[0].centre @ merged[0].plane[:3] + merged[0].plane[3]) < 1e-9
     step = c2 + np.array([0.0, 0.0, 1.0])  # a parallel roof 1 m higher stays apart
     assert len(merge_plane_segments([seg(0.0, c1), seg(0.0, step)], 10.0, 0.5)) == 2
+
+
+def _face_segment(rng: np.random.Generator, slope_deg: float, y0: float, y1: float, z0: float, n: int
+                  ) -> PlaneSegment:
+    """The segment of ``n`` points (0.08 m noise) on a 20 m long face falling northwards (+y) at ``slope_deg`` from
+    height ``z0`` at ``y = y0`` to ``y = y1``."""
+    y = rng.uniform(y0, y1, n)
+    xyz = np.column_stack([rng.uniform(-10.0, 10.0, n), y, z0 - np.tan(np.radians(slope_deg)) * (y - y0)])
+    xyz += rng.normal(0.0, 0.08, (n, 3))
+    pl, _ = fit_plane(xyz)
+    return PlaneSegment(pl if pl[2] > 0 else -pl, n, 0.0, xyz.mean(0), xyz)
+
+
+def test_a_rounded_eave_is_no_roof_face_but_a_mansard_s_lower_face_and_a_tower_s_face_are():
+    # the north slope of a 50 degree gable from its ridge (y = 0) to its eave 0.5 m beyond the wall (y = 5.5);
+    # the demo church's rounded north eave: a 63 degree band from the slope 1 m inside the eave down to the eave
+    rng = np.random.default_rng(3)
+    t = np.tan(np.radians(50.0))
+    roof = _face_segment(rng, 50.0, 0.0, 5.5, 109.0 + 5.0 * t, 6000)
+    rounded = _face_segment(rng, 63.0, 4.5, 5.5, 109.0 + 0.5 * t, 400)
+    mansard = _face_segment(rng, 70.0, 5.5, 6.3, 109.0 - 0.5 * t, 400)  # starts where the slope ends
+    tower = _face_segment(rng, 65.0, 0.5, 3.0, 125.0, 400)  # 2.5 m wide, high above the slope's eave
+    wide = _face_segment(rng, 63.0, 4.0, 5.5, 109.0 + t, 400)  # 1.5 m wide in plan: a face of its own
+    gentle = _face_segment(rng, 55.0, 4.5, 5.5, 109.0 + 0.5 * t, 400)  # within 8 degrees of the slope
+    assert eave_bevels([roof, rounded, mansard, tower, wide, gentle]).tolist() == [False, True] + [False] * 4
+    assert not eave_bevels([rounded]).any()  # without the roof it rounds off, no bevel
+    few = _face_segment(rng, 50.0, 0.0, 5.5, 109.0 + 5.0 * t, 1000)  # a roof of under 3 times its points
+    assert not eave_bevels([few, rounded]).any()
 
 
 def test_eave_planes_find_a_sparse_noisy_pyramid_and_nothing_on_flat_or_gable_ends():
