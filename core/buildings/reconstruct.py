@@ -33,6 +33,7 @@ from .volumetric import (
     eave_planes,
     grid_cell,
     grid_normals,
+    interior_eave_lines,
     interior_walls,
     same_plane,
     snap_heights,
@@ -149,7 +150,9 @@ def _hull_volumetric(xyz, polygon, roof, ground_z, walls, lo, hi, voxel, noise, 
     segs = [s for s, bevel in zip(segs, eave_bevels(segs, cfg)) if not bevel]  # a rounded eave is no roof face
     # faces the growing missed, rising from the outline (a found face keeps its own, better supported plane)
     normals = grid_normals(H, roof.cell)[grid_cell(top[:, :2], roof.origin, roof.cell, H.shape)]
-    segs += [e for e in eave_planes(top, polygon, voxel, tol, cfg, normals=normals)
+    # and the faces rising from an interior wall's top on its higher side (a tower's face towards the nave)
+    lines = interior_eave_lines(H, roof.origin, roof.cell, list(inner))
+    segs += [e for e in eave_planes(top, polygon, voxel, tol, cfg, normals=normals, lines=lines)
              if not any(same_plane(e, s, cfg.angle_deg, 2 * tol) for s in segs)]
     found = []
     cos_w = np.cos(np.radians(cfg.angle_deg))

@@ -29,6 +29,7 @@ from oblique_city.core.buildings.volumetric import (
     eave_planes,
     grid_normals,
     height_grid,
+    interior_eave_lines,
     interior_facade_points,
     interior_walls,
     merge_plane_segments,
@@ -600,6 +601,40 @@ def test_eave_vote_by_agreeing_normals_finds_the_sparse_north_face_of_a_church_s
         normals = grid_normals(height_grid(xyz, origin, cell, shape), cell)[cr[:, 1], cr[:, 0]]
         found = eave_planes(xyz, outline, 0.483, 0.216, normals=normals)
         assert all(off_deg(found, n) < 4.0 for n in faces.values()), cell
+
+
+def test_a_tower_s_face_towards_the_nave_rises_from_its_interior_wall():
+    """A 6 x 6 m tower (x -6..0) with a 65 degree pyramid roof from 20 m beside a flat 12 m nave (x 0..20): the
+    tower's east face falls towards the nave from a wall inside the outline. The vote over the outline's edges does
+    not see it (seed 5's church, own dense cloud: the west face carried on over it, up to 6 m too high); voted along
+    the interior wall's run, on its higher side whichever way the wall's normal points, it is found."""
+    rng = np.random.default_rng(11)
+    t65 = np.tan(np.radians(65.0))
+    xy_t = np.column_stack([rng.uniform(-6.0, 0.0, 2000), rng.uniform(-3.0, 3.0, 2000)])
+    z_t = 20.0 + t65 * np.minimum(3.0 - np.abs(xy_t[:, 0] + 3.0), 3.0 - np.abs(xy_t[:, 1]))
+    xy_n = np.column_stack([rng.uniform(0.0, 20.0, 4000), rng.uniform(-5.0, 5.0, 4000)])
+    top = np.concatenate([np.column_stack([xy_t, z_t]), np.column_stack([xy_n, np.full(4000, 12.0)])])
+    top += rng.normal(0.0, 0.1, top.shape)
+    outline = np.array([[0, -5], [20, -5], [20, 5], [0, 5], [0, 3], [-6, 3], [-6, -3], [0, -3]], float)
+    cell = 0.25
+    origin = top[:, :2].min(0) - cell
+    shape = tuple((np.ceil((top[:, :2].max(0) - origin) / cell) + 2).astype(int)[::-1])
+    H = height_grid(top, origin, cell, shape)
+    cr = np.floor((top[:, :2] - origin) / cell).astype(int)
+    normals = grid_normals(H, cell)[cr[:, 1], cr[:, 0]]
+    east = np.array([np.sin(np.radians(65.0)), 0.0, np.cos(np.radians(65.0))])
+
+    def east_face(found: list[PlaneSegment]) -> PlaneSegment:
+        return max(found, key=lambda s: s.plane[:3] @ east)
+
+    plain = eave_planes(top, outline, 0.5, 0.3, normals=normals)
+    assert east_face(plain).plane[:3] @ east < np.cos(np.radians(30.0))
+    for normal in ([1.0, 0.0], [-1.0, 0.0]):
+        lines = interior_eave_lines(H, origin, cell, [InteriorWall(np.array([*normal, 0.0, 0.0]), (-3.0, 3.0))])
+        assert len(lines) == 1 and np.allclose(lines[0], [[0.0, -3.0], [0.0, 3.0]])  # the tower on its left
+        face = east_face(eave_planes(top, outline, 0.5, 0.3, normals=normals, lines=lines)).plane
+        assert face[:3] @ east > np.cos(np.radians(2.0))
+        assert abs(-face[3] / face[2] - 20.0) < 0.1  # its eave at the wall, at 20 m
 
 
 def test_an_upper_roof_spilled_over_an_interior_wall_is_clipped():
