@@ -354,7 +354,8 @@ def eave_bevels(segs: list[PlaneSegment], cfg: VolumetricConfig = VolumetricConf
     * holds the roof's lowest points in its height range (5th to 95th percentiles).
 
     A mansard's steep lower face meets the upper roof along a line, and its points start where the roof's end, so
-    it stays. Segments without points (``PlaneSegment.points`` None) are never taken for a bevel.
+    it stays. Segments without points (``PlaneSegment.points`` None) are neither bevels nor the roofs they are
+    judged against.
     """
     out = np.zeros(len(segs), bool)
     sloped = []
