@@ -7,8 +7,10 @@ candidate. In the frame of its slope (``u`` downslope, ``v`` across) the candida
 wall at its downslope end, two side walls, and a roof fitted to its points, either two slopes meeting at a ridge
 along ``u`` in the middle (gabled) or one plane (shed or flat), whichever fits better; its bottom is the slope,
 so behind it ends where its roof runs into the slope. The walls stand where the points' height above the slope
-steps from the roof's to zero (least squares, so a blurred edge is placed at its middle). Each dormer is a convex
-polytope (the intersection of half-spaces), so the body hull takes its planes and its occupancy as a union with
+steps from the roof's to zero (least squares, so a blurred edge is placed at its middle); a gabled dormer's sides
+are then centred on its ridge, keeping their distance: the roof's two slopes place the ridge, while the matching's
+smear beside a dormer (0.3-0.9 m high over a metre or so of the slope) shifts the side it lies on. Each dormer is
+a convex polytope (the intersection of half-spaces), so the body hull takes its planes and its occupancy as a union with
 the body's (:func:`.hull.build_hull`): the dormer becomes part of the closed solid, with walls and roofs of its
 own.
 """
@@ -232,6 +234,8 @@ def _dormer(xyz: np.ndarray, cell_id: np.ndarray, mask: np.ndarray, plane: np.nd
         fronts = np.arange(u_f - 1.0, u_f + 1.0, 0.05)  # from the inside out
         u_f = float(fronts[np.argmin(_edge_costs(u[band], rise[band], r_model[band], fronts, 1))])
     vc = coef[2] if gabled else 0.5 * (v0 + v1)
+    if gabled:  # its sides as far apart as found, centred on the ridge (the smear beside a dormer shifts a side)
+        v0, v1 = vc - 0.5 * (v1 - v0), vc + 0.5 * (v1 - v0)
     z_main_f = slope_z(u_f)  # the slope rises behind: z = z_main_f + tan_s * (u_f - u)
     roofs = []
     if gabled:

@@ -234,6 +234,32 @@ def test_a_dormer_becomes_part_of_the_solid_and_the_plain_slope_gets_none():
 
 
 
+def test_a_gabled_dormer_shifted_by_the_smear_beside_it_is_centred_on_its_ridge():
+    """The dormer house of the test above as a dense cloud sees it: beside the dormer's west side the slope's points
+    lifted onto the dormer's roof carried on, 0.6 m wide (the matching's smear), and the last 0.4 m of its roof
+    before the east side unseen. The sides fitted to the points both move west, and the west eave, taken on the
+    dormer's roof carried on, came out 0.31 m above the slope: the dormer was refused. Its two slopes place its
+    ridge (u = 5.1 m); the sides, as far apart as found and centred on it, come within 0.35 m of the true ones (u 4.0
+    and 6.2 m) and the dormer is kept."""
+    from oblique_city.core.buildings.attributes import model_top_height
+
+    b, xyz, dsm = _house_with_dormer(True)
+    body, dormer = b.parts
+    uv = b.to_local(xyz[:, :2])
+    slope = body.roof_z(uv[:, 0], uv[:, 1])
+    west = (np.abs(xyz[:, 2] - slope) < 0.2) & (uv[:, 0] > 3.4) & (uv[:, 0] < 4.0) & (uv[:, 1] > 1.0) & (uv[:, 1] < 2.6)
+    x = xyz.copy()
+    x[west, 2] = np.maximum(slope[west], dormer.roof_z(uv[west, 0], uv[west, 1]))
+    east = (uv[:, 0] > 5.8) & (uv[:, 0] < 6.2) & (uv[:, 1] > 1.0) & (uv[:, 1] < 4.5) & (xyz[:, 2] > slope + 0.2)
+    m = reconstruct_building(x[~east], 0.0, dsm, "B0001")
+    assert m.info["dormers"] == ["gabled"] and m.info["closed"]
+    u = np.arange(3.0, 7.2, 0.02)
+    line = b.to_world(np.column_stack([u, np.full(len(u), 1.3)]))  # across it, 0.3 m behind its front
+    on = u[model_top_height(m, line) - body.roof_z(u, np.full(len(u), 1.3)) > 0.15]
+    assert abs(on.min() - 4.0) < 0.35 and abs(on.max() - 6.2) < 0.35
+    assert abs(0.5 * (on.min() + on.max()) - 5.1) < 0.05
+
+
 def test_a_layer_parallel_to_the_slope_is_no_shed_dormer():
     """On the plain house, the roof points of a 2.5 m x 3.5 m patch of the south slope lifted by a wedge (0.6 m at
     its front, 1 m inside the eaves, down to nothing at its back: the matching's smear beside a dormer) fit one roof
