@@ -19,7 +19,9 @@ normal error, wall direction error (the RMS over the outline's edges of at least
 to the true edge nearest to each edge's middle, deg), roof height RMSE (the model's top surface, roofs and their
 overhangs, against the true one on a 0.5 m grid 0.5 m inside the walls, m; 'off steps' leaves out the samples within
 0.75 m of a step between roofs, where a step wall placed a decimetre off counts the step's height), overhang width error
-(m and DSM pixels), closed valid solid, path (2D or volumetric) and why, time per building, and the walls no facade
+(m and DSM pixels), the dormers' walls (how far the model's roof edge across a dormer, 0.3 m behind its front, and
+down its middle stands from the true one, overhang included, m; dormers the model does not rise over by 0.3 m are
+missed), closed valid solid, path (2D or volumetric) and why, time per building, and the walls no facade
 point showed ('walls inf.': placed by the building's median measured overhang, an assumption), and the attributes of a
 3D building registry: the 70th percentile roof height over the footprint ('h70 err', model minus truth, m: the LoD 1.2
 block's height) and the volume ('vol err', relative). Buildings that failed or were not detected are listed with the
@@ -124,7 +126,10 @@ def print_case(res: dict) -> None:
           f"70th percentile roof height error median {f(s.get('roof_70p_abs_error_median'))} m, volume error "
           f"median {f(s.get('volume_abs_error_median'), 100)} %; "
           f"overhang median {f(om)} m = {f(om, 1 / px)} px, "
-          f"p90 {f(s['overhang_p90_error'])} m (target <= {TARGETS['overhang_px']} px)")
+          f"p90 {f(s['overhang_p90_error'])} m (target <= {TARGETS['overhang_px']} px); dormer walls (roof edge, "
+          f"overhang included) sides {f(s.get('dormer_side_mean_error'))} m, fronts "
+          f"{f(s.get('dormer_front_mean_error'))} m off on average over {s.get('dormers_found', 0)} dormers found, "
+          f"{s.get('dormers_missed', 0)} missed")
     print(f"closed valid solids {s['closed_share']:.0%} of reconstructed, {s['closed_share_of_true']:.0%} of true "
           f"(target >= {TARGETS['closed_share']:.0%}); paths {s['paths']}; time per building median "
           f"{f(s['seconds_median'])} s, max {f(s['seconds_max'])} s (target <= {TARGETS['seconds']} s); "

@@ -4,12 +4,13 @@ Per building: outline corner deviation (each true footprint corner to the neares
 roof plane normal error (each true roof plane against the reconstructed roof surface over it), overhang width
 error (each exposed true wall edge against the reconstructed outline edge that runs along it), whether the body
 is a closed valid solid, which path it took, the time it needed, and how many of its walls no facade point
-showed (placed by an assumed overhang, see :func:`..buildings.contour.walls_under_roof_outline`).
+showed (placed by an assumed overhang, see :func:`..buildings.contour.walls_under_roof_outline`); where the
+building has dormers, how far the model's dormer walls stand from the true ones (:class:`DormerProbe`).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -17,6 +18,55 @@ from ..buildings.attributes import building_attributes, footprint_samples, model
 from ..buildings.geometry import points_in_polygon
 from ..buildings.model import BuildingModel
 from ..matching.features import segment_distance
+
+DORMER_RISE = 0.3
+"""A dormer's walls are where the top surface rises this far (m) above the slope it stands on."""
+
+
+@dataclass(frozen=True)
+class DormerProbe:
+    """Where a true dormer's walls stand, measured on two lines of world points: ``across (k, 2)`` from beyond one
+    side to beyond the other, 0.3 m behind its front, and ``along (j, 2)`` down its middle from behind to beyond its
+    front; ``across_t``, ``along_t`` the lines' coordinates (m, along grows outwards); ``slope_across``,
+    ``slope_along`` the height of the roof it stands on there; ``sides (2,)`` and ``front`` the coordinates where
+    the true top surface stands over :data:`DORMER_RISE` above that roof (the roof's edge, its overhang included)."""
+
+    across: np.ndarray
+    across_t: np.ndarray
+    slope_across: np.ndarray
+    along: np.ndarray
+    along_t: np.ndarray
+    slope_along: np.ndarray
+    sides: np.ndarray
+    front: float
+
+    def walls(self, top_height) -> tuple[np.ndarray, float] | None:
+        """The sides ``(2,)`` and front that ``top_height(xy (n, 2)) -> (n,)`` gives on the probe's lines, or None
+        where it nowhere rises over :data:`DORMER_RISE` above the roof (no dormer there)."""
+        on_a = self.across_t[top_height(self.across) - self.slope_across > DORMER_RISE]
+        on_f = self.along_t[top_height(self.along) - self.slope_along > DORMER_RISE]
+        if not len(on_a) or not len(on_f):
+            return None
+        return np.array([on_a.min(), on_a.max()]), float(on_f.max())
+
+
+def _dormer_probe(b, part, step: float = 0.01) -> DormerProbe | None:
+    """The probe of a simulator dormer ``part`` on ``b``'s main body (its front faces the nearer of the body's
+    y0 / y1 walls, its ridge runs across that slope, :func:`..simulate.city._dormer`)."""
+    main = b.parts[0]
+    x0, y0, x1, y1 = part.rect
+    south = abs(y0 - main.rect[1]) < abs(y1 - main.rect[3])
+    front, out = (y0, -1.0) if south else (y1, 1.0)  # the front's y and the outward direction along y
+    t_a = np.arange(x0 - 1.0, x1 + 1.0, step)
+    across = np.column_stack([t_a, np.full(len(t_a), front - 0.3 * out)])
+    t_f = np.arange(-1.5, 1.0, step)  # outwards from the front
+    along = np.column_stack([np.full(len(t_f), 0.5 * (x0 + x1)), front + out * t_f])
+    probe = DormerProbe(b.to_world(across), t_a, main.z_top(across), b.to_world(along), t_f, main.z_top(along),
+                        np.zeros(2), 0.0)
+    walls = probe.walls(lambda xy: _top_height(b, xy))
+    if walls is None:
+        return None
+    return DormerProbe(probe.across, t_a, probe.slope_across, probe.along, t_f, probe.slope_along, walls[0], walls[1])
 
 
 @dataclass(frozen=True)
@@ -27,7 +77,8 @@ class BuildingTruth:
     (3,) a point on the plane inside its face); edges : list of ((2, 2) wall segment, overhang width) for the
     exposed outline edges; top : (k, 3) the true top surface on a 0.5 m grid over the footprint, 0.5 m inside
     its walls (roof installations included); roof_70p : 70th percentile of the top surface over the whole
-    footprint (absolute height, m); volume : of the body between the ground height and the top surface (m^3)
+    footprint (absolute height, m); volume : of the body between the ground height and the top surface (m^3);
+    dormers : one :class:`DormerProbe` per dormer
     """
 
     name: str
@@ -37,6 +88,7 @@ class BuildingTruth:
     top: np.ndarray | None = None
     roof_70p: float = float("nan")
     volume: float = float("nan")
+    dormers: tuple[DormerProbe, ...] = ()
 
     @classmethod
     def from_city(cls, b) -> BuildingTruth:
@@ -57,8 +109,10 @@ class BuildingTruth:
         step = 0.25
         full = np.concatenate([footprint_samples(r, step) for r in rings])
         top = _top_height(b, full)
+        probes = [_dormer_probe(b, p) for p in b.parts if p.kind == "dormer"]
         return cls(f"{b.id}:{b.name}", rings, planes, edges, np.column_stack([xy, _top_height(b, xy)]),
-                   float(np.percentile(top, 70)), float(np.sum(top - b.ground_z) * step**2))
+                   float(np.percentile(top, 70)), float(np.sum(top - b.ground_z) * step**2),
+                   tuple(p for p in probes if p is not None))
 
     @classmethod
     def from_synthetic(cls, sb) -> BuildingTruth:
@@ -157,6 +211,9 @@ class BuildingScore:
     roof_70p_error: float = float("nan")
     volume_error: float = float("nan")
     wall_direction_deg: float = float("nan")
+    dormer_side_errors: list[float] = field(default_factory=list)
+    dormer_front_errors: list[float] = field(default_factory=list)
+    dormers_missed: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -262,6 +319,22 @@ def near_steps(top: np.ndarray, radius: float = 0.75, min_jump: float = 1.0, min
     return out
 
 
+def dormer_wall_errors(truth: BuildingTruth, model: BuildingModel) -> tuple[list[float], list[float], int]:
+    """|model - truth| (m) of each true dormer's two sides and of its front, on its probe's lines
+    (:class:`DormerProbe`), and how many true dormers the model does not rise over."""
+    sides: list[float] = []
+    fronts: list[float] = []
+    missed = 0
+    for probe in truth.dormers:
+        walls = probe.walls(lambda xy: model_top_height(model, xy))
+        if walls is None:
+            missed += 1
+            continue
+        sides += [float(v) for v in np.abs(walls[0] - probe.sides)]
+        fronts.append(abs(walls[1] - probe.front))
+    return sides, fronts, missed
+
+
 def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
     c = corner_deviation(truth.footprint, model.footprint)
     ne = normal_errors(truth, model)
@@ -278,6 +351,7 @@ def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
 
     attrs = building_attributes(model)
     we, wl = wall_direction_errors(truth.footprint, model.footprint)
+    sides, fronts, missed = dormer_wall_errors(truth, model)
     return BuildingScore(truth.name, model.id, model.path, model.reason, bool(model.info.get("closed", False)),
                          float(model.info.get("seconds", np.nan)), med(c), float(np.mean(c)), float(np.max(c)),
                          int(sum(len(r) for r in truth.footprint)), int(len(model.footprint)), med(ne),
@@ -286,7 +360,8 @@ def score_building(truth: BuildingTruth, model: BuildingModel) -> BuildingScore:
                          rms(seen), float(len(seen) / len(he)) if len(he) else float("nan"), rms(off),
                          float(attrs["roof_height_70p"]) - truth.roof_70p,
                          float(attrs["volume"]) / truth.volume - 1.0 if truth.volume > 0 else float("nan"),
-                         float(np.sqrt(np.sum(wl * we**2) / np.sum(wl))) if len(we) else float("nan"))
+                         float(np.sqrt(np.sum(wl * we**2) / np.sum(wl))) if len(we) else float("nan"),
+                         sides, fronts, missed)
 
 
 def match_truth(model: BuildingModel, truths: list[BuildingTruth]) -> int | None:
@@ -310,6 +385,8 @@ def summary(scores: list[BuildingScore], n_truth: int) -> dict:
     cm = pool("corner_median")
     nm = pool("normal_median_deg")
     oh = np.array([e for s in scores for e in s.overhang_errors])
+    ds = np.array([e for s in scores for e in s.dormer_side_errors])
+    df = np.array([e for s in scores for e in s.dormer_front_errors])
     return {
         "buildings_true": n_truth, "buildings_reconstructed": len(scores),
         "corner_median_of_medians": float(np.median(cm)) if len(cm) else None,
@@ -327,6 +404,9 @@ def summary(scores: list[BuildingScore], n_truth: int) -> dict:
                                     if len(pool("volume_error")) else None),
         "overhang_median_error": float(np.median(oh)) if len(oh) else None,
         "overhang_p90_error": float(np.percentile(oh, 90)) if len(oh) else None,
+        "dormers_found": len(df), "dormers_missed": int(sum(s.dormers_missed for s in scores)),
+        "dormer_side_mean_error": float(np.mean(ds)) if len(ds) else None,
+        "dormer_front_mean_error": float(np.mean(df)) if len(df) else None,
         "closed_share": float(np.mean([s.closed for s in scores])) if scores else 0.0,
         "closed_share_of_true": float(sum(s.closed for s in scores) / n_truth) if n_truth else 0.0,
         "paths": {p: sum(s.path == p for s in scores) for p in ("2d", "volumetric")},
