@@ -78,7 +78,7 @@ class BuildingTruth:
     exposed outline edges; top : (k, 3) the true top surface on a 0.5 m grid over the footprint, 0.5 m inside
     its walls (roof installations included); roof_70p : 70th percentile of the top surface over the whole
     footprint (absolute height, m); volume : of the body between the ground height and the top surface (m^3);
-    dormers : one :class:`DormerProbe` per dormer
+    dormers : one :class:`DormerProbe` per dormer of the simulator's (those its lines find)
     """
 
     name: str
