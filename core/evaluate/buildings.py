@@ -10,7 +10,7 @@ building has dormers, how far the model's dormer walls stand from the true ones 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -62,11 +62,9 @@ def _dormer_probe(b, part, step: float = 0.01) -> DormerProbe | None:
     t_f = np.arange(-1.5, 1.0, step)  # outwards from the front
     along = np.column_stack([np.full(len(t_f), 0.5 * (x0 + x1)), front + out * t_f])
     probe = DormerProbe(b.to_world(across), t_a, main.z_top(across), b.to_world(along), t_f, main.z_top(along),
-                        np.zeros(2), 0.0)
+                        np.zeros(2), 0.0)  # the true walls follow, measured on the probe's own lines
     walls = probe.walls(lambda xy: _top_height(b, xy))
-    if walls is None:
-        return None
-    return DormerProbe(probe.across, t_a, probe.slope_across, probe.along, t_f, probe.slope_along, walls[0], walls[1])
+    return None if walls is None else replace(probe, sides=walls[0], front=walls[1])
 
 
 @dataclass(frozen=True)
