@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import sys
 import threading
 import time
@@ -67,6 +66,7 @@ from oblique_city.core.evaluate.aerotri import (  # noqa: E402
 from oblique_city.core.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
 from oblique_city.core.model import Pose  # noqa: E402
 from oblique_city.core.pipeline import Executor  # noqa: E402
+from oblique_city.core.pipeline.atomic import output_file, write_json  # noqa: E402
 from oblique_city.core.simulate.flight import NavErrors, perturbed_rig  # noqa: E402
 from oblique_city.core.simulate.observations import (  # noqa: E402
     SimulationConfig,
@@ -259,7 +259,7 @@ def main(argv=None) -> int:
                     help="GNSS/IMU errors (and their prior sigmas) times this: 1 is a survey-grade system (5 cm, "
                          "0.004 deg), 100 a low-grade one (5 m, 0.4 deg)")
     ap.add_argument("--seed", type=int, default=7)
-    ap.add_argument("--out")
+    ap.add_argument("--out", type=output_file, help="JSON output (default build/bench_at_<images>.json)")
     args = ap.parse_args(argv)
     if args.repeat < 1:
         ap.error("--repeat must be at least 1")
@@ -444,9 +444,8 @@ def main(argv=None) -> int:
     if "control_sigma" in out:
         print_control_sigma(out["control_sigma"], sim.gsd)
     targets(out)
-    path = Path(args.out or ROOT / "build" / f"bench_at_{args.images}.json")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=1, default=float))
+    path = args.out or ROOT / "build" / f"bench_at_{args.images}.json"
+    write_json(path, out, default=float)
     print(f"\nwritten {path}")
     return 0
 

@@ -48,6 +48,7 @@ from oblique_city.core.buildings.reconstruct import ReconstructionConfig  # noqa
 from oblique_city.core.buildings.stage import reconstruct_unit  # noqa: E402
 from oblique_city.core.buildings.synthetic import city_point_cloud  # noqa: E402
 from oblique_city.core.evaluate.buildings import BuildingTruth, match_truth, score_building, summary  # noqa: E402
+from oblique_city.core.pipeline.atomic import output_file, write_json  # noqa: E402
 from oblique_city.core.simulate.city import make_city  # noqa: E402
 from oblique_city.core.surface.dsm import DsmConfig, GridSpec, make_dsm  # noqa: E402
 
@@ -230,7 +231,7 @@ def main() -> int:
                     help="case (b) from scratch: simulate the default block into DIR, import its true orientation, "
                          "run dense and surface (about 10 min on 2 cores), then evaluate")
     ap.add_argument("--dense-step", type=int, default=2, help="dense pixel step for --make-workspace")
-    ap.add_argument("--out", default=str(ROOT / "build" / "bench_buildings.json"))
+    ap.add_argument("--out", type=output_file, default=ROOT / "build" / "bench_buildings.json", help="JSON output")
     args = ap.parse_args()
     city = make_city(args.seed)
     truths = [BuildingTruth.from_city(b) for b in city.buildings]
@@ -244,10 +245,8 @@ def main() -> int:
         print_case(results[-1])
     else:
         print("\n(b) our dense cloud: not run (give --workspace or --make-workspace)")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"targets": TARGETS, "cases": results}, indent=1, default=float))
-    print(f"\nwritten {out}")
+    write_json(args.out, {"targets": TARGETS, "cases": results}, default=float)
+    print(f"\nwritten {args.out}")
     return 0
 
 

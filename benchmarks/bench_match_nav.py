@@ -15,7 +15,6 @@ Needs a rendered simulation (``make demo`` or ``oblique-city simulate``).
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import tempfile
 from pathlib import Path
@@ -26,6 +25,7 @@ from oblique_city.core.geometry.rotations import rotvec_to_matrix
 from oblique_city.core.io.formats import read_block
 from oblique_city.core.model import ImageBlock, Pose
 from oblique_city.core.pipeline import Executor, RunContext, Workspace, run_stages
+from oblique_city.core.pipeline.atomic import output_file, write_json
 from oblique_city.core.simulate.flight import IMAGE_NAME_PATTERN
 
 
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--metres", type=float, default=10.0, help="position error per axis (1 sigma), metres")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--out")
+    ap.add_argument("--out", type=output_file, help="JSON output (none by default)")
     args = ap.parse_args(argv)
     if not (args.deg > 0 and args.metres > 0):
         ap.error("--deg and --metres must be > 0: they are also the prior sigmas of the run with sigmas")
@@ -97,8 +97,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{m['observations']:8d} "
               f"{a['images']:7d} {a['sigma0_px']:9.3f} {a['check_rms_xy_m']:10.3f} {a['check_rms_z_m']:9.3f}")
     if args.out:
-        Path(args.out).write_text(json.dumps({"config": {k: str(v) for k, v in vars(args).items()}, "rows": rows},
-                                             indent=1))
+        write_json(args.out, {"config": {k: str(v) for k, v in vars(args).items()}, "rows": rows})
     return 0
 
 

@@ -23,7 +23,6 @@ default ``<workspace>/matching/bench_targets.json``).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from functools import partial
@@ -41,6 +40,7 @@ from oblique_city.core.matching.manual import SNAP_MIN_SCORE, SNAP_SEARCH_PX  # 
 from oblique_city.core.matching.stage import read_block_grey  # noqa: E402
 from oblique_city.core.matching.targets import TargetShape, measure_target, measure_targets  # noqa: E402
 from oblique_city.core.pipeline import Workspace  # noqa: E402
+from oblique_city.core.pipeline.atomic import output_file, write_json  # noqa: E402
 from oblique_city.core.pipeline.executor import Executor  # noqa: E402
 
 WRONG_PX = 1.0
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="the squares' azimuth, degrees, or 'estimate' (the match stage's default)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", help="JSON output (default <workspace>/matching/bench_targets.json)")
+    ap.add_argument("--out", type=output_file, help="JSON output (default <workspace>/matching/bench_targets.json)")
     args = ap.parse_args(argv)
     from oblique_city.core.simulate.truth import load_truth
 
@@ -138,12 +138,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{row['case']:48s} {row['wanted']:6d} {row['found']:6d} {row['wrong']:6d} "
               + " ".join(f"{'-' if row[k] is None else format(row[k], '.3f'):>8s}" for k in ("rms_px", "max_px"))
               + f" {'-' if row['seconds_each'] is None else format(row['seconds_each'], '.3f'):>7s}")
-    out = Path(args.out) if args.out else ws.path("matching", "bench_targets.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"workspace": str(ws.root), "in_sight": len(in_sight),
-                               "automatic_missed": [list(o) for o in missed], "rows": rows,
-                               "snap_search_px": SNAP_SEARCH_PX, "snap_min_score": SNAP_MIN_SCORE,
-                               "args": vars(args)}, indent=1))
+    out = args.out or ws.path("matching", "bench_targets.json")
+    write_json(out, {"workspace": str(ws.root), "in_sight": len(in_sight),
+                     "automatic_missed": [list(o) for o in missed], "rows": rows,
+                     "snap_search_px": SNAP_SEARCH_PX, "snap_min_score": SNAP_MIN_SCORE,
+                     "args": vars(args)}, default=str)
     print(f"\nwritten {out}")
     return 0
 

@@ -31,6 +31,7 @@ if str(ROOT.parent) not in sys.path:
 from oblique_city.core.buildings.model import load_buildings  # noqa: E402
 from oblique_city.core.evaluate.texture import colour_rmse, surface_accuracy, texture_gsd  # noqa: E402
 from oblique_city.core.pipeline import Workspace  # noqa: E402
+from oblique_city.core.pipeline.atomic import output_file, write_json  # noqa: E402
 from oblique_city.core.pipeline.context import RunContext  # noqa: E402
 from oblique_city.core.pipeline.registry import get_stage  # noqa: E402
 from oblique_city.core.texture.atlas import load_textures  # noqa: E402
@@ -57,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workspace", required=True)
     ap.add_argument("--truth", help="the simulation's truth folder (default: <block image_root>/truth)")
     ap.add_argument("--rerun", action="store_true", help="run the texture stage even if it ran")
-    ap.add_argument("--out", help="JSON output (default <workspace>/texture/bench_texture.json)")
+    ap.add_argument("--out", type=output_file, help="JSON output (default <workspace>/texture/bench_texture.json)")
     args = ap.parse_args(argv)
     import cv2
 
@@ -146,9 +147,8 @@ def main(argv: list[str] | None = None) -> int:
           f"texels seen, colour RMSE {rmse:.1f} DN; {summary['seconds_per_building_median']} s per building "
           f"(median; mean {summary['seconds_per_building_mean']}), stage {summary['stage_seconds']} s, "
           f"evaluation {summary['eval_seconds']} s")
-    out = Path(args.out) if args.out else ws.path("texture", "bench_texture.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"summary": summary, "kinds": rows, "surfaces": per_surface}, indent=1))
+    out = args.out or ws.path("texture", "bench_texture.json")
+    write_json(out, {"summary": summary, "kinds": rows, "surfaces": per_surface})
     print(f"written {out}")
     return 0
 

@@ -35,6 +35,7 @@ if str(ROOT.parent) not in sys.path:
 from oblique_city.core.buildings.model import load_buildings  # noqa: E402
 from oblique_city.core.evaluate.windows import building_of, true_walls, truth_windows, window_scores  # noqa: E402
 from oblique_city.core.pipeline import Workspace  # noqa: E402
+from oblique_city.core.pipeline.atomic import output_file, write_json  # noqa: E402
 from oblique_city.core.pipeline.context import RunContext  # noqa: E402
 from oblique_city.core.pipeline.registry import get_stage  # noqa: E402
 from oblique_city.core.surface.stage import nadir_gsd  # noqa: E402
@@ -116,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workspace", required=True)
     ap.add_argument("--truth", help="the simulation's truth folder (default: <block image_root>/truth)")
     ap.add_argument("--no-true-walls", action="store_true", help="skip the run on the true wall planes")
-    ap.add_argument("--out", help="JSON output (default <workspace>/windows/bench_windows.json)")
+    ap.add_argument("--out", type=output_file, help="JSON output (default <workspace>/windows/bench_windows.json)")
     args = ap.parse_args(argv)
     from oblique_city.core.simulate.truth import load_truth
 
@@ -166,9 +167,7 @@ def main(argv: list[str] | None = None) -> int:
                     true_rows)
         out["true_walls"] = true_rows
         out["true_walls_rectify_seconds"] = rect_s
-    path = Path(args.out) if args.out else ws.path("windows", "bench_windows.json")
-    from oblique_city.core.pipeline.atomic import write_json
-
+    path = args.out or ws.path("windows", "bench_windows.json")
     write_json(path, out)
     print(f"\nwritten {path}")
     return 0

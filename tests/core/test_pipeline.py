@@ -325,3 +325,19 @@ def test_atomic_write_refuses_a_folder(tmp_path) -> None:
     with pytest.raises(ConfigError, match="out is a folder: give a file name"):
         write_text(tmp_path / "out", "x")
     assert [p.name for p in tmp_path.iterdir()] == ["out"] and not list((tmp_path / "out").iterdir())
+
+
+def test_an_output_file_named_on_a_command_line_is_checked_when_the_arguments_are_read(tmp_path) -> None:
+    """A benchmark's ``--out`` naming a folder is refused by argparse before the run (bench_at wrote its JSON after
+    its adjustments and failed there with IsADirectoryError, its results lost); a file path passes unchanged."""
+    import argparse
+
+    from oblique_city.core.pipeline.atomic import output_file
+
+    ap = argparse.ArgumentParser(prog="bench")
+    ap.add_argument("--out", type=output_file)
+    with pytest.raises(SystemExit):
+        ap.parse_args(["--out", str(tmp_path)])
+    assert ap.parse_args(["--out", str(tmp_path / "a.json")]).out == str(tmp_path / "a.json")
+    with pytest.raises(argparse.ArgumentTypeError, match="is a folder: give a file name"):
+        output_file(str(tmp_path))
