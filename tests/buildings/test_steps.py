@@ -1021,3 +1021,75 @@ def test_the_occupancy_leaves_ground_sloping_up_from_the_building_out():
     assert origin[0] + (cols.max() + 1) * cell > 20.0  # the slope taken in, 10 m and more beyond the wall
     cols = np.flatnonzero(building_mask(xyz, 0.0, origin, cell, ground=terrain).any(0))
     assert origin[0] + cols.min() * cell == pytest.approx(0.0) and origin[0] + (cols.max() + 1) * cell <= 10.5
+
+
+def _offset_walls(rng: np.random.Generator, step_x: float, offset: float, noise: float, hidden: float
+                  ) -> np.ndarray:
+    """Facade points (0.3-6 m high, 40 per m of wall, ``noise`` m across) of a wall along y = 0 up to x =
+    ``step_x`` and of the wall ``offset`` m out (y = -offset) after it, up to x = 20; the short wall between them
+    and the outer wall's first ``hidden`` m show none (the lower part's facade hidden next to the step), and
+    eaves over both (0.6 m overhang) show at 6 m."""
+    x1 = rng.uniform(0, step_x, int(step_x * 40))
+    x2 = rng.uniform(step_x + hidden, 20, int((20 - step_x - hidden) * 40))
+    walls = np.concatenate([np.column_stack([x1, np.zeros_like(x1)]), np.column_stack([x2, np.full_like(x2, -offset)])])
+    walls[:, 1] += rng.normal(0, noise, len(walls))
+    walls = np.column_stack([walls, rng.uniform(0.3, 6.0, len(walls))])
+    xe = rng.uniform(0, 20, 800)
+    eaves = np.column_stack([xe, np.where(xe < step_x, 0.0, -offset) - 0.6, np.full(800, 6.0)])
+    return np.concatenate([walls, eaves])
+
+
+def test_a_step_between_offset_walls_is_placed_where_their_facade_points_change():
+    """Two parallel walls 0.5 m apart (a split gable's halves) meet at x = 10 by a short wall no point shows, the
+    fragments ending 1.5 m and 3.5 m short of the step: the change of the facade points from one line to the
+    other places it within 0.15 m (0.03-0.25 m noise); with the outer wall's facade hidden for 2 m beside the
+    step, in the middle of that gap, where the points leave one line and reach the other. The eaves' step is taken
+    instead where the points between the two leave it open, not where they stand on the other line. A wall that
+    runs on along one line, or lines under 0.2 m apart, give none."""
+    from oblique_city.core.buildings.contour import _facade_change
+
+    d = np.array([1.0, 0.0])
+    for seed, noise in enumerate((0.03, 0.1, 0.15, 0.25)):
+        for hidden in (0.0, 2.0):
+            xyz = _offset_walls(np.random.default_rng(seed), 10.0, 0.5, noise, hidden)
+            # the ring runs east along y = 0 with the building on its left (north); the outer wall is at y = -0.5
+            t = _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.5]), xyz, 0.0)
+            # the inner wall's points end at the step, the outer one's start there or later: the middle between
+            assert t is not None and abs(t - (10.0 + hidden / 2)) < 0.15
+    # the eaves' step is kept where the facade points between leave it open (the hidden 2 m), not where they
+    # stand on the other line (the outer eave run on 2 m past the step)
+    xyz = _offset_walls(np.random.default_rng(7), 10.0, 0.5, 0.1, 2.0)
+    args = (np.zeros(2), d, 8.5, np.array([13.5, -0.5]), xyz, 0.0)
+    assert _facade_change(*args, eaves=10.3) == 10.3
+    xyz = _offset_walls(np.random.default_rng(7), 10.0, 0.5, 0.1, 0.0)
+    args = (np.zeros(2), d, 8.5, np.array([13.5, -0.5]), xyz, 0.0)
+    assert abs(_facade_change(*args, eaves=12.0) - 10.0) < 0.15
+    assert abs(_facade_change(*args, eaves=8.0) - 10.0) < 0.15
+    assert _facade_change(*args, eaves=10.1) == 10.1
+    straight = _offset_walls(np.random.default_rng(9), 20.0, 0.5, 0.1, 0.0)
+    assert _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.5]), straight, 0.0) is None
+    assert _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.15]), xyz, 0.0) is None
+
+
+def test_a_short_piece_the_squaring_left_across_a_step_is_no_wall():
+    """A 2.9 m piece 15 degrees off across a 0.5 m step between two parallel walls (the demo's split gable on its
+    own dense cloud: a diagonal wall in the ring, walls 4.4 degrees off) is taken out of the ring when the
+    squaring left it (over ``square_deg`` off), not only from 20 degrees on; a 4 m one, or one square to its
+    neighbours (the step's own wall), stays."""
+    from oblique_city.core.buildings.contour import Fragment, _step_pieces
+
+    def frag(a, b):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        return Fragment(a, (b - a) / np.linalg.norm(b - a), 0.0, float(np.linalg.norm(b - a)), 100)
+
+    west, east = frag((0, 10.5), (7.0, 10.5)), frag((12.9, 10.0), (20, 10.0))
+    ends = [frag((20, 10.0), (20, 0)), frag((20, 0), (0, 0)), frag((0, 0), (0, 10.5))]
+    cos_par = np.cos(np.radians(20.0))
+    diagonal = frag((12.9, 10.0), (10.1, 10.0 + 2.8 * np.tan(np.radians(15))))  # 2.9 m long
+    ring = [east, diagonal, west, *ends]  # (clockwise here: the test is about the order only)
+    assert _step_pieces(ring, cos_par) == []
+    assert _step_pieces(ring, cos_par, oblique=np.cos(np.radians(10.0))) == [1]
+    longer = frag((12.9, 10.0), (9.0, 10.0 + 3.9 * np.tan(np.radians(15))))
+    assert _step_pieces([east, longer, west, *ends], cos_par, oblique=np.cos(np.radians(10.0))) == []
+    square = frag((10.0, 10.0), (10.0, 10.5))
+    assert _step_pieces([east, square, west, *ends], cos_par, oblique=np.cos(np.radians(10.0))) == []
