@@ -467,7 +467,9 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
     show that either, where the eaves step (:func:`_step_change` on the roof points ``top (k, 2)``: where the outer
     part's eave ends, its overhang beyond that wall, which put the steps of stepped_flat 0.2-0.4 m off on every
     benchmark city, sampled truth included), kept within the gap between these ends (an upper part's eave reaching
-    past its wall over the lower roof shifts the eaves' step); else halfway between the ends: the lower part's facade
+    past its wall over the lower roof shifts the eaves' step), widened to where the facade points change when that
+    lies beyond a fragment's end (the fragment smeared on past the step: seed 6's split gable, own dense cloud, had
+    a step 1.05 m off at its fragment's end, 0.40 m now); else halfway between the ends: the lower part's facade
     is often hidden next to the step, and the fragments stopped 1.5-4 m short of it on simulated split gables.
     Farther apart, a wall no fragment shows lies between
     them: the boundary points of the gap (farther than ``reach`` from both fragments) trace it. It is placed square
@@ -502,8 +504,13 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
             if points is not None:
                 ts = _facade_change(start_f, d, lf, start_g, *points, out_sign, eaves=ts)
         if ts is not None:  # the step lies between the walls' facade points, whatever the eaves say
-            gap = sorted((lf, float((start_g - start_f) @ d)))
-            mid = start_f + float(np.clip(ts, gap[0] - cell / 2, gap[1] + cell / 2)) * d
+            lo, hi = sorted((lf, float((start_g - start_f) @ d)))
+            lo, hi = lo - cell / 2, hi + cell / 2
+            # where the facade points change beyond a fragment's end, that fragment runs on past the step
+            tf = None if points is None else _facade_change(start_f, d, lf, start_g, *points, out_sign)
+            if tf is not None:
+                lo, hi = min(lo, tf), max(hi, tf)
+            mid = start_f + float(np.clip(ts, lo, hi)) * d
     k = len(bxy)
     gap = bxy[(f_last + 1 + np.arange((g_first - f_last - 1) % k)) % k]
     if offset > reach and len(gap) >= 2:

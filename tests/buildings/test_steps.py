@@ -1093,3 +1093,32 @@ def test_a_short_piece_the_squaring_left_across_a_step_is_no_wall():
     assert _step_pieces([east, longer, west, *ends], cos_par, oblique=np.cos(np.radians(10.0))) == []
     square = frag((10.0, 10.0), (10.0, 10.5))
     assert _step_pieces([east, square, west, *ends], cos_par, oblique=np.cos(np.radians(10.0))) == []
+
+
+def _split_halves(seed: int, smear: float) -> np.ndarray:
+    """A split building: a west half 10.5 x 10 m (8 m high) and an east half 9.5 x 9 m (6 m), 0.5 m in on the north
+    and south sides; facade points as the demo's oblique masters give them (0.08 m noise across the walls), and the
+    west half's north facade smeared on ``smear`` m past the step from 3 m up to its eave (the dense matching's
+    smear beside a taller part)."""
+    rng = np.random.default_rng(seed)
+    walls = [((0, 0), (10.5, 0), 8.0), ((0, 10), (0, 0), 8.0), ((10.5, 10), (0, 10), 8.0),
+             ((10.5, 0), (10.5, 0.5), 8.0), ((10.5, 9.5), (10.5, 10), 8.0),
+             ((10.5, 0.5), (20, 0.5), 6.0), ((20, 0.5), (20, 9.5), 6.0), ((20, 9.5), (10.5, 9.5), 6.0)]
+    xyz = _walls_and_roofs([(0.0, 0.0, 10.5, 10.0, 8.0), (10.5, 0.5, 20.0, 9.5, 6.0)], walls, seed)
+    facade = np.abs(xyz[:, 2] - np.where(xyz[:, 0] < 10.5, 8.0, 6.0)) > 0.2
+    xyz[facade, :2] += rng.normal(0, 0.08, (int(facade.sum()), 2))
+    n = int(smear * 5.0 * 16)
+    s = rng.uniform(0, smear, n)
+    return np.vstack([xyz, np.column_stack([10.5 + s, 10.0 + rng.normal(0, 0.08, n), rng.uniform(3.0, 8.0, n)])])
+
+
+def test_a_wall_smeared_on_past_a_step_does_not_move_it():
+    """The west half's north wall smeared on 2.5 m past the step from 3 m up: its fragment runs on past the step,
+    which stayed between the fragments' ends (the worst corner 0.21-0.31 m off on three of five seeds); where the
+    facade points under the eaves change from one line to the other lies beyond that end, and the step may move
+    there: every corner within 0.2 m on the five seeds (0.06-0.15 m)."""
+    truth = np.array([[0, 0], [10.5, 0], [10.5, 0.5], [20, 0.5], [20, 9.5], [10.5, 9.5], [10.5, 10], [0, 10]], float)
+    for seed in range(5):
+        c = extract_contour(_split_halves(seed, 2.5), 0.0)
+        assert len(c.polygon) == 8
+        assert np.linalg.norm(truth[:, None] - c.polygon[None], axis=2).min(1).max() < 0.2
