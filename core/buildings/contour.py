@@ -499,16 +499,17 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
         start_f = 2 * f.p + f.d * (f.t0 + f.t1) - end_f  # f's other end
         d = (end_f - start_f) / lf
         ts = None if points is None else _jog_wall(start_f, d, lf, start_g, *points, out_sign)
-        if ts is None:
-            ts = _step_change(start_f, d, lf, start_g, top, cell, reach, out_sign, walls=True)
-            if points is not None:
-                ts = _facade_change(start_f, d, lf, start_g, *points, out_sign, eaves=ts)
+        eaves = None if ts is not None else _step_change(start_f, d, lf, start_g, top, cell, reach, out_sign,
+                                                         walls=True)
+        tf = None
+        if points is not None:
+            step, tf = _facade_change(start_f, d, lf, start_g, *points, out_sign, eaves=eaves)
+            ts = step if ts is None else ts
+        ts = eaves if ts is None else ts
         if ts is not None:  # the step lies between the walls' facade points, whatever the eaves say
             lo, hi = sorted((lf, float((start_g - start_f) @ d)))
             lo, hi = lo - cell / 2, hi + cell / 2
-            # where the facade points change beyond a fragment's end, that fragment runs on past the step
-            tf = None if points is None else _facade_change(start_f, d, lf, start_g, *points, out_sign)
-            if tf is not None:
+            if tf is not None:  # the facade points change beyond a fragment's end: it runs on past the step
                 lo, hi = min(lo, tf), max(hi, tf)
             mid = start_f + float(np.clip(ts, lo, hi)) * d
     k = len(bxy)
@@ -598,34 +599,35 @@ def _jog_wall(p: np.ndarray, d: np.ndarray, lp: float, q: np.ndarray, xyz: np.nd
 def _facade_change(p: np.ndarray, d: np.ndarray, lp: float, q: np.ndarray, xyz: np.ndarray,
                    base: float | np.ndarray, out_sign: float = 1.0, reach: float = 3.0, low: float = 1.0,
                    high: float = 3.0, margin: float = 0.3, min_offset: float = 0.2, min_points: int = 20,
-                   min_share: float = 0.7, eaves: float | None = None) -> float | None:
+                   min_share: float = 0.7, eaves: float | None = None) -> tuple[float | None, float | None]:
     """Where, along a wall line from ``p (2,)`` in direction ``d (2,)`` whose fragment ends at ``p + lp d``, the
     facade points change from that line to the parallel, offset wall line starting at ``q (2,)``, from the
     building's ``xyz (n, 3)`` (``base``: the ground height, or the terrain height under each point); None when
     too few show it, they do not change clearly or the lines are under ``min_offset`` m apart. ``out_sign``: +1
-    when the building lies left of the travel direction.
+    when the building lies left of the travel direction. Returns the step to take and that change point (both
+    positions along ``d`` from ``p``, or None).
 
     The facade points ``low`` to ``high`` m above the ground (under the eaves, which overhang the lower part's
     wall next to the step) within ``margin`` m of the band between the lines, from ``reach`` m before the gap
     between the fragments' ends to ``reach`` m after it: the change point along ``d`` is where the points before
     it lie on the first line and those after it on the second with the least sum of distances (each line's
     position taken as it is). At least ``min_points`` must lie on either side, and ``min_share`` of each side
-    nearer its own line. Returns its position along ``d`` from ``p``, or ``eaves`` (the step the eaves give, the
-    same way, :func:`_step_change`) unless at least ``min_points`` facade points stand between the two and
+    nearer its own line. The step to take is the change point, or ``eaves`` (the step the eaves give, the same
+    way, :func:`_step_change`) unless at least ``min_points`` facade points stand between the two and
     ``min_share`` of them on the line the eaves' step would not put them on: the roof points place a step more
     sharply where the walls' facade points leave it open, but the eaves can run on past a step (the demo's split
-    gable, own dense cloud: 1.9 m, with 67 facade points between on the other line)."""
+    gable, own dense cloud: 1.9 m, with 64 of the 72 facade points between on the other line)."""
     nrm = out_sign * np.array([d[1], -d[0]])
     oq = float((q - p) @ nrm)
     if abs(oq) < min_offset:
-        return None
+        return eaves, None
     tq = float((q - p) @ d)
     t, o = (xyz[:, :2] - p) @ d, (xyz[:, :2] - p) @ nrm
     h = xyz[:, 2] - base
     sel = ((t > min(lp, tq) - reach) & (t < max(lp, tq) + reach) & (o > min(0.0, oq) - margin)
            & (o < max(0.0, oq) + margin) & (h > low) & (h < high))
     if sel.sum() < 2 * min_points:
-        return None
+        return eaves, None
     order = np.argsort(t[sel])
     ts, os_ = t[sel][order], o[sel][order]
     # cost of a change before point i: points < i on the first line, points >= i on the second
@@ -634,15 +636,15 @@ def _facade_change(p: np.ndarray, d: np.ndarray, lp: float, q: np.ndarray, xyz: 
     i = int(np.argmin(cost[min_points:len(ts) - min_points + 1])) + min_points
     near_q = np.abs(os_ - oq) < np.abs(os_)
     if (~near_q[:i]).mean() < min_share or near_q[i:].mean() < min_share:
-        return eaves
+        return eaves, None
     change = float(0.5 * (ts[i - 1] + ts[i]))
     if eaves is not None:
         between = (ts > min(eaves, change)) & (ts < max(eaves, change))
         # the eaves' step puts these points on q's line when it lies before them, on p's line when after
         against = near_q[between] != (eaves < change)
         if between.sum() < min_points or against.mean() < min_share:
-            return eaves
-    return change
+            return eaves, change
+    return change, change
 
 
 def _occupied(mask: np.ndarray, origin: np.ndarray, cell: float, xy: np.ndarray) -> np.ndarray:

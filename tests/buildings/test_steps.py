@@ -1045,7 +1045,7 @@ def test_a_step_between_offset_walls_is_placed_where_their_facade_points_change(
     other places it within 0.15 m (0.03-0.25 m noise); with the outer wall's facade hidden for 2 m beside the
     step, in the middle of that gap, where the points leave one line and reach the other. The eaves' step is taken
     instead where the points between the two leave it open, not where they stand on the other line. A wall that
-    runs on along one line, or lines under 0.2 m apart, give none."""
+    runs on along one line, or lines under 0.2 m apart, give none (and leave the eaves' step)."""
     from oblique_city.core.buildings.contour import _facade_change
 
     d = np.array([1.0, 0.0])
@@ -1053,22 +1053,25 @@ def test_a_step_between_offset_walls_is_placed_where_their_facade_points_change(
         for hidden in (0.0, 2.0):
             xyz = _offset_walls(np.random.default_rng(seed), 10.0, 0.5, noise, hidden)
             # the ring runs east along y = 0 with the building on its left (north); the outer wall is at y = -0.5
-            t = _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.5]), xyz, 0.0)
+            t, change = _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.5]), xyz, 0.0)
             # the inner wall's points end at the step, the outer one's start there or later: the middle between
-            assert t is not None and abs(t - (10.0 + hidden / 2)) < 0.15
+            assert t == change and t is not None and abs(t - (10.0 + hidden / 2)) < 0.15
     # the eaves' step is kept where the facade points between leave it open (the hidden 2 m), not where they
     # stand on the other line (the outer eave run on 2 m past the step)
     xyz = _offset_walls(np.random.default_rng(7), 10.0, 0.5, 0.1, 2.0)
     args = (np.zeros(2), d, 8.5, np.array([13.5, -0.5]), xyz, 0.0)
-    assert _facade_change(*args, eaves=10.3) == 10.3
+    assert _facade_change(*args, eaves=10.3)[0] == 10.3
     xyz = _offset_walls(np.random.default_rng(7), 10.0, 0.5, 0.1, 0.0)
     args = (np.zeros(2), d, 8.5, np.array([13.5, -0.5]), xyz, 0.0)
-    assert abs(_facade_change(*args, eaves=12.0) - 10.0) < 0.15
-    assert abs(_facade_change(*args, eaves=8.0) - 10.0) < 0.15
-    assert _facade_change(*args, eaves=10.1) == 10.1
+    assert abs(_facade_change(*args, eaves=12.0)[0] - 10.0) < 0.15
+    assert abs(_facade_change(*args, eaves=8.0)[0] - 10.0) < 0.15
+    step, change = _facade_change(*args, eaves=10.1)
+    assert step == 10.1 and abs(change - 10.0) < 0.15
     straight = _offset_walls(np.random.default_rng(9), 20.0, 0.5, 0.1, 0.0)
-    assert _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.5]), straight, 0.0) is None
-    assert _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.15]), xyz, 0.0) is None
+    assert _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.5]), straight, 0.0) == (None, None)
+    assert _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.15]), xyz, 0.0) == (None, None)
+    # without a change of their own the eaves' step stands
+    assert _facade_change(np.zeros(2), d, 8.5, np.array([13.5, -0.15]), xyz, 0.0, eaves=9.0) == (9.0, None)
 
 
 def test_a_short_piece_the_squaring_left_across_a_step_is_no_wall():
