@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     write_json(out, {"workspace": str(ws.root), "in_sight": len(in_sight),
                      "automatic_missed": [list(o) for o in missed], "rows": rows,
                      "snap_search_px": SNAP_SEARCH_PX, "snap_min_score": SNAP_MIN_SCORE,
-                     "args": vars(args)}, default=str)
+                     "args": vars(args)})
     print(f"\nwritten {out}")
     return 0
 
