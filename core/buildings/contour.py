@@ -330,7 +330,7 @@ def close_contour(frags: list[Fragment], mask: np.ndarray, origin: np.ndarray, c
     ring = [(frags[k], b0, b1) for k, b0, b1 in seq]
     if len(ring) > 3:
         # a piece the squaring left (over cfg.square_deg off) is oblique here too
-        oblique = np.cos(np.radians(min(cfg.square_deg, 20.0))) if cfg.square_deg > 0 else cos_par
+        oblique = max(cos_par, np.cos(np.radians(cfg.square_deg))) if cfg.square_deg > 0 else cos_par
         ring = [r for i, r in enumerate(ring) if i not in set(_step_pieces([f for f, _, _ in ring], cos_par,
                                                                            oblique=oblique))]
     if len(ring) > 3:
@@ -501,11 +501,9 @@ def _parallel_link(f: Fragment, g: Fragment, bxy: np.ndarray, f_last: int, g_fir
         ts = None if points is None else _jog_wall(start_f, d, lf, start_g, *points, out_sign)
         eaves = None if ts is not None else _step_change(start_f, d, lf, start_g, top, cell, reach, out_sign,
                                                          walls=True)
-        tf = None
-        if points is not None:
-            step, tf = _facade_change(start_f, d, lf, start_g, *points, out_sign, eaves=eaves)
-            ts = step if ts is None else ts
-        ts = eaves if ts is None else ts
+        step, tf = (eaves, None) if points is None else _facade_change(start_f, d, lf, start_g, *points, out_sign,
+                                                                       eaves=eaves)
+        ts = step if ts is None else ts
         if ts is not None:  # the step lies between the walls' facade points, whatever the eaves say
             lo, hi = sorted((lf, float((start_g - start_f) @ d)))
             lo, hi = lo - cell / 2, hi + cell / 2
