@@ -15,10 +15,12 @@ A wall's points under the eaves (a facade's, from the slope up to the eaves) are
 is fitted to the points on the top surface alone (:func:`on_top`), and where the points under the top surface at an
 edge stand as a wall (:func:`_wall_span`: a compact column across the edge; the matching's smear is a ramp, and
 there all points count as before), that edge is placed on the top surface's points: at the roof's edge, its
-overhang included (the block has no overhang of its own, so its walls stand there too). Taken with the roof's, a
-facade's points drew the fronts of the simulated city's dormers 0.28 m (mean) behind their roofs' edges on its
-sampled surfaces, behind the walls themselves. Without an overhang, the edge comes out about 0.1 m beyond the
-wall (the noisiest of the eave's points place it, the slope's beside it being under the eave). Each dormer is
+overhang included. The block's front then stands on its wall's points and its roof overhangs it by the difference
+(:attr:`Dormer.front_overhang`, built as the outline's overhangs are); its sides stand at the roof's edge. Taken
+with the roof's, a facade's points drew the fronts of the simulated city's dormers 0.28 m (mean) behind their roofs'
+edges on its sampled surfaces, behind the walls themselves. Without an overhang, the edge comes out about 0.1 m
+beyond the wall (the noisiest of the eave's points place it, the slope's beside it being under the eave), an
+overhang of that width. Each dormer is
 a convex polytope (the intersection of half-spaces), so the body hull takes its planes and its occupancy as a union with
 the body's (:func:`.hull.build_hull`): the dormer becomes part of the closed solid, with walls and roofs of its
 own.
@@ -73,12 +75,14 @@ class DormerConfig:
 class Dormer:
     """A dormer as half-spaces ``planes (k, 4)``, ``n . x + d <= 0`` inside: the front wall, two sides, one or
     two roof planes, and last the roof plane it stands on (its bottom); ``label`` is that plane's roof label,
-    ``kind`` gabled or shed, ``rmse`` the roof fit's RMS (m)."""
+    ``kind`` gabled or shed, ``rmse`` the roof fit's RMS (m); ``front_overhang`` how far its roof reaches beyond its
+    front wall (m; 0 where no wall showed under the eave)."""
 
     planes: np.ndarray
     label: int
     kind: str
     rmse: float
+    front_overhang: float = 0.0
 
     def inside(self, xyz: np.ndarray) -> np.ndarray:
         """Occupancy of points (n, 3): inside every half-space."""
@@ -302,8 +306,10 @@ def _dormer(xyz: np.ndarray, cell_id: np.ndarray, mask: np.ndarray, plane: np.nd
         return f"runs {u_f - u_meet:.1f} m into the slope"
     # front, sides, the roof, and the slope it stands on as its bottom: behind, the block ends where its roof
     # runs into the slope
-    walls = [np.array([du[0], du[1], 0.0, -u_f]), np.array([dv[0], dv[1], 0.0, -v1]),
+    # (where the front's wall showed under the eave, the block's front stands on it and the roof overhangs it)
+    u_wall = u_f if front_wall is None else min(u_f, 0.5 * (front_wall[0] + front_wall[1]))
+    walls = [np.array([du[0], du[1], 0.0, -u_wall]), np.array([dv[0], dv[1], 0.0, -v1]),
              np.array([-dv[0], -dv[1], 0.0, v0])]
     planes = np.array([*walls, *roofs, -plane])
     planes /= np.linalg.norm(planes[:, :3], axis=1)[:, None]
-    return Dormer(planes, label, "gabled" if gabled else "shed", rmse)
+    return Dormer(planes, label, "gabled" if gabled else "shed", rmse, u_f - u_wall)

@@ -348,6 +348,13 @@ def reconstruct_building(xyz: np.ndarray, ground_z: float, dsm: Raster | None, b
                 verts, more = overhang_surfaces(verts, faces, seg, np.array([w, 0.0]), {0: group}, roof_of_face,
                                                 cfg.overhang.thickness)
                 extra += more
+    # a dormer's roof over its front wall, as far as its points showed it (:attr:`.dormers.Dormer.front_overhang`)
+    for d in dormers:
+        if d.front_overhang > 0.0:
+            for seg, group in _plane_wall_runs(hull, faces, d.planes[0]):
+                verts, more = overhang_surfaces(verts, faces, seg, np.array([d.front_overhang, 0.0]), {0: group},
+                                                roof_of_face, cfg.overhang.thickness)
+                extra += more
     model = _assemble(bid, verts + offset, faces, extra, path, reason, polygon + offset[:2], widths,
                       [_to_world(p, offset) for p in all_planes.values()], info)
     model.info["seconds"] = time.perf_counter() - t0
@@ -395,11 +402,7 @@ def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], polygon:
         normals[key] = n[:2] / np.linalg.norm(n[:2])
     out = []
     for key, group in groups.items():
-        n_out = normals[key]
-        d = np.array([-n_out[1], n_out[0]])
-        P = np.vstack([hull.vertices[faces[fi][1], :2] for fi in group])
-        t = P @ d
-        base = P[0] - (P[0] @ d) * d
+        d, t, base = _run_line(hull, faces, group, normals[key])
         # the overhang is measured where the wall reaches the upper roof (its top within 1 m of the highest): the
         # plane also holds lower wall pieces beyond it (the demo church's tower wall runs on past the tower)
         ts = np.arange(t.min(), t.max() + 0.05, 0.1)
@@ -409,6 +412,28 @@ def _interior_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]], polygon:
         out.append((np.array([base + t.min() * d, base + t.max() * d]),
                     np.array([base + high.min() * d, base + high.max() * d]), group))
     return out
+
+
+def _plane_wall_runs(hull: Hull, faces: list[tuple[str, list[int]]],
+                     plane: np.ndarray) -> list[tuple[np.ndarray, list[int]]]:
+    """The hull's wall faces on a vertical ``plane (4,)`` (outward normal) as one run: its segment ``(2, 2)``, whose
+    right-hand side is the plane's outer side (as an outline edge's, for :func:`.overhang.overhang_surfaces`), and
+    the face indices; none where no face lies on it."""
+    group = [fi for fi, (kind, ring) in enumerate(faces)
+             if kind == "wall" and np.abs(hull.vertices[ring] @ plane[:3] + plane[3]).max() < 1e-6]
+    if not group:
+        return []
+    d, t, base = _run_line(hull, faces, group, plane[:2] / np.linalg.norm(plane[:2]))
+    return [(np.array([base + t.min() * d, base + t.max() * d]), group)]
+
+
+def _run_line(hull: Hull, faces: list[tuple[str, list[int]]], group: list[int],
+              n_out: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The line of a run of wall faces ``group`` facing ``n_out (2,)``: its direction ``d (2,)`` (the outer side on
+    its right), the faces' vertices' coordinates ``t (k,)`` along it, and its point ``base (2,)`` at ``t = 0``."""
+    d = np.array([-n_out[1], n_out[0]])
+    P = np.vstack([hull.vertices[faces[fi][1], :2] for fi in group])
+    return d, P @ d, P[0] - (P[0] @ d) * d
 
 
 def _ring_top(t: np.ndarray, z: np.ndarray, ts: np.ndarray) -> np.ndarray:

@@ -142,4 +142,4 @@ def run(ws, cfg: BuildingsConfig, ctx) -> StageResult:
 
 
 STAGE = Stage(name="buildings", run=run, config=BuildingsConfig, requires=("surface",),
-              description="LOD2 buildings with discontinuities, roof overhangs and dormers", version="42")
+              description="LOD2 buildings with discontinuities, roof overhangs and dormers", version="43")

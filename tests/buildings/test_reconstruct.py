@@ -266,8 +266,18 @@ def test_a_dormer_roof_overhanging_its_front_wall_ends_where_the_roof_does():
     does, on three samplings each. Those points, from the slope's height up to the eaves', are no roof edge: taken
     with the roof's points they drew the front 0.07-0.15 m behind the roof's edge on three of the six (to the wall,
     or behind it). The points under the top surface are left out where they form a wall (a compact column across
-    the edge; the matching's smear is a ramp and stays, see the test above)."""
+    the edge; the matching's smear is a ramp and stays, see the test above). The dormer's front wall stands on
+    those points, within 0.05 m of the true wall, and its roof overhangs it (the block's front stood at the roof's
+    edge before, 0.10-0.33 m in front of the wall)."""
     from oblique_city.core.buildings.attributes import model_top_height
+
+    def front_walls(b, m) -> list[float]:  # v of the model's walls facing the dormer's front, in front of the slope
+        out = []
+        for s in m.surfaces:
+            uv = b.to_local(np.asarray(m.vertices)[list(s.ring), :2])
+            if s.kind == "wall" and np.ptp(uv[:, 1]) < 0.02 and 3.5 < uv[:, 0].mean() < 6.7 and 0.3 < uv[:, 1].mean():
+                out.append(float(uv[:, 1].mean()))
+        return out
 
     v = np.arange(0.3, 1.8, 0.01)
     for overhang in (0.15, 0.3):
@@ -281,6 +291,9 @@ def test_a_dormer_roof_overhanging_its_front_wall_ends_where_the_roof_does():
             front_true = v[np.argmax(b.height(line) - slope > 0.5)]
             assert abs(front_true - (1.0 - overhang)) < 0.02
             assert abs(front_model - front_true) < 0.06, (overhang, seed, front_model, front_true)
+            walls = front_walls(b, m)
+            assert len(walls) == 1 and abs(walls[0] - 1.0) < 0.05, walls
+            assert sum(s.kind == "overhang_roof" for s in m.surfaces) == 10  # 8 at the outline, 2 over the front
 
 
 def test_points_under_the_top_surface_and_a_wall_among_them():
