@@ -76,10 +76,12 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 from ..errors import ComputationError
 from ..geometry.rotations import matrix_to_rotvec, rotvec_to_matrix, skew
 from ..model import CameraModel
+from ..model.camera import distort
 from . import precision
 from .strips import offsets_at
 
@@ -594,16 +596,26 @@ def pixels_from_camera(cameras: list[CameraModel], image_camera: np.ndarray, xyz
                        obs_image: np.ndarray) -> np.ndarray:
     """Pixel positions ``(m, 2)`` of points given in the cameras' frames ``xyz_cam (m, 3)`` of the observations'
     images ``obs_image (m,)`` (NaN behind the camera)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xy = xyz_cam[:, :2] / xyz_cam[:, 2:3]
-    out = np.full((len(obs_image), 2), np.nan)
-    cam_of_obs = image_camera[obs_image]
-    for ci, cam in enumerate(cameras):
-        sel = cam_of_obs == ci
-        if sel.any():
-            out[sel] = cam.normalized_to_pixel(xy[sel])
-    out[xyz_cam[:, 2] <= 0] = np.nan
+    params = np.array([[cm.fx, cm.fy, cm.cx, cm.cy, cm.k1, cm.k2, cm.k3, cm.p1, cm.p2] for cm in cameras], np.float64)
+    out = np.empty((len(obs_image), 2))
+    _pixels(params.reshape(-1, 9), np.asarray(image_camera, np.int64), np.asarray(xyz_cam, np.float64),
+            np.asarray(obs_image, np.int64), out)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _pixels(params: np.ndarray, image_camera: np.ndarray, xc: np.ndarray, oi: np.ndarray, out: np.ndarray) -> None:
+    """:func:`pixels_from_camera` per observation; ``params (k, 9)``: fx, fy, cx, cy, k1, k2, k3, p1, p2 per camera
+    (the distortion of :meth:`.CameraModel.distort_normalized`)."""
+    for k in range(len(oi)):
+        z = xc[k, 2]
+        if not z > 0.0:
+            out[k, 0] = out[k, 1] = np.nan
+            continue
+        p = params[image_camera[oi[k]]]
+        xd, yd = distort(xc[k, 0] / z, xc[k, 1] / z, p[4], p[5], p[6], p[7], p[8])
+        out[k, 0] = p[0] * xd + p[2]
+        out[k, 1] = p[1] * yd + p[3]
 
 
 def _quat_plus_jacobian(q: np.ndarray) -> np.ndarray:
@@ -1976,11 +1988,10 @@ def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
         uv_hat = project_obs(cameras, image_camera, r, c, xyz, op, oi)
         v = obs_uv[idx] - uv_hat
         good = np.all(np.isfinite(v), 1)
-        jp = precision.point_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
+        jp = precision.point_jacobians(r, c, fx, fy, xyz, op, oi)
         w = good.astype(np.float64)
         n = precision.point_normals(jp, w, local, len(pts))
-        jv = np.einsum("mji,mj->mi", jp[good], v[good])
-        g = np.stack([np.bincount(local[good], weights=jv[:, i], minlength=len(pts)) for i in range(3)], 1)
+        g = precision.row_sums(jp[good], v[good], local[good], len(pts))
         q = precision.safe_inverse(n)
         step = np.einsum("kij,kj->ki", q, g)
         upd = ok & np.all(np.isfinite(step), 1)
@@ -2073,18 +2084,14 @@ def _point_step(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     points, as in :func:`screen_points`). Returns the step ``(p, 3)`` (NaN where undetermined), the points'
     cofactors ``(p, 3, 3)``, the residuals ``(m, 2)`` (0 where not finite), their point Jacobians ``(m, 2, 3)``, the
     rays with finite residuals ``(m,)`` and each ray's length ``(m,)``."""
-    rr = np.take(r, oi, 0)
-    d = np.take(x_pts, op, 0) - np.take(c, oi, 0)
-    xc = np.einsum("mij,mj->mi", rr, d)
+    xc, d, jp = precision.ray_geometry(r, c, fx, fy, x_pts, op, oi)
     v = uv - pixels_from_camera(cameras, image_camera, xc, oi)
-    jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
-    del rr, xc
+    del xc
     good = np.all(np.isfinite(v), 1)
     q = precision.safe_inverse(precision.point_normals(jp, np.where(good, sigma_px**-2, 0.0), op, len(x_pts),
                                                        info_pts))
     v[~good] = 0.0
-    g = np.stack([np.bincount(op, weights=jp[:, 0, i] * v[:, 0] + jp[:, 1, i] * v[:, 1], minlength=len(x_pts))
-                  for i in range(3)], 1) * sigma_px**-2
+    g = precision.row_sums(jp, v, op, len(x_pts)) * sigma_px**-2
     if info_pts is not None:
         g += np.einsum("kij,kj->ki", info_pts, np.nan_to_num(prior_pts - x_pts))
     return np.einsum("kij,kj->ki", q, g), q, v, jp, good, np.linalg.norm(d, axis=1)
@@ -2367,7 +2374,7 @@ def _control_measurements(prob: BundleProblem, cams: list[CameraModel], r: np.nd
     op, oi = prob.gcp_obs_point, prob.gcp_obs_image
     v = prob.gcp_obs_uv - project_obs(cams, prob.image_camera, r, c, gcp_xyz, op, oi)
     fx, fy = image_focals(cams, prob.image_camera)
-    jp = precision.point_jacobians(r[oi], c[oi], fx[oi], fy[oi], gcp_xyz[op])
+    jp = precision.point_jacobians(r, c, fx, fy, gcp_xyz, op, oi)
     w = np.where(use, 1.0 / prob.gcp_sigma_px[op] ** 2, 0.0)
     prior = np.zeros((len(gcp_xyz), 3, 3))
     ok = gcp_ok & np.all(np.isfinite(prob.gcp_sigma), 1)
@@ -2421,21 +2428,17 @@ def resect_images(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     keep theirs."""
     fx, fy = image_focals(cameras, image_camera)
     # the points in the cameras' frames serve the projection and the Jacobians
-    rr = np.take(r, obs_image, 0)
-    d = np.take(xyz, obs_point, 0) - np.take(c, obs_image, 0)
-    xc = (rr @ d[:, :, None])[:, :, 0]
+    xc, d, jp = precision.ray_geometry(r, c, fx, fy, xyz, obs_point, obs_image)
     v = obs_uv - pixels_from_camera(cameras, image_camera, xc, obs_image)
     good = np.all(np.isfinite(v), 1)
     oi = obs_image
     if not good.all():
-        oi, v, rr, d, xc = oi[good], v[good], rr[good], d[good], xc[good]
-    jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
+        oi, v, d, jp = oi[good], v[good], d[good], jp[good]
     jr = precision.rotation_jacobians(d, jp)
-    del rr, xc
+    del xc
     n = len(r)
     q = precision.safe_inverse(precision.image_normals(jp, jr, np.ones(len(oi)), oi, n))
-    g = np.einsum("kri,kr->ki", precision.image_rows(jp, jr), v)
-    step = np.einsum("kij,kj->ki", q, np.stack([np.bincount(oi, weights=g[:, i], minlength=n) for i in range(6)], 1))
+    step = np.einsum("kij,kj->ki", q, precision.row_sums(precision.image_rows(jp, jr), v, oi, n))
     r, c = r.copy(), c.copy()
     for k in np.flatnonzero(np.all(np.isfinite(step), 1)):
         r[k] = r[k] @ rotvec_to_matrix(step[k, :3])
@@ -2499,7 +2502,7 @@ def _precision(prob: BundleProblem, opt: BundleOptions, r: np.ndarray, c: np.nda
     free (:func:`.precision.reduced_image_normals`, ``(n, 6, 6)``; None without ``opt.prior_tests``)."""
     fx, fy = image_focals(cams, prob.image_camera)
     op, oi = prob.obs_point, prob.obs_image
-    jp, jr = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
+    jp, jr = precision.collinearity_jacobians(r, c, fx, fy, xyz, op, oi)
     w_obs = np.where(active, 1.0 / opt.sigma_px**2, 0.0)
     prior_pt = None
     if prob.point_prior_xyz is not None:

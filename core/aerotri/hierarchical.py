@@ -299,9 +299,12 @@ def select_connections(xyz: np.ndarray, candidate: np.ndarray, rays: np.ndarray,
 
 def _warm_up(hold_s: float) -> None:
     """Executor unit run once per worker while the nadir run computes: imports the solver (a second or two per
-    process) and holds the worker for ``hold_s`` so that the pool spreads these units over all its workers."""
+    process), loads the compiled kernels of the statistics (numba's start, 0.2 s, on a first call) and holds the
+    worker for ``hold_s`` so that the pool spreads these units over all its workers."""
     import pyceres  # noqa: F401
     import pycolmap  # noqa: F401
+
+    point_normals(np.zeros((1, 2, 3)), np.ones(1), np.zeros(1, np.int64), 1)
 
     time.sleep(hold_s)
 
@@ -986,9 +989,9 @@ def datum_correction(block: ImageBlock, poses: dict[str, Pose], rejected: set[st
     x, _ = intersect_rays(c[oi], d, op, len(gps))
     ok_obs = np.isfinite(x[op, 0])
     x = refine_points(cameras, image_camera, r, c, x, op, oi, uv, ok_obs)
-    fx, fy = image_focals(cameras, image_camera[oi])
+    fx, fy = image_focals(cameras, image_camera)
     sigma_px = np.array([gp.sigma_px for gp in gps])
-    jp = point_jacobians(r[oi], c[oi], fx, fy, x[op])
+    jp = point_jacobians(r, c, fx, fy, x, op, oi)
     q = safe_inverse(point_normals(np.nan_to_num(jp), np.where(ok_obs, sigma_px[op] ** -2.0, 0.0), op, len(gps)))
     info = np.zeros((3, 3))
     rhs = np.zeros(3)

@@ -10,10 +10,10 @@ parameters common to many images (cameras, mounting corrections) come from the w
 eliminated, then selected entries of the inverse of the images' sparse reduced system (:func:`marginal_covariance`).
 
 The collinearity Jacobians use the pinhole part of the camera (lens distortion changes them by well under one
-percent for aerial cameras). They are ``(m, r, d)`` arrays (observations, rows, columns) stored column by column
-(views of ``(d, r, m)`` buffers, see :func:`stacked_rows`): the sums over observations read one entry of every
-observation at a time, which is contiguous in that layout (the row-major one read it at a stride of ``8 r d`` bytes
-and took twice as long).
+percent for aerial cameras). They are ``(m, r, d)`` arrays (observations, rows, columns). The loops over
+observations (Jacobians, sums of outer products per point or image, quadratic forms) are compiled with numba: one
+pass over the observations each, where numpy took one pass per entry of the result (on an oblique sub-block of
+540,000 measurements the normal blocks of points and images took 0.19 s in numpy, 0.02 s compiled).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+from numba import njit
 
 from ..errors import ComputationError
 
@@ -29,14 +30,16 @@ if TYPE_CHECKING:
 
 
 def collinearity_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx: np.ndarray, fy: np.ndarray,
-                           xyz_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                           xyz_world: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians of pixel coordinates per observation.
 
     Parameters
     ----------
-    r_cam_from_world : (m, 3, 3) rotation of each observation's image
-    c_world : (m, 3) its centre; fx, fy : (m,) its focal lengths in pixels
-    xyz_world : (m, 3) the observed point
+    r_cam_from_world : (n, 3, 3) rotation of each image
+    c_world : (n, 3) its centre; fx, fy : (n,) its focal lengths in pixels
+    xyz_world : (p, 3) the points
+    obs_point, obs_image : (m,) each observation's point and image
 
     Returns
     -------
@@ -44,86 +47,117 @@ def collinearity_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx
     j_rot : (m, 2, 3) d(uv)/d(theta) for a small rotation ``theta`` about the world axes
         (``R' = R exp([theta]x)``)
     """
-    j_point = point_jacobians(r_cam_from_world, c_world, fx, fy, xyz_world)
-    return j_point, rotation_jacobians(xyz_world - c_world, j_point)
+    _, d, j_point = ray_geometry(r_cam_from_world, c_world, fx, fy, xyz_world, obs_point, obs_image)
+    return j_point, rotation_jacobians(d, j_point)
+
+
+def ray_geometry(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx: np.ndarray, fy: np.ndarray,
+                 xyz_world: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each observation's point in its camera's frame ``xyz_cam (m, 3)``, its offset from the centre in the world
+    ``d_world (m, 3)`` and its point Jacobian ``j_point (m, 2, 3)`` (shapes as in :func:`collinearity_jacobians`):
+    the rows of the pinhole projection's Jacobian times R, ``(f / z) (R_row - (x / z) R_2)``, in one pass."""
+    m = len(obs_point)
+    xc, d, jp = np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 2, 3))
+    _ray_geometry(np.asarray(r_cam_from_world, np.float64), np.asarray(c_world, np.float64),
+                  np.asarray(fx, np.float64), np.asarray(fy, np.float64), np.asarray(xyz_world, np.float64),
+                  np.asarray(obs_point, np.int64), np.asarray(obs_image, np.int64), xc, d, jp)
+    return xc, d, jp
+
+
+@njit(cache=True, nogil=True)
+def _ray_geometry(r: np.ndarray, c: np.ndarray, fx: np.ndarray, fy: np.ndarray, xyz: np.ndarray, op: np.ndarray,
+                  oi: np.ndarray, xc: np.ndarray, d: np.ndarray, jp: np.ndarray) -> None:
+    for k in range(len(op)):
+        i, p = oi[k], op[k]
+        for a in range(3):
+            d[k, a] = xyz[p, a] - c[i, a]
+        for a in range(3):
+            xc[k, a] = r[i, a, 0] * d[k, 0] + r[i, a, 1] * d[k, 1] + r[i, a, 2] * d[k, 2]
+        z = xc[k, 2]
+        ax, bx = fx[i] / z, xc[k, 0] / z
+        ay, by = fy[i] / z, xc[k, 1] / z
+        for a in range(3):
+            jp[k, 0, a] = ax * (r[i, 0, a] - bx * r[i, 2, a])
+            jp[k, 1, a] = ay * (r[i, 1, a] - by * r[i, 2, a])
 
 
 def rotation_jacobians(d_world: np.ndarray, j_point: np.ndarray) -> np.ndarray:
     """``d(uv)/d(theta) (m, 2, 3)`` (see :func:`collinearity_jacobians`) from the point's offset from the centre
-    ``d_world (m, 3)`` and the point Jacobians ``j_point (m, 2, 3)``: ``-(j [d]x) = d x j`` per row, written out
-    per entry into the column layout."""
-    j_rot = stacked_rows(len(d_world), 2, 3)
-    for a, b, k in ((1, 2, 0), (2, 0, 1), (0, 1, 2)):
+    ``d_world (m, 3)`` and the point Jacobians ``j_point (m, 2, 3)``: ``-(j [d]x) = d x j`` per row."""
+    out = np.empty((len(d_world), 2, 3))
+    _rotation_rows(np.asarray(d_world, np.float64), np.asarray(j_point, np.float64), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _rotation_rows(d: np.ndarray, jp: np.ndarray, out: np.ndarray) -> None:
+    for k in range(len(d)):
         for row in range(2):
-            np.subtract(d_world[:, a] * j_point[:, row, b], d_world[:, b] * j_point[:, row, a], out=j_rot[:, row, k])
-    return j_rot
-
-
-def stacked_rows(m: int, r: int, d: int) -> np.ndarray:
-    """An uninitialised ``(m, r, d)`` array stored as ``(d, r, m)`` (each entry of all ``m`` items contiguous)."""
-    return np.empty((d, r, m)).transpose(2, 1, 0)
+            out[k, row, 0] = d[k, 1] * jp[k, row, 2] - d[k, 2] * jp[k, row, 1]
+            out[k, row, 1] = d[k, 2] * jp[k, row, 0] - d[k, 0] * jp[k, row, 2]
+            out[k, row, 2] = d[k, 0] * jp[k, row, 1] - d[k, 1] * jp[k, row, 0]
 
 
 def image_rows(j_point: np.ndarray, j_rot: np.ndarray) -> np.ndarray:
     """The Jacobians ``(m, 2, 6)`` of an image measurement for the image's rotation and centre, ``[j_rot, -j_point]``
-    (the centre's derivative is the point's negative), in the column layout."""
-    out = stacked_rows(len(j_point), j_point.shape[1], 6)
+    (the centre's derivative is the point's negative)."""
+    out = np.empty((len(j_point), j_point.shape[1], 6))
     out[:, :, :3] = j_rot
     np.negative(j_point, out=out[:, :, 3:])
     return out
 
 
 def point_jacobians(r_cam_from_world: np.ndarray, c_world: np.ndarray, fx: np.ndarray, fy: np.ndarray,
-                    xyz_world: np.ndarray) -> np.ndarray:
+                    xyz_world: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray) -> np.ndarray:
     """``d(uv)/d(point) (m, 2, 3)`` alone (see :func:`collinearity_jacobians` for the shapes)."""
-    xc = (r_cam_from_world @ (xyz_world - c_world)[:, :, None])[:, :, 0]
-    return pinhole_point_jacobians(r_cam_from_world, xc, fx, fy)
-
-
-def pinhole_point_jacobians(r_cam_from_world: np.ndarray, xyz_cam: np.ndarray, fx: np.ndarray, fy: np.ndarray
-                            ) -> np.ndarray:
-    """:func:`point_jacobians` from each observation's rotation ``(m, 3, 3)`` and the point already in its camera
-    frame ``xyz_cam (m, 3)`` (callers that also project reuse it)."""
-    rr, xc = r_cam_from_world, xyz_cam
-    z = xc[:, 2]
-    # rows of the projection Jacobian times R: (f / z) (R_row - (x / z) R_2), written out per entry
-    j_point = stacked_rows(len(z), 2, 3)
-    for row, f in ((0, fx), (1, fy)):
-        a = f / z
-        b = xc[:, row] / z
-        for k in range(3):
-            out = j_point[:, row, k]
-            np.multiply(b, rr[:, 2, k], out=out)
-            np.subtract(rr[:, row, k], out, out=out)
-            out *= a
-    return j_point
-
-
-def _pair_product(rows: np.ndarray, i: int, j: int) -> np.ndarray:
-    """``sum_r rows[:, r, i] rows[:, r, j]`` ``(m,)`` for ``rows (m, r, d)``, without ``(m, r)`` temporaries beyond
-    one row (fastest in the column layout of :func:`stacked_rows`)."""
-    out = rows[:, 0, i] * rows[:, 0, j]
-    tmp = np.empty_like(out) if rows.shape[1] > 1 else None
-    for k in range(1, rows.shape[1]):
-        np.multiply(rows[:, k, i], rows[:, k, j], out=tmp)
-        out += tmp
-    return out
+    return ray_geometry(r_cam_from_world, c_world, fx, fy, xyz_world, obs_point, obs_image)[2]
 
 
 def sum_outer(rows: np.ndarray, w: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
     """Weighted sums of outer products per group: ``out[g] = sum_{k: index[k] = g} w[k] rows[k]^T rows[k]``.
 
     ``rows (m, r, d)`` (r rows of d columns per item, e.g. the 2 x 3 Jacobian of an image measurement),
-    ``w (m,)``, ``index (m,)`` -> ``(n, d, d)``. One bincount per unique entry of the symmetric result: no
-    ``(m, d, d)`` temporaries (they cost both time and ``72 d**2`` bytes per item on large blocks)."""
-    d = rows.shape[2]
-    out = np.empty((n, d, d))
-    for i in range(d):
-        for j in range(i, d):
-            v = _pair_product(rows, i, j)
-            v *= w
-            out[:, i, j] = out[:, j, i] = np.bincount(index, weights=v, minlength=n)
+    ``w (m,)``, ``index (m,)`` -> ``(n, d, d)``. One pass over the items, nothing of size ``(m, d, d)``."""
+    out = np.zeros((n, rows.shape[2], rows.shape[2]))
+    _sum_outer(np.asarray(rows, np.float64), np.asarray(w, np.float64), np.asarray(index, np.int64), out)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _sum_outer(rows: np.ndarray, w: np.ndarray, index: np.ndarray, out: np.ndarray) -> None:
+    nr, d = rows.shape[1], rows.shape[2]
+    for k in range(len(rows)):
+        wk = w[k]
+        if wk == 0.0:
+            continue
+        g = index[k]
+        for i in range(d):
+            for j in range(i, d):
+                s = 0.0
+                for r in range(nr):
+                    s += rows[k, r, i] * rows[k, r, j]
+                out[g, i, j] += wk * s
+    _mirror(out)
+
+
+def row_sums(rows: np.ndarray, v: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
+    """``out[g] = sum over k with index[k] = g of rows[k]^T v[k]`` (the gradient terms ``J^T v`` per group):
+    ``rows (m, r, d)``, ``v (m, r)``, ``index (m,)`` -> ``(n, d)``."""
+    out = np.zeros((n, rows.shape[2]))
+    _row_sums(np.asarray(rows, np.float64), np.asarray(v, np.float64), np.asarray(index, np.int64), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _row_sums(rows: np.ndarray, v: np.ndarray, index: np.ndarray, out: np.ndarray) -> None:
+    for k in range(len(rows)):
+        g = index[k]
+        for i in range(rows.shape[2]):
+            s = 0.0
+            for r in range(rows.shape[1]):
+                s += rows[k, r, i] * v[k, r]
+            out[g, i] += s
 
 
 def point_normals(j_point: np.ndarray, w_obs: np.ndarray, obs_point: np.ndarray, n_points: int,
@@ -141,11 +175,47 @@ def point_normals(j_point: np.ndarray, w_obs: np.ndarray, obs_point: np.ndarray,
 
 def image_normals(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray, obs_image: np.ndarray,
                   n_images: int, prior_info: np.ndarray | None = None) -> np.ndarray:
-    """Normal blocks ``(n, 6, 6)`` of images (rotation about world axes, centre) with the points fixed."""
-    n = sum_outer(image_rows(j_point, j_rot), w_obs, obs_image, n_images)
+    """Normal blocks ``(n, 6, 6)`` of images (rotation about world axes, centre) with the points fixed: the sums of
+    ``w A^T A`` over their measurements, ``A`` the rows of :func:`image_rows` (formed one measurement at a time)."""
+    n = np.zeros((n_images, 6, 6))
+    _image_normals(np.asarray(j_point, np.float64), np.asarray(j_rot, np.float64), np.asarray(w_obs, np.float64),
+                   np.asarray(obs_image, np.int64), n)
     if prior_info is not None:
         n += prior_info
     return n
+
+
+@njit(cache=True, nogil=True)
+def _image_row(jp: np.ndarray, jr: np.ndarray, k: int, a: np.ndarray) -> None:
+    """Measurement ``k``'s rows of :func:`image_rows` into ``a (2, 6)``."""
+    for row in range(2):
+        for j in range(3):
+            a[row, j] = jr[k, row, j]
+            a[row, 3 + j] = -jp[k, row, j]
+
+
+@njit(cache=True, nogil=True)
+def _image_normals(jp: np.ndarray, jr: np.ndarray, w: np.ndarray, oi: np.ndarray, out: np.ndarray) -> None:
+    a = np.empty((2, 6))
+    for k in range(len(jp)):
+        wk = w[k]
+        if wk == 0.0:
+            continue
+        _image_row(jp, jr, k, a)
+        g = oi[k]
+        for i in range(6):
+            for j in range(i, 6):
+                out[g, i, j] += wk * (a[0, i] * a[0, j] + a[1, i] * a[1, j])
+    _mirror(out)
+
+
+@njit(cache=True, nogil=True)
+def _mirror(out: np.ndarray) -> None:
+    """The lower triangles of symmetric blocks ``(n, d, d)`` from their upper ones."""
+    for g in range(len(out)):
+        for i in range(out.shape[1]):
+            for j in range(i):
+                out[g, i, j] = out[g, j, i]
 
 
 def reduced_image_normals(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray, q_point: np.ndarray,
@@ -156,36 +226,59 @@ def reduced_image_normals(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndar
     their points' cofactor blocks ``q_point (p, 3, 3)`` (all rays and point priors, cameras fixed; NaN blocks count
     as known points). Against :func:`image_normals` (points held) they leave out what the measurements spend on
     their points, so they do not overstate what the ties tell of an image's pose."""
-    a = quadratic_forms(j_point[:, :1], q_point, obs_point)
-    c = quadratic_forms(j_point[:, 1:], q_point, obs_point)
-    b = (quadratic_forms((j_point[:, 0] + j_point[:, 1])[:, None], q_point, obs_point) - a - c) / 2.0
-    # w (I - w J Q J^T), entries 00, 11, 01
-    m00, m11, m01 = w_obs * (1.0 - w_obs * a), w_obs * (1.0 - w_obs * c), -(w_obs**2) * b
-    rows = image_rows(j_point, j_rot)
-    out = np.empty((n_images, 6, 6))
-    for i in range(6):
-        for j in range(i, 6):
-            v = m00 * rows[:, 0, i] * rows[:, 0, j]
-            v += m11 * rows[:, 1, i] * rows[:, 1, j]
-            v += m01 * (rows[:, 0, i] * rows[:, 1, j] + rows[:, 1, i] * rows[:, 0, j])
-            out[:, i, j] = out[:, j, i] = np.bincount(obs_image, weights=v, minlength=n_images)
+    out = np.zeros((n_images, 6, 6))
+    _reduced_normals(np.asarray(j_point, np.float64), np.asarray(j_rot, np.float64), np.asarray(w_obs, np.float64),
+                     np.nan_to_num(q_point), np.asarray(obs_point, np.int64), np.asarray(obs_image, np.int64), out)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _reduced_normals(jp: np.ndarray, jr: np.ndarray, w: np.ndarray, q: np.ndarray, op: np.ndarray, oi: np.ndarray,
+                     out: np.ndarray) -> None:
+    a = np.empty((2, 6))
+    for k in range(len(jp)):
+        wk = w[k]
+        if wk == 0.0:
+            continue
+        p = op[k]
+        h00 = h11 = h01 = 0.0
+        for i in range(3):
+            for j in range(3):
+                h00 += jp[k, 0, i] * q[p, i, j] * jp[k, 0, j]
+                h11 += jp[k, 1, i] * q[p, i, j] * jp[k, 1, j]
+                h01 += jp[k, 0, i] * q[p, i, j] * jp[k, 1, j]
+        # w (I - w J Q J^T), entries 00, 11, 01
+        m00, m11, m01 = wk * (1.0 - wk * h00), wk * (1.0 - wk * h11), -(wk * wk) * h01
+        _image_row(jp, jr, k, a)
+        g = oi[k]
+        for i in range(6):
+            for j in range(i, 6):
+                out[g, i, j] += (m00 * a[0, i] * a[0, j] + m11 * a[1, i] * a[1, j]
+                                 + m01 * (a[0, i] * a[1, j] + a[1, i] * a[0, j]))
+    _mirror(out)
 
 
 def quadratic_forms(rows: np.ndarray, q: np.ndarray, index: np.ndarray) -> np.ndarray:
     """``sum_r rows[k, r] q[index[k]] rows[k, r]^T`` per item ``(m,)`` for ``rows (m, r, d)`` and the symmetric
-    blocks ``q (n, d, d)`` (NaN counts as 0): one gathered entry of ``q`` times the matching sum of row products
-    per unique entry, so nothing larger than ``(m,)`` is gathered (gathering whole ``(m, d, d)`` blocks for an
-    einsum was 3.7 times slower for d = 3 on 2.5 M items)."""
-    q = np.nan_to_num(q)
-    d = rows.shape[2]
-    out = np.zeros(len(rows))
-    for i in range(d):
-        for j in range(i, d):
-            t = _pair_product(rows, i, j)
-            t *= np.take(np.ascontiguousarray(q[:, i, j]), index) * (1.0 if i == j else 2.0)
-            out += t
+    blocks ``q (n, d, d)`` (NaN counts as 0)."""
+    out = np.empty(len(rows))
+    _quadratic_forms(np.asarray(rows, np.float64), np.nan_to_num(q), np.asarray(index, np.int64), out)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _quadratic_forms(rows: np.ndarray, q: np.ndarray, index: np.ndarray, out: np.ndarray) -> None:
+    nr, d = rows.shape[1], rows.shape[2]
+    for k in range(len(rows)):
+        g = index[k]
+        s = 0.0
+        for r in range(nr):
+            for i in range(d):
+                t = 0.0
+                for j in range(d):
+                    t += q[g, i, j] * rows[k, r, j]
+                s += rows[k, r, i] * t
+        out[k] = s
 
 
 def point_shifts(j_point: np.ndarray, q_point: np.ndarray, obs_point: np.ndarray) -> np.ndarray:
@@ -307,8 +400,27 @@ def redundancy_numbers(j_point: np.ndarray, j_rot: np.ndarray, w_obs: np.ndarray
     ``q_point (n, 3, 3)`` and ``q_image (k, 6, 6)``; the coupling between them is neglected.
     """
     hp = quadratic_forms(j_point, q_point, obs_point)
-    hc = quadratic_forms(image_rows(j_point, j_rot), q_image, obs_image)
+    hc = np.empty(len(j_point))
+    _image_quadratic_forms(np.asarray(j_point, np.float64), np.asarray(j_rot, np.float64), np.nan_to_num(q_image),
+                           np.asarray(obs_image, np.int64), hc)
     return np.clip(1.0 - (hp + hc) * w_obs / 2.0, 0.02, 1.0)
+
+
+@njit(cache=True, nogil=True)
+def _image_quadratic_forms(jp: np.ndarray, jr: np.ndarray, q: np.ndarray, oi: np.ndarray, out: np.ndarray) -> None:
+    """:func:`quadratic_forms` of the rows of :func:`image_rows`, formed one measurement at a time."""
+    a = np.empty((2, 6))
+    for k in range(len(jp)):
+        _image_row(jp, jr, k, a)
+        g = oi[k]
+        s = 0.0
+        for r in range(2):
+            for i in range(6):
+                t = 0.0
+                for j in range(6):
+                    t += q[g, i, j] * a[r, j]
+                s += a[r, i] * t
+        out[k] = s
 
 
 class Marginals(NamedTuple):

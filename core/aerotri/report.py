@@ -221,7 +221,7 @@ def tie_point_shifts(run: Run, ties: TiePoints, block: ImageBlock, used: np.ndar
     cameras, image_camera, r, c = pose_arrays(block, ties.image_ids, run.poses)
     fx, fy = image_focals(cameras, image_camera)
     oi = ties.obs_image[obs]
-    jp = precision.point_jacobians(r[oi], c[oi], fx[oi], fy[oi], run.xyz[op])
+    jp = precision.point_jacobians(r, c, fx, fy, run.xyz, op, oi)
     q = run.xyz_cov / max(res.sigma0, 1e-12) ** 2
     return precision.point_shifts(jp, q, op) / res.sigma_px**2 * res.obs_mdb[used]
 

@@ -234,7 +234,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
     # the image Jacobians of the current linearisation (rotation, centre: the centre's are the point's negative),
     # written chunk by chunk (temporaries of a chunk's size only: those of millions of measurements cost more in
     # fresh pages than in arithmetic)
-    rows = precision.stacked_rows(m, 2, 6)
+    rows = np.empty((m, 2, 6))
     v = np.empty((m, 2))
     w = np.empty(m)
     # the smooth fields of body steps over the block that the coarse step solves for (see _coarse_basis)
@@ -252,7 +252,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
             w[sl] = good * weight[sl]
             rows[sl] = precision.image_rows(jp, jr)
             out = (precision.sum_outer(rows[sl], w[sl], oi[sl], n),
-                   _row_sums(rows[sl], v[sl] * w[sl, None], oi[sl], n),
+                   precision.row_sums(rows[sl], v[sl] * w[sl, None], oi[sl], n),
                    precision.sum_outer(jp, w[sl], op[sl], len(xyz)))
             if not coarse:
                 return out
@@ -294,7 +294,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
             rows_sl, v_sl = rows[sl], v[sl]
             for i in range(6):
                 v_sl -= rows_sl[:, :, i] * dimg[:, i, None]
-            return (_row_sums(rows_sl[:, :, 3:], v_sl * w[sl, None], op[sl], len(xyz)),)
+            return (precision.row_sums(rows_sl[:, :, 3:], v_sl * w[sl, None], op[sl], len(xyz)),)
 
         g_pt = (np.einsum("kij,kj->ki", p_info, p_xyz - np.nan_to_num(xyz))
                 - _chunk_sums(point_part, chunks, threads)[0])
@@ -392,20 +392,11 @@ def _linearised(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The residuals ``(m, 2)`` (observed - computed; 0 where not finite), which are finite ``(m,)``, and the point
     and rotation Jacobians ``(m, 2, 3)`` of the measurements ``op``, ``oi``, ``uv``."""
-    rr = np.take(r, oi, 0)
-    d = np.take(xyz, op, 0) - np.take(c, oi, 0)
-    xc = (rr @ d[:, :, None])[:, :, 0]
+    xc, d, jp = precision.ray_geometry(r, c, fx, fy, xyz, op, oi)
     v = uv - pixels_from_camera(cameras, image_camera, xc, oi)
     good = np.all(np.isfinite(v), 1)
     v[~good] = 0.0
-    jp = precision.pinhole_point_jacobians(rr, xc, fx[oi], fy[oi])
     return v, good, jp, precision.rotation_jacobians(d, jp)
-
-
-def _row_sums(rows: np.ndarray, v: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
-    """``out[g] = sum over k with index[k] = g of rows[k]^T v[k]``: ``rows (m, 2, d)``, ``v (m, 2)`` -> ``(n, d)``."""
-    return np.stack([np.bincount(index, weights=rows[:, 0, i] * v[:, 0] + rows[:, 1, i] * v[:, 1], minlength=n)
-                     for i in range(rows.shape[2])], 1)
 
 
 def _coarse_basis(c_body: np.ndarray, fused: np.ndarray, degree: int | None) -> np.ndarray | None:
@@ -485,7 +476,7 @@ def _coarse_response(rows: np.ndarray, w: np.ndarray, step_img: np.ndarray, oi: 
     rs = np.einsum("mrj,mj->mr", rows, np.take(step_img, oi, 0))
     wts = _segment_sums(np.einsum("mri,mr->mi", jp, rs * w[:, None]), np.searchsorted(at, np.arange(len(u))))
     dx = np.nan_to_num(np.einsum("pde,pe->pd", q, g - wts)) * move[u][:, None]
-    return _row_sums(rows, np.einsum("mri,mi->mr", jp, dx[at]) * w[:, None], oi, n)
+    return precision.row_sums(rows, np.einsum("mri,mi->mr", jp, dx[at]) * w[:, None], oi, n)
 
 
 def _coarse_step(n_body: np.ndarray, g_body: np.ndarray, basis: np.ndarray, bodies: np.ndarray,

@@ -90,7 +90,7 @@ def tie_point_std(block: ImageBlock, ties: TiePoints, poses: dict[str, Pose], xy
             r[k], c[k] = p.R, p.C
             cam = block.camera_of(iid)
             fx[k], fy[k] = cam.fx, cam.fy
-    jp, _ = precision.collinearity_jacobians(r[oi], c[oi], fx[oi], fy[oi], xyz[op])
+    jp = precision.point_jacobians(r, c, fx, fy, xyz, op, oi)
     n = precision.point_normals(jp, np.full(len(op), 1.0 / sigma_px**2), op, ties.n_tracks)
     counts = np.bincount(op, minlength=ties.n_tracks)
     q = np.full((ties.n_tracks, 3, 3), np.nan)

@@ -17,6 +17,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def distort(x: float | np.ndarray, y: float | np.ndarray, k1: float, k2: float, k3: float, p1: float, p2: float
+            ) -> tuple[float | np.ndarray, float | np.ndarray]:
+    """The distortion of the module docstring: normalised ``x, y`` (scalars, or arrays of one shape) -> ``x_d, y_d``
+    (compiled: the bundle adjustment's projections call it per observation)."""
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
 
 
 @dataclass(frozen=True)
@@ -75,11 +87,8 @@ class CameraModel:
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
         """Apply distortion to normalised coordinates. ``xy : (n, 2)`` -> ``(n, 2)``."""
         xy = np.asarray(xy, dtype=np.float64)
-        x, y = xy[:, 0], xy[:, 1]
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
-        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
+        xd, yd = distort(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), self.k1, self.k2, self.k3,
+                         self.p1, self.p2)
         return np.stack([xd, yd], axis=1)
 
     def undistort_normalized(self, xy_d: np.ndarray, iterations: int = 20) -> np.ndarray:

@@ -532,9 +532,10 @@ def test_model_read_from_binary_equals_the_one_built_through_the_api(sim, xyz0, 
     assert np.allclose(model.rec.point3D(int(point_ids[q])).xyz, p.xyz[q] - ref + 1.0)
 
 
-def test_column_layout_jacobians_and_normals_equal_the_direct_formulas():
-    """The Jacobians stored column by column and the normal blocks and quadratic forms summed from them equal
-    the textbook expressions (projection Jacobian times R, the rotation column as d x j, sums of J^T W J)."""
+def test_compiled_jacobians_and_normals_equal_the_direct_formulas():
+    """The Jacobians (compiled, gathered through the observations' indices) and the normal blocks and quadratic
+    forms summed from them equal the textbook expressions (projection Jacobian times R, the rotation column as d x j,
+    sums of J^T W J)."""
     from oblique_city.core.aerotri import precision
 
     rng = np.random.default_rng(5)
@@ -543,7 +544,12 @@ def test_column_layout_jacobians_and_normals_equal_the_direct_formulas():
     c = rng.normal(size=(m, 3))
     xyz = c + np.einsum("mji,mj->mi", r, rng.normal(size=(m, 3)) * [1, 1, 0.1] + [0, 0, 20])  # in front
     fx, fy = rng.uniform(900, 1100, m), rng.uniform(900, 1100, m)
-    jp, jr = precision.collinearity_jacobians(r, c, fx, fy, xyz)
+    # each observation its own image and point, then the same through shuffled indices
+    jp, jr = precision.collinearity_jacobians(r, c, fx, fy, xyz, np.arange(m), np.arange(m))
+    perm_i, perm_p = rng.permutation(m), rng.permutation(m)
+    inv_i, inv_p = np.argsort(perm_i), np.argsort(perm_p)
+    jp2, jr2 = precision.collinearity_jacobians(r[perm_i], c[perm_i], fx[perm_i], fy[perm_i], xyz[perm_p], inv_p, inv_i)
+    assert np.array_equal(jp2, jp) and np.array_equal(jr2, jr)
     xc = np.einsum("mij,mj->mi", r, xyz - c)
     proj = np.zeros((m, 2, 3))
     proj[:, 0, 0], proj[:, 1, 1] = fx / xc[:, 2], fy / xc[:, 2]

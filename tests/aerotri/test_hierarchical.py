@@ -422,7 +422,8 @@ def test_tie_point_shift_is_what_the_adjustment_does(sim, xyz0, options, iat):
     iid = sim.ties.image_ids[sim.ties.obs_image[o]]
     cam = sim.block.cameras[sim.block.images[iid].camera_id]
     pose = run.poses[iid]
-    jp = point_jacobians(pose.R[None], pose.C[None], np.array([cam.fx]), np.array([cam.fy]), run.xyz[p][None])[0]
+    jp = point_jacobians(pose.R[None], pose.C[None], np.array([cam.fx]), np.array([cam.fy]), run.xyz[p][None],
+                         np.zeros(1, np.int64), np.zeros(1, np.int64))[0]
     q = run.xyz_cov[p] / res.sigma0**2
     direction = np.linalg.eigh(jp @ q @ q @ jp.T)[1][:, -1]
     ties = copy.deepcopy(sim.ties)
