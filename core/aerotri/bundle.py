@@ -1405,15 +1405,20 @@ def linear_solver_kind(prob: BundleProblem, opt: BundleOptions, active: np.ndarr
 
 def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
            progress: Callable[[int, int, str], None] | None = None,
-           on_robust: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None = None) -> BundleResult:
+           on_robust: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None = None,
+           keep: list | None = None) -> BundleResult:
     """Adjust a bundle problem (see the module docstring). ``progress(done, total, message)`` is called per
     round and may raise to cancel. ``on_robust(r (n, 3, 3), c (n, 3), xyz (p, 3))`` receives the orientations
     and points of the robust round (control frame, copies; the orientations of the frames, see
     :func:`frame_poses`) as soon as it is solved, before its statistics (HAT starts its oblique runs from there
-    while the nadir run goes on). With ``opt.tie_sigma_estimate`` the adjustment is solved again with the tie
-    measurements' estimated sigma while it differs from the one used by more than ``opt.tie_sigma_tolerance``
-    (see :class:`BundleOptions`); the result's ``sigma_px`` is the sigma of its solution."""
-    res = _adjust_pass(prob, opt, progress, on_robust)
+    while the nadir run goes on). ``keep``: the solver's last Ceres problem and reconstruction are appended to it
+    instead of being freed before the return (millions of small C++ allocations: a quarter of a second for 500,000
+    observations), so that the caller can hand the result on first and free them by clearing the list; the heap
+    they free is then not handed back to the system (:func:`release_heap`), for the caller's next work. With
+    ``opt.tie_sigma_estimate`` the adjustment is solved again with the tie measurements' estimated sigma while it
+    differs from the one used by more than ``opt.tie_sigma_tolerance`` (see :class:`BundleOptions`); the result's
+    ``sigma_px`` is the sigma of its solution."""
+    res = _adjust_pass(prob, opt, progress, on_robust, keep)
     given = opt.sigma_px
     heads = measurement_heads(prob)
     estimates = opt.tie_sigma_estimate or opt.prior_sigma_estimate or opt.control_sigma_estimate
@@ -1457,9 +1462,13 @@ def adjust(prob: BundleProblem, opt: BundleOptions = BundleOptions(),
         # wrong matches, the Cauchy round ran out of iterations far off and rejected correct control and priors)
         opt = replace(opt, sigma_px=res.sigma_px * f_ties, prior_sigma_scale=scale,
                       control_sigma_scale=res.control_sigma_scale * f_control, screen_start=True, screen_resect=False)
-        del res  # (the previous solution's covariances go before the next pass: peak memory)
+        del res  # (the previous solution's covariances and solver go before the next pass: peak memory)
+        if keep is not None:
+            keep.clear()
+            release_heap()
         res = _adjust_pass(start, opt, None if progress is None else (
-            lambda d, t, m, s=opt.sigma_px: progress(d, t, f"with the sigmas estimated (ties {s:.3f} px): {m}")), None)
+            lambda d, t, m, s=opt.sigma_px: progress(d, t, f"with the sigmas estimated (ties {s:.3f} px): {m}")), None,
+            keep)
         res.log[:0] = log
         res.iterations += iterations
         res.time_s += time_s
@@ -1511,7 +1520,8 @@ def measurement_heads(prob: BundleProblem) -> float:
 
 
 def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[int, int, str], None] | None,
-                 on_robust: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None) -> BundleResult:
+                 on_robust: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None,
+                 keep: list | None = None) -> BundleResult:
     """One adjustment with ``opt.sigma_px``, ``opt.prior_sigma_scale`` and ``opt.control_sigma_scale`` (see
     :func:`adjust`)."""
     import pyceres
@@ -1789,9 +1799,13 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
             f"{prob.cameras[ci].id} {np.round(np.degrees(mounting[ci, :3]), 4).tolist()} "
             f"{np.round(mounting[ci, 3:], 4).tolist()}" for ci in sorted(model.mount_used)))
     lap("statistics_s")
-    # the reconstruction and the Ceres problem are millions of small C++ allocations: hand their pages back
+    # the reconstruction and the Ceres problem are millions of small C++ allocations: hand their pages back (or to
+    # the caller, see adjust's keep)
+    if keep is not None:
+        keep += [rd, model]
     del rd, model
-    release_heap()
+    if keep is None:
+        release_heap()
     # final values in the control frame
     xyz_cov = q_point * sigma0**2
     pt_ok = point_used & np.isfinite(xyz[:, 0])

@@ -13,7 +13,9 @@
   instead of by a robust solve, so each oblique run needs one least-squares solve. The first part of that
   screened start (a screening and one resection step, :func:`.bundle.resected_start`) needs no connection point:
   it starts from the nadir run's robust round and runs in a thread of this process while the nadir run finishes
-  (:class:`_EarlyStart`); the oblique runs then screen once, with their connection points.
+  (:class:`_EarlyStart`, which builds the sub-blocks while the robust round computes); the oblique runs then screen
+  once, with their connection points. With workers, each run frees its solver after handing back its result, and
+  the nadir run's goes once the workers have the oblique runs (``adjust``'s ``keep``).
   Optionally (``oblique_ties_per_cell``) the oblique runs adjust a thinned, regularly distributed subset of their
   tie points (a production practice); the rest are intersected afterwards with the final orientations.
   (3) Combined statistics by error propagation: a point's information is the nadir information plus each
@@ -74,6 +76,7 @@ from .problem import (
     intersect_ties,
     pose_arrays,
     ray_directions,
+    restarted,
     result_poses,
     thin_ties,
     track_shares,
@@ -309,11 +312,23 @@ def _warm_up(hold_s: float) -> None:
     time.sleep(hold_s)
 
 
-def _adjust_unit(item: tuple[str, SubProblem, BundleOptions]) -> tuple[str, BundleResult, float]:
-    """Executor unit: one oblique sub-block (module-level so process pools and Dask can pickle it)."""
-    name, sub, opt = item
+RELEASE_DELAY_S = 0.05
+"""Seconds a worker waits after an oblique run before it frees the run's solver (:func:`_adjust_unit`): the
+result of 500,000 observations (30 MB) is pickled and sent in about 30 ms."""
+
+
+def _adjust_unit(item: tuple[str, SubProblem, BundleOptions, bool]) -> tuple[str, BundleResult, float]:
+    """Executor unit: one oblique sub-block (module-level so process pools and Dask can pickle it). With the
+    item's last value (a worker process) the run's solver is freed by a timer thread once the result is on its way
+    (``adjust``'s ``keep``): a quarter of a second that the last runs no longer keep the combination waiting for."""
+    name, sub, opt, in_worker = item
     t0 = time.perf_counter()
-    return name, adjust(sub.problem, opt), time.perf_counter() - t0
+    keep: list | None = [] if in_worker else None
+    res = adjust(sub.problem, opt, keep=keep)
+    wall = time.perf_counter() - t0
+    if keep is not None:
+        threading.Timer(RELEASE_DELAY_S, keep.clear).start()
+    return name, res, wall
 
 
 def _resected(prob: BundleProblem, opt: BundleOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -343,15 +358,19 @@ class _EarlyStart:
     (intersecting them again from the propagated orientations first took 2 s on the 3,000-image block and changed
     nothing printed: the same 78,599 rejections, check point RMS and standard deviations).
 
-    Called as ``adjust``'s ``on_robust`` hook with the nadir orientations and points; with ``parallel`` (an
-    executor with workers) the set-up and the sub-blocks, one after the other and the largest first, run in a
-    thread of this process (mostly numpy, which leaves the interpreter to the nadir run; on the core the nadir run
-    leaves idle in its single-threaded parts), and :meth:`ready` gives them as they are done, taking itself the
-    sub-blocks the thread has not started yet, so that the core the nadir run freed does not wait; each can go to
-    the executor's workers while the others are still being resected. Inline otherwise (when :meth:`ready` is
-    asked, with the same values). Sending the sub-blocks to the executor's workers instead did not help on 2 cores:
-    the nadir run and the set-up after it took 16.4-19.6 s with the thread (3 runs of the 3,000-image block), 19.5
-    s with one worker, 17.7-19.3 s with both."""
+    Called as ``adjust``'s ``on_robust`` hook with the nadir orientations and points. With ``parallel`` (an
+    executor with workers) :meth:`begin` starts a thread of this process when the nadir run starts: it builds the
+    sub-blocks (their observations do not depend on the nadir run) while the robust round computes, then waits for
+    its orientations, restarts the sub-blocks from them and resects them one after the other, the largest first
+    (mostly compiled code, which leaves the interpreter to the nadir run, on the core the nadir run leaves idle in
+    its single-threaded parts). :meth:`ready` gives them as they are done, taking itself the sub-blocks the thread
+    has not started yet, so that the core the nadir run freed does not wait; each can go to the executor's workers
+    while the others are still being resected. Inline otherwise (when :meth:`ready` is asked, with the same
+    values). Building the sub-blocks only once the robust round had ended left two of the four resections to run
+    beside the first two oblique runs, which then took 4.0-4.2 s instead of 3.2-3.3 s (3,000-image block). Sending
+    the sub-blocks to the executor's workers instead did not help on 2 cores: the nadir run and the set-up after it
+    took 16.4-19.6 s with the thread (3 runs of the 3,000-image block), 19.5 s with one worker, 17.7-19.3 s with
+    both."""
 
     block: ImageBlock
     ties: TiePoints
@@ -366,23 +385,34 @@ class _EarlyStart:
     _thread: threading.Thread | None = field(default=None, init=False)
     _error: BaseException | None = field(default=None, init=False)
     _thread_done: bool = field(default=False, init=False)
+    _discarded: bool = field(default=False, init=False)
     _cond: threading.Condition = field(default_factory=threading.Condition, init=False)
     _xyz_start: np.ndarray | None = field(default=None, init=False)
     _todo: list | None = field(default=None, init=False)  # (view, sub-block) not started yet, once set up
     _outs: dict = field(default_factory=dict, init=False)
 
-    def __call__(self, r: np.ndarray, c: np.ndarray, xyz: np.ndarray) -> None:
-        self._start = (r, c, xyz)
+    def begin(self) -> None:
+        """Start the thread (with ``parallel``): the sub-blocks are built while the nadir run computes."""
         if self.parallel:
             self._thread = threading.Thread(target=self._run, daemon=True)
             self._thread.start()
+
+    def __call__(self, r: np.ndarray, c: np.ndarray, xyz: np.ndarray) -> None:
+        with self._cond:
+            self._start = (r, c, xyz)
+            self._cond.notify_all()
 
     def _run(self) -> None:
         try:
             if self.before is not None:
                 self.before.join()
-            self._set_up()
-            self._work()
+            subs = self._build()
+            with self._cond:
+                while self._start is None and not self._discarded:
+                    self._cond.wait()
+            if not self._discarded:
+                self._set_up(subs)
+                self._work()
         except BaseException as e:  # noqa: BLE001 - handed to the caller in ready()
             self._error = e
         finally:
@@ -393,13 +423,13 @@ class _EarlyStart:
     def ready(self) -> Iterator[tuple[str, tuple, np.ndarray]]:
         """The early starts as they are done: view, (image ids, tracks ``(p,)``, ``r (k, 3, 3)``, ``c (k, 3)``,
         points ``(p, 3)``, sigma0), and the start points ``(n, 3)`` of all tracks. Raises what the computation
-        raised. Nothing without an early start."""
-        if self._start is None:
-            return
-        if self._thread is None and self._todo is None:
-            self._set_up()
+        raised. Nothing without an early start (the nadir run had no robust round)."""
         given: set[str] = set()
         try:
+            if self._start is None:
+                return
+            if self._thread is None and self._todo is None:
+                self._set_up(self._build())
             while True:
                 with self._cond:
                     while True:
@@ -418,33 +448,38 @@ class _EarlyStart:
                     given.add(v)
                     yield v, self._outs[v], self._xyz_start
         finally:
-            if self._thread is not None:
-                self.discard()
+            self.discard()
 
     def discard(self) -> None:
         """Let a running early start end after the sub-block it is on and drop what it has not started (the nadir
         run failed or was cancelled, or the caller has what it needs)."""
         if self._thread is not None:
             with self._cond:
+                self._discarded = True
                 self._todo = []
+                self._cond.notify_all()
             self._thread.join()
 
-    def _set_up(self) -> None:
-        """The start orientations and points, the sub-blocks (the largest first)."""
+    def _build(self) -> list[tuple[str, SubProblem]]:
+        """The sub-blocks (the largest first) from the navigation data and ``xyz0``."""
+        return [(v, build_problem(self.block, self.ties, self.views[v], self.xyz0, obs_mask=self.in_runs[v],
+                                  use_control=False)) for v in _largest_first(self.in_runs)]
+
+    def _set_up(self, subs: list[tuple[str, SubProblem]]) -> None:
+        """The start orientations and points; the sub-blocks restarted from them. The start points are finite where
+        ``xyz0`` is (the nadir run's tracks are a subset of those), so the sub-blocks keep their observations."""
         r, c, xyz = self._start
-        block, ties = self.block, self.ties
         prob_n = self.nadir_problem.problem
-        start = nadir_propagation(block, {iid: Pose(r[k], c[k]) for k, iid in enumerate(prob_n.image_ids)})
+        start = nadir_propagation(self.block, {iid: Pose(r[k], c[k]) for k, iid in enumerate(prob_n.image_ids)})
         xyz_start = self.xyz0.copy()
         xyz_start[self.nadir_problem.track_index] = np.where(np.isfinite(xyz[:, :1]), xyz,
                                                              xyz_start[self.nadir_problem.track_index])
-        views = _largest_first(self.in_runs)
-        subs = [(v, build_problem(block, ties, self.views[v], xyz_start, obs_mask=self.in_runs[v],
-                                  use_control=False, initial=start)) for v in views]
+        subs = [(v, restarted(sub, self.block, start, xyz_start)) for v, sub in subs]
         with self._cond:
             self._xyz_start = xyz_start
-            if self._todo is None:  # (not discarded meanwhile)
+            if self._todo is None and not self._discarded:
                 self._todo = subs
+            self._cond.notify_all()
 
     def _work(self) -> None:
         """Resect the sub-blocks not started yet, one after the other (the thread)."""
@@ -540,9 +575,14 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     early = _EarlyStart(block, ties, views, {v: in_view if kept is None else in_view & kept[ties.obs_track]
                                              for v, (_, in_view, _, kept) in pre_views.items()},
                         sub_n, xyz0, opt, parallel, warm)
+    if pre_views:
+        early.begin()
+    # with workers the nadir run's solver is freed once they have the oblique runs (items below), not before
+    nadir_keep: list | None = [] if parallel else None
     try:
         res_n = adjust(sub_n.problem, opt, None if progress is None else
-                       (lambda d, t, m: progress(d, t * 2, "nadir: " + m)), on_robust=early if pre_views else None)
+                       (lambda d, t, m: progress(d, t * 2, "nadir: " + m)), on_robust=early if pre_views else None,
+                       keep=nadir_keep)
     except BaseException:
         early.discard()
         raise
@@ -583,7 +623,7 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
         threads = max(1, opt.threads // min(len(per_view), max(1, int(getattr(executor, "workers", 1)))))
 
     def item(v: str, ids: list[str], sel: np.ndarray, in_run: np.ndarray, pre: tuple | None,
-             xyz_pre: np.ndarray) -> tuple[str, SubProblem, BundleOptions]:
+             xyz_pre: np.ndarray) -> tuple[str, SubProblem, BundleOptions, bool]:
         prior_xyz = np.where(sel[:, None], xyz_nadir, np.nan)
         prior_cov = np.where(sel[:, None, None], cov_nadir * connection_sigma_scale**2, np.nan)
         opt_v = replace(opt, datum_shift=not oblique_control and opt.datum_shift, screen_start=True,
@@ -603,19 +643,23 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
                             point_prior_xyz=prior_xyz, point_prior_cov=prior_cov, prior_shift=res_n.datum_shift,
                             initial=initial, prior_offsets=offsets)
         conn_counts[v], conn_masks[v], subs[v] = int(sel.sum()), sel, sub
-        return v, sub, opt_v
+        return v, sub, opt_v, parallel
 
     by_view = {v: (ids, sel, in_run) for v, ids, sel, in_run in per_view}
 
-    def items() -> Iterator[tuple[str, SubProblem, BundleOptions]]:
+    def items() -> Iterator[tuple[str, SubProblem, BundleOptions, bool]]:
         made = set()
         for v, pre, xyz_pre in early.ready():
             made.add(v)
             yield item(v, *by_view[v], pre, xyz_pre)
         for v in _largest_first({v: by_view[v][2] for v in by_view if v not in made}):
             yield item(v, *by_view[v], None, xyz0)
+        # the workers have every run: the nadir run's solver goes, and what it and the set-up freed goes back to the
+        # system before the intersection
+        if nadir_keep is not None:
+            nadir_keep.clear()
+        release_heap()
 
-    release_heap()  # what the nadir run and the set-up freed, before the oblique runs and the intersection
     if warm is not None:
         warm.join()
     done_cb = None if progress is None else (lambda d, t: progress(t + d, 2 * t, f"oblique blocks {d}/{t}"))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -161,10 +161,7 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
     shift = np.zeros(3) if prior_shift is None else np.asarray(prior_shift)
     for k, iid in enumerate(image_ids):
         img = block.images[iid]
-        start = (initial or {}).get(iid) or img.pose_approx
-        if start is None:
-            raise InputError(f"image '{iid}' has no approximate orientation: aerial triangulation needs one "
-                             "(GNSS/IMU or imported exterior orientation)", field="pose")
+        start = start_pose(block, iid, initial)
         r0[k], c0[k] = start.R, start.C
         if img.pose_approx is not None:
             pr[k], pc[k] = img.pose_approx.R, img.pose_approx.C + shift - (prior_offsets or {}).get(iid, 0.0)
@@ -213,6 +210,32 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
             prob.gcp_obs_image = np.array(oi, np.int64)
             prob.gcp_obs_uv = np.array(ouv, np.float64)
     return SubProblem(problem=prob, track_index=tracks, obs_index=obs_index)
+
+
+def start_pose(block: ImageBlock, image_id: str, initial: dict[str, Pose] | None) -> Pose:
+    """The orientation a bundle problem starts image ``image_id`` from: its pose in ``initial``, else its approximate
+    one; raises :class:`~..errors.InputError` when it has neither."""
+    start = (initial or {}).get(image_id) or block.images[image_id].pose_approx
+    if start is None:
+        raise InputError(f"image '{image_id}' has no approximate orientation: aerial triangulation needs one "
+                         "(GNSS/IMU or imported exterior orientation)", field="pose")
+    return start
+
+
+def restarted(sub: SubProblem, block: ImageBlock, initial: dict[str, Pose] | None, xyz_init: np.ndarray
+              ) -> SubProblem:
+    """``sub`` (from :func:`build_problem`) starting from the orientations ``initial`` (as there) and the track
+    coordinates ``xyz_init (n, 3)``, which must be finite for the tracks of ``sub`` (the observations stay those it
+    was built with)."""
+    prob = sub.problem
+    r0 = np.zeros((prob.n_images, 3, 3))
+    c0 = np.zeros((prob.n_images, 3))
+    for k, iid in enumerate(prob.image_ids):
+        start = start_pose(block, iid, initial)
+        r0[k], c0[k] = start.R, start.C
+    return SubProblem(problem=replace(prob, r_cam_from_world=r0, c_world=c0, xyz=xyz_init[sub.track_index]),
+                      track_index=sub.track_index,
+                      obs_index=sub.obs_index)
 
 
 def exposure_heads(block: ImageBlock, image_ids: list[str]

@@ -287,6 +287,23 @@ def test_explicit_schur_solves_as_the_factorisation(sim, xyz0, options):
     assert_same_solution(direct, cg, 0.01)
 
 
+def test_kept_solver_gives_the_same_solution_and_is_freed_by_the_caller(sim, xyz0, options):
+    """With ``keep`` the solver's problem and reconstruction outlive the adjustment (the caller frees them after
+    handing the result on): the same solution as without, and nothing of it held once the list is cleared."""
+    import weakref
+
+    sub = build_problem(sim.block, sim.ties, sim.block.images_by_view()["nadir"], xyz0)
+    freed = adjust(sub.problem, options)
+    keep: list = []
+    kept = adjust(sub.problem, options, keep=keep)
+    assert len(keep) == 2 and hasattr(keep[0], "problem")
+    assert kept.iterations == freed.iterations
+    assert_same_solution(freed, kept, 0.001)
+    refs = [weakref.ref(x) for x in keep]
+    keep.clear()
+    assert all(r() is None for r in refs)
+
+
 @pytest.mark.parametrize("solver", ["sparse_schur", "explicit_schur"])
 def test_settle_stop_ends_where_ceres_ends(sim, xyz0, options, solver):
     """A least-squares round that stops after the step its quadratic model foretold (BundleOptions.settle_stop)

@@ -19,11 +19,12 @@ from oblique_city.core.aerotri.hierarchical import (
     weak_tracks,
 )
 from oblique_city.core.aerotri.precision import point_jacobians
-from oblique_city.core.aerotri.problem import build_problem
+from oblique_city.core.aerotri.problem import build_problem, restarted
 from oblique_city.core.aerotri.report import reliability, tie_point_shifts, track_residual_rms
 from oblique_city.core.aerotri.strips import flight_strips
 from oblique_city.core.evaluate.aerotri import blunder_scores, check_point_errors, rms_xy_z
 from oblique_city.core.geometry.rotations import rotation_angle
+from oblique_city.core.model import Pose
 from oblique_city.core.pipeline import Executor
 
 pytestmark = pytest.mark.xdist_group("aerotri_sim")  # one worker builds the shared simulated block
@@ -139,6 +140,24 @@ def test_hat_early_start_shares_its_sub_blocks_with_the_caller(sim, xyz0, option
     assert np.sum(counts[0] != counts[1]) <= 0.005 * np.sum(counts[1] > 0)
 
 
+def test_restarted_sub_block_equals_the_one_built_from_the_new_start(sim, xyz0):
+    """The early start builds the oblique sub-blocks from the navigation data while the nadir run computes and
+    restarts them from its robust round: the same problem as one built from that start (start values finite where
+    ``xyz0`` is)."""
+    ids = sim.block.images_by_view()["north"]
+    rng = np.random.default_rng(5)
+    start = {i: Pose(sim.block.images[i].pose_approx.R, sim.block.images[i].pose_approx.C + rng.normal(0.0, 0.1, 3))
+             for i in ids}
+    xyz = xyz0 + rng.normal(0.0, 0.5, xyz0.shape)
+    direct = build_problem(sim.block, sim.ties, ids, xyz, use_control=False, initial=start)
+    again = restarted(build_problem(sim.block, sim.ties, ids, xyz0, use_control=False), sim.block, start, xyz)
+    np.testing.assert_array_equal(again.obs_index, direct.obs_index)
+    np.testing.assert_array_equal(again.track_index, direct.track_index)
+    for name in ("r_cam_from_world", "c_world", "xyz", "obs_point", "obs_image", "obs_uv", "prior_c", "prior_r"):
+        np.testing.assert_array_equal(getattr(again.problem, name), getattr(direct.problem, name))
+    assert not np.array_equal(again.problem.c_world, build_problem(sim.block, sim.ties, ids, xyz0).problem.c_world)
+
+
 def test_hat_early_start_agrees_with_the_start_from_the_final_nadir_run(sim, xyz0, options, monkeypatch):
     """The oblique runs moved to their inliers from the nadir run's robust round (while the nadir run goes on) end
     where the start from the final nadir run leads (the previous computation, without the adjust hook): the same
@@ -148,8 +167,8 @@ def test_hat_early_start_agrees_with_the_start_from_the_final_nadir_run(sim, xyz
 
     early = hierarchical(sim.block, sim.ties, options, connection="cba", xyz0=xyz0)
     adjust = hat_module.adjust
-    monkeypatch.setattr(hat_module, "adjust", lambda prob, opt, progress=None, on_robust=None:
-                        adjust(prob, opt, progress))
+    monkeypatch.setattr(hat_module, "adjust", lambda prob, opt, progress=None, on_robust=None, keep=None:
+                        adjust(prob, opt, progress, keep=keep))
     final = hierarchical(sim.block, sim.ties, options, connection="cba", xyz0=xyz0)
     # as many rays rejected per track (which of two rays with equal tests goes is a matter of rounding: 1 % of the
     # rejections here, all in tracks whose rejection counts agree)
@@ -345,8 +364,6 @@ def test_prior_effect_is_what_the_adjustment_does(sim, xyz0, options, iat):
     most gets an error of its smallest detectable size in Z, with the prior tests off. Its adjusted centre moves by
     what the report foretold, within 0.8-1.25 times (the model holds the points, which the adjustment moves a
     little along): here 0.52 m of error moves it by 7.3 mm against 7.1 foretold."""
-    from oblique_city.core.model import Pose
-
     res = iat.runs[0].result
     ids = list(sim.block.images)
     k = int(np.nanargmax(res.prior_effect[:, 5]))
@@ -443,8 +460,6 @@ def test_gnss_and_imu_prior_blunders_are_found_and_leave_the_adjustment(sim, xyz
     their method), against 0.035 m with the tests off, and the check points as on the clean block (within 3 % in IAT,
     5 % in HAT)."""
     from oblique_city.core.geometry.rotations import rotvec_to_matrix
-    from oblique_city.core.model import Pose
-
     assert iat.prior_rejections() == set()
     block = copy.deepcopy(sim.block)
     gnss = sorted(i for i in block.images if i.startswith("S02_E008_"))
@@ -497,8 +512,6 @@ def test_gnss_strip_offsets_are_estimated_and_correct_the_orientations(sim, xyz0
     component, which the offsets inflate, the GNSS positions weigh less and the IAT's centres came out at 0.0143 m
     RMS, against 0.0141 m with the offsets modelled."""
     from oblique_city.core.aerotri.report import gnss_strip_check
-    from oblique_city.core.model import Pose
-
     block = copy.deepcopy(sim.block)
     for img in block.images.values():
         img.pose_approx = Pose(img.pose_approx.R, img.pose_approx.C + STRIP_OFFSETS[img.exposure[:3]])
