@@ -586,36 +586,61 @@ def _camera_from_params(cam: CameraModel, p: np.ndarray) -> CameraModel:
 
 def project_obs(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                 xyz: np.ndarray, obs_point: np.ndarray, obs_image: np.ndarray) -> np.ndarray:
-    """Projected pixel positions ``(m, 2)`` of observations (NaN behind the camera)."""
-    w = np.take(xyz, obs_point, 0) - np.take(c, obs_image, 0)
-    xc = (np.take(r, obs_image, 0) @ w[:, :, None])[:, :, 0]
-    return pixels_from_camera(cameras, image_camera, xc, obs_image)
+    """Projected pixel positions ``(m, 2)`` of observations (NaN behind the camera): ``xyz (n, 3)`` seen from the
+    images ``r (k, 3, 3)``, ``c (k, 3)`` through ``obs_point``, ``obs_image (m,)``, in one compiled pass."""
+    out = np.empty((len(obs_image), 2))
+    _project(_pixel_params(cameras), np.asarray(image_camera, np.int64), np.asarray(r, np.float64),
+             np.asarray(c, np.float64), np.asarray(xyz, np.float64), np.asarray(obs_point, np.int64),
+             np.asarray(obs_image, np.int64), out)
+    return out
 
 
 def pixels_from_camera(cameras: list[CameraModel], image_camera: np.ndarray, xyz_cam: np.ndarray,
                        obs_image: np.ndarray) -> np.ndarray:
     """Pixel positions ``(m, 2)`` of points given in the cameras' frames ``xyz_cam (m, 3)`` of the observations'
     images ``obs_image (m,)`` (NaN behind the camera)."""
-    params = np.array([[cm.fx, cm.fy, cm.cx, cm.cy, cm.k1, cm.k2, cm.k3, cm.p1, cm.p2] for cm in cameras], np.float64)
     out = np.empty((len(obs_image), 2))
-    _pixels(params.reshape(-1, 9), np.asarray(image_camera, np.int64), np.asarray(xyz_cam, np.float64),
+    _pixels(_pixel_params(cameras), np.asarray(image_camera, np.int64), np.asarray(xyz_cam, np.float64),
             np.asarray(obs_image, np.int64), out)
     return out
 
 
+def _pixel_params(cameras: list[CameraModel]) -> np.ndarray:
+    """``(k, 9)``: fx, fy, cx, cy, k1, k2, k3, p1, p2 per camera (the distortion of
+    :meth:`.CameraModel.distort_normalized`)."""
+    return np.array([[cm.fx, cm.fy, cm.cx, cm.cy, cm.k1, cm.k2, cm.k3, cm.p1, cm.p2] for cm in cameras],
+                    np.float64).reshape(-1, 9)
+
+
+@njit(cache=True, nogil=True)
+def _pixel(p: np.ndarray, x: float, y: float, z: float, out: np.ndarray) -> None:
+    """``out (2,)``: the pixel of the camera-frame point ``(x, y, z)`` with the camera ``p (9,)`` of
+    :func:`_pixel_params` (NaN behind the camera)."""
+    if not z > 0.0:
+        out[0] = out[1] = np.nan
+        return
+    xd, yd = distort(x / z, y / z, p[4], p[5], p[6], p[7], p[8])
+    out[0] = p[0] * xd + p[2]
+    out[1] = p[1] * yd + p[3]
+
+
 @njit(cache=True, nogil=True)
 def _pixels(params: np.ndarray, image_camera: np.ndarray, xc: np.ndarray, oi: np.ndarray, out: np.ndarray) -> None:
-    """:func:`pixels_from_camera` per observation; ``params (k, 9)``: fx, fy, cx, cy, k1, k2, k3, p1, p2 per camera
-    (the distortion of :meth:`.CameraModel.distort_normalized`)."""
+    """:func:`pixels_from_camera` per observation."""
     for k in range(len(oi)):
-        z = xc[k, 2]
-        if not z > 0.0:
-            out[k, 0] = out[k, 1] = np.nan
-            continue
-        p = params[image_camera[oi[k]]]
-        xd, yd = distort(xc[k, 0] / z, xc[k, 1] / z, p[4], p[5], p[6], p[7], p[8])
-        out[k, 0] = p[0] * xd + p[2]
-        out[k, 1] = p[1] * yd + p[3]
+        _pixel(params[image_camera[oi[k]]], xc[k, 0], xc[k, 1], xc[k, 2], out[k])
+
+
+@njit(cache=True, nogil=True)
+def _project(params: np.ndarray, image_camera: np.ndarray, r: np.ndarray, c: np.ndarray, xyz: np.ndarray,
+             op: np.ndarray, oi: np.ndarray, out: np.ndarray) -> None:
+    """:func:`project_obs` per observation."""
+    for k in range(len(oi)):
+        i, p = oi[k], op[k]
+        w0, w1, w2 = xyz[p, 0] - c[i, 0], xyz[p, 1] - c[i, 1], xyz[p, 2] - c[i, 2]
+        _pixel(params[image_camera[i]], r[i, 0, 0] * w0 + r[i, 0, 1] * w1 + r[i, 0, 2] * w2,
+               r[i, 1, 0] * w0 + r[i, 1, 1] * w1 + r[i, 1, 2] * w2, r[i, 2, 0] * w0 + r[i, 2, 1] * w1 + r[i, 2, 2] * w2,
+               out[k])
 
 
 def _quat_plus_jacobian(q: np.ndarray) -> np.ndarray:

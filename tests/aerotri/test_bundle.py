@@ -15,6 +15,7 @@ from oblique_city.core.aerotri.bundle import (
     adjust,
     detectable_shift,
     prior_tests,
+    project_obs,
     resected_start,
 )
 from oblique_city.core.aerotri.problem import build_problem
@@ -285,6 +286,33 @@ def test_explicit_schur_solves_as_the_factorisation(sim, xyz0, options):
     assert "linear solver explicit_schur" in cg.log
     assert cg.iterations == direct.iterations
     assert_same_solution(direct, cg, 0.01)
+
+
+def test_projection_kernel_equals_the_camera_model():
+    """``project_obs`` (one compiled pass over the observations) gives the camera model's pixels: rotation into the
+    image frame, distortion, calibration; NaN behind the camera."""
+    from oblique_city.core.geometry.rotations import rotvec_to_matrix
+    from oblique_city.core.model import CameraModel
+
+    rng = np.random.default_rng(2)
+    cams = [CameraModel("a", 4000, 3000, 4100.0, 4090.0, 1999.5, 1499.5),
+            CameraModel("b", 4000, 3000, 3900.0, 3910.0, 2010.0, 1490.0).with_distortion(-0.05, 0.01, -0.002, 1e-4,
+                                                                                         -2e-4)]
+    k, n, m = 4, 200, 1000
+    image_camera = np.array([0, 1, 1, 0])
+    r = np.array([rotvec_to_matrix(v) for v in rng.normal(0.0, 0.3, (k, 3))])
+    c = rng.normal(0.0, 20.0, (k, 3)) - [0.0, 0.0, 30.0]
+    xyz = rng.normal(0.0, 30.0, (n, 3))
+    op, oi = rng.integers(0, n, m), rng.integers(0, k, m)
+    got = project_obs(cams, image_camera, r, c, xyz, op, oi)
+    xc = np.einsum("mij,mj->mi", r[oi], xyz[op] - c[oi])
+    front = xc[:, 2] > 0
+    assert 0.2 < front.mean() < 0.95
+    want = np.full((m, 2), np.nan)
+    for j in range(m):
+        if front[j]:
+            want[j] = cams[image_camera[oi[j]]].normalized_to_pixel(xc[j:j + 1, :2] / xc[j, 2])[0]
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
 
 
 def test_kept_solver_gives_the_same_solution_and_is_freed_by_the_caller(sim, xyz0, options):
