@@ -43,6 +43,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections import Counter
@@ -66,6 +67,7 @@ from .bundle import (
     refine_points,
     release_heap,
     resected_start,
+    reserve_heap,
     screen_points,
 )
 from .precision import point_jacobians, point_normals, safe_inverse
@@ -300,16 +302,36 @@ def select_connections(xyz: np.ndarray, candidate: np.ndarray, rays: np.ndarray,
     return out
 
 
-def _warm_up(hold_s: float) -> None:
-    """Executor unit run once per worker while the nadir run computes: imports the solver (a second or two per
-    process), loads the compiled kernels of the statistics (numba's start, 0.2 s, on a first call) and holds the
-    worker for ``hold_s`` so that the pool spreads these units over all its workers."""
+HEAP_BYTES_PER_OBSERVATION = 1200
+"""Heap an oblique run takes per observation (the 3,000-image block: 0.55-0.6 GB for 548,000, beside its
+sub-block), which the workers map while the nadir run computes (:func:`.bundle.reserve_heap`)."""
+
+
+def _warm_up(item: tuple[float, int]) -> None:
+    """Executor unit run once per worker while the nadir run computes, ``(hold_s, heap_bytes)``: imports the solver
+    (a second or two per process), loads the compiled kernels of the statistics (numba's start, 0.2 s, on a first
+    call), maps ``heap_bytes`` of heap for the oblique runs (:func:`.bundle.reserve_heap`) and holds the worker
+    until ``hold_s`` have passed so that the pool spreads these units over all its workers."""
+    t0 = time.perf_counter()
+    hold_s, heap_bytes = item
     import pyceres  # noqa: F401
     import pycolmap  # noqa: F401
 
     point_normals(np.zeros((1, 2, 3)), np.ones(1), np.zeros(1, np.int64), 1)
+    if heap_bytes > 0:
+        reserve_heap(heap_bytes)
+    time.sleep(max(0.0, hold_s - (time.perf_counter() - t0)))
 
-    time.sleep(hold_s)
+
+def _worker_heap(largest_run_obs: int, workers: int) -> int:
+    """Bytes of heap each worker maps for the oblique runs: :data:`HEAP_BYTES_PER_OBSERVATION` per observation of
+    the largest run, at most an eighth of the machine's memory shared by the workers (the nadir run still holds its
+    own)."""
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):  # no sysconf (Windows)
+        return 0
+    return int(min(HEAP_BYTES_PER_OBSERVATION * largest_run_obs, memory / (8 * max(1, workers))))
 
 
 RELEASE_DELAY_S = 0.05
@@ -545,19 +567,21 @@ def hierarchical(block: ImageBlock, ties: TiePoints, opt: BundleOptions, connect
     nadir_ids = views.get("nadir", [])
     if not nadir_ids:
         raise ConfigError("hierarchical AT needs nadir images (none found by viewing direction)")
-    # the worker processes start and import the solver while the nadir run computes
-    parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
-    warm = None
-    if parallel:
-        workers = max(1, int(getattr(executor, "workers", 1)))
-        warm = threading.Thread(target=executor.map, args=(_warm_up, [0.5] * workers), daemon=True)
-        warm.start()
     # (1) nadir sub-block with the datum
     t1 = time.perf_counter()
     # views as small integer codes (comparing millions of strings per view is slow): 0 nadir, 1.. obliques
     codes = {v: k for k, v in enumerate(("nadir", *OBLIQUE_VIEWS))}
     code_of_image = {iid: codes[v] for v, ids in views.items() if v in codes for iid in ids}
     view_of_obs = np.array([code_of_image.get(i, -1) for i in ties.image_ids], np.int8)[ties.obs_image]
+    # the worker processes start, import the solver and map heap for the oblique runs while the nadir run computes
+    parallel = executor is not None and getattr(executor, "mode", "inline") != "inline"
+    warm = None
+    if parallel:
+        workers = max(1, int(getattr(executor, "workers", 1)))
+        heap = _worker_heap(int(np.bincount(view_of_obs[view_of_obs > 0]).max(initial=0)), workers)
+        # (a generator: a list of one unit would run in this process)
+        warm = threading.Thread(target=executor.map, args=(_warm_up, iter([(0.5, heap)] * workers)), daemon=True)
+        warm.start()
     strips = _strips(block, opt)
     sub_n = build_problem(block, ties, nadir_ids, xyz0, obs_mask=view_of_obs == 0, strips=strips)
     n = ties.n_tracks

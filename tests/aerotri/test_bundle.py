@@ -315,6 +315,31 @@ def test_projection_kernel_equals_the_camera_model():
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
 
 
+def test_reserved_heap_takes_the_next_allocations_without_page_faults():
+    """After ``reserve_heap`` (in a fresh process: it sets the allocator's thresholds for good) the same amount
+    allocated and written again in arrays of 8 MB takes under a tenth of the page faults it takes without the
+    reserve (a control process)."""
+    import subprocess
+    import sys
+
+    code = """
+import resource, sys, numpy as np
+from oblique_city.core.aerotri.bundle import reserve_heap
+n = 256 * 2**20
+ok = reserve_heap(n) if sys.argv[1] == "1" else True
+f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+a = [np.ones(2**20) for _ in range(n // 2**23)]
+print(ok, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0, n // 4096)
+"""
+    out = {}
+    for mode in ("0", "1"):
+        res = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True, check=True)
+        ok, faults, pages = res.stdout.split()
+        assert ok == "True"
+        out[mode] = (int(faults), int(pages))
+    assert out["1"][0] < 0.1 * out["0"][0]
+
+
 def test_kept_solver_gives_the_same_solution_and_is_freed_by_the_caller(sim, xyz0, options):
     """With ``keep`` the solver's problem and reconstruction outlive the adjustment (the caller frees them after
     handing the result on): the same solution as without, and nothing of it held once the list is cleared."""
