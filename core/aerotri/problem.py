@@ -152,17 +152,14 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
     obs_point = (np.cumsum(seen) - 1)[ties.obs_track[obs_index]]
     n = len(image_ids)
     cams = list(block.cameras)
-    r0 = np.zeros((n, 3, 3))
-    c0 = np.zeros((n, 3))
     pr = np.zeros((n, 3, 3))
     pc = np.full((n, 3), np.nan)
     s_att = np.full((n, 3), np.nan)
     s_pos = np.full((n, 3), np.nan)
     shift = np.zeros(3) if prior_shift is None else np.asarray(prior_shift)
+    r0, c0 = start_poses(block, image_ids, initial)
     for k, iid in enumerate(image_ids):
         img = block.images[iid]
-        start = start_pose(block, iid, initial)
-        r0[k], c0[k] = start.R, start.C
         if img.pose_approx is not None:
             pr[k], pc[k] = img.pose_approx.R, img.pose_approx.C + shift - (prior_offsets or {}).get(iid, 0.0)
             if img.sigma_position is not None and img.sigma_attitude is not None:
@@ -212,14 +209,20 @@ def build_problem(block: ImageBlock, ties: TiePoints, image_ids: list[str], xyz_
     return SubProblem(problem=prob, track_index=tracks, obs_index=obs_index)
 
 
-def start_pose(block: ImageBlock, image_id: str, initial: dict[str, Pose] | None) -> Pose:
-    """The orientation a bundle problem starts image ``image_id`` from: its pose in ``initial``, else its approximate
-    one; raises :class:`~..errors.InputError` when it has neither."""
-    start = (initial or {}).get(image_id) or block.images[image_id].pose_approx
-    if start is None:
-        raise InputError(f"image '{image_id}' has no approximate orientation: aerial triangulation needs one "
-                         "(GNSS/IMU or imported exterior orientation)", field="pose")
-    return start
+def start_poses(block: ImageBlock, image_ids: list[str], initial: dict[str, Pose] | None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The orientations a bundle problem starts the images ``image_ids`` from, ``r (k, 3, 3)``, ``c (k, 3)``: their
+    poses in ``initial``, else their approximate ones; raises :class:`~..errors.InputError` for an image with
+    neither."""
+    r0 = np.zeros((len(image_ids), 3, 3))
+    c0 = np.zeros((len(image_ids), 3))
+    for k, iid in enumerate(image_ids):
+        start = (initial or {}).get(iid) or block.images[iid].pose_approx
+        if start is None:
+            raise InputError(f"image '{iid}' has no approximate orientation: aerial triangulation needs one "
+                             "(GNSS/IMU or imported exterior orientation)", field="pose")
+        r0[k], c0[k] = start.R, start.C
+    return r0, c0
 
 
 def restarted(sub: SubProblem, block: ImageBlock, initial: dict[str, Pose] | None, xyz_init: np.ndarray
@@ -227,15 +230,8 @@ def restarted(sub: SubProblem, block: ImageBlock, initial: dict[str, Pose] | Non
     """``sub`` (from :func:`build_problem`) starting from the orientations ``initial`` (as there) and the track
     coordinates ``xyz_init (n, 3)``, which must be finite for the tracks of ``sub`` (the observations stay those it
     was built with)."""
-    prob = sub.problem
-    r0 = np.zeros((prob.n_images, 3, 3))
-    c0 = np.zeros((prob.n_images, 3))
-    for k, iid in enumerate(prob.image_ids):
-        start = start_pose(block, iid, initial)
-        r0[k], c0[k] = start.R, start.C
-    return SubProblem(problem=replace(prob, r_cam_from_world=r0, c_world=c0, xyz=xyz_init[sub.track_index]),
-                      track_index=sub.track_index,
-                      obs_index=sub.obs_index)
+    r0, c0 = start_poses(block, sub.problem.image_ids, initial)
+    return replace(sub, problem=replace(sub.problem, r_cam_from_world=r0, c_world=c0, xyz=xyz_init[sub.track_index]))
 
 
 def exposure_heads(block: ImageBlock, image_ids: list[str]
