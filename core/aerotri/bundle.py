@@ -1757,8 +1757,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
         release = None
         if (prior_bad and rnd > 0 and not gcp_bad and not model.mount and not model.strip_blocks
                 and not opt.self_calibration and int(rd.adjusted.sum()) > opt.marginal_max_images
-                and np.all(np.bincount(group)[group[bad_p.any(1)]] == 1)
-                and np.array_equal(shared_prior_fraction(group, prior_ok[:, None] & ~prior_off), prior_frac)):
+                and np.all(np.bincount(group)[group[bad_p.any(1)]] == 1)):
             release = prior_release(att_v, pos_v, prob.prior_sigma_att, prob.prior_sigma_pos, n_ties, in_use_p,
                                     bad_p, prior_frac, group)
             if release is not None:
@@ -1773,9 +1772,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
             touched[prob.obs_point[bad]] = True
             if release is not None:
                 moved = np.flatnonzero(np.any(release[0] != 0.0, axis=1))
-                for k in moved:
-                    r[k] = r[k] @ rotvec_to_matrix(release[0][k, :3])
-                    c[k] = c[k] + release[0][k, 3:]
+                move_images(r, c, release[0], moved)
                 touched[prob.obs_point[active & np.isin(prob.obs_image, moved)]] = True
                 redundancy -= 3 * int(bad_p.sum())
             counts = np.bincount(prob.obs_point[active], minlength=prob.n_points)
@@ -2576,10 +2573,17 @@ def resect_images(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     q = precision.safe_inverse(precision.image_normals(jp, jr, np.ones(len(oi)), oi, n))
     step = np.einsum("kij,kj->ki", q, precision.row_sums(precision.image_rows(jp, jr), v, oi, n))
     r, c = r.copy(), c.copy()
-    for k in np.flatnonzero(np.all(np.isfinite(step), 1)):
-        r[k] = r[k] @ rotvec_to_matrix(step[k, :3])
-        c[k] = c[k] + step[k, 3:]
+    move_images(r, c, step, np.flatnonzero(np.all(np.isfinite(step), 1)))
     return r, c
+
+
+def move_images(r: np.ndarray, c: np.ndarray, step: np.ndarray, images: np.ndarray) -> None:
+    """Move the ``images (k,) int64`` of ``r (n, 3, 3)`` (camera from world) and ``c (n, 3)``, in place, by their
+    steps ``step (n, 6)``: a rotation about the world axes (rotation vector) and a shift of the centre, the
+    parameters of the images' 6 x 6 normal blocks here (:func:`resect_images`, :func:`prior_release`)."""
+    for k in images:
+        r[k] = r[k] @ rotvec_to_matrix(step[k, :3])
+    c[images] += step[images, 3:]
 
 
 def worst_per_track(w: np.ndarray, obs_point: np.ndarray, active: np.ndarray, threshold: float) -> np.ndarray:

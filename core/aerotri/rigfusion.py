@@ -48,11 +48,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from ..geometry.rotations import rotation_angle, rotvec_to_matrix
+from ..geometry.rotations import rotation_angle
 from ..model.block import ImageBlock
 from ..model.camera import CameraModel
 from . import precision
-from .bundle import image_focals, pixels_from_camera, project_obs, shared_prior_fraction
+from .bundle import image_focals, move_images, pixels_from_camera, project_obs, shared_prior_fraction
 from .problem import exposure_heads
 
 CHUNK = 200_000
@@ -301,9 +301,7 @@ def fuse_on_rig(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndar
         step_pt = np.einsum("kij,kj->ki", q_pt, g_pt)
         ok = move & np.all(np.isfinite(step_pt), 1)
         xyz[ok] += step_pt[ok]
-        for k in bodies:
-            r[k] = r[k] @ rotvec_to_matrix(step_body[k, :3])
-        c[bodies] += step_body[bodies, 3:]
+        move_images(r, c, step_body, bodies)
         placed_r, placed_c = place_heads(r, c, ref, rel_r, rel_b)
         r[fused], c[fused] = placed_r[fused], placed_c[fused]
         if last < SETTLED:
