@@ -494,6 +494,10 @@ def test_screened_start_tests_blunders_without_a_robust_solve(sim, xyz0, options
     assert np.max(ang) < std_deg and np.max(dc) < std_m
     nav = adjust(build_problem(sim.block, sim.ties, ids, xyz0).problem, opt)
     assert "robust round" in nav.log[0] and any("cauchy" in line for line in nav.log)
+    # the robust round's tests divide by the robust sigma0 (the median normalised residual), its log gives it: that
+    # of the noise, the blunders in the solution notwithstanding
+    robust = [line for line in nav.log if line.startswith("round 0: cauchy")]
+    assert len(robust) == 1 and abs(float(robust[0].split("robust sigma0 ")[1].split(" ")[0]) - 1.0) < 0.1
 
 
 def test_screen_points_sigma0_ignores_blunders_and_tests_single_rays_with_a_ground_observation(sim, options):
