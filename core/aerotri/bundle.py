@@ -1698,7 +1698,7 @@ def _adjust_pass(prob: BundleProblem, opt: BundleOptions, progress: Callable[[in
         q_point, q_image, red, n_ties = _precision(prob, opt, r, c, xyz, cams, active, prior_off, prior_frac)
         vv = np.sum(v**2, axis=1)
         t_unscaled = vv / (opt.sigma_px**2 * red)
-        robust_s0 = float(np.sqrt(np.nanmedian(t_unscaled[active]) / (2 * np.log(2)))) if active.any() else 1.0
+        robust_s0 = robust_sigma0(t_unscaled[active])
         s0_test = robust_s0 if rnd == 0 else sigma0
         w = np.sqrt(t_unscaled) / max(s0_test, 1e-9)
         lap("statistics_s")
@@ -2103,6 +2103,13 @@ def refine_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
     return xyz
 
 
+def robust_sigma0(t: np.ndarray) -> float:
+    """sigma0 from the median of ``t (m,)``, the squared normalised residuals of 2-D measurements for unit sigma0
+    (chi-square with 2 degrees of freedom, whose median is 2 ln 2), blunders notwithstanding; NaN ignored, 1 for
+    none."""
+    return float(np.sqrt(np.nanmedian(t) / (2 * np.log(2)))) if len(t) else 1.0
+
+
 def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.ndarray, c: np.ndarray,
                   op_all: np.ndarray, oi_all: np.ndarray, uv_all: np.ndarray, xyz_start: np.ndarray, sigma_px: float,
                   sigma0: float | None, threshold: float, max_rounds: int, reject_undetermined: bool = True,
@@ -2161,7 +2168,7 @@ def screen_points(cameras: list[CameraModel], image_camera: np.ndarray, r: np.nd
         if robust:
             # from every ray still in use, each with its point's latest step
             t_use = t_all[use & np.isfinite(t_all)]
-            s0 = float(np.sqrt(np.median(t_use) / (2 * np.log(2)))) if len(t_use) else 1.0
+            s0 = robust_sigma0(t_use)
         w = np.where(use, np.sqrt(t_all) / max(s0, 1e-9), np.nan)
         x[pts[solved]] = x_pts[solved] + step[solved]
         xyz[pts] = np.where(solved[:, None], x[pts], np.nan)
